@@ -1,0 +1,213 @@
+"""The paper's experiments, as functions returning arrays (the CLI writes CSV/PNG from them).
+
+* :func:`run_compression`: unconstrained compression of the spherical test sample between two rigid,
+  frictionless plates at constant rates (the paper's Fig. 3 and 5).
+* :func:`run_grasp`: the spleen grasp protocol (Fig. 9): jaws close for 5 s, hold for 7 s, then the
+  grasper pulls away from the anchors until the grasp is lost or a time limit.
+* :func:`run_sphere_grasp`: the sample grasped with an increasing pinch (Fig. 7).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .config import ConfigError, atomic_write, check_range, from_dict, read_yaml
+from .mesh import TetMesh, build_mesh
+from .simulation import Plate, Simulation
+from .tissue import TissueModel, TissueParams
+
+ProgressFactory = Callable[[int, str], object] | None
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="ms", mininterval=0.5, leave=False)
+
+
+# =================================================================================================
+# compression
+# =================================================================================================
+
+
+@dataclass(frozen=True)
+class CompressionConfig:
+    """Unconstrained compression of the sphere between two rigid plates (bottom fixed, top moving down)."""
+
+    rates_mm_per_min: tuple[float, ...] = (6.0, 60.0)
+    #: final plate travel as a fraction of the sphere diameter
+    deformation_fraction: float = 0.30
+    #: force samples recorded per curve
+    samples: int = 150
+    #: plate/sample friction (0 = lubricated plates, the usual unconstrained test)
+    plate_mu: float = 0.0
+    #: include gravity (the sample's weight is negligible against the test forces)
+    gravity: bool = False
+    dt_s: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if len(self.rates_mm_per_min) == 0:
+            raise ConfigError("rates_mm_per_min must list at least one rate")
+        for k, r in enumerate(self.rates_mm_per_min):
+            check_range(f"rates_mm_per_min[{k}]", r, 0.0, 6000.0, lo_inclusive=False)
+        check_range("deformation_fraction", self.deformation_fraction, 0.0, 0.6, lo_inclusive=False)
+        if not isinstance(self.samples, int) or self.samples < 2:
+            raise ConfigError(f"samples must be an integer >= 2, got {self.samples!r}")
+        check_range("plate_mu", self.plate_mu, 0.0, None)
+        check_range("dt_s", self.dt_s, 0.0, 0.01, lo_inclusive=False)
+
+
+@dataclass
+class CompressionCurve:
+    rate_mm_per_min: float
+    time_s: np.ndarray
+    deformation_mm: np.ndarray
+    force_N: np.ndarray
+
+
+def compression_model(mesh: TetMesh, params: TissueParams, gravity: bool = False) -> TissueModel:
+    if not gravity:
+        params = from_dict(TissueParams, {**params.__dict__, "gravity_m_per_s2": (0.0, 0.0, 0.0)})
+    return TissueModel.from_params(mesh, params)
+
+
+def run_compression(
+    mesh: TetMesh,
+    params: TissueParams,
+    config: CompressionConfig = CompressionConfig(),
+    *,
+    progress: bool = False,
+    substeps: int | str = "auto",
+) -> list[CompressionCurve]:
+    """Compress the sample at each rate; force = normal force of the moving (top) plate, N.
+
+    Each rate is one tissue of a batch: all rates step together in one kernel call; a tissue whose
+    plate reached the final deformation simply stops being recorded.
+    """
+    model = compression_model(mesh, params, config.gravity)
+    z = mesh.nodes[:, 2]
+    zmin, zmax = float(z.min()), float(z.max())
+    height = zmax - zmin
+    rates = np.asarray(config.rates_mm_per_min, dtype=np.float64)
+    speeds = rates * 1e-3 / 60.0  # m/s
+    B = len(rates)
+    plates = [
+        Plate(point=(0.0, 0.0, zmin), normal=(0.0, 0.0, 1.0), mu=config.plate_mu),
+        Plate(point=(0.0, 0.0, zmax), normal=(0.0, 0.0, -1.0), mu=config.plate_mu),
+    ]
+    sim = Simulation(model, B, dt=config.dt_s, substeps=substeps, plates=plates)
+    sim.pl_vel[:, 1, 2] = -speeds
+    final = config.deformation_fraction * height
+    durations = final / speeds
+    n_total = int(math.ceil(durations.max() / config.dt_s))
+    sample_every = np.maximum(1, np.round(durations / config.dt_s / config.samples).astype(int))
+    chunk = int(np.min(sample_every))
+    sample_every = chunk * np.maximum(1, np.round(sample_every / chunk).astype(int))
+    records: list[list[tuple[float, float, float]]] = [[(0.0, 0.0, 0.0)] for _ in range(B)]
+    bar = _progress(n_total, "compress", progress)
+    steps = 0
+    while steps < n_total:
+        todo = min(chunk, n_total - steps)
+        sim.step(todo)
+        steps += todo
+        if bar is not None:
+            bar.update(todo)
+        for b in range(B):
+            defl = -(sim.pl_point[b, 1, 2] - zmax)
+            if defl > final + 1e-12:
+                continue
+            if steps % sample_every[b] == 0 or abs(defl - final) < 0.5 * speeds[b] * config.dt_s:
+                force = float(-sim.plate_out[b, 1, 2])  # top plate pushes the sample down (-z)
+                records[b].append((float(sim.t[b]), defl * 1e3, force))
+        # rates already finished: stop their plates (keeps their state from mattering)
+        done = -(sim.pl_point[:, 1, 2] - zmax) >= final
+        sim.pl_vel[done, 1, 2] = 0.0
+    if bar is not None:
+        bar.close()
+    if not np.all(sim.finite()):
+        raise FloatingPointError("compression simulation became non-finite (unstable parameters?)")
+    curves = []
+    for b in range(B):
+        arr = np.array(records[b])
+        curves.append(CompressionCurve(float(rates[b]), arr[:, 0], arr[:, 1], arr[:, 2]))
+    return curves
+
+
+def write_compression_csv(curves: Sequence[CompressionCurve], path: str | Path) -> Path:
+    lines = ["rate_mm_per_min,time_s,deformation_mm,force_N"]
+    for c in curves:
+        for t, d, f in zip(c.time_s, c.deformation_mm, c.force_N):
+            lines.append(f"{c.rate_mm_per_min:g},{t:.6f},{d:.6f},{f:.6f}")
+    return atomic_write(path, lambda p: p.write_text("\n".join(lines) + "\n"))
+
+
+def read_compression_csv(path: str | Path) -> list[CompressionCurve]:
+    """Read curves written by :func:`write_compression_csv` (or measured data in the same columns)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"data file not found: {path}")
+    header = path.read_text().splitlines()[:1]
+    need = ["rate_mm_per_min", "deformation_mm", "force_N"]
+    cols = [h.strip() for h in header[0].split(",")] if header else []
+    missing = [c for c in need if c not in cols]
+    if missing:
+        raise ConfigError(f"{path}: missing column(s) {missing}; the header must contain {need} (time_s optional)")
+    try:
+        data = np.genfromtxt(path, delimiter=",", names=True, dtype=float)
+    except ValueError as exc:
+        raise ConfigError(f"{path}: cannot parse numbers: {exc}") from None
+    data = np.atleast_1d(data)
+    for c in need:
+        if not np.all(np.isfinite(data[c])):
+            raise ConfigError(f"{path}: column {c} has empty or non-numeric values")
+    curves = []
+    for rate in np.unique(data["rate_mm_per_min"]):
+        sel = data[data["rate_mm_per_min"] == rate]
+        if rate <= 0:
+            raise ConfigError(f"{path}: rate_mm_per_min must be > 0, got {rate}")
+        t = sel["time_s"] if "time_s" in cols else sel["deformation_mm"] / (rate / 60.0)
+        curves.append(CompressionCurve(float(rate), t, sel["deformation_mm"], sel["force_N"]))
+    return curves
+
+
+def plot_compression(curves: Sequence[CompressionCurve], path: str | Path, title: str = "") -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    for c in curves:
+        ax.plot(c.deformation_mm, c.force_N, label=f"{c.rate_mm_per_min:g} mm/min")
+    ax.set_xlabel("deformation (mm)")
+    ax.set_ylabel("force (N)")
+    ax.set_title(title or "Unconstrained compression of the test sample")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, dpi=120))
+    plt.close(fig)
+    return out
+
+
+def load_tissue_params(path: str | Path) -> TissueParams:
+    """A tissue config file (YAML) -> TissueParams; keys under ``tissue:`` or at the top level."""
+    data = read_yaml(path)
+    section = data.get("tissue", data)
+    return from_dict(TissueParams, section, where=f"{Path(path).name}:tissue")
+
+
+def tissue_mesh_from_config(path: str | Path) -> TetMesh:
+    """The ``mesh:`` section of a tissue config: {shape: sphere|spleen|FILE, resolution, ...sizes}."""
+    data = read_yaml(path).get("mesh", {})
+    data = dict(data)
+    shape = data.pop("shape", "sphere")
+    resolution = data.pop("resolution", "coarse")
+    return build_mesh(shape, resolution, **data)

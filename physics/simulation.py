@@ -1,0 +1,286 @@
+"""`Simulation`: a batch of tissues on one mesh, with a grasper and/or plates, stepped in one numba call.
+
+This is the thin Python wrapper around :func:`.integrator.simulate`. It owns the state arrays (batch
+first), checks the time step against the tissue's stability limit, and exposes the readouts a sensorised
+grasper would give. Everything hot happens inside the kernel; nothing here loops over nodes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import ConfigError, check_range
+from .contact import (
+    J_CONTACT,
+    J_NORMAL,
+    J_PEAK_PRESSURE,
+    J_SLIP,
+    J_SLIP_DIST,
+    J_STICK,
+    J_TX,
+    J_TZ,
+    N_JAW_COLS,
+)
+from .grasper import GrasperParams, GrasperPose
+from .integrator import all_finite, simulate
+from .tissue import TissueModel, check_dt
+
+
+@dataclass(frozen=True)
+class Plate:
+    """An infinite rigid plane: a point on it, the unit normal pointing into the tissue side, velocity."""
+
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mu: float = 0.0
+
+
+def _batch(value, batch: int, name: str, shape: tuple[int, ...] = ()) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    try:
+        arr = np.broadcast_to(arr, (batch, *shape)).copy()
+    except ValueError:
+        raise ConfigError(f"{name} must broadcast to shape {(batch, *shape)}, got {arr.shape}") from None
+    if not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{name} must be finite")
+    return arr
+
+
+class Simulation:
+    """A batch of ``batch_size`` MSD tissues (same mesh, per-tissue scales/friction/grasper) in time.
+
+    Parameters
+    ----------
+    model : TissueModel
+    batch_size : int
+    dt : float
+        Outer physics step, s (default 1 ms = 1 kHz).
+    substeps : int | "auto"
+        Substeps per outer step. ``"auto"`` picks the fewest that keep the explicit scheme stable
+        (``safety`` x critical step) for the stiffest/lightest tissue allowed by
+        ``max_stiffness_scale`` / ``min_mass_scale``. A forced value beyond the limit raises ConfigError.
+    grasper : GrasperParams | None
+        Enables the three jaws (pose set with :meth:`set_grasper_pose`).
+    plates : sequence of Plate
+        Rigid planes (compression tests).
+    """
+
+    def __init__(
+        self,
+        model: TissueModel,
+        batch_size: int = 1,
+        *,
+        dt: float = 1e-3,
+        substeps: int | str = "auto",
+        grasper: GrasperParams | None = None,
+        plates: Sequence[Plate] = (),
+        max_stiffness_scale: float = 1.0,
+        min_mass_scale: float = 1.0,
+        safety: float = 0.9,
+    ) -> None:
+        if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+            raise ConfigError(f"batch_size must be an integer >= 1, got {batch_size!r}")
+        check_range("dt", dt, 0.0, None, lo_inclusive=False)
+        check_range("max_stiffness_scale", max_stiffness_scale, 0.0, None, lo_inclusive=False)
+        check_range("min_mass_scale", min_mass_scale, 0.0, None, lo_inclusive=False)
+        self.model = model
+        self.batch_size = B = int(batch_size)
+        self.dt = float(dt)
+        self.max_stiffness_scale = float(max_stiffness_scale)
+        self.min_mass_scale = float(min_mass_scale)
+        self.dt_crit = model.critical_dt(max_stiffness_scale, min_mass_scale)
+        if substeps == "auto":
+            self.n_sub = max(1, math.ceil(self.dt / (safety * self.dt_crit)))
+        else:
+            if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+                raise ConfigError(f"substeps must be 'auto' or an integer >= 1, got {substeps!r}")
+            self.n_sub = int(substeps)
+            check_dt(self.dt / self.n_sub, self.dt_crit, "dt / substeps")
+        n = model.n_nodes
+        mesh = model.mesh
+        self.surface_nodes = np.ascontiguousarray(mesh.surface_nodes, dtype=np.int64)
+        self.node_area = np.ascontiguousarray(mesh.surface_vertex_areas(), dtype=np.float64)
+        self.use_dashpot = bool(model.params.spring_damping_time_s > 0.0)
+
+        self.x = np.empty((B, n, 3))
+        self.v = np.empty((B, n, 3))
+        self.t = np.zeros(B)
+        self.kscale = np.ones(B)
+        self.mscale = np.ones(B)
+        self.f_ext = np.zeros((B, n, 3))
+
+        self.grasper = grasper
+        gp = grasper or GrasperParams()
+        self.g_tip = np.zeros((B, 3))
+        self.g_axis = np.tile([0.0, 0.0, 1.0], (B, 1))
+        self.g_e1 = np.tile([1.0, 0.0, 0.0], (B, 1))
+        self.g_radius = np.full(B, gp.open_radius_m)
+        self.g_vradius = np.zeros(B)
+        self.g_vpull = np.zeros((B, 3))
+        self.g_rmin = np.full(B, gp.min_radius_m)
+        self.g_rmax = np.full(B, gp.open_radius_m)
+        self.mu_s = np.full(B, gp.mu)
+        self.mu_k = np.full(B, gp.mu_k)
+
+        P = len(plates)
+        self.plates = tuple(plates)
+        self.pl_normal = np.zeros((P, 3))
+        self.pl_point = np.zeros((B, P, 3))
+        self.pl_vel = np.zeros((B, P, 3))
+        self.pl_mu = np.zeros(P)
+        for p, plate in enumerate(plates):
+            nrm = np.asarray(plate.normal, dtype=np.float64)
+            if nrm.shape != (3,) or not np.linalg.norm(nrm) > 0:
+                raise ConfigError(f"plates[{p}].normal must be a non-zero 3-vector")
+            check_range(f"plates[{p}].mu", plate.mu, 0.0, None)
+            self.pl_normal[p] = nrm / np.linalg.norm(nrm)
+            self.pl_mu[p] = plate.mu
+        self._plate_init = np.array([p.point for p in plates], dtype=np.float64).reshape(P, 3)
+        self._plate_vel = np.array([p.velocity for p in plates], dtype=np.float64).reshape(P, 3)
+
+        self.jaw_out = np.zeros((B, 3, N_JAW_COLS))
+        self.plate_out = np.zeros((B, P, 3))
+        self.anchor_out = np.zeros((B, 3))
+        self.contact_state = np.zeros((B, n), dtype=np.int8)
+        self.contact_force = np.zeros((B, n, 3))
+        self._finite = np.ones(B, dtype=np.bool_)
+        self.reset()
+
+    # ------------------------------------------------------------------------------------------
+    def _idx(self, indices) -> np.ndarray:
+        if indices is None:
+            return np.arange(self.batch_size)
+        return np.atleast_1d(np.asarray(indices, dtype=np.int64))
+
+    def reset(self, indices=None) -> None:
+        """Tissues back at rest, jaws open, plates at their start, clocks at 0."""
+        idx = self._idx(indices)
+        self.x[idx] = self.model.rest_positions
+        self.v[idx] = 0.0
+        self.t[idx] = 0.0
+        self.f_ext[idx] = 0.0
+        self.g_radius[idx] = self.g_rmax[idx]
+        self.g_vradius[idx] = 0.0
+        self.g_vpull[idx] = 0.0
+        self.pl_point[idx] = self._plate_init
+        self.pl_vel[idx] = self._plate_vel
+        self.jaw_out[idx] = 0.0
+        self.plate_out[idx] = 0.0
+        self.anchor_out[idx] = 0.0
+        self.contact_state[idx] = 0
+        self.contact_force[idx] = 0.0
+
+    def set_scales(self, stiffness=None, mass=None, indices=None) -> None:
+        """Per-tissue stiffness/mass multipliers (domain randomisation), within the stability bounds."""
+        idx = self._idx(indices)
+        if stiffness is not None:
+            ks = _batch(stiffness, len(idx), "stiffness_scale")
+            if np.any(ks <= 0) or np.any(ks > self.max_stiffness_scale * (1 + 1e-12)):
+                raise ConfigError(
+                    f"stiffness_scale must be in (0, {self.max_stiffness_scale}] (max_stiffness_scale), got {ks}"
+                )
+            self.kscale[idx] = ks
+        if mass is not None:
+            ms = _batch(mass, len(idx), "mass_scale")
+            if np.any(ms < self.min_mass_scale * (1 - 1e-12)):
+                raise ConfigError(f"mass_scale must be >= {self.min_mass_scale} (min_mass_scale), got {ms}")
+            self.mscale[idx] = ms
+
+    def set_friction(self, mu, mu_kinetic=None, indices=None) -> None:
+        idx = self._idx(indices)
+        mu = _batch(mu, len(idx), "mu")
+        muk = mu if mu_kinetic is None else _batch(mu_kinetic, len(idx), "mu_kinetic")
+        if np.any(mu < 0) or np.any(muk < 0) or np.any(muk > mu + 1e-12):
+            raise ConfigError(f"friction must satisfy 0 <= mu_kinetic <= mu, got mu={mu}, mu_kinetic={muk}")
+        self.mu_s[idx] = mu
+        self.mu_k[idx] = muk
+
+    def set_grasper_pose(self, pose: GrasperPose, indices=None, radius: float | None = None) -> None:
+        idx = self._idx(indices)
+        self.g_tip[idx] = pose.tip
+        self.g_axis[idx] = pose.axis
+        self.g_e1[idx] = pose.e1
+        if radius is not None:
+            self.g_radius[idx] = float(np.clip(radius, self.g_rmin[idx].min(), self.g_rmax[idx].max()))
+
+    def command(self, closing_speed=None, pull_velocity=None, indices=None) -> None:
+        """Jaw closing speed (m/s, > 0 closes, < 0 opens) and grasper pull velocity (m/s, 3-vector)."""
+        idx = self._idx(indices)
+        if closing_speed is not None:
+            self.g_vradius[idx] = -_batch(closing_speed, len(idx), "closing_speed")
+        if pull_velocity is not None:
+            self.g_vpull[idx] = _batch(pull_velocity, len(idx), "pull_velocity", (3,))
+
+    def step(self, n_steps: int = 1) -> None:
+        """Advance all tissues by ``n_steps`` outer steps (n_steps x n_sub substeps) in one kernel call."""
+        simulate(
+            self.x, self.v, self.t,
+            self.model.rest_positions, self.model.edges, self.model.rest_length,
+            self.model.k1, self.model.k2, self.model.dlc, self.model.cdash, self.use_dashpot,
+            self.model.mass, self.model.b0, self.model.b1, self.model.fixed, self.model.gravity,
+            self.surface_nodes, self.node_area,
+            self.kscale, self.mscale, self.f_ext,
+            self.grasper is not None, self.g_tip, self.g_axis, self.g_e1, self.g_radius,
+            self.g_vradius, self.g_vpull, self.g_rmin, self.g_rmax,
+            float(gp.jaw_length_m) if (gp := self.grasper) else 0.0,
+            0.5 * gp.jaw_width_m if gp else 0.0,
+            gp.jaw_depth_m if gp else 0.0,
+            self.mu_s, self.mu_k,
+            self.pl_point, self.pl_normal, self.pl_vel, self.pl_mu,
+            self.dt, self.n_sub, int(n_steps),
+            self.jaw_out, self.plate_out, self.anchor_out, self.contact_state, self.contact_force,
+        )
+
+    # -- readouts ---------------------------------------------------------------------------------
+    def finite(self) -> np.ndarray:
+        """(B,) False where a tissue has blown up (non-finite state)."""
+        all_finite(self.x, self.v, self._finite)
+        return self._finite.copy()
+
+    @property
+    def jaw_normal_force(self) -> np.ndarray:
+        """(B,3) normal force of each jaw on the tissue, N (averaged over the last 1 ms step)."""
+        return self.jaw_out[:, :, J_NORMAL].copy()
+
+    @property
+    def jaw_tangential_force(self) -> np.ndarray:
+        """(B,3,3) friction force vector of each jaw on the tissue, N."""
+        return self.jaw_out[:, :, J_TX : J_TZ + 1].copy()
+
+    @property
+    def pinch_force(self) -> np.ndarray:
+        """(B,) total pinch force = sum of the jaws' normal forces, N."""
+        return self.jaw_out[:, :, J_NORMAL].sum(axis=1)
+
+    @property
+    def jaw_contact_counts(self) -> np.ndarray:
+        """(B,3,3) [contact, stick, slip] node counts per jaw (last substep)."""
+        return self.jaw_out[:, :, [J_CONTACT, J_STICK, J_SLIP]].astype(np.int64)
+
+    @property
+    def jaw_slip_distance(self) -> np.ndarray:
+        """(B,3) slip of the grasped surface relative to each jaw during the last call, m."""
+        return self.jaw_out[:, :, J_SLIP_DIST].copy()
+
+    @property
+    def peak_contact_pressure(self) -> np.ndarray:
+        """(B,) peak nodal normal stress under the jaws during the last call, Pa."""
+        return self.jaw_out[:, :, J_PEAK_PRESSURE].max(axis=1)
+
+    def tangential_force_along(self, direction) -> np.ndarray:
+        """(B,) total friction force of the jaws on the tissue projected on ``direction`` (unit), N."""
+        d = np.asarray(direction, dtype=np.float64)
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        ft = self.jaw_out[:, :, J_TX : J_TZ + 1].sum(axis=1)
+        return np.einsum("bi,i->b", ft, d) if d.ndim == 1 else np.einsum("bi,bi->b", ft, d)
+
+    def energies(self, index: int = 0) -> tuple[float, float]:
+        """(kinetic, elastic) energy of tissue ``index``, J (gravity excluded)."""
+        ke = self.model.kinetic_energy(self.v[index], self.mscale[index])
+        pe = self.model.elastic_energy(self.x[index], self.kscale[index])
+        return ke, pe
