@@ -39,6 +39,7 @@ from .contact import (
     resolve_node_contact,
 )
 from .forces import accumulate_spring_forces
+from .viscoelastic import accumulate_spring_forces_sls
 
 
 @njit(cache=True)
@@ -47,6 +48,7 @@ def simulate(
     x, v, t,  # (B,N,3), (B,N,3), (B,)
     # tissue (shared by the batch)
     x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot,
+    use_sls, kv, tau, fv, dl_prev,  # Maxwell branch: bool, (E,), s, (B,E) state, (B,E) state
     mass, b0, b1, fixed, gravity,  # (N,), (N,), (N,), (N,) bool, (3,)
     surface_nodes, node_area,  # (Ns,) int, (N,) m^2 (midpoint-polygon area of surface nodes)
     kscale, mscale, f_ext,  # (B,), (B,), (B,N,3)
@@ -78,6 +80,8 @@ def simulate(
     tj = np.empty((3, 3))  # jaw lateral directions
     ns = surface_nodes.shape[0]
     two_pi_3 = 2.0 * math.pi / 3.0
+    decay = math.exp(-dt / tau)
+    gain = tau / dt * (1.0 - decay)
     for b in range(nb):
         xb = x[b]
         vb = v[b]
@@ -112,7 +116,13 @@ def simulate(
                     f[i, 0] = m * gravity[0] + f_ext[b, i, 0]
                     f[i, 1] = m * gravity[1] + f_ext[b, i, 1]
                     f[i, 2] = m * gravity[2] + f_ext[b, i, 2]
-                accumulate_spring_forces(xb, vb, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, f)
+                if use_sls:
+                    accumulate_spring_forces_sls(
+                        xb, vb, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, kv, decay, gain,
+                        fv[b], dl_prev[b], f,
+                    )
+                else:
+                    accumulate_spring_forces(xb, vb, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, f)
                 # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
                 for i in range(n):
                     if fixed[i]:
@@ -197,13 +207,55 @@ def simulate(
                         if d <= 0.0 or d > jaw_depth:
                             continue
                         lat = rx * tj[k, 0] + ry * tj[k, 1] + rz * tj[k, 2]
-                        if abs(lat) > jaw_half_width:
+                        pen_side = jaw_half_width - abs(lat)
+                        if pen_side <= 0.0:
                             continue
+                        # the node is inside jaw k's solid: push it out through the nearest wall (inner
+                        # face, a side wall, the tip end or the base end), the closest-feature rule of a box
+                        s_ax = rx * ax + ry * ay + rz * az
+                        nx, ny, nz, pen = -u[k, 0], -u[k, 1], -u[k, 2], d
+                        face = True
+                        if pen_side < pen:
+                            sg = 1.0 if lat > 0.0 else -1.0
+                            nx, ny, nz, pen = sg * tj[k, 0], sg * tj[k, 1], sg * tj[k, 2], pen_side
+                            face = False
+                        if -s_ax < pen:
+                            nx, ny, nz, pen = ax, ay, az, -s_ax
+                            face = False
+                        if s_ax + jaw_length < pen:
+                            nx, ny, nz, pen = -ax, -ay, -az, s_ax + jaw_length
+                            face = False
                         resolve_node_contact(
-                            xb, vb, i, meff[i], -u[k, 0], -u[k, 1], -u[k, 2], d,
+                            xb, vb, i, meff[i], nx, ny, nz, pen,
                             g_vpull[b, 0] + vr * u[k, 0], g_vpull[b, 1] + vr * u[k, 1], g_vpull[b, 2] + vr * u[k, 2],
                             mu_s[b], mu_k[b], dt, res,
                         )
+                        # contact force on the tissue, split into the jaw face's normal and tangential parts
+                        fx = res[0] * nx + res[1]
+                        fy = res[0] * ny + res[2]
+                        fz = res[0] * nz + res[3]
+                        fn = -(fx * u[k, 0] + fy * u[k, 1] + fz * u[k, 2])
+                        ftx = fx + fn * u[k, 0]
+                        fty = fy + fn * u[k, 1]
+                        ftz = fz + fn * u[k, 2]
+                        if face and node_area[i] > 0.0:
+                            pressure = res[0] / node_area[i]
+                            if pressure > jaw_out[b, k, J_PEAK_PRESSURE]:
+                                jaw_out[b, k, J_PEAK_PRESSURE] = pressure
+                        jaw_out[b, k, J_NORMAL] += avg * fn
+                        jaw_out[b, k, J_TX] += avg * ftx
+                        jaw_out[b, k, J_TY] += avg * fty
+                        jaw_out[b, k, J_TZ] += avg * ftz
+                        if last_sub:
+                            jaw_out[b, k, J_CONTACT] += 1.0
+                            if res[4] == 1.0:
+                                jaw_out[b, k, J_STICK] += 1.0
+                            else:
+                                jaw_out[b, k, J_SLIP] += 1.0
+                            contact_state[b, i] = np.int8(res[4])
+                            contact_force[b, i, 0] += fx
+                            contact_force[b, i, 1] += fy
+                            contact_force[b, i, 2] += fz
                         if k == 0:
                             n_con0 += 1.0
                             slip0 += res[5] * dt
@@ -213,23 +265,6 @@ def simulate(
                         else:
                             n_con2 += 1.0
                             slip2 += res[5] * dt
-                        pressure = res[0] / node_area[i] if node_area[i] > 0.0 else 0.0
-                        if pressure > jaw_out[b, k, J_PEAK_PRESSURE]:
-                            jaw_out[b, k, J_PEAK_PRESSURE] = pressure
-                        jaw_out[b, k, J_NORMAL] += avg * res[0]
-                        jaw_out[b, k, J_TX] += avg * res[1]
-                        jaw_out[b, k, J_TY] += avg * res[2]
-                        jaw_out[b, k, J_TZ] += avg * res[3]
-                        if last_sub:
-                            jaw_out[b, k, J_CONTACT] += 1.0
-                            if res[4] == 1.0:
-                                jaw_out[b, k, J_STICK] += 1.0
-                            else:
-                                jaw_out[b, k, J_SLIP] += 1.0
-                            contact_state[b, i] = np.int8(res[4])
-                            contact_force[b, i, 0] += res[0] * -u[k, 0] + res[1]
-                            contact_force[b, i, 1] += res[0] * -u[k, 1] + res[2]
-                            contact_force[b, i, 2] += res[0] * -u[k, 2] + res[3]
                     if n_con0 > 0.0:
                         jaw_out[b, 0, J_SLIP_DIST] += slip0 / n_con0
                     if n_con1 > 0.0:

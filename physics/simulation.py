@@ -28,6 +28,7 @@ from .contact import (
 from .grasper import GrasperParams, GrasperPose
 from .integrator import all_finite, simulate
 from .tissue import TissueModel, check_dt
+from .viscoelastic import elongations
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,7 @@ class Simulation:
         plates: Sequence[Plate] = (),
         max_stiffness_scale: float = 1.0,
         min_mass_scale: float = 1.0,
-        safety: float = 0.9,
+        safety: float = 0.95,
     ) -> None:
         if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
             raise ConfigError(f"batch_size must be an integer >= 1, got {batch_size!r}")
@@ -106,6 +107,10 @@ class Simulation:
         self.surface_nodes = np.ascontiguousarray(mesh.surface_nodes, dtype=np.int64)
         self.node_area = np.ascontiguousarray(mesh.surface_vertex_areas(), dtype=np.float64)
         self.use_dashpot = bool(model.params.spring_damping_time_s > 0.0)
+        self.use_sls = bool(model.params.relaxation_strength > 0.0)
+        n_springs = len(model.edges)
+        self.fv = np.zeros((B, n_springs))  # Maxwell-branch force per spring, N
+        self.dl_prev = np.zeros((B, n_springs))  # spring elongation at the last substep, m
 
         self.x = np.empty((B, n, 3))
         self.v = np.empty((B, n, 3))
@@ -162,6 +167,8 @@ class Simulation:
         idx = self._idx(indices)
         self.x[idx] = self.model.rest_positions
         self.v[idx] = 0.0
+        self.fv[idx] = 0.0
+        self.dl_prev[idx] = 0.0
         self.t[idx] = 0.0
         self.f_ext[idx] = 0.0
         self.g_radius[idx] = self.g_rmax[idx]
@@ -174,6 +181,17 @@ class Simulation:
         self.anchor_out[idx] = 0.0
         self.contact_state[idx] = 0
         self.contact_force[idx] = 0.0
+
+    def set_state(self, x: np.ndarray, indices=None, fv: np.ndarray | None = None) -> None:
+        """Place tissues at positions ``x`` (N,3) at rest (v = 0), with Maxwell forces ``fv`` (default 0)."""
+        idx = self._idx(indices)
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self.model.n_nodes, 3) or not np.all(np.isfinite(x)):
+            raise ConfigError(f"state positions must be a finite ({self.model.n_nodes}, 3) array, got {x.shape}")
+        self.x[idx] = x
+        self.v[idx] = 0.0
+        self.dl_prev[idx] = elongations(x, self.model.edges, self.model.rest_length)
+        self.fv[idx] = 0.0 if fv is None else fv
 
     def set_scales(self, stiffness=None, mass=None, indices=None) -> None:
         """Per-tissue stiffness/mass multipliers (domain randomisation), within the stability bounds."""
@@ -222,6 +240,7 @@ class Simulation:
             self.x, self.v, self.t,
             self.model.rest_positions, self.model.edges, self.model.rest_length,
             self.model.k1, self.model.k2, self.model.dlc, self.model.cdash, self.use_dashpot,
+            self.use_sls, self.model.kv, self.model.params.relaxation_time_s, self.fv, self.dl_prev,
             self.model.mass, self.model.b0, self.model.b1, self.model.fixed, self.model.gravity,
             self.surface_nodes, self.node_area,
             self.kscale, self.mscale, self.f_ext,

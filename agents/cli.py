@@ -1,0 +1,197 @@
+"""The ``msdgrasp`` command line.
+
+    msdgrasp experiment compress|grasp|grasp-sphere ...   the paper's experiments (CSV + PNG)
+    msdgrasp calibrate --data CSV ...                      fit K1, K2, dl_c, b0, b1 to compression curves
+    msdgrasp bench [physics|grasp|env|all]                 speed benchmarks (JSON)
+    msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
+
+Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
+field on invalid input (no traceback); outputs are written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+DEFAULT_LOGS = Path("logs")
+
+
+class UsageError(Exception):
+    """Bad command-line input: printed as one line, exit status 2."""
+
+
+def _add_out(p: argparse.ArgumentParser, default: str) -> None:
+    p.add_argument("--out", type=Path, default=DEFAULT_LOGS / default, help=f"output folder (default logs/{default})")
+
+
+# ------------------------------------------------------------------------------------------------
+# experiments
+# ------------------------------------------------------------------------------------------------
+
+
+def _cmd_compress(args: argparse.Namespace) -> int:
+    from ..physics.config import builtin_config, from_dict
+    from ..physics.experiments import (
+        CompressionConfig,
+        load_tissue_params,
+        plot_compression,
+        run_compression,
+        tissue_mesh_from_config,
+        write_compression_csv,
+    )
+    from ..physics.mesh import build_mesh
+
+    cfg_path = args.config or builtin_config("tissue/sphere.yaml")
+    params = load_tissue_params(cfg_path)
+    mesh = tissue_mesh_from_config(cfg_path)
+    if args.resolution is not None or args.diameter_mm is not None:
+        from ..physics.config import read_yaml
+
+        mesh_cfg = dict(read_yaml(cfg_path).get("mesh", {}))
+        shape = mesh_cfg.pop("shape", "sphere")
+        res = args.resolution or mesh_cfg.pop("resolution", "coarse")
+        mesh_cfg.pop("resolution", None)
+        if args.diameter_mm is not None:
+            mesh_cfg["diameter_m"] = args.diameter_mm * 1e-3
+        mesh = build_mesh(shape, _resolution(res), **mesh_cfg)
+    cfg = from_dict(
+        CompressionConfig,
+        {
+            "rates_mm_per_min": list(args.rate or (6.0, 60.0)),
+            "deformation_fraction": args.deformation,
+            "samples": args.samples,
+        },
+        where="compress",
+    )
+    curves = run_compression(mesh, params, cfg, progress=not args.quiet)
+    out = Path(args.out)
+    csv = write_compression_csv(curves, out / "compress.csv")
+    png = plot_compression(curves, out / "compress.png", title=f"Compression of {mesh.name} ({mesh.n_nodes} nodes)")
+    summary = {
+        "csv": str(csv),
+        "png": str(png),
+        "final_force_N": {f"{c.rate_mm_per_min:g}": round(float(c.force_N[-1]), 4) for c in curves},
+        "final_deformation_mm": round(float(curves[0].deformation_mm[-1]), 3),
+    }
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _resolution(value: str) -> str | int:
+    return int(value) if str(value).isdigit() else value
+
+
+def _cmd_grasp(args: argparse.Namespace) -> int:
+    from ..physics.grasp_experiment import grasp_cli
+
+    return grasp_cli(args)
+
+
+def _cmd_grasp_sphere(args: argparse.Namespace) -> int:
+    from ..physics.grasp_experiment import grasp_sphere_cli
+
+    return grasp_sphere_cli(args)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from ..physics.calibration import calibrate_cli
+
+    return calibrate_cli(args)
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import bench_cli
+
+    return bench_cli(args)
+
+
+# ------------------------------------------------------------------------------------------------
+# parser
+# ------------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="msdgrasp", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    exp = sub.add_parser("experiment", help="the paper's experiments")
+    exp_sub = exp.add_subparsers(dest="experiment", required=True)
+
+    c = exp_sub.add_parser("compress", help="unconstrained compression of the sphere between rigid plates")
+    c.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/sphere.yaml)")
+    c.add_argument("--rate", type=float, action="append", help="plate speed in mm/min (repeatable; default 6 and 60)")
+    c.add_argument("--deformation", type=float, default=0.30, help="final deformation as a fraction of the diameter")
+    c.add_argument("--samples", type=int, default=150, help="force samples per curve")
+    c.add_argument("--resolution", default=None, help="coarse|medium|fine|xfine or a node count")
+    c.add_argument("--diameter-mm", type=float, default=None, help="sphere diameter in mm (default 50)")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_out(c, "compress")
+    c.set_defaults(func=_cmd_compress)
+
+    g = exp_sub.add_parser("grasp", help="the paper's spleen grasp protocol (close 5 s, hold 7 s, pull)")
+    g.add_argument("--mu", type=float, action="append", help="friction coefficient (repeatable; default 0.4 0.6 0.8)")
+    g.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/spleen.yaml)")
+    g.add_argument("--grasper", type=Path, default=None, help="grasper config (default configs/grasper/default.yaml)")
+    g.add_argument("--resolution", default=None, help="coarse|medium|fine or a node count")
+    g.add_argument("--pull-time", type=float, default=None, help="time limit of the pull phase, s")
+    g.add_argument("--quiet", action="store_true")
+    _add_out(g, "grasp")
+    g.set_defaults(func=_cmd_grasp)
+
+    gs = exp_sub.add_parser("grasp-sphere", help="the sample grasped with increasing pinch (pinch force vs jaw travel)")
+    gs.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/sphere.yaml)")
+    gs.add_argument("--grasper", type=Path, default=None)
+    gs.add_argument("--resolution", default=None)
+    gs.add_argument("--quiet", action="store_true")
+    _add_out(gs, "grasp_sphere")
+    gs.set_defaults(func=_cmd_grasp_sphere)
+
+    cal = sub.add_parser("calibrate", help="fit K1, K2, dl_c, b0, b1 to force-deformation curves")
+    cal.add_argument("--data", type=Path, required=True, help="CSV with rate_mm_per_min,deformation_mm,force_N[,time_s]")
+    cal.add_argument("--config", type=Path, default=None, help="config giving the mesh (default configs/tissue/sphere.yaml)")
+    cal.add_argument("--out", type=Path, default=DEFAULT_LOGS / "calibrate" / "tissue.yaml", help="tissue config to write")
+    cal.add_argument("--max-evals", type=int, default=200, help="largest number of simulations of the fit")
+    cal.add_argument("--quiet", action="store_true")
+    cal.set_defaults(func=_cmd_calibrate)
+
+    b = sub.add_parser("bench", help="speed benchmarks, printed as JSON")
+    b.add_argument("what", nargs="?", default="physics", choices=["physics", "grasp", "env", "all"])
+    b.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
+    b.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    b.set_defaults(func=_cmd_bench)
+
+    _add_rl_commands(sub)
+    return parser
+
+
+def _add_rl_commands(sub) -> None:
+    """train/evaluate/record/replay/soak live in agents/ modules that import torch lazily."""
+    try:
+        from .rl_cli import add_rl_commands
+    except ImportError:
+        return
+    add_rl_commands(sub)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from ..physics.config import ConfigError
+    from ..physics.mesh import MeshError
+
+    try:
+        return int(args.func(args) or 0)
+    except (UsageError, ConfigError, MeshError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+        print(f"msdgrasp {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,196 @@
+"""Ready-made grasp scenes: the spleen hanging from its hilum under gravity, and the free test sphere.
+
+A scene bundles the tissue model (anchors set), the grasper parameters, the *settled* initial state
+(the organ after sagging under gravity, computed once and cached) and the grasper pose fitted to it.
+Both the experiments and the Gymnasium env start from a scene, so they share one definition of "the
+grasper around the inferior pole".
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import ConfigError, builtin_config, from_dict, read_yaml
+from .grasper import GrasperParams, GrasperPose, reachable_radius
+from .mesh import TetMesh, build_mesh
+from .simulation import Simulation
+from .tissue import TissueModel, TissueParams
+
+
+@dataclass(eq=False)
+class GraspScene:
+    """Everything needed to start a grasp: model, grasper, settled state and pose."""
+
+    name: str
+    model: TissueModel
+    grasper: GrasperParams
+    x_start: np.ndarray  # (N,3) settled positions, m
+    fv_start: np.ndarray  # (E,) Maxwell-branch forces of the settled state, N
+    pose: GrasperPose
+    #: radius at which the jaws start (just outside first contact), m
+    start_radius: float
+    #: unit direction in which the grasper pulls (away from the anchors)
+    pull_direction: np.ndarray
+    #: per jaw, the largest radius at which it touches tissue (0: that jaw never can)
+    reach: np.ndarray
+
+    @property
+    def mesh(self) -> TetMesh:
+        return self.model.mesh
+
+    def simulation(self, batch_size: int = 1, **kwargs) -> Simulation:
+        """A Simulation of this scene, all tissues at the settled state, jaws at the start radius."""
+        sim = Simulation(self.model, batch_size, grasper=self.grasper, **kwargs)
+        self.reset(sim)
+        return sim
+
+    def reset(self, sim: Simulation, indices=None) -> None:
+        sim.reset(indices)
+        idx = sim._idx(indices)
+        sim.set_state(self.x_start, indices, self.fv_start)
+        sim.set_grasper_pose(self.pose, indices)
+        sim.g_radius[idx] = self.start_radius
+
+
+def load_params(path: str | Path, section: str, cls):
+    data = read_yaml(path)
+    return from_dict(cls, data.get(section, {}), where=f"{Path(path).name}:{section}")
+
+
+def mesh_from_config(path: str | Path, resolution: str | int | None = None) -> TetMesh:
+    data = dict(read_yaml(path).get("mesh", {}))
+    shape = data.pop("shape", "sphere")
+    res = data.pop("resolution", "coarse")
+    return build_mesh(shape, res if resolution is None else resolution, **data)
+
+
+def settle(
+    model: TissueModel, x0: np.ndarray | None = None, time_s: float = 6.0, dt: float = 1e-3
+) -> tuple[np.ndarray, np.ndarray]:
+    """(positions m, Maxwell forces N) after ``time_s`` of damped motion under gravity from ``x0`` (rest)."""
+    sim = Simulation(model, 1, dt=dt)
+    if x0 is not None:
+        sim.set_state(x0)
+    sim.step(int(round(time_s / dt)))
+    if not sim.finite()[0]:
+        raise FloatingPointError("tissue became non-finite while settling under gravity")
+    return sim.x[0].copy(), sim.fv[0].copy()
+
+
+def fit_pole_pose(
+    x: np.ndarray, pole_nodes: np.ndarray, outward_hint: np.ndarray, jaw_length: float, insert_depth: float,
+    azimuth_rad: float = 0.0,
+) -> GrasperPose:
+    """Grasper pose around the pole region ``x[pole_nodes]``, axis pointing from outside in.
+
+    The pole direction is taken from the region's centroid to the mean of its outermost 10% of nodes
+    along ``outward_hint`` (robust to the organ's sag; a principal-component axis is not, because a
+    pole region can be wider than long). The jaws reach ``insert_depth`` in from the outermost node
+    and are centred on the centroid of the nodes they span.
+    """
+    pts = x[pole_nodes]
+    c = pts.mean(axis=0)
+    hint = np.asarray(outward_hint, dtype=np.float64) / np.linalg.norm(outward_hint)
+    proj = (pts - c) @ hint
+    outer = pts[proj >= np.quantile(proj, 0.9)]
+    d = outer.mean(axis=0) - c
+    d /= np.linalg.norm(d)
+    s = (pts - c) @ d
+    s_lo = s.max() - insert_depth
+    span = (s >= s_lo) & (s <= s_lo + jaw_length)
+    centre = pts[span].mean(axis=0) if np.any(span) else c
+    tip = centre + (c @ d + s_lo - centre @ d) * d
+    return GrasperPose.from_axis(tip, -d, up_hint=(0.0, 0.0, 1.0)).rotated(azimuth_rad)
+
+
+def centre_jaws(points: np.ndarray, pose: GrasperPose, grasper: GrasperParams, iterations: int = 4):
+    """Shift the grasper axis sideways so that all three jaws first touch the tissue at the same radius.
+
+    Jaw k first touches at reach_k = max (x - c).u_k over the nodes on its footprint; moving the tip by
+    delta (normal to the axis) changes it by -delta.u_k. Since u_0 + u_1 + u_2 = 0 the mean reach is
+    unchanged and two equations fix delta; repeated because the footprints change with delta.
+    """
+    for _ in range(iterations):
+        reach = reachable_radius(points, pose, grasper)
+        if np.any(reach <= 0):
+            break
+        u = pose.jaw_directions()
+        e1 = pose.e1
+        e2 = np.cross(pose.axis, e1)
+        A = np.array([[u[k] @ e1, u[k] @ e2] for k in range(2)])
+        rhs = reach[:2] - reach.mean()
+        a, b = np.linalg.solve(A, rhs)
+        pose = GrasperPose(pose.tip + a * e1 + b * e2, pose.axis, pose.e1)
+    return pose, reachable_radius(points, pose, grasper)
+
+
+@functools.lru_cache(maxsize=16)
+def _spleen_scene_cached(
+    tissue_cfg: str, grasper_cfg: str, resolution, insert_depth_m: float, settle_s: float, azimuth_deg: float
+) -> GraspScene:
+    params = load_params(tissue_cfg, "tissue", TissueParams)
+    grasper = load_params(grasper_cfg, "grasper", GrasperParams)
+    mesh = mesh_from_config(tissue_cfg, resolution)
+    if "hilum" not in mesh.node_sets or "inferior_pole" not in mesh.node_sets:
+        raise ConfigError(
+            f"mesh {mesh.name!r} needs node sets 'hilum' (anchors) and 'inferior_pole' (grasp region); "
+            f"it has {sorted(mesh.node_sets)}"
+        )
+    model = TissueModel.from_params(mesh, params, fixed_nodes=mesh.node_sets["hilum"])
+    x_start, fv_start = settle(model, time_s=settle_s)
+    hint = mesh.landmarks.get("inferior_pole_axis", np.array([1.0, 0.0, 0.0]))
+    pose = fit_pole_pose(x_start, mesh.node_sets["inferior_pole"], hint, grasper.jaw_length_m, insert_depth_m,
+                         math.radians(azimuth_deg))
+    pose, reach = centre_jaws(x_start[mesh.surface_nodes], pose, grasper)
+    start = min(grasper.open_radius_m, float(reach.max()) + 1e-3)
+    return GraspScene("spleen", model, grasper, x_start, fv_start, pose, start, -pose.axis, reach)
+
+
+def spleen_scene(
+    tissue_config: str | Path | None = None,
+    grasper_config: str | Path | None = None,
+    resolution: str | int | None = None,
+    insert_depth_m: float | None = None,
+    settle_s: float = 6.0,
+    azimuth_deg: float = 0.0,
+) -> GraspScene:
+    """The spleen anchored at its hilum, settled under gravity, grasper around the inferior pole.
+
+    ``insert_depth_m`` (default: the jaw length) is how far the jaws reach over the pole from its tip.
+    Scenes are cached per arguments (the settling run is done once per process).
+    """
+    tcfg = str(Path(tissue_config or builtin_config("tissue/spleen.yaml")).resolve())
+    gcfg = str(Path(grasper_config or builtin_config("grasper/default.yaml")).resolve())
+    grasper = load_params(gcfg, "grasper", GrasperParams)
+    depth = grasper.jaw_length_m if insert_depth_m is None else float(insert_depth_m)
+    if not depth > 0:
+        raise ConfigError(f"insert_depth_m must be > 0, got {insert_depth_m!r}")
+    return _spleen_scene_cached(tcfg, gcfg, resolution, depth, float(settle_s), float(azimuth_deg))
+
+
+def sphere_scene(
+    tissue_config: str | Path | None = None,
+    grasper_config: str | Path | None = None,
+    resolution: str | int | None = None,
+) -> GraspScene:
+    """The free test sphere (no gravity, no anchors), the jaws centred on it, axis vertical."""
+    tcfg = Path(tissue_config or builtin_config("tissue/sphere.yaml"))
+    gcfg = Path(grasper_config or builtin_config("grasper/default.yaml"))
+    params = load_params(tcfg, "tissue", TissueParams)
+    params = from_dict(TissueParams, {**params.__dict__, "gravity_m_per_s2": (0.0, 0.0, 0.0)})
+    grasper = load_params(gcfg, "grasper", GrasperParams)
+    mesh = mesh_from_config(tcfg, resolution)
+    model = TissueModel.from_params(mesh, params)
+    centre = mesh.nodes.mean(axis=0)
+    axis = np.array([0.0, 0.0, -1.0])
+    pose = GrasperPose.from_axis(centre + 0.5 * grasper.jaw_length_m * axis, axis, up_hint=(1.0, 0.0, 0.0))
+    x_start = mesh.nodes.copy()
+    reach = reachable_radius(x_start[mesh.surface_nodes], pose, grasper)
+    start = min(grasper.open_radius_m, float(reach.max()) + 1e-3)
+    fv_start = np.zeros(len(model.edges))
+    return GraspScene("sphere", model, grasper, x_start, fv_start, pose, start, np.array([0.0, 0.0, 1.0]), reach)

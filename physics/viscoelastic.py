@@ -1,0 +1,80 @@
+"""Stress relaxation: a Maxwell branch on every spring (standard linear solid), integrated exactly.
+
+The paper's viscosity is nodal and absolute (Eq. 7): it resists any motion, so a realistic stress
+relaxation under a held grasp (Fig. 9: the normal force drops sharply once the jaws stop) would need a
+drag that also resists the organ's rigid sagging and pulling. A Maxwell branch in parallel with each
+nonlinear spring gives relaxation from *deformation rate* instead: a linear spring k_v = g K1 in series
+with a dashpot of time constant tau,
+
+    dF_v/dt = k_v d(dl)/dt - F_v / tau.
+
+For dl varying linearly over a step the exact update is
+
+    F_v(t + dt) = F_v(t) e^(-dt/tau) + k_v (dl(t+dt) - dl(t)) (tau/dt) (1 - e^(-dt/tau)),
+
+which is unconditionally stable; the only stability cost is the extra instantaneous stiffness k_v in
+the critical time step. Under a held strain F_v decays with time constant tau; at a constant strain rate
+r the branch carries k_v r tau (1 - e^(-t/tau)) (NOTES.md's standard linear solid).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .forces import spring_force
+
+
+@njit(cache=True)
+def accumulate_spring_forces_sls(
+    x: np.ndarray,
+    v: np.ndarray,
+    edges: np.ndarray,
+    rest_length: np.ndarray,
+    k1: np.ndarray,
+    k2: np.ndarray,
+    dlc: np.ndarray,
+    cdash: np.ndarray,
+    kscale: float,
+    use_dashpot: bool,
+    kv: np.ndarray,  # (E,) Maxwell spring stiffness, N/m
+    decay: float,  # e^(-dt/tau)
+    gain: float,  # (tau/dt) (1 - e^(-dt/tau))
+    fv: np.ndarray,  # (E,) Maxwell branch force, N (state, updated)
+    dl_prev: np.ndarray,  # (E,) spring elongation at the previous substep, m (state, updated)
+    f: np.ndarray,  # (N,3) forces are ADDED here
+) -> None:
+    """Springs + dashpots (as :func:`.forces.accumulate_spring_forces`) plus the Maxwell branch."""
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        length = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if length < 1e-15:
+            continue
+        inv = 1.0 / length
+        ux = dx * inv
+        uy = dy * inv
+        uz = dz * inv
+        dl = length - rest_length[e]
+        fve = fv[e] * decay + kscale * kv[e] * (dl - dl_prev[e]) * gain
+        fv[e] = fve
+        dl_prev[e] = dl
+        fs = kscale * spring_force(dl, k1[e], k2[e], dlc[e]) + fve
+        if use_dashpot:
+            rel = (v[j, 0] - v[i, 0]) * ux + (v[j, 1] - v[i, 1]) * uy + (v[j, 2] - v[i, 2]) * uz
+            fs += kscale * cdash[e] * rel
+        f[i, 0] += fs * ux
+        f[i, 1] += fs * uy
+        f[i, 2] += fs * uz
+        f[j, 0] -= fs * ux
+        f[j, 1] -= fs * uy
+        f[j, 2] -= fs * uz
+
+
+def elongations(x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> np.ndarray:
+    """(..., E) current length minus rest length of every spring, m (vectorised NumPy)."""
+    d = x[..., edges[:, 1], :] - x[..., edges[:, 0], :]
+    return np.linalg.norm(d, axis=-1) - rest_length
