@@ -45,9 +45,9 @@ class TissueParams:
     youngs_modulus_pa: float = 12.0e3
     stiffness_rule: Literal["van_gelder", "lloyd"] = "van_gelder"
     #: dimensionless cubic stiffening: K2 = stiffening * K1 / L0^2
-    stiffening: float = 25.0
+    stiffening: float = 10.0
     #: strain beyond which the spring law turns linear: dl_c = critical_strain * L0
-    critical_strain: float = 0.25
+    critical_strain: float = 0.2
     #: nodal damping per unit mass, 1/s: b0_i = damping_rate_per_s * m_i
     damping_rate_per_s: float = 200.0
     #: displacement-dependent nodal damping per unit mass, 1/(m s): b1_i = rate * m_i
@@ -59,6 +59,10 @@ class TissueParams:
     b0_n_s_per_m: float = 0.05
     b1_n_s_per_m2: float = 5.0
     # -- both modes -----------------------------------------------------------------------------
+    #: Maxwell branch per spring (stress relaxation, see physics/viscoelastic.py): k_v = g * K1
+    relaxation_strength: float = 0.0
+    #: relaxation time constant tau of the Maxwell branch, s
+    relaxation_time_s: float = 1.0
     #: linear dashpot along each spring, c = tau * K1 (s); 0 disables it
     spring_damping_time_s: float = 0.0
     gravity_m_per_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
@@ -80,6 +84,8 @@ class TissueParams:
         check_range("b0_n_s_per_m", self.b0_n_s_per_m, 0.0, None)
         check_range("b1_n_s_per_m2", self.b1_n_s_per_m2, 0.0, None)
         check_range("spring_damping_time_s", self.spring_damping_time_s, 0.0, None)
+        check_range("relaxation_strength", self.relaxation_strength, 0.0, None)
+        check_range("relaxation_time_s", self.relaxation_time_s, 0.0, None, lo_inclusive=False)
         object.__setattr__(self, "gravity_m_per_s2", check_vector("gravity_m_per_s2", self.gravity_m_per_s2))
 
 
@@ -118,6 +124,7 @@ class TissueModel:
     b1: np.ndarray  # (N,) N s/m^2
     gravity: np.ndarray  # (3,) m/s^2
     fixed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.bool_))  # (N,) bool anchors
+    kv: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (E,) Maxwell-branch stiffness, N/m
 
     # ------------------------------------------------------------------------------------------
     @classmethod
@@ -181,6 +188,7 @@ class TissueModel:
             b1=b1,
             gravity=np.asarray(params.gravity_m_per_s2, dtype=np.float64),
             fixed=fixed,
+            kv=params.relaxation_strength * k1,
         )
 
     # ------------------------------------------------------------------------------------------
@@ -197,8 +205,8 @@ class TissueModel:
         return float(self.mass.sum())
 
     def tangent_stiffness_max(self) -> np.ndarray:
-        """Largest slope of each spring's force law, B = K1 + 3 K2 dl_c^2 (N/m)."""
-        return self.k1 + 3.0 * self.k2 * self.dlc**2
+        """Largest instantaneous slope of each spring, B = K1 + 3 K2 dl_c^2 plus the Maxwell k_v (N/m)."""
+        return self.k1 + 3.0 * self.k2 * self.dlc**2 + self.kv
 
     def omega_max(self, stiffness_scale: float = 1.0, mass_scale: float = 1.0) -> float:
         """Highest natural frequency (rad/s) of the linearised network at its stiffest slope.
