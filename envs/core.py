@@ -1,0 +1,385 @@
+"""The GraspLift task as a batched, array-in/array-out core (no Gymnasium types here).
+
+`GraspLiftCore` owns one :class:`~msdgrasp.physics.simulation.Simulation` with ``num_envs`` tissues and
+advances all of them with ONE numba call per agent step. The single Gymnasium env is this core with
+``num_envs = 1``; the vector env is the same core with ``num_envs = N``. Every sub-env has its own random
+generator, so a batch reproduces N single envs seeded alike exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..physics.config import ConfigError, check_range, from_dict, read_yaml
+from ..physics.contact import J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP_DIST, J_TX, J_TZ
+from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
+
+PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights of the reward terms (each term is reported in ``info["reward_terms"]``)."""
+
+    #: per unit of lift progress toward the target (a full lift earns this much in total)
+    progress: float = 10.0
+    #: per mm of slip between jaws and tissue
+    slip_per_mm: float = 1.0
+    #: per second of pinch force equal to the reference force (scales linearly with force)
+    force_per_s: float = 1.0
+    #: per step in which the peak nodal stress exceeds the damage threshold
+    damage: float = 5.0
+    success_bonus: float = 20.0
+    failure_penalty: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name in ("progress", "slip_per_mm", "force_per_s", "damage", "success_bonus", "failure_penalty"):
+            check_range(f"reward.{name}", getattr(self, name), 0.0, None)
+
+
+@dataclass(frozen=True)
+class RandomizationConfig:
+    """Per-episode domain randomisation ranges (uniform). ``reset(options=...)`` can pin each value."""
+
+    mu_range: tuple[float, float] = (0.3, 0.9)
+    stiffness_scale_range: tuple[float, float] = (0.8, 1.2)
+    mass_scale_range: tuple[float, float] = (0.9, 1.1)
+    #: largest grasp pose offset: tip translation (m) and axis tilt (deg), azimuth jitter (deg)
+    pose_offset_m: float = 0.002
+    pose_tilt_deg: float = 3.0
+    pose_azimuth_deg: float = 5.0
+    #: standard deviation of the force-sensor noise, N
+    sensor_noise_N: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in ("mu_range", "stiffness_scale_range", "mass_scale_range"):
+            lo, hi = getattr(self, name)
+            check_range(f"randomization.{name}[0]", lo, 0.0, None, lo_inclusive=name == "mu_range")
+            check_range(f"randomization.{name}[1]", hi, lo, None)
+        for name in ("pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg", "sensor_noise_N"):
+            check_range(f"randomization.{name}", getattr(self, name), 0.0, None)
+
+
+@dataclass(frozen=True)
+class GraspLiftConfig:
+    """Everything that defines a GraspLift task (SI units)."""
+
+    scene: str = "spleen"  # "spleen" | "sphere"
+    resolution: str | int = "coarse"
+    tissue_config: str | None = None
+    grasper_config: str | None = None
+    #: physics steps (1 ms) per agent step: 33 -> 30.3 Hz agent rate
+    physics_steps_per_action: int = 33
+    #: lift (pull) of the grasped tissue that counts as success, m
+    lift_target_m: float = 0.03
+    #: the lift must be held this long, without slip, s
+    hold_time_s: float = 1.0
+    #: slip tolerated during the hold, m (sensor resolution)
+    hold_slip_tolerance_m: float = 0.5e-3
+    time_limit_s: float = 10.0
+    #: pinch-force normalisation (observation and force penalty), N
+    reference_force_N: float = 5.0
+    #: peak nodal stress (contact pressure) beyond which the tissue counts as damaged, Pa
+    damage_stress_pa: float = 60e3
+    #: terminate when damaged
+    terminate_on_damage: bool = True
+    #: lift after which losing all contact counts as a lost grasp, m
+    lift_started_m: float = 0.002
+    #: add privileged state (mu, scales, node displacements) to the observation
+    privileged_obs: bool = False
+    #: nodes subsampled for the privileged displacement observation
+    privileged_nodes: int = 16
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+
+    def __post_init__(self) -> None:
+        if self.scene not in ("spleen", "sphere"):
+            raise ConfigError(f"scene = {self.scene!r} is not allowed; choose 'spleen' or 'sphere'")
+        if not isinstance(self.physics_steps_per_action, int) or not 1 <= self.physics_steps_per_action <= 1000:
+            raise ConfigError(f"physics_steps_per_action must be an integer in [1, 1000], got {self.physics_steps_per_action!r}")
+        check_range("lift_target_m", self.lift_target_m, 0.0, 0.2, lo_inclusive=False)
+        check_range("hold_time_s", self.hold_time_s, 0.0, None)
+        check_range("hold_slip_tolerance_m", self.hold_slip_tolerance_m, 0.0, None)
+        check_range("time_limit_s", self.time_limit_s, 0.0, None, lo_inclusive=False)
+        check_range("reference_force_N", self.reference_force_N, 0.0, None, lo_inclusive=False)
+        check_range("damage_stress_pa", self.damage_stress_pa, 0.0, None, lo_inclusive=False)
+        check_range("lift_started_m", self.lift_started_m, 0.0, None)
+        if not isinstance(self.privileged_nodes, int) or self.privileged_nodes < 1:
+            raise ConfigError(f"privileged_nodes must be an integer >= 1, got {self.privileged_nodes!r}")
+
+    @property
+    def agent_dt_s(self) -> float:
+        return self.physics_steps_per_action * PHYSICS_DT_S
+
+    @property
+    def max_episode_steps(self) -> int:
+        return int(math.ceil(self.time_limit_s / self.agent_dt_s))
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "GraspLiftConfig":
+        data = read_yaml(path)
+        return from_dict(cls, data.get("env", data), where=f"{Path(path).name}:env")
+
+
+OBS_NAMES = (
+    "jaw_opening", "jaw_speed", "pull_distance", "pull_speed",
+    "normal_force_0", "normal_force_1", "normal_force_2",
+    "tangential_force_0", "tangential_force_1", "tangential_force_2",
+    "contact_fraction_0", "contact_fraction_1", "contact_fraction_2",
+    "slip_speed_0", "slip_speed_1", "slip_speed_2",
+    "prev_action_close", "prev_action_pull", "time_fraction",
+)
+
+PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues rotation of v about the unit axis."""
+    return v * math.cos(angle) + np.cross(axis, v) * math.sin(angle) + axis * (axis @ v) * (1 - math.cos(angle))
+
+
+class GraspLiftCore:
+    """Batched GraspLift dynamics, observations and rewards. Arrays in, arrays out."""
+
+    def __init__(self, config: GraspLiftConfig | None = None, num_envs: int = 1) -> None:
+        self.config = cfg = config or GraspLiftConfig()
+        self.num_envs = B = int(num_envs)
+        if B < 1:
+            raise ConfigError(f"num_envs must be >= 1, got {num_envs!r}")
+        if cfg.scene == "spleen":
+            self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution)
+        else:
+            self.scene = sphere_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution)
+        rnd = cfg.randomization
+        self.sim = self.scene.simulation(
+            B, dt=PHYSICS_DT_S, max_stiffness_scale=max(1.0, rnd.stiffness_scale_range[1]),
+            min_mass_scale=min(1.0, rnd.mass_scale_range[0]),
+        )
+        g = self.scene.grasper
+        self.max_close = g.max_closing_speed_m_s
+        self.max_pull = g.max_pull_speed_m_s
+        # start radius: clear of the tissue even with the largest pose offset
+        self.start_radius = min(g.open_radius_m, self.scene.start_radius + rnd.pose_offset_m)
+        mesh = self.scene.mesh
+        # grasp region: surface nodes the jaws may hold (within the jaw span), tracked for the lift
+        pose = self.scene.pose
+        rel = self.scene.x_start - pose.tip
+        s = rel @ pose.axis
+        span = (s <= 0) & (s >= -g.jaw_length_m)
+        region = np.intersect1d(np.flatnonzero(span), mesh.surface_nodes)
+        self.region = region if region.size else mesh.surface_nodes
+        # nominal node count per jaw footprint (contact fraction normaliser)
+        u = pose.jaw_directions()
+        lat = np.stack([rel @ np.cross(pose.axis, u[k]) for k in range(3)], axis=1)
+        near = np.stack([rel @ u[k] for k in range(3)], axis=1)
+        on = span[:, None] & (np.abs(lat) <= 0.5 * g.jaw_width_m) & (near > 0)
+        on &= np.isin(np.arange(mesh.n_nodes), mesh.surface_nodes)[:, None]
+        self.nominal_contacts = np.maximum(on.sum(axis=0), 1).astype(np.float64)
+        rng0 = np.random.default_rng(0)
+        self.priv_nodes = np.sort(rng0.choice(mesh.n_nodes, size=min(cfg.privileged_nodes, mesh.n_nodes), replace=False))
+        self.obs_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0)
+
+        # per-env episode state
+        self.rngs = [np.random.default_rng() for _ in range(B)]
+        self.mu = np.zeros(B)
+        self.pull_dir = np.tile(self.scene.pull_direction, (B, 1))
+        self.tip0 = np.zeros((B, 3))
+        self.region0 = np.zeros((B, 3))
+        self.steps = np.zeros(B, dtype=np.int64)
+        self.prev_action = np.zeros((B, 2))
+        self.lift = np.zeros(B)
+        self.slip_total = np.zeros(B)
+        self.hold_time = np.zeros(B)
+        self.hold_slip = np.zeros(B)
+        self.peak_pinch = np.zeros(B)
+        self.peak_stress = np.zeros(B)
+        self.lift_started = np.zeros(B, dtype=bool)
+        self.time_to_lift = np.full(B, np.nan)
+        self.obs = np.zeros((B, self.obs_dim))
+
+    # ------------------------------------------------------------------------------------------
+    def seed(self, index: int, seed: int | None) -> None:
+        self.rngs[index] = np.random.default_rng(seed)
+
+    def reset(self, index: int, options: dict[str, Any] | None = None) -> dict[str, float]:
+        """Reset sub-env ``index``: draw (or pin, via ``options``) friction, scales and pose."""
+        options = dict(options or {})
+        unknown = sorted(set(options) - set(PINNABLE))
+        if unknown:
+            raise ConfigError(f"reset options: unknown key(s) {unknown}; allowed: {list(PINNABLE)}")
+        cfg = self.config
+        rnd = cfg.randomization
+        rng = self.rngs[index]
+        # always draw every value (keeps the random stream independent of which values are pinned)
+        draws = {
+            "mu": rng.uniform(*rnd.mu_range),
+            "stiffness_scale": rng.uniform(*rnd.stiffness_scale_range),
+            "mass_scale": rng.uniform(*rnd.mass_scale_range),
+            "offset_dir": rng.normal(size=3),
+            "offset_r": rng.uniform(0.0, 1.0) ** (1.0 / 3.0),
+            "tilt_axis": rng.normal(size=3),
+            "tilt": rng.uniform(-1.0, 1.0),
+            "azimuth": rng.uniform(-1.0, 1.0),
+        }
+        mu = float(options.get("mu", draws["mu"]))
+        check_range("options['mu']", mu, 0.0, 10.0)
+        mu_k = float(options.get("mu_kinetic", mu))
+        check_range("options['mu_kinetic']", mu_k, 0.0, mu)
+        ks = float(options.get("stiffness_scale", draws["stiffness_scale"]))
+        check_range("options['stiffness_scale']", ks, 0.0, self.sim.max_stiffness_scale, lo_inclusive=False)
+        ms = float(options.get("mass_scale", draws["mass_scale"]))
+        check_range("options['mass_scale']", ms, self.sim.min_mass_scale, None)
+        off = float(options.get("pose_offset_m", rnd.pose_offset_m))
+        check_range("options['pose_offset_m']", off, 0.0, 0.02)
+        tilt = float(options.get("pose_tilt_deg", rnd.pose_tilt_deg))
+        check_range("options['pose_tilt_deg']", tilt, 0.0, 30.0)
+        azi = float(options.get("pose_azimuth_deg", rnd.pose_azimuth_deg))
+        check_range("options['pose_azimuth_deg']", azi, 0.0, 60.0)
+
+        pose = self.scene.pose
+        a = pose.axis
+        # offset: uniform in a ball of radius `off`, normal to the axis
+        d = draws["offset_dir"] - a * (draws["offset_dir"] @ a)
+        d = d / (np.linalg.norm(d) + 1e-12)
+        tip = pose.tip + off * draws["offset_r"] * d
+        t_axis = np.cross(a, draws["tilt_axis"])
+        t_axis = t_axis / (np.linalg.norm(t_axis) + 1e-12)
+        ang = math.radians(tilt) * draws["tilt"]
+        axis = _rotate(a, t_axis, ang)
+        e1 = _rotate(pose.e1, t_axis, ang)
+        e1 = _rotate(e1, axis, math.radians(azi) * draws["azimuth"])
+        from ..physics.grasper import GrasperPose
+
+        self.scene.reset(self.sim, index)
+        self.sim.set_grasper_pose(GrasperPose(tip, axis, e1), index)
+        self.sim.g_radius[index] = self.start_radius
+        self.sim.set_friction(mu, mu_k, index)
+        self.sim.set_scales(ks, ms, index)
+        self.mu[index] = mu
+        self.tip0[index] = tip
+        self.region0[index] = self.sim.x[index, self.region].mean(axis=0)
+        self.steps[index] = 0
+        self.prev_action[index] = 0.0
+        self.lift[index] = 0.0
+        self.slip_total[index] = 0.0
+        self.hold_time[index] = 0.0
+        self.hold_slip[index] = 0.0
+        self.peak_pinch[index] = 0.0
+        self.peak_stress[index] = 0.0
+        self.lift_started[index] = False
+        self.time_to_lift[index] = np.nan
+        self.sim.jaw_out[index] = 0.0
+        self._observe(np.array([index]), np.zeros((1, 3)))
+        return {"mu": mu, "mu_kinetic": mu_k, "stiffness_scale": ks, "mass_scale": ms}
+
+    # ------------------------------------------------------------------------------------------
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Advance every sub-env by one agent step. ``actions``: (B,2) in [-1,1] (clipped)."""
+        cfg = self.config
+        B = self.num_envs
+        act = np.clip(actions, -1.0, 1.0)
+        sim = self.sim
+        sim.command(closing_speed=act[:, 0] * self.max_close, pull_velocity=self.pull_dir * (act[:, 1] * self.max_pull)[:, None])
+        sim.step(cfg.physics_steps_per_action)
+        dt = cfg.agent_dt_s
+        self.steps += 1
+        finite = sim.finite()
+        jo = sim.jaw_out
+        slip = jo[:, :, J_SLIP_DIST].mean(axis=1)  # mean over jaws of the grasped-surface slip this step, m
+        pinch = jo[:, :, J_NORMAL].sum(axis=1)
+        stress = jo[:, :, J_PEAK_PRESSURE].max(axis=1)
+        contact = jo[:, :, J_CONTACT].sum(axis=1)
+        region_now = sim.x[:, self.region].mean(axis=1)
+        lift_new = np.einsum("bi,bi->b", region_now - self.region0, self.pull_dir)
+        progress = (np.minimum(lift_new, cfg.lift_target_m) - np.minimum(self.lift, cfg.lift_target_m)) / cfg.lift_target_m
+        self.lift = lift_new
+        self.slip_total += slip
+        self.peak_pinch = np.maximum(self.peak_pinch, pinch)
+        self.peak_stress = np.maximum(self.peak_stress, stress)
+        newly = (~self.lift_started) & (lift_new >= cfg.lift_started_m)
+        self.lift_started |= lift_new >= cfg.lift_started_m
+        at_target = lift_new >= cfg.lift_target_m
+        first_target = at_target & np.isnan(self.time_to_lift)
+        self.time_to_lift[first_target] = self.steps[first_target] * dt
+        self.hold_time = np.where(at_target, self.hold_time + dt, 0.0)
+        self.hold_slip = np.where(at_target, self.hold_slip + slip, 0.0)
+        success = at_target & (self.hold_time >= cfg.hold_time_s - 1e-9) & (self.hold_slip <= cfg.hold_slip_tolerance_m)
+        lost = self.lift_started & (contact == 0)
+        damaged = stress > cfg.damage_stress_pa
+        failed = ~finite
+        terminated = success | lost | failed | (damaged & cfg.terminate_on_damage)
+        truncated = (~terminated) & (self.steps >= cfg.max_episode_steps)
+
+        w = cfg.reward
+        terms = {
+            "progress": w.progress * progress,
+            "slip": -w.slip_per_mm * slip * 1e3,
+            "force": -w.force_per_s * (pinch / cfg.reference_force_N) * dt,
+            "damage": -w.damage * damaged.astype(np.float64),
+            "success": w.success_bonus * success.astype(np.float64),
+            "failure": -w.failure_penalty * (lost | failed).astype(np.float64),
+        }
+        reward = sum(terms.values())
+        if np.any(failed):
+            # a blown-up tissue: never hand out NaN observations or rewards
+            bad = np.flatnonzero(failed)
+            reward[bad] = -w.failure_penalty
+            for v in terms.values():
+                v[bad] = np.where(np.isfinite(v[bad]), v[bad], 0.0)
+            self.lift[bad] = 0.0
+        self.prev_action = act.astype(np.float64)
+        noise = np.stack([self.rngs[b].normal(0.0, cfg.randomization.sensor_noise_N, size=3) for b in range(B)])
+        self._observe(np.arange(B), noise)
+        if np.any(failed):
+            self.obs[np.flatnonzero(failed)] = 0.0
+        infos = {
+            "mu": self.mu.copy(),
+            "pinch_force_N": pinch,
+            "slip_distance_m": self.slip_total.copy(),
+            "lifted_m": self.lift.copy(),
+            "peak_stress_pa": stress,
+            "contact_nodes": contact,
+            "is_success": success,
+            "lost_grasp": lost,
+            "damaged": damaged,
+            "numerical_failure": failed,
+            "reward_terms": terms,
+        }
+        return self.obs.astype(np.float32), reward.astype(np.float64), terminated, truncated, infos
+
+    # ------------------------------------------------------------------------------------------
+    def _observe(self, idx: np.ndarray, noise: np.ndarray) -> None:
+        cfg = self.config
+        sim = self.sim
+        jo = sim.jaw_out[idx]
+        ref = cfg.reference_force_N
+        r = sim.g_radius[idx]
+        rmin = sim.g_rmin[idx]
+        o = self.obs[idx]
+        o[:, 0] = (r - rmin) / (self.start_radius - rmin)
+        o[:, 1] = -sim.g_vradius[idx] / self.max_close
+        o[:, 2] = np.einsum("bi,bi->b", sim.g_tip[idx] - self.tip0[idx], self.pull_dir[idx]) / cfg.lift_target_m
+        o[:, 3] = np.einsum("bi,bi->b", sim.g_vpull[idx], self.pull_dir[idx]) / self.max_pull
+        o[:, 4:7] = (jo[:, :, J_NORMAL] + noise) / ref
+        o[:, 7:10] = (np.linalg.norm(jo[:, :, J_TX : J_TZ + 1], axis=2) + np.abs(noise)) / ref
+        o[:, 10:13] = np.minimum(jo[:, :, J_CONTACT] / self.nominal_contacts, 2.0)
+        o[:, 13:16] = jo[:, :, J_SLIP_DIST] / cfg.agent_dt_s / self.max_pull
+        o[:, 16:18] = self.prev_action[idx]
+        o[:, 18] = self.steps[idx] * cfg.agent_dt_s / cfg.time_limit_s
+        if cfg.privileged_obs:
+            n0 = len(OBS_NAMES)
+            o[:, n0] = self.mu[idx]
+            o[:, n0 + 1] = sim.kscale[idx]
+            o[:, n0 + 2] = sim.mscale[idx]
+            disp = sim.x[idx][:, self.priv_nodes] - self.scene.x_start[self.priv_nodes]
+            o[:, n0 + 3 :] = disp.reshape(len(idx), -1) / cfg.lift_target_m
+        self.obs[idx] = o
+
+    def info_at_reset(self, index: int, draws: dict[str, float]) -> dict[str, Any]:
+        return {**draws, "pinch_force_N": 0.0, "slip_distance_m": 0.0, "lifted_m": 0.0, "peak_stress_pa": 0.0,
+                "is_success": False}

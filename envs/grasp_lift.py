@@ -1,0 +1,209 @@
+"""Gymnasium environments: ``msdgrasp/GraspLift-v0`` (spleen) and ``msdgrasp/GraspLiftSphere-v0``."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+
+from .core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
+
+
+def _config(config: GraspLiftConfig | dict | None, **overrides: Any) -> GraspLiftConfig:
+    from ..physics.config import from_dict, to_dict
+
+    if config is None:
+        config = GraspLiftConfig()
+    elif isinstance(config, dict):
+        config = from_dict(GraspLiftConfig, config, where="env")
+    if overrides:
+        config = from_dict(GraspLiftConfig, {**to_dict(config), **overrides}, where="env")
+    return config
+
+
+def _check_action(action: Any, batch: int | None) -> np.ndarray:
+    a = np.asarray(action, dtype=np.float64)
+    shape = (2,) if batch is None else (batch, 2)
+    if a.shape != shape:
+        raise ValueError(f"action must have shape {shape} (jaw closing, pull), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"action contains NaN or inf: {a.tolist()}")
+    return a
+
+
+class GraspLiftEnv(gym.Env):
+    """Grasp the spleen's inferior pole with a three-jaw grasper and lift it without slipping.
+
+    The spleen (nonlinear viscoelastic mass-spring-damper tissue) hangs from its hilum under gravity.
+    The grasper starts with open jaws around the inferior pole (pose randomised by a few mm and
+    degrees). Friction between jaws and tissue is Coulomb stick/slip with a coefficient mu drawn per
+    episode and hidden from the agent, which must read its force sensors. Physics runs at 1 kHz
+    (plus stability substeps); the agent acts every 33 physics steps (33 ms, 30.3 Hz).
+
+    ## Action space: ``Box(-1, 1, (2,), float32)``
+
+    | index | action | unit after scaling |
+    |---|---|---|
+    | 0 | jaw closing speed (> 0 closes, < 0 opens), x ``max_closing_speed_m_s`` | m/s (radius rate) |
+    | 1 | pull speed away from the anchors (< 0 pushes back), x ``max_pull_speed_m_s`` | m/s |
+
+    Values outside [-1, 1] are clipped; NaN/inf or a wrong shape raises ``ValueError``.
+
+    ## Observation space: ``Box(-inf, inf, (19,), float32)`` (+ privileged, optional)
+
+    | index | observation | scaling |
+    |---|---|---|
+    | 0 | jaw opening (R - R_min) / (R_start - R_min) | 1 = open, 0 = closed |
+    | 1 | jaw closing speed | / max closing speed |
+    | 2 | grasper pull distance | / lift target |
+    | 3 | grasper pull speed | / max pull speed |
+    | 4-6 | normal force of jaw 0, 1, 2 (noisy sensor) | / reference force |
+    | 7-9 | tangential force magnitude of jaw 0, 1, 2 (noisy) | / reference force |
+    | 10-12 | contact nodes of jaw 0, 1, 2 | / nodes on the jaw's footprint |
+    | 13-15 | slip speed of the tissue under jaw 0, 1, 2 | / max pull speed |
+    | 16-17 | previous action | as given |
+    | 18 | elapsed time | / time limit |
+    | 19- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, displacements of 16 nodes / lift target | |
+
+    ## Rewards (each term in ``info["reward_terms"]``, weights in ``RewardConfig``)
+
+    | term | value per step |
+    |---|---|
+    | progress | +w * (increase of the grasped region's lift, capped at the target) / target |
+    | slip | -w * slip distance this step in mm |
+    | force | -w * (pinch force / reference force) * step duration |
+    | damage | -w if the peak nodal stress exceeds ``damage_stress_pa`` |
+    | success | +w once, on success |
+    | failure | -w once, when the grasp is lost after lifting began or the physics fails |
+
+    ## Episode end
+    Terminated on success (grasped region lifted ``lift_target_m`` and held ``hold_time_s`` with less than
+    ``hold_slip_tolerance_m`` slip), on a lost grasp after lifting began, on tissue damage, or on a
+    numerical failure (``info["error"]`` says so; the observation is zeros, never NaN). Truncated at
+    ``time_limit_s`` (10 s = 304 steps).
+
+    ``info``: mu, pinch_force_N, slip_distance_m, lifted_m, peak_stress_pa, contact_nodes, is_success,
+    reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
+    randomisation for evaluation.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(self, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
+        super().__init__()
+        self.config = _config(config, **overrides)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.core = GraspLiftCore(self.config, 1)
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
+        self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.agent_dt_s))}
+        self._renderer = None
+
+    @property
+    def observation_names(self) -> tuple[str, ...]:
+        return OBS_NAMES
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.core.seed(0, seed)
+        elif not hasattr(self, "_seeded"):
+            self.core.seed(0, int(self.np_random.integers(2**63)))
+        self._seeded = True
+        draws = self.core.reset(0, options)
+        return self.core.obs[0].astype(np.float32), self.core.info_at_reset(0, draws)
+
+    def step(self, action):
+        a = _check_action(action, None)
+        obs, reward, terminated, truncated, infos = self.core.step(a[None])
+        info = {k: (v[0] if not isinstance(v, dict) else {kk: float(vv[0]) for kk, vv in v.items()}) for k, v in infos.items()}
+        info = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in info.items()}
+        if info["numerical_failure"]:
+            info["error"] = "numerical failure: the tissue state became non-finite (blow-up); episode terminated"
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        from .render import render_rgb
+
+        return render_rgb(self.core, 0)
+
+    def close(self):
+        self._renderer = None
+
+
+class GraspLiftSphereEnv(GraspLiftEnv):
+    """GraspLift on the spherical test sample (no anchors: the jaws must hold it against the pull)."""
+
+    def __init__(self, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
+        overrides.setdefault("scene", "sphere")
+        super().__init__(config, render_mode, **overrides)
+
+
+class GraspLiftVectorEnv(VectorEnv):
+    """``num_envs`` GraspLift tissues stepped together in ONE numba call per step (same-step autoreset).
+
+    Sub-env i reset with seed s behaves exactly like a single :class:`GraspLiftEnv` reset with seed
+    ``s + i``. Finished sub-envs reset within the same ``step`` call; their last observation is in
+    ``info["final_obs"]`` and their last info in ``info["final_info"]`` (Gymnasium's SAME_STEP mode).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30, "autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(self, num_envs: int = 1, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None,
+                 **overrides: Any):
+        self.config = _config(config, **overrides)
+        self.num_envs = int(num_envs)
+        self.core = GraspLiftCore(self.config, self.num_envs)
+        self.render_mode = render_mode
+        self.single_action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.single_observation_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (self.num_envs, 2), np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.num_envs, self.core.obs_dim), np.float32)
+        self._seeded = False
+
+    def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
+        if seed is not None:
+            seeds = list(seed) if isinstance(seed, (list, tuple)) else [int(seed) + i for i in range(self.num_envs)]
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"seed list must have {self.num_envs} entries, got {len(seeds)}")
+            for i, s in enumerate(seeds):
+                self.core.seed(i, s)
+        elif not self._seeded:
+            base = np.random.SeedSequence().entropy
+            for i in range(self.num_envs):
+                self.core.seed(i, int(base % (2**63)) + i)
+        self._seeded = True
+        infos = [self.core.info_at_reset(i, self.core.reset(i, options)) for i in range(self.num_envs)]
+        return self.core.obs.astype(np.float32), {k: np.array([d[k] for d in infos]) for k in infos[0]}
+
+    def step(self, actions):
+        a = _check_action(actions, self.num_envs)
+        obs, reward, terminated, truncated, infos = self.core.step(a)
+        info = {k: v for k, v in infos.items() if k != "reward_terms"}
+        info.update({f"reward_{k}": v for k, v in infos["reward_terms"].items()})
+        done = terminated | truncated
+        if np.any(infos["numerical_failure"]):
+            info["error"] = np.where(infos["numerical_failure"], "numerical failure: non-finite tissue state", "")
+        if np.any(done):
+            info["final_obs"] = np.where(done[:, None], obs, 0.0).astype(np.float32)
+            info["final_info"] = {k: np.array(v, copy=True) for k, v in info.items() if k not in ("final_obs",)}
+            info["_final_obs"] = done.copy()
+            for i in np.flatnonzero(done):
+                self.core.reset(i)
+            obs = self.core.obs.astype(np.float32)
+        return obs, reward, terminated, truncated, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        from .render import render_rgb
+
+        return np.stack([render_rgb(self.core, i) for i in range(self.num_envs)])
