@@ -73,6 +73,10 @@ class GraspLiftConfig:
     resolution: str | int = "coarse"
     tissue_config: str | None = None
     grasper_config: str | None = None
+    #: total stiffness of the compliant hilum anchors (vessels, ligaments), N/m; None = rigid anchors
+    anchor_stiffness_n_per_m: float | None = 20.0
+    #: how far the jaws reach over the inferior pole from its tip, m (None: the jaw length)
+    grasp_depth_m: float | None = 0.035
     #: physics steps (1 ms) per agent step: 33 -> 30.3 Hz agent rate
     physics_steps_per_action: int = 33
     #: lift (pull) of the grasped tissue that counts as success, m
@@ -109,6 +113,8 @@ class GraspLiftConfig:
         check_range("reference_force_N", self.reference_force_N, 0.0, None, lo_inclusive=False)
         check_range("damage_stress_pa", self.damage_stress_pa, 0.0, None, lo_inclusive=False)
         check_range("lift_started_m", self.lift_started_m, 0.0, None)
+        if self.anchor_stiffness_n_per_m is not None:
+            check_range("anchor_stiffness_n_per_m", self.anchor_stiffness_n_per_m, 0.0, None, lo_inclusive=False)
         if not isinstance(self.privileged_nodes, int) or self.privileged_nodes < 1:
             raise ConfigError(f"privileged_nodes must be an integer >= 1, got {self.privileged_nodes!r}")
 
@@ -152,7 +158,9 @@ class GraspLiftCore:
         if B < 1:
             raise ConfigError(f"num_envs must be >= 1, got {num_envs!r}")
         if cfg.scene == "spleen":
-            self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution)
+            self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution,
+                                                  insert_depth_m=cfg.grasp_depth_m,
+                                                  anchor_stiffness_n_per_m=cfg.anchor_stiffness_n_per_m)
         else:
             self.scene = sphere_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution)
         rnd = cfg.randomization

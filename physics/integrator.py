@@ -49,7 +49,7 @@ def simulate(
     # tissue (shared by the batch)
     x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot,
     use_sls, kv, tau, fv, dl_prev,  # Maxwell branch: bool, (E,), s, (B,E) state, (B,E) state
-    mass, b0, b1, fixed, gravity,  # (N,), (N,), (N,), (N,) bool, (3,)
+    mass, b0, b1, fixed, anchor_k, anchor_offset, gravity,  # (N,)x3, (N,) bool, (N,) N/m, (3,) m, (3,)
     surface_nodes, node_area,  # (Ns,) int, (N,) m^2 (midpoint-polygon area of surface nodes)
     kscale, mscale, f_ext,  # (B,), (B,), (B,N,3)
     # grasper (jaw_active False disables it)
@@ -138,6 +138,18 @@ def simulate(
                     dx = xb[i, 0] - x_rest[i, 0]
                     dy = xb[i, 1] - x_rest[i, 1]
                     dz = xb[i, 2] - x_rest[i, 2]
+                    ka = anchor_k[i]
+                    if ka > 0.0:  # compliant anchor: a preloaded spring (its preload scales with the mass)
+                        fax = -ka * (dx - ms * anchor_offset[0])
+                        fay = -ka * (dy - ms * anchor_offset[1])
+                        faz = -ka * (dz - ms * anchor_offset[2])
+                        f[i, 0] += fax
+                        f[i, 1] += fay
+                        f[i, 2] += faz
+                        if last_sub:
+                            anchor_out[b, 0] += fax
+                            anchor_out[b, 1] += fay
+                            anchor_out[b, 2] += faz
                     damp = b0[i] + b1[i] * math.sqrt(dx * dx + dy * dy + dz * dz)
                     inv = 1.0 / (1.0 + dt * damp / m)
                     meff[i] = m + dt * damp

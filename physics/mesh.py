@@ -598,6 +598,7 @@ def spleen_mesh(
     hilum_height: float = 0.6,
     pole_length_m: float = 0.04,
     core: float = 0.4,
+    bluntness: float = 1.0,
 ) -> TetMesh:
     """Deterministic tet mesh of a human-spleen-like organ ("coffee bean" crescent with a hilum).
 
@@ -629,10 +630,10 @@ def spleen_mesh(
     if not 0.0 <= hilum_depth < 1.0:
         raise MeshError(f"spleen hilum_depth must be in [0, 1) (fraction of width/2), got {hilum_depth!r}")
     if not (0.0 <= bend <= 1.0 and 0.0 <= core < 1.0 and hilum_width > 0 and hilum_height > 0
-            and pole_length_m > 0):
+            and pole_length_m > 0 and 0.0 <= bluntness <= 1.0):
         raise MeshError(
             f"spleen needs 0 <= bend <= 1, 0 <= core < 1, hilum_width > 0, hilum_height > 0, "
-            f"pole_length_m > 0; got bend={bend!r}, core={core!r}, hilum_width={hilum_width!r}, "
+            f"pole_length_m > 0, 0 <= bluntness <= 1; got bluntness={bluntness!r}, bend={bend!r}, core={core!r}, hilum_width={hilum_width!r}, "
             f"hilum_height={hilum_height!r}, pole_length_m={pole_length_m!r}"
         )
     target = _target_nodes(resolution)
@@ -642,6 +643,11 @@ def spleen_mesh(
 
     box, tets = _kuhn_box(_grid_shape(target, (length_m, width_m, thickness_m)))
     ell = _box_to_ellipsoid(box, semi, np.array([core * a, 0.0, 0.0]))
+    # blunt poles: widen the cross-sections by sqrt(1 + k (x/a)^2) (det = 1 + k (x/a)^2 > 0, no inversion);
+    # k = 1 turns the ellipsoid's x-profile 1 - (x/a)^2 into 1 - (x/a)^4, a less tapered pole (real
+    # spleens have blunt poles, and a grasp on a cone with taper angle alpha needs mu > tan(alpha))
+    widen = np.sqrt(1.0 + bluntness * (ell[:, 0] / a) ** 2)
+    ell = ell * np.stack([np.ones_like(widen), widen, widen], axis=1)
     bent = _spleen_map(ell, a, b, bend, depth, wx, wz)
     s = (volume_m3 / tet_signed_volumes(bent, tets).sum()) ** (1.0 / 3.0)
     nodes = bent * s

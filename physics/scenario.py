@@ -131,7 +131,8 @@ def centre_jaws(points: np.ndarray, pose: GrasperPose, grasper: GrasperParams, i
 
 @functools.lru_cache(maxsize=16)
 def _spleen_scene_cached(
-    tissue_cfg: str, grasper_cfg: str, resolution, insert_depth_m: float, settle_s: float, azimuth_deg: float
+    tissue_cfg: str, grasper_cfg: str, resolution, insert_depth_m: float, settle_s: float, azimuth_deg: float,
+    anchor_stiffness_n_per_m: float | None,
 ) -> GraspScene:
     params = load_params(tissue_cfg, "tissue", TissueParams)
     grasper = load_params(grasper_cfg, "grasper", GrasperParams)
@@ -141,7 +142,8 @@ def _spleen_scene_cached(
             f"mesh {mesh.name!r} needs node sets 'hilum' (anchors) and 'inferior_pole' (grasp region); "
             f"it has {sorted(mesh.node_sets)}"
         )
-    model = TissueModel.from_params(mesh, params, fixed_nodes=mesh.node_sets["hilum"])
+    model = TissueModel.from_params(mesh, params, fixed_nodes=mesh.node_sets["hilum"],
+                                    anchor_stiffness_n_per_m=anchor_stiffness_n_per_m)
     x_start, fv_start = settle(model, time_s=settle_s)
     hint = mesh.landmarks.get("inferior_pole_axis", np.array([1.0, 0.0, 0.0]))
     pose = fit_pole_pose(x_start, mesh.node_sets["inferior_pole"], hint, grasper.jaw_length_m, insert_depth_m,
@@ -158,9 +160,12 @@ def spleen_scene(
     insert_depth_m: float | None = None,
     settle_s: float = 6.0,
     azimuth_deg: float = 0.0,
+    anchor_stiffness_n_per_m: float | None = None,
 ) -> GraspScene:
     """The spleen anchored at its hilum, settled under gravity, grasper around the inferior pole.
 
+    Anchors are rigid (the paper) unless ``anchor_stiffness_n_per_m`` gives the total stiffness of
+    compliant anchors (hilum vessels and ligaments as springs).
     ``insert_depth_m`` (default: the jaw length) is how far the jaws reach over the pole from its tip.
     Scenes are cached per arguments (the settling run is done once per process).
     """
@@ -170,7 +175,8 @@ def spleen_scene(
     depth = grasper.jaw_length_m if insert_depth_m is None else float(insert_depth_m)
     if not depth > 0:
         raise ConfigError(f"insert_depth_m must be > 0, got {insert_depth_m!r}")
-    return _spleen_scene_cached(tcfg, gcfg, resolution, depth, float(settle_s), float(azimuth_deg))
+    return _spleen_scene_cached(tcfg, gcfg, resolution, depth, float(settle_s), float(azimuth_deg),
+                                None if anchor_stiffness_n_per_m is None else float(anchor_stiffness_n_per_m))
 
 
 def sphere_scene(

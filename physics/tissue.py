@@ -125,12 +125,25 @@ class TissueModel:
     gravity: np.ndarray  # (3,) m/s^2
     fixed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.bool_))  # (N,) bool anchors
     kv: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (E,) Maxwell-branch stiffness, N/m
+    #: (N,) stiffness of a linear spring tying each node to its rest position, N/m (compliant anchors:
+    #: vessels and ligaments); 0 for free nodes
+    anchor_k: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: (3,) rest offset of the compliant anchors, m: -M g / k_total, so that the anchors carry the organ's
+    #: weight as a preload (ligaments under tension) and only *extra* loads stretch them
+    anchor_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     # ------------------------------------------------------------------------------------------
     @classmethod
     def from_params(
-        cls, mesh: TetMesh, params: TissueParams | None = None, fixed_nodes: np.ndarray | None = None
+        cls,
+        mesh: TetMesh,
+        params: TissueParams | None = None,
+        fixed_nodes: np.ndarray | None = None,
+        anchor_stiffness_n_per_m: float | None = None,
     ) -> "TissueModel":
+        """Build the arrays. ``fixed_nodes`` are anchors: rigid (the paper) when
+        ``anchor_stiffness_n_per_m`` is None, else each is tied to its rest position by a linear spring,
+        the springs together giving ``anchor_stiffness_n_per_m`` (N/m)."""
         params = params or TissueParams()
         n = mesh.n_nodes
         edges = np.ascontiguousarray(mesh.edges, dtype=np.int64)
@@ -174,6 +187,15 @@ class TissueModel:
             if fixed_nodes.size and (fixed_nodes.min() < 0 or fixed_nodes.max() >= n):
                 raise ValueError(f"fixed_nodes must be node indices in [0, {n - 1}]")
             fixed[fixed_nodes] = True
+        anchor_k = np.zeros(n)
+        anchor_offset = np.zeros(3)
+        if anchor_stiffness_n_per_m is not None:
+            check_range("anchor_stiffness_n_per_m", anchor_stiffness_n_per_m, 0.0, None, lo_inclusive=False)
+            if fixed.any():
+                anchor_k[fixed] = anchor_stiffness_n_per_m / fixed.sum()
+                gravity = np.asarray(params.gravity_m_per_s2, dtype=np.float64)
+                anchor_offset = -mass.sum() * gravity / anchor_stiffness_n_per_m
+            fixed[:] = False
         return cls(
             mesh=mesh,
             params=params,
@@ -189,6 +211,8 @@ class TissueModel:
             gravity=np.asarray(params.gravity_m_per_s2, dtype=np.float64),
             fixed=fixed,
             kv=params.relaxation_strength * k1,
+            anchor_k=anchor_k,
+            anchor_offset=anchor_offset,
         )
 
     # ------------------------------------------------------------------------------------------
@@ -236,6 +260,8 @@ class TissueModel:
         m = np.repeat(self.mass * mass_scale, 3)
         s = 1.0 / np.sqrt(m[free])
         Kf = K[free][:, free]
+        if self.anchor_k.size:
+            Kf = Kf + sp.diags(np.repeat(self.anchor_k, 3)[free])
         A = sp.diags(s) @ Kf @ sp.diags(s)
         try:
             lam = float(spla.eigsh(A, k=1, which="LA", return_eigenvectors=False, tol=1e-3, maxiter=5000)[0])
@@ -243,6 +269,8 @@ class TissueModel:
             deg = np.zeros(n)
             np.add.at(deg, i, kt)
             np.add.at(deg, j, kt)
+            if self.anchor_k.size:
+                deg = deg + self.anchor_k
             lam = float(np.max(2.0 * deg / (self.mass * mass_scale)))
         return math.sqrt(max(lam, 0.0))
 
@@ -284,7 +312,7 @@ class TissueModel:
             "springs": int(len(self.edges)),
             "mass_kg": self.total_mass,
             "k1_mean_n_per_m": float(self.k1.mean()),
-            "anchors": int(self.fixed.sum()),
+            "anchors": int(self.fixed.sum() + (self.anchor_k > 0).sum()),
         }
 
 
