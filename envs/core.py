@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..physics.config import ConfigError, check_range, from_dict, read_yaml
+from ..physics.config import ConfigError, check_range, from_dict, read_yaml, to_dict
 from ..physics.contact import J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP_DIST, J_TX, J_TZ
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 
@@ -50,9 +50,9 @@ class RandomizationConfig:
     stiffness_scale_range: tuple[float, float] = (0.8, 1.2)
     mass_scale_range: tuple[float, float] = (0.9, 1.1)
     #: largest grasp pose offset: tip translation (m) and axis tilt (deg), azimuth jitter (deg)
-    pose_offset_m: float = 0.002
-    pose_tilt_deg: float = 3.0
-    pose_azimuth_deg: float = 5.0
+    pose_offset_m: float = 0.001
+    pose_tilt_deg: float = 1.0
+    pose_azimuth_deg: float = 1.5
     #: standard deviation of the force-sensor noise, N
     sensor_noise_N: float = 0.02
 
@@ -74,7 +74,7 @@ class GraspLiftConfig:
     tissue_config: str | None = None
     grasper_config: str | None = None
     #: total stiffness of the compliant hilum anchors (vessels, ligaments), N/m; None = rigid anchors
-    anchor_stiffness_n_per_m: float | None = 20.0
+    anchor_stiffness_n_per_m: float | None = 8.0
     #: how far the jaws reach over the inferior pole from its tip, m (None: the jaw length)
     grasp_depth_m: float | None = 0.035
     #: physics steps (1 ms) per agent step: 33 -> 30.3 Hz agent rate
@@ -157,6 +157,10 @@ class GraspLiftCore:
         self.num_envs = B = int(num_envs)
         if B < 1:
             raise ConfigError(f"num_envs must be >= 1, got {num_envs!r}")
+        if cfg.grasper_config is None:
+            from ..physics.config import builtin_config
+
+            cfg = self.config = from_dict(GraspLiftConfig, {**to_dict(cfg), "grasper_config": str(builtin_config("grasper/env.yaml"))})
         if cfg.scene == "spleen":
             self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution,
                                                   insert_depth_m=cfg.grasp_depth_m,

@@ -1,0 +1,198 @@
+"""Baseline grasp controllers, all behind one policy interface (the same one a trained model gets).
+
+A policy maps observations to actions for a batch of episodes::
+
+    policy.reset(infos)          # at episode start; infos: list of reset info dicts, one per episode
+    actions = policy.act(obs)    # obs (B, obs_dim) -> actions (B, 2) in [-1, 1]
+
+* :class:`FixedForcePolicy`: close until the pinch force reaches a set value, then pull while holding that
+  force (a cautious surgeon: hard enough for the slipperiest tissue).
+* :class:`SlipReactivePolicy`: close lightly, pull, and tighten whenever the jaw sensors show slip.
+* :class:`OraclePolicy`: knows mu; uses the smallest fixed force that lifts without slip at that mu
+  (found by bisection in simulation, cached per mu) plus a margin: the physical limit a learned policy
+  is measured against.
+* :class:`ModelPolicy`: a Stable-Baselines3 model.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from ..envs.core import GraspLiftConfig
+
+# observation layout (see GraspLiftEnv's docstring)
+_NORMAL = slice(4, 7)
+_SLIP = slice(13, 16)
+
+
+class Policy(Protocol):
+    name: str
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None: ...
+
+    def act(self, obs: np.ndarray) -> np.ndarray: ...
+
+
+class FixedForcePolicy:
+    """Close at full speed until the pinch force reaches ``force_N``, then pull while regulating it."""
+
+    def __init__(self, config: GraspLiftConfig | None = None, force_N: float = 3.2, pull: float = 0.5,
+                 gain: float = 2.0, name: str | None = None) -> None:
+        if not force_N > 0:
+            raise ValueError(f"force_N must be > 0, got {force_N!r}")
+        if not 0 < pull <= 1:
+            raise ValueError(f"pull must be in (0, 1], got {pull!r}")
+        self.config = config or GraspLiftConfig()
+        self.force = np.array([float(force_N)])
+        self.pull = pull
+        self.gain = gain
+        self.name = name or f"fixed{force_N:g}N"
+        self._grasped = np.zeros(1, dtype=bool)
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        n = len(infos)
+        self._grasped = np.zeros(n, dtype=bool)
+        self.force = np.broadcast_to(self.force[:1], (n,)).copy()
+
+    def _pinch(self, obs: np.ndarray) -> np.ndarray:
+        return obs[:, _NORMAL].sum(axis=1) * self.config.reference_force_N
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.atleast_2d(obs)
+        pinch = self._pinch(obs)
+        self._grasped |= pinch >= self.force
+        close = np.where(self._grasped, np.clip(self.gain * (self.force - pinch) / self.force, -1.0, 1.0), 1.0)
+        pull = np.where(self._grasped, self.pull, 0.0)
+        return np.stack([close, pull], axis=1).astype(np.float32)
+
+
+class SlipReactivePolicy(FixedForcePolicy):
+    """Start with a light grip; raise the force set-point by ``step_N`` whenever slip is sensed."""
+
+    def __init__(self, config: GraspLiftConfig | None = None, initial_force_N: float = 1.2, step_N: float = 0.3,
+                 max_force_N: float = 4.0, slip_threshold: float = 0.05, pull: float = 0.5) -> None:
+        super().__init__(config, initial_force_N, pull, name="reactive")
+        self.initial = initial_force_N
+        self.step = step_N
+        self.max_force = max_force_N
+        self.slip_threshold = slip_threshold
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        super().reset(infos)
+        self.force[:] = self.initial
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.atleast_2d(obs)
+        slipping = self._grasped & (obs[:, _SLIP].max(axis=1) > self.slip_threshold)
+        self.force = np.where(slipping, np.minimum(self.force + self.step, self.max_force), self.force)
+        return super().act(obs)
+
+
+class OraclePolicy(FixedForcePolicy):
+    """Knows mu (from the reset info): the minimal slip-free fixed force at that mu, times (1 + margin)."""
+
+    def __init__(self, config: GraspLiftConfig | None = None, margin: float = 0.1, pull: float = 0.5,
+                 tolerance_N: float = 0.1) -> None:
+        super().__init__(config, 1.0, pull, name="oracle")
+        self.margin = margin
+        self.tolerance = tolerance_N
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        super().reset(infos)
+        self.force = np.array([
+            (1.0 + self.margin) * minimal_force(self.config, round(float(info["mu"]), 3), self.pull, self.tolerance)
+            for info in infos
+        ])
+
+
+@functools.lru_cache(maxsize=256)
+def _minimal_force_cached(config: GraspLiftConfig, mu: float, pull: float, tolerance: float) -> float:
+    from ..envs.grasp_lift import GraspLiftVectorEnv
+
+    lo, hi = 0.2, 2.0 * config.reference_force_N
+    candidates = np.linspace(lo, hi, 8)
+    # one batched sweep brackets the answer, then bisection refines it (each probe: nominal tissue, no
+    # pose jitter, so the answer is the physics of this mu, not of a lucky draw)
+    env = GraspLiftVectorEnv(len(candidates), config)
+    ok = _probe(env, candidates, mu, pull)
+    if not ok.any():
+        return float(hi)
+    first = int(np.argmax(ok))
+    lo = candidates[first - 1] if first > 0 else lo
+    hi = candidates[first]
+    env1 = GraspLiftVectorEnv(4, config)
+    while hi - lo > tolerance:
+        mids = np.linspace(lo, hi, 6)[1:-1]
+        res = _probe(env1, mids, mu, pull)
+        if res.any():
+            k = int(np.argmax(res))
+            hi = mids[k]
+            lo = mids[k - 1] if k > 0 else lo
+        else:
+            lo = mids[-1]
+    return float(hi)
+
+
+def _probe(env, forces: np.ndarray, mu: float, pull: float) -> np.ndarray:
+    """Success of the fixed-force controller at each force (one batched episode each)."""
+    opts = {"mu": mu, "stiffness_scale": 1.0, "mass_scale": 1.0, "pose_offset_m": 0.0, "pose_tilt_deg": 0.0,
+            "pose_azimuth_deg": 0.0}
+    obs, info = env.reset(seed=0, options=opts)
+    pol = FixedForcePolicy(env.config, 1.0, pull)
+    pol.reset([{}] * env.num_envs)
+    pol.force = np.asarray(forces, dtype=np.float64)
+    done = np.zeros(env.num_envs, dtype=bool)
+    success = np.zeros(env.num_envs, dtype=bool)
+    core = env.core
+    for _ in range(env.config.max_episode_steps):
+        act = pol.act(obs)
+        obs, _, term, trunc, info = core.step(act)
+        success |= (~done) & info["is_success"]
+        done |= term | trunc
+        if done.all():
+            break
+    return success
+
+
+def minimal_force(config: GraspLiftConfig, mu: float, pull: float = 0.5, tolerance_N: float = 0.1) -> float:
+    """Smallest fixed pinch force (N) that lifts the nominal tissue without slip at friction ``mu``."""
+    return _minimal_force_cached(config, float(mu), float(pull), float(tolerance_N))
+
+
+class ModelPolicy:
+    """A trained Stable-Baselines3 model (deterministic actions)."""
+
+    def __init__(self, path: str | Path, name: str | None = None) -> None:
+        from .training import load_model
+
+        self.model = load_model(path)
+        self.name = name or Path(path).stem
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        action, _ = self.model.predict(np.atleast_2d(obs), deterministic=True)
+        return np.asarray(action, dtype=np.float32)
+
+
+def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
+    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | a path to a saved model (.zip)."""
+    config = config or GraspLiftConfig()
+    if spec == "fixed":
+        return FixedForcePolicy(config)
+    if spec.startswith("fixed:"):
+        try:
+            return FixedForcePolicy(config, float(spec.split(":", 1)[1]))
+        except ValueError as exc:
+            raise ValueError(f"policy {spec!r}: 'fixed:<force in N>' expects a positive number ({exc})") from None
+    if spec == "reactive":
+        return SlipReactivePolicy(config)
+    if spec == "oracle":
+        return OraclePolicy(config)
+    return ModelPolicy(spec)
