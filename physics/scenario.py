@@ -115,8 +115,8 @@ def centre_jaws(points: np.ndarray, pose: GrasperPose, grasper: GrasperParams, i
     delta (normal to the axis) changes it by -delta.u_k. Since u_0 + u_1 + u_2 = 0 the mean reach is
     unchanged and two equations fix delta; repeated because the footprints change with delta.
     """
+    reach = reachable_radius(points, pose, grasper)
     for _ in range(iterations):
-        reach = reachable_radius(points, pose, grasper)
         if np.any(reach <= 0):
             break
         u = pose.jaw_directions()
@@ -125,7 +125,11 @@ def centre_jaws(points: np.ndarray, pose: GrasperPose, grasper: GrasperParams, i
         A = np.array([[u[k] @ e1, u[k] @ e2] for k in range(2)])
         rhs = reach[:2] - reach.mean()
         a, b = np.linalg.solve(A, rhs)
-        pose = GrasperPose(pose.tip + a * e1 + b * e2, pose.axis, pose.e1)
+        trial = GrasperPose(pose.tip + a * e1 + b * e2, pose.axis, pose.e1)
+        trial_reach = reachable_radius(points, trial, grasper)
+        if np.any(trial_reach <= 0) or np.ptp(trial_reach) >= np.ptp(reach):
+            break  # a jaw would lose its footprint, or no improvement: keep the last good pose
+        pose, reach = trial, trial_reach
     return pose, reachable_radius(points, pose, grasper)
 
 
@@ -166,13 +170,15 @@ def spleen_scene(
 
     Anchors are rigid (the paper) unless ``anchor_stiffness_n_per_m`` gives the total stiffness of
     compliant anchors (hilum vessels and ligaments as springs).
-    ``insert_depth_m`` (default: the jaw length) is how far the jaws reach over the pole from its tip.
+    ``insert_depth_m`` (default 35 mm) is how far the jaw tips reach over the pole from its tip: a little
+    more than the jaw length, so the jaws hold where the pole is nearly cylindrical (a tapered region
+    with taper angle alpha squirts out of a grasp unless mu > tan(alpha)).
     Scenes are cached per arguments (the settling run is done once per process).
     """
     tcfg = str(Path(tissue_config or builtin_config("tissue/spleen.yaml")).resolve())
     gcfg = str(Path(grasper_config or builtin_config("grasper/default.yaml")).resolve())
     grasper = load_params(gcfg, "grasper", GrasperParams)
-    depth = grasper.jaw_length_m if insert_depth_m is None else float(insert_depth_m)
+    depth = 0.035 if insert_depth_m is None else float(insert_depth_m)
     if not depth > 0:
         raise ConfigError(f"insert_depth_m must be > 0, got {insert_depth_m!r}")
     return _spleen_scene_cached(tcfg, gcfg, resolution, depth, float(settle_s), float(azimuth_deg),
