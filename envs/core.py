@@ -36,9 +36,14 @@ class RewardConfig:
     damage: float = 5.0
     success_bonus: float = 20.0
     failure_penalty: float = 10.0
+    #: potential-based shaping toward a first grip: w * (phi' - phi), phi = min(pinch / grasp_force_N, 1).
+    #: It sums to at most w over an episode, so it guides exploration without changing what is optimal.
+    grasp: float = 2.0
+    grasp_force_N: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("progress", "slip_per_mm", "force_per_s", "damage", "success_bonus", "failure_penalty"):
+        check_range("reward.grasp_force_N", self.grasp_force_N, 0.0, None, lo_inclusive=False)
+        for name in ("progress", "slip_per_mm", "force_per_s", "damage", "success_bonus", "failure_penalty", "grasp"):
             check_range(f"reward.{name}", getattr(self, name), 0.0, None)
 
 
@@ -205,6 +210,7 @@ class GraspLiftCore:
         self.steps = np.zeros(B, dtype=np.int64)
         self.prev_action = np.zeros((B, 2))
         self.lift = np.zeros(B)
+        self.grip = np.zeros(B)
         self.slip_total = np.zeros(B)
         self.hold_time = np.zeros(B)
         self.hold_slip = np.zeros(B)
@@ -278,6 +284,7 @@ class GraspLiftCore:
         self.steps[index] = 0
         self.prev_action[index] = 0.0
         self.lift[index] = 0.0
+        self.grip[index] = 0.0
         self.slip_total[index] = 0.0
         self.hold_time[index] = 0.0
         self.hold_slip[index] = 0.0
@@ -310,6 +317,9 @@ class GraspLiftCore:
         lift_new = np.einsum("bi,bi->b", region_now - self.region0, self.pull_dir)
         progress = (np.minimum(lift_new, cfg.lift_target_m) - np.minimum(self.lift, cfg.lift_target_m)) / cfg.lift_target_m
         self.lift = lift_new
+        grip = np.minimum(pinch / cfg.reward.grasp_force_N, 1.0)
+        grip_gain = grip - self.grip
+        self.grip = grip
         self.slip_total += slip
         self.peak_pinch = np.maximum(self.peak_pinch, pinch)
         self.peak_stress = np.maximum(self.peak_stress, stress)
@@ -330,6 +340,7 @@ class GraspLiftCore:
         w = cfg.reward
         terms = {
             "progress": w.progress * progress,
+            "grasp": w.grasp * grip_gain,
             "slip": -w.slip_per_mm * slip * 1e3,
             "force": -w.force_per_s * (pinch / cfg.reference_force_N) * dt,
             "damage": -w.damage * damaged.astype(np.float64),
@@ -344,6 +355,7 @@ class GraspLiftCore:
             for v in terms.values():
                 v[bad] = np.where(np.isfinite(v[bad]), v[bad], 0.0)
             self.lift[bad] = 0.0
+            self.grip[bad] = 0.0
         self.prev_action = act.astype(np.float64)
         noise = np.stack([self.rngs[b].normal(0.0, cfg.randomization.sensor_noise_N, size=3) for b in range(B)])
         self._observe(np.arange(B), noise)

@@ -74,6 +74,7 @@ class GraspLiftEnv(gym.Env):
     | term | value per step |
     |---|---|
     | progress | +w * (increase of the grasped region's lift, capped at the target) / target |
+    | grasp | +w * increase of min(pinch / grasp_force_N, 1) (potential-based shaping toward a grip) |
     | slip | -w * slip distance this step in mm |
     | force | -w * (pinch force / reference force) * step duration |
     | damage | -w if the peak nodal stress exceeds ``damage_stress_pa`` |

@@ -287,7 +287,7 @@ def test_default_time_limit():
 def test_reward_terms_sum_to_reward():
     env = GraspLiftEnv()
     env.reset(seed=9)
-    expected = {"progress", "slip", "force", "damage", "success", "failure"}
+    expected = {"progress", "grasp", "slip", "force", "damage", "success", "failure"}
     seen_nonzero = set()
     for a in _actions(40, rng_seed=5):
         _, r, terminated, truncated, info = env.step(a)

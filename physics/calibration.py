@@ -1,0 +1,527 @@
+"""Fit the paper's five uniform-mode constants to measured compression curves.
+
+The paper tuned K1, K2, dl_c (spring law, Eq. 4-6) and b0, b1 (nodal damping, Eq. 7), taken uniform over
+the sample, by minimising the squared error between measured and simulated force-deformation curves of
+the unconstrained compression test at two rates (MATLAB ``fmincon``). Here the same fit uses
+:func:`scipy.optimize.least_squares` (trust-region reflective, box bounds):
+
+* the unknowns are ``log(p / p_init)`` for the five constants, so all are positive, of order one and
+  equally scaled (``x_scale = 1``); a step of ``diff_step`` in a log-parameter is a relative change;
+* one residual evaluation is ONE :func:`~.experiments.run_compression` call that simulates all measured
+  rates together (the rates are a batch there), to the largest measured deformation; the simulated force
+  is interpolated at the measured deformations and ``simulated - measured`` of all curves is concatenated;
+* the Jacobian is a forward difference in log space computed here (so every simulation is counted and
+  ``max_evals`` is a hard budget on simulations, which ``least_squares`` itself does not count);
+* evaluations are cached by parameter vector; a guess so stiff that the explicit scheme would need more
+  than ``max_substeps`` substeps per 1 ms step, or one whose simulation turns non-finite, gets large
+  residuals instead of a (slow or failed) simulation;
+* gravity is off (the sample's weight is negligible against the test forces), as in ``run_compression``.
+
+The CLI (``msdgrasp calibrate``) reads a CSV of curves, fits, prints a JSON summary and writes a tissue
+config (``mesh:``, ``tissue:`` in uniform mode, ``calibration:``) that loads back with
+:func:`~.experiments.load_tissue_params` / :func:`~.experiments.tissue_mesh_from_config`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .config import ConfigError, builtin_config, from_dict, read_yaml, to_dict, write_yaml
+from .experiments import (
+    CompressionConfig,
+    CompressionCurve,
+    compression_model,
+    load_tissue_params,
+    read_compression_csv,
+    run_compression,
+    tissue_mesh_from_config,
+)
+from .mesh import TetMesh
+from .tissue import TissueModel, TissueParams
+
+#: the fitted constants, in this order (TissueParams field names, SI units)
+PARAM_NAMES: tuple[str, ...] = ("k1_n_per_m", "k2_n_per_m3", "dl_c_m", "b0_n_s_per_m", "b1_n_s_per_m2")
+
+#: Default bounds: wide (several decades around any plausible value for a ~5 cm soft sample on a coarse
+#: to fine mesh) but strictly positive, since the fit runs in log space. K2 and b1 may physically be 0;
+#: their floors are small enough to make the term negligible at the deformations of a compression test.
+#: dl_c is further capped at :data:`DLC_MAX_EDGE_FRACTION` x the mean spring rest length of the mesh
+#: (see :func:`default_bounds`): few springs of a compression test stretch or shorten that much, so a
+#: larger dl_c is not identifiable from the data, and it would only slow the simulation down (the
+#: automatic substep count follows the tangent stiffness K1 + 3 K2 dl_c^2 even where it is not reached).
+DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
+    "k1_n_per_m": (1e-2, 1e6),  # N/m
+    "k2_n_per_m3": (1e-2, 1e14),  # N/m^3
+    "dl_c_m": (1e-6, 1e-1),  # m (upper bound also capped by the mesh, see above)
+    "b0_n_s_per_m": (1e-6, 1e4),  # N s/m
+    "b1_n_s_per_m2": (1e-4, 1e7),  # N s/m^2
+}
+
+DLC_MAX_EDGE_FRACTION = 0.5
+
+
+def default_bounds(mesh: TetMesh) -> dict[str, tuple[float, float]]:
+    """:data:`DEFAULT_BOUNDS` with the dl_c upper bound capped by the mesh's mean edge length."""
+    e = mesh.edges
+    mean_len = float(np.mean(np.linalg.norm(mesh.nodes[e[:, 1]] - mesh.nodes[e[:, 0]], axis=1)))
+    lo, hi = DEFAULT_BOUNDS["dl_c_m"]
+    return {**DEFAULT_BOUNDS, "dl_c_m": (lo, max(10.0 * lo, min(hi, DLC_MAX_EDGE_FRACTION * mean_len)))}
+
+
+#: smallest number of points per measured curve
+MIN_POINTS = 3
+#: largest deformation/height run_compression accepts
+MAX_DEFORMATION_FRACTION = 0.6
+
+
+class _BudgetExhausted(Exception):
+    """Raised inside the residual function when ``max_evals`` simulations have been run."""
+
+
+@dataclass
+class CalibrationResult:
+    """Outcome of :func:`fit_compression`."""
+
+    #: fitted constants, keys :data:`PARAM_NAMES` (SI units)
+    params: dict[str, float]
+    #: root-mean-square of simulated - measured force over all points, N
+    rmse_N: float
+    #: Pearson correlation between all measured and simulated forces
+    correlation: float
+    #: RMSE per rate (mm/min -> N)
+    rmse_per_rate: dict[float, float]
+    #: simulations run (cache hits not counted)
+    n_evals: int
+    success: bool
+    message: str
+    #: uniform-mode parameters: the fitted constants, every other field from the base parameters
+    tissue_params: TissueParams
+    #: starting point of the fit
+    init: dict[str, float] = field(default_factory=dict)
+    #: simulated force at the measured deformations, one array per measured curve
+    simulated_force_N: list[np.ndarray] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    def summary(self) -> dict:
+        """JSON-safe summary."""
+        return {
+            "params": {k: float(v) for k, v in self.params.items()},
+            "rmse_N": float(self.rmse_N),
+            "correlation": float(self.correlation),
+            "rmse_per_rate_N": {f"{r:g}": float(v) for r, v in self.rmse_per_rate.items()},
+            "n_evals": int(self.n_evals),
+            "success": bool(self.success),
+            "message": self.message,
+            "init": {k: float(v) for k, v in self.init.items()},
+            "wall_s": round(float(self.wall_s), 3),
+        }
+
+
+# =================================================================================================
+# validation
+# =================================================================================================
+
+
+def validate_curves(curves: Sequence[CompressionCurve], height_m: float | None = None, where: str = "data") -> None:
+    """Raise :class:`ConfigError` unless the curves are usable for a fit.
+
+    Each curve: a rate in (0, 6000] mm/min, at least :data:`MIN_POINTS` finite points, deformation >= 0
+    and non-decreasing (strictly larger at the end than at the start), forces >= 0 (a load-cell offset of
+    up to 1 % of the curve's peak force is tolerated). With ``height_m``, the largest deformation must not
+    exceed :data:`MAX_DEFORMATION_FRACTION` of the sample height.
+    """
+    if len(curves) == 0:
+        raise ConfigError(f"{where}: no data rows (need at least {MIN_POINTS} points per rate)")
+    for c in curves:
+        tag = f"{where}: rate {c.rate_mm_per_min:g} mm/min"
+        rate = c.rate_mm_per_min
+        if not (math.isfinite(rate) and 0.0 < rate <= 6000.0):
+            raise ConfigError(f"{tag}: rate_mm_per_min must be in (0, 6000], got {rate!r}")
+        d = np.asarray(c.deformation_mm, dtype=np.float64)
+        f = np.asarray(c.force_N, dtype=np.float64)
+        if d.shape != f.shape or d.ndim != 1:
+            raise ConfigError(f"{tag}: deformation_mm and force_N must be 1-D arrays of equal length")
+        if len(d) < MIN_POINTS:
+            raise ConfigError(f"{tag}: only {len(d)} point(s); need at least {MIN_POINTS} per curve")
+        if not (np.all(np.isfinite(d)) and np.all(np.isfinite(f))):
+            raise ConfigError(f"{tag}: deformation_mm/force_N contain non-finite values")
+        if np.any(d < 0):
+            raise ConfigError(f"{tag}: deformation_mm must be >= 0, got {float(d.min()):g}")
+        steps = np.diff(d)
+        if np.any(steps < 0):
+            k = int(np.argmax(steps < 0)) + 1
+            raise ConfigError(
+                f"{tag}: deformation_mm must increase along the curve, but point {k} "
+                f"({d[k]:g} mm) is below point {k - 1} ({d[k - 1]:g} mm)"
+            )
+        if not d[-1] > d[0]:
+            raise ConfigError(f"{tag}: deformation_mm does not increase (all points at {d[0]:g} mm)")
+        tol = 0.01 * float(np.max(np.abs(f)))
+        if np.any(f < -tol):
+            raise ConfigError(f"{tag}: force_N must be >= 0 (compression), got {float(f.min()):g} N")
+        if not np.max(f) > 0:
+            raise ConfigError(f"{tag}: force_N is zero everywhere; nothing to fit")
+        if height_m is not None:
+            frac = float(d.max()) * 1e-3 / height_m
+            if frac > MAX_DEFORMATION_FRACTION:
+                raise ConfigError(
+                    f"{tag}: largest deformation {d.max():g} mm is {frac:.0%} of the sample height "
+                    f"{height_m * 1e3:g} mm; at most {MAX_DEFORMATION_FRACTION:.0%} can be simulated"
+                )
+
+
+def _check_params(name: str, values: Mapping[str, float] | None) -> dict[str, float]:
+    if values is None:
+        return {}
+    unknown = sorted(set(values) - set(PARAM_NAMES))
+    if unknown:
+        raise ConfigError(f"{name}: unknown key(s) {unknown}; allowed {list(PARAM_NAMES)}")
+    return dict(values)
+
+
+# =================================================================================================
+# the fit
+# =================================================================================================
+
+
+def _uniform_params(base: TissueParams, values: Mapping[str, float]) -> TissueParams:
+    data = {**to_dict(base), "stiffness_mode": "uniform", **{k: float(v) for k, v in values.items()}}
+    return from_dict(TissueParams, data, where="calibration")
+
+
+def equivalent_uniform(mesh: TetMesh, params: TissueParams) -> dict[str, float]:
+    """Uniform constants equivalent (on average) to ``params`` on ``mesh``: the uniform-mode values as
+    they are, or the means of the per-spring / per-node arrays a modulus-mode tissue builds."""
+    if params.stiffness_mode == "uniform":
+        return {k: float(getattr(params, k)) for k in PARAM_NAMES}
+    model = TissueModel.from_params(mesh, params)
+    return {
+        "k1_n_per_m": float(model.k1.mean()),
+        "k2_n_per_m3": float(model.k2.mean()),
+        "dl_c_m": float(model.dlc.mean()),
+        "b0_n_s_per_m": float(model.b0.mean()),
+        "b1_n_s_per_m2": float(model.b1.mean()),
+    }
+
+#: a starting value is kept at least this factor inside its bounds: trust-region reflective makes
+#: almost no progress from a start on (or a hair inside) a bound
+_START_MARGIN = 1.5
+
+
+def _neutral_start(
+    start: dict[str, float], lo: np.ndarray, hi: np.ndarray, max_def_m: float, keep: set[str]
+) -> dict[str, float]:
+    """Replace values the fit cannot move from (0 or at a bound) by neutral ones; keep inside bounds.
+
+    A base value at or below its lower bound (K2 = 0, b0 = 0 or b1 = 0 in the base parameters) would
+    start the log-space fit where the parameter has no effect, so its derivative is zero and it never
+    moves. Such values (unless given explicitly in ``keep``) become: K2 = 0.3 K1 / dl_c^2 (the cubic term
+    30 % of the linear one at dl_c), b0 = K1 x 20 ms, b1 = b0 / largest measured deformation (the
+    displacement term equal to b0 at that displacement).
+    """
+    out = dict(start)
+    idx = {k: i for i, k in enumerate(PARAM_NAMES)}
+
+    def low(k: str) -> bool:
+        return k not in keep and out[k] <= lo[idx[k]] * _START_MARGIN
+
+    if low("k2_n_per_m3"):
+        out["k2_n_per_m3"] = 0.3 * out["k1_n_per_m"] / out["dl_c_m"] ** 2
+    if low("b0_n_s_per_m"):
+        out["b0_n_s_per_m"] = 0.02 * out["k1_n_per_m"]
+    if low("b1_n_s_per_m2"):
+        out["b1_n_s_per_m2"] = out["b0_n_s_per_m"] / max(max_def_m, 1e-6)
+    for k, i in idx.items():
+        a, b = lo[i] * _START_MARGIN, hi[i] / _START_MARGIN
+        out[k] = float(np.clip(out[k], a, b)) if a < b else float(math.sqrt(lo[i] * hi[i]))
+    return out
+
+
+def fit_compression(
+    curves: Sequence[CompressionCurve],
+    mesh: TetMesh,
+    base_params: TissueParams | None = None,
+    init: Mapping[str, float] | None = None,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+    max_evals: int = 200,
+    progress: bool = False,
+    *,
+    diff_step: float = 0.02,
+    max_substeps: int = 32,
+    samples: int = 150,
+    dt_s: float = 1e-3,
+    ftol: float = 1e-3,
+    xtol: float = 1e-3,
+) -> CalibrationResult:
+    """Fit K1, K2, dl_c, b0, b1 (uniform mode) to measured compression curves.
+
+    Parameters
+    ----------
+    curves : measured curves (one per rate): deformation in mm, force in N, constant plate speed from
+        zero deformation, as :func:`~.experiments.read_compression_csv` returns them.
+    mesh : the sample's mesh; its z-extent is the sample height.
+    base_params : every non-fitted field (density/mass, spring dashpot, ...); default ``TissueParams()``.
+    init : starting values (any subset of :data:`PARAM_NAMES`). Default: the base parameters' uniform
+        equivalent (:func:`equivalent_uniform`), then scaled to the data by one simulation: K1, K2, b0,
+        b1 all multiplied by the least-squares factor between measured and simulated forces (with dl_c
+        fixed that scales the whole force law, so the quasi-static force scales by the same factor).
+        Given keys are used as they are (no scaling). Zero K2/b0/b1 in the base parameters get neutral
+        starting values (:func:`_neutral_start`); every start is kept a factor 1.5 inside its bounds.
+    bounds : ``{name: (lo, hi)}`` overriding :func:`default_bounds` (:data:`DEFAULT_BOUNDS`, dl_c capped
+        at half the mean edge length); must be > 0 (log space).
+    max_evals : hard budget of simulations (Jacobian columns included).
+    progress : print one line per simulation to stderr.
+    diff_step : forward-difference step in log-parameter (a relative change of the parameter).
+    max_substeps : guesses needing more substeps per ``dt_s`` than this (or 4x the starting guess's,
+        whichever is larger) get large residuals instead of a simulation.
+    samples : force samples per simulated curve (interpolated at the measured deformations).
+    ftol, xtol : ``least_squares`` stopping tolerances (relative cost change; step size in log-parameter).
+        The defaults stop once an iteration improves the cost by less than 0.1 %: a calibration
+        against noisy data gains nothing from more digits, and each iteration costs 6 simulations.
+    """
+    from scipy.optimize import least_squares
+
+    t_start = time.perf_counter()
+    if isinstance(max_evals, bool) or not isinstance(max_evals, (int, np.integer)) or max_evals < 2:
+        raise ConfigError(f"max_evals must be an integer >= 2, got {max_evals!r}")
+    base = base_params or TissueParams()
+    init_given = _check_params("init", init)
+    bnd = {**default_bounds(mesh), **_check_params("bounds", bounds)}
+    lo = np.empty(len(PARAM_NAMES))
+    hi = np.empty(len(PARAM_NAMES))
+    for i, name in enumerate(PARAM_NAMES):
+        try:
+            a, b = (float(v) for v in bnd[name])
+        except (TypeError, ValueError):
+            raise ConfigError(f"bounds.{name} must be a pair (lo, hi), got {bnd[name]!r}") from None
+        if not (math.isfinite(a) and math.isfinite(b) and 0.0 < a < b):
+            raise ConfigError(f"bounds.{name} = ({a:g}, {b:g}) must satisfy 0 < lo < hi (finite)")
+        lo[i], hi[i] = a, b
+    for name, v in init_given.items():
+        if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
+            raise ConfigError(f"init.{name} must be a finite number > 0, got {v!r}")
+
+    z = mesh.nodes[:, 2]
+    height = float(z.max() - z.min())
+    validate_curves(curves, height)
+    rates = tuple(float(c.rate_mm_per_min) for c in curves)
+    if len(set(rates)) != len(rates):
+        raise ConfigError(f"data: each rate must appear in one curve only, got rates {rates}")
+    d_meas = [np.asarray(c.deformation_mm, dtype=np.float64) for c in curves]
+    f_meas = [np.asarray(c.force_N, dtype=np.float64) for c in curves]
+    f_all = np.concatenate(f_meas)
+    max_def_m = max(float(d.max()) for d in d_meas) * 1e-3
+    # simulate a hair beyond the last measured point (np.interp would clamp at the end anyway)
+    frac = min(MAX_DEFORMATION_FRACTION, 1.005 * max_def_m / height)
+    cfg = CompressionConfig(rates_mm_per_min=rates, deformation_fraction=frac, samples=int(samples), dt_s=dt_s)
+    penalty = 10.0 * float(np.max(np.abs(f_all))) + 1.0
+
+    n_evals = 0
+    cache: dict[bytes, np.ndarray] = {}
+    best: dict = {"cost": math.inf, "values": None}
+    substep_cap = [int(max_substeps)]
+
+    def simulate(values: dict[str, float]) -> np.ndarray | None:
+        """Residuals for ``values`` (one run_compression call), or None if unstable / too stiff."""
+        nonlocal n_evals
+        params = _uniform_params(base, values)
+        model = compression_model(mesh, params)
+        n_sub = max(1, math.ceil(dt_s / (0.9 * model.critical_dt())))
+        if n_sub > substep_cap[0]:
+            return None
+        if n_evals >= max_evals:
+            raise _BudgetExhausted
+        n_evals += 1
+        try:
+            with np.errstate(all="ignore"):
+                sim = run_compression(mesh, params, cfg)
+        except FloatingPointError:
+            return None
+        res = []
+        for c_sim, d, f in zip(sim, d_meas, f_meas):
+            res.append(np.interp(d, c_sim.deformation_mm, c_sim.force_N) - f)
+        r = np.concatenate(res)
+        return r if np.all(np.isfinite(r)) else None
+
+    # -- starting point ---------------------------------------------------------------------------
+    start = equivalent_uniform(mesh, base)
+    start.update(init_given)
+    start = _neutral_start(start, lo, hi, max_def_m, set(init_given))
+    model0 = compression_model(mesh, _uniform_params(base, start))
+    n_sub0 = max(1, math.ceil(dt_s / (0.9 * model0.critical_dt())))
+    substep_cap[0] = max(int(max_substeps), 4 * n_sub0)
+    if not init_given:
+        r0 = simulate(start)
+        if r0 is not None:
+            f_sim = r0 + f_all
+            denom = float(f_sim @ f_sim)
+            scale = float(np.clip((f_sim @ f_all) / denom, 1e-3, 1e3)) if denom > 0 else 1.0
+            for k in ("k1_n_per_m", "k2_n_per_m3", "b0_n_s_per_m", "b1_n_s_per_m2"):
+                start[k] = start[k] * scale
+            start = _neutral_start(start, lo, hi, max_def_m, set())
+            if progress:
+                print(f"calibrate: start scaled to the data by {scale:.4g}", file=sys.stderr)
+    ref = np.array([start[k] for k in PARAM_NAMES])
+    xlo, xhi = np.log(lo / ref), np.log(hi / ref)
+    x0 = np.zeros(len(PARAM_NAMES))  # strictly inside the box (see _neutral_start)
+
+    def values_of(x: np.ndarray) -> dict[str, float]:
+        return {k: float(v) for k, v in zip(PARAM_NAMES, ref * np.exp(x))}
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        key = np.round(np.asarray(x, dtype=np.float64), 12).tobytes()
+        if key in cache:
+            return cache[key]
+        values = values_of(x)
+        r = simulate(values)
+        if r is None:
+            r = np.full(len(f_all), penalty)
+        cost = 0.5 * float(r @ r)
+        if cost < best["cost"]:
+            best.update(cost=cost, values=values, x=np.array(x, dtype=np.float64))
+        if progress:
+            rms = math.sqrt(2.0 * cost / len(r))
+            print(
+                f"calibrate: sim {n_evals:4d}  rmse {rms:.4g} N  "
+                + "  ".join(f"{k.split('_')[0]}={v:.4g}" for k, v in values.items()),
+                file=sys.stderr,
+            )
+        cache[key] = r
+        return r
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        f0 = fun(x)
+        J = np.empty((len(f0), len(x)))
+        for i in range(len(x)):
+            h = diff_step if x[i] + diff_step <= xhi[i] else -diff_step
+            xp = np.array(x, dtype=np.float64)
+            xp[i] += h
+            J[:, i] = (fun(xp) - f0) / h
+        return J
+
+    success, message = False, ""
+    try:
+        sol = least_squares(
+            fun,
+            x0,
+            jac=jac,
+            bounds=(xlo, xhi),
+            method="trf",
+            x_scale=1.0,
+            ftol=ftol,
+            xtol=xtol,
+            gtol=1e-8,
+            max_nfev=max_evals,
+        )
+        success = bool(sol.status > 0)
+        message = str(sol.message)
+    except _BudgetExhausted:
+        message = f"stopped after max_evals = {max_evals} simulations (best point so far returned)"
+    if best["values"] is None:
+        raise FloatingPointError(
+            "calibration: no stable simulation at any evaluated parameter set (check the start values)"
+        )
+    fitted = best["values"]
+    r_best = cache[np.round(best["x"], 12).tobytes()]
+    if np.all(r_best == penalty):
+        success = False
+        message = "every simulation was unstable or too stiff; " + message
+    f_sim_all = r_best + f_all
+    rmse = float(np.sqrt(np.mean(r_best**2)))
+    if np.std(f_sim_all) > 0 and np.std(f_all) > 0:
+        corr = float(np.corrcoef(f_all, f_sim_all)[0, 1])
+    else:
+        corr = float("nan")
+    per_rate, sims = {}, []
+    k0 = 0
+    for c, f in zip(curves, f_meas):
+        r = r_best[k0 : k0 + len(f)]
+        per_rate[float(c.rate_mm_per_min)] = float(np.sqrt(np.mean(r**2)))
+        sims.append(f + r)
+        k0 += len(f)
+    init_used = {k: float(v) for k, v in zip(PARAM_NAMES, ref)}
+    return CalibrationResult(
+        params=dict(fitted),
+        rmse_N=rmse,
+        correlation=corr,
+        rmse_per_rate=per_rate,
+        n_evals=n_evals,
+        success=success,
+        message=message,
+        tissue_params=_uniform_params(base, fitted),
+        init=init_used,
+        simulated_force_N=sims,
+        wall_s=time.perf_counter() - t_start,
+    )
+
+
+# =================================================================================================
+# CLI
+# =================================================================================================
+
+
+def tissue_config_dict(
+    result: CalibrationResult, mesh_section: Mapping, data_path: str | Path | None = None
+) -> dict:
+    """The tissue config written by the CLI: ``mesh`` (as given), ``tissue`` (uniform), ``calibration``."""
+    tp = result.tissue_params
+    tissue = {"stiffness_mode": "uniform"}
+    if tp.mass_kg is not None:
+        tissue["mass_kg"] = tp.mass_kg
+    else:
+        tissue["density_kg_m3"] = tp.density_kg_m3
+    tissue.update({k: float(getattr(tp, k)) for k in PARAM_NAMES})
+    tissue["spring_damping_time_s"] = tp.spring_damping_time_s
+    tissue["gravity_m_per_s2"] = list(tp.gravity_m_per_s2)
+    calib = {
+        "data": str(Path(data_path).resolve()) if data_path is not None else None,
+        "rmse_N": float(result.rmse_N),
+        "correlation": float(result.correlation),
+        "rmse_per_rate_N": {f"{r:g}": float(v) for r, v in result.rmse_per_rate.items()},
+        "n_evals": int(result.n_evals),
+        "success": bool(result.success),
+        "message": result.message,
+        "note": "fitted with gravity off; uniform-mode constants are specific to this mesh and resolution",
+    }
+    return {"mesh": dict(mesh_section), "tissue": tissue, "calibration": calib}
+
+
+def calibrate_cli(args) -> int:
+    """``msdgrasp calibrate --data CSV [--config YAML] [--out YAML] [--max-evals N] [--quiet]``."""
+    max_evals = args.max_evals
+    if isinstance(max_evals, bool) or not isinstance(max_evals, int) or max_evals < 10:
+        raise ConfigError(f"--max-evals must be an integer >= 10, got {max_evals!r}")
+    out = Path(args.out)
+    if out.is_dir():
+        raise ConfigError(f"--out {out} is a folder; give the path of the tissue config (YAML) to write")
+    cfg_path = Path(args.config) if args.config is not None else builtin_config("tissue/sphere.yaml")
+    mesh_section = read_yaml(cfg_path).get("mesh", {})
+    if not isinstance(mesh_section, dict):
+        raise ConfigError(f"{cfg_path}: the mesh section must be a mapping")
+    base = load_tissue_params(cfg_path)
+    mesh = tissue_mesh_from_config(cfg_path)
+
+    data_path = Path(args.data)
+    curves = read_compression_csv(data_path)
+    z = mesh.nodes[:, 2]
+    validate_curves(curves, float(z.max() - z.min()), where=str(data_path))
+
+    try:
+        result = fit_compression(curves, mesh, base, max_evals=max_evals, progress=not args.quiet)
+    except FloatingPointError as exc:
+        raise ConfigError(f"{exc}; config {cfg_path}") from None
+    doc = tissue_config_dict(result, mesh_section, data_path)
+    written = write_yaml(out, doc)
+    # the written file must load back
+    load_tissue_params(written)
+    summary = {"out": str(written), **result.summary()}
+    print(json.dumps(summary, indent=2))
+    return 0
