@@ -41,7 +41,7 @@ class Policy(Protocol):
 class FixedForcePolicy:
     """Close at full speed until the pinch force reaches ``force_N``, then pull while regulating it."""
 
-    def __init__(self, config: GraspLiftConfig | None = None, force_N: float = 3.2, pull: float = 0.5,
+    def __init__(self, config: GraspLiftConfig | None = None, force_N: float = 2.5, pull: float = 0.5,
                  gain: float = 2.0, name: str | None = None) -> None:
         if not force_N > 0:
             raise ValueError(f"force_N must be > 0, got {force_N!r}")
