@@ -29,16 +29,16 @@ class RewardConfig:
     #: per unit of lift progress toward the target (a full lift earns this much in total)
     progress: float = 10.0
     #: per mm of slip between jaws and tissue
-    slip_per_mm: float = 1.0
+    slip_per_mm: float = 0.2
     #: per second of pinch force equal to the reference force (scales linearly with force)
-    force_per_s: float = 1.0
+    force_per_s: float = 0.5
     #: per step in which the peak nodal stress exceeds the damage threshold
     damage: float = 5.0
     success_bonus: float = 20.0
-    failure_penalty: float = 10.0
+    failure_penalty: float = 5.0
     #: potential-based shaping toward a first grip: w * (phi' - phi), phi = min(pinch / grasp_force_N, 1).
     #: It sums to at most w over an episode, so it guides exploration without changing what is optimal.
-    grasp: float = 2.0
+    grasp: float = 5.0
     grasp_force_N: float = 1.0
 
     def __post_init__(self) -> None:
