@@ -1,0 +1,541 @@
+"""Evaluate grasp policies across a grid of friction coefficients (``msdgrasp evaluate``).
+
+For every policy and every mu of the grid, ``episodes`` episodes run as ONE batch of a
+:class:`~msdgrasp.envs.grasp_lift.GraspLiftVectorEnv` (mu pinned through the reset options, every other
+randomisation as configured, episode ``i`` seeded ``seed + i``). The batch is stepped through the core
+(``env.core.step``) so that no sub-env is auto-reset mid-evaluation; each episode's metrics are frozen
+at the step it ends.
+
+Per (policy, mu) row:
+
+=========================  ======================================================================
+``success_rate``           fraction of episodes ending with ``info["is_success"]`` (slip-free lift)
+``mean_peak_pinch_N``      mean over episodes of the episode's peak pinch force, N
+``max_peak_pinch_N``       largest peak pinch force of any episode, N
+``mean_pinch_N``           mean over episodes of the episode's mean pinch force (all its steps), N
+``mean_slip_mm``           mean total slip distance between jaws and tissue, mm
+``mean_peak_stress_kPa``   mean peak nodal contact stress, kPa
+``mean_time_to_lift_s``    mean time until the lift target was first reached, over the episodes
+                           that reached it, s (NaN -- ``null`` in the JSON -- when none did)
+``episodes``               number of episodes
+=========================  ======================================================================
+
+:func:`evaluate` writes ``evaluation.json``, ``evaluation.csv``, ``success_vs_mu.png`` and
+``pinch_vs_mu.png`` (atomically), and optionally one rerun recording per (policy, mu).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import re
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..envs.core import GraspLiftConfig
+from ..physics.config import ConfigError, atomic_write, atomic_write_text, to_dict
+
+DEFAULT_MU_GRID = "0.2:1.0:0.1"
+MAX_GRID_VALUES = 101
+MU_MAX = 10.0  # the env accepts mu in [0, 10]
+BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "oracle")
+
+CSV_COLUMNS = (
+    "policy", "mu", "success_rate", "mean_peak_pinch_N", "max_peak_pinch_N", "mean_pinch_N", "mean_slip_mm",
+    "mean_peak_stress_kPa", "mean_time_to_lift_s", "episodes",
+)
+_GRID_HELP = "expected 'start:stop:step' (stop included, e.g. '0.2:1.0:0.1') or a comma list such as '0.3,0.5'"
+
+
+# ------------------------------------------------------------------------------------------------
+# mu grid
+# ------------------------------------------------------------------------------------------------
+
+
+def _grid_number(text: str, part: str, what: str) -> float:
+    try:
+        value = float(part)
+    except ValueError:
+        raise ConfigError(f"mu grid {text!r}: {what} {part.strip()!r} is not a number; {_GRID_HELP}") from None
+    if not math.isfinite(value):
+        raise ConfigError(f"mu grid {text!r}: {what} must be a finite number, got {part.strip()!r}; {_GRID_HELP}")
+    return value
+
+
+def _check_mu(text: str, value: float, what: str) -> None:
+    if value < 0:
+        raise ConfigError(f"mu grid {text!r}: {what} = {value:g} is negative; friction coefficients must be >= 0")
+    if value > MU_MAX:
+        raise ConfigError(f"mu grid {text!r}: {what} = {value:g} exceeds {MU_MAX:g}, the largest mu the env accepts")
+
+
+def parse_mu_grid(text: str) -> np.ndarray:
+    """``'start:stop:step'`` (stop included within float tolerance) or ``'0.3,0.5'`` -> sorted mu values.
+
+    Raises :class:`ConfigError` naming the grid and the broken rule for non-numbers, ``step <= 0``,
+    ``start > stop``, negative (or > 10) mu, or more than 101 values.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise ConfigError(f"mu grid {text!r} is empty; {_GRID_HELP}")
+    raw = text.strip()
+    if ":" in raw:
+        parts = raw.split(":")
+        if len(parts) != 3:
+            raise ConfigError(f"mu grid {text!r}: a range needs exactly three fields start:stop:step, got {len(parts)}")
+        start, stop, step = (_grid_number(text, p, w) for p, w in zip(parts, ("start", "stop", "step")))
+        if step <= 0:
+            raise ConfigError(f"mu grid {text!r}: step must be > 0, got {step:g}")
+        if start > stop:
+            raise ConfigError(f"mu grid {text!r}: start ({start:g}) must be <= stop ({stop:g})")
+        _check_mu(text, start, "start")
+        _check_mu(text, stop, "stop")
+        span = (stop - start) / step
+        if span + 1 > MAX_GRID_VALUES + 1e-6:
+            raise ConfigError(
+                f"mu grid {text!r}: {int(math.floor(span + 1e-9)) + 1} values; at most {MAX_GRID_VALUES} are allowed "
+                "(use a larger step)"
+            )
+        n = int(math.floor(span + 1e-9)) + 1
+        values = start + step * np.arange(n)
+        if abs(values[-1] - stop) <= 1e-9 * max(1.0, abs(stop)):
+            values[-1] = stop
+        values = np.minimum(values, stop)
+    else:
+        parts = raw.split(",")
+        if any(not p.strip() for p in parts):
+            raise ConfigError(f"mu grid {text!r}: empty entry in the comma list; {_GRID_HELP}")
+        if len(parts) > MAX_GRID_VALUES:
+            raise ConfigError(f"mu grid {text!r}: {len(parts)} values; at most {MAX_GRID_VALUES} are allowed")
+        values = np.array([_grid_number(text, p, "value") for p in parts])
+        for v in values:
+            _check_mu(text, float(v), "mu")
+    return np.unique(np.round(values, 10))
+
+
+# ------------------------------------------------------------------------------------------------
+# running episodes
+# ------------------------------------------------------------------------------------------------
+
+
+def _nan_to_none(x: Any) -> Any:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _nan_to_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_nan_to_none(v) for v in x]
+    return x
+
+
+def _run_batch(env, policy, mu: float, seeds: Sequence[int]) -> dict[str, np.ndarray]:
+    """Run ``len(seeds) <= env.num_envs`` episodes at friction ``mu``; per-episode metrics (frozen at the end)."""
+    B = env.num_envs
+    n = len(seeds)
+    # unused slots (a short last chunk) run too, with seeds continuing the sequence, and are ignored
+    all_seeds = [int(s) for s in seeds] + [int(seeds[-1]) + 1 + k for k in range(B - n)]
+    obs, info = env.reset(seed=all_seeds, options={"mu": float(mu)})
+    policy.reset([{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in info.items()} for i in range(B)])
+    core = env.core
+    done = np.zeros(B, dtype=bool)
+    out = {
+        "success": np.zeros(B, dtype=bool),
+        "peak_pinch_N": np.zeros(B),
+        "pinch_sum_N": np.zeros(B),
+        "steps": np.zeros(B, dtype=np.int64),
+        "slip_mm": np.zeros(B),
+        "peak_stress_kPa": np.zeros(B),
+        "time_to_lift_s": np.full(B, np.nan),
+        "outcome": np.full(B, "timeout", dtype=object),
+    }
+    for _ in range(env.config.max_episode_steps + 1):
+        act = np.asarray(policy.act(obs), dtype=np.float64).reshape(B, 2)
+        act = np.where(done[:, None], 0.0, np.nan_to_num(act, nan=0.0))  # finished tissues just rest
+        obs, _, term, trunc, inf = core.step(act)
+        live = ~done
+        out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
+        out["steps"][live] += 1
+        ended = live & (term | trunc)
+        if ended.any():
+            out["success"][ended] = inf["is_success"][ended]
+            out["peak_pinch_N"][ended] = core.peak_pinch[ended]
+            out["slip_mm"][ended] = core.slip_total[ended] * 1e3
+            out["peak_stress_kPa"][ended] = core.peak_stress[ended] * 1e-3
+            out["time_to_lift_s"][ended] = core.time_to_lift[ended]
+            for i in np.flatnonzero(ended):
+                if inf["is_success"][i]:
+                    o = "success"
+                elif inf["numerical_failure"][i]:
+                    o = "numerical_failure"
+                elif inf["lost_grasp"][i]:
+                    o = "lost_grasp"
+                elif term[i] and inf["damaged"][i]:
+                    o = "damaged"
+                else:
+                    o = "timeout"
+                out["outcome"][i] = o
+            done |= ended
+        if done.all():
+            break
+    out["mean_pinch_N"] = out.pop("pinch_sum_N") / np.maximum(out["steps"], 1)
+    return {k: v[:n] for k, v in out.items()}
+
+
+def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
+    ttl = ep["time_to_lift_s"]
+    lifted = np.isfinite(ttl)
+    outcomes = {o: int(np.sum(ep["outcome"] == o)) for o in sorted(set(ep["outcome"].tolist()))}
+    return {
+        "mu": float(mu),
+        "success_rate": float(np.mean(ep["success"])),
+        "mean_peak_pinch_N": float(np.mean(ep["peak_pinch_N"])),
+        "max_peak_pinch_N": float(np.max(ep["peak_pinch_N"])),
+        "mean_pinch_N": float(np.mean(ep["mean_pinch_N"])),
+        "mean_slip_mm": float(np.mean(ep["slip_mm"])),
+        "mean_peak_stress_kPa": float(np.mean(ep["peak_stress_kPa"])),
+        "mean_time_to_lift_s": float(np.mean(ttl[lifted])) if lifted.any() else float("nan"),
+        "episodes": int(len(ep["success"])),
+        "outcomes": outcomes,
+        "per_episode": {
+            "success": [bool(v) for v in ep["success"]],
+            "peak_pinch_N": [float(v) for v in ep["peak_pinch_N"]],
+            "mean_pinch_N": [float(v) for v in ep["mean_pinch_N"]],
+            "slip_mm": [float(v) for v in ep["slip_mm"]],
+            "peak_stress_kPa": [float(v) for v in ep["peak_stress_kPa"]],
+            "time_to_lift_s": [float(v) for v in ttl],
+            "steps": [int(v) for v in ep["steps"]],
+            "outcome": [str(v) for v in ep["outcome"]],
+        },
+    }
+
+
+def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: GraspLiftConfig | None = None,
+                    seed: int = 0, n_envs: int | None = None, *, _envs: dict | None = None,
+                    progress: bool = False) -> list[dict[str, Any]]:
+    """One row of metrics per mu (see the module docstring) for ``policy`` over ``episodes`` episodes each.
+
+    Episode ``i`` (at every mu) is seeded ``seed + i`` with reset options ``{"mu": mu}``. ``n_envs`` caps the
+    batch size (default: all episodes of one mu in one batch).
+    """
+    from ..envs.grasp_lift import GraspLiftVectorEnv
+
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
+        raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    if n_envs is not None and (isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or n_envs < 1):
+        raise ConfigError(f"n_envs must be an integer >= 1 or None, got {n_envs!r}")
+    config = config or GraspLiftConfig()
+    batch = int(min(n_envs or episodes, episodes))
+    envs = _envs if _envs is not None else {}
+    key = (config, batch)
+    if key not in envs:
+        envs[key] = GraspLiftVectorEnv(batch, config)
+    env = envs[key]
+    rows = []
+    for mu in mus:
+        t0 = time.perf_counter()
+        chunks = []
+        for start in range(0, episodes, batch):
+            seeds = [seed + i for i in range(start, min(start + batch, episodes))]
+            chunks.append(_run_batch(env, policy, float(mu), seeds))
+        ep = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+        row = _summarise(float(mu), ep)
+        rows.append(row)
+        if progress:
+            print(f"  {getattr(policy, 'name', 'policy')}: mu={float(mu):g} success={row['success_rate']:.2f} "
+                  f"peak pinch={row['mean_peak_pinch_N']:.2f} N ({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------
+# policy specs
+# ------------------------------------------------------------------------------------------------
+
+
+def check_policy_spec(spec: str) -> None:
+    """Raise ConfigError for an unusable spec (bad ``fixed:<N>``, unknown name, missing model file)."""
+    if not isinstance(spec, str) or not spec.strip():
+        raise ConfigError(f"policy {spec!r}: empty policy spec; use one of {', '.join(BUILTIN_POLICIES)} or a model path")
+    if spec in ("fixed", "reactive", "oracle"):
+        return
+    if spec.startswith("fixed:"):
+        value = spec.split(":", 1)[1]
+        try:
+            force = float(value)
+        except ValueError:
+            force = float("nan")
+        if not (math.isfinite(force) and force > 0):
+            raise ConfigError(f"policy {spec!r}: 'fixed:<N>' expects a positive force in newtons, got {value!r}")
+        return
+    path = Path(spec)
+    if path.is_dir():
+        raise ConfigError(f"policy {spec!r}: {path} is a folder, not a saved model file (.zip)")
+    if path.is_file():
+        return
+    looks_like_path = path.suffix != "" or "/" in spec or "\\" in spec
+    if looks_like_path:
+        raise ConfigError(f"policy {spec!r}: model file not found: {path}")
+    raise ConfigError(
+        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model (.zip)"
+    )
+
+
+def build_policy(spec: str, config: GraspLiftConfig):
+    """``make_policy`` after :func:`check_policy_spec`, with every failure as ConfigError."""
+    from .controllers import make_policy
+
+    check_policy_spec(spec)
+    try:
+        return make_policy(spec, config)
+    except ConfigError:
+        raise
+    except (ValueError, OSError) as exc:
+        raise ConfigError(f"policy {spec!r}: {exc}") from None
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", name) or "policy"
+
+
+def _mu_label(mu: float) -> str:
+    return f"{mu:g}"
+
+
+# ------------------------------------------------------------------------------------------------
+# evaluate: run, write, plot
+# ------------------------------------------------------------------------------------------------
+
+
+def _csv_text(results: list[dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for pol in results:
+        for r in pol["rows"]:
+            vals = [pol["name"]]
+            for col in CSV_COLUMNS[1:]:
+                v = r[col]
+                vals.append(v if isinstance(v, int) else f"{v:.6g}")
+            w.writerow(vals)
+    return buf.getvalue()
+
+
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+_LINES = ("-", "--", "-.", ":")
+
+
+def _style(k: int) -> dict[str, Any]:
+    """Distinct marker and line style per policy (curves often coincide, e.g. at success rate 1)."""
+    return {"marker": _MARKERS[k % len(_MARKERS)], "linestyle": _LINES[k % len(_LINES)],
+            "markersize": 7 - 0.6 * (k % 4), "alpha": 0.9}
+
+
+def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lo, hi = config.randomization.mu_range
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    ax.axvspan(lo, hi, color="tab:gray", alpha=0.15, label=f"training range of mu [{lo:g}, {hi:g}]")
+    for k, pol in enumerate(results):
+        mus = [r["mu"] for r in pol["rows"]]
+        ax.plot(mus, [r["success_rate"] for r in pol["rows"]], label=pol["name"], **_style(k))
+    ax.set_xlabel("friction coefficient mu")
+    ax.set_ylabel("success rate (slip-free lift)")
+    ax.set_ylim(-0.05, 1.05)
+    ax.set_title("Grasp-and-lift success vs friction")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, dpi=120))
+    plt.close(fig)
+    return out
+
+
+def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for k, pol in enumerate(results):
+        mus = [r["mu"] for r in pol["rows"]]
+        ax.plot(mus, [r["mean_peak_pinch_N"] for r in pol["rows"]], label=f"{pol['name']} (mean peak)", **_style(k))
+    ax.plot(oracle_curve["mu"], oracle_curve["minimal_force_N"], color="black", linestyle="--", marker="x",
+            label="minimal slip-free force (oracle bisection)")
+    ax.set_xlabel("friction coefficient mu")
+    ax.set_ylabel("pinch force (N)")
+    ax.set_title("Pinch force vs friction")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out = atomic_write(path, lambda p: fig.savefig(p, dpi=120))
+    plt.close(fig)
+    return out
+
+
+def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool = False) -> dict[str, Any]:
+    """The oracle's minimal slip-free fixed force at each mu (bisection in simulation, cached per mu)."""
+    from .controllers import OraclePolicy, minimal_force
+
+    ref = OraclePolicy(config)
+    forces = []
+    for mu in mus:
+        t0 = time.perf_counter()
+        # the same rounding, pull and tolerance as OraclePolicy.reset: shares its cache
+        forces.append(float(minimal_force(config, round(float(mu), 3), ref.pull, ref.tolerance)))
+        if progress:
+            print(f"  minimal force: mu={float(mu):g} -> {forces[-1]:.3f} N ({time.perf_counter() - t0:.1f} s)",
+                  file=sys.stderr)
+    return {"mu": [float(m) for m in mus], "minimal_force_N": forces, "oracle_margin": ref.margin,
+            "pull": ref.pull, "tolerance_N": ref.tolerance}
+
+
+def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
+             config: GraspLiftConfig | None = None, seed: int = 0, record: bool = False,
+             progress: bool = True, n_envs: int | None = None) -> dict[str, Any]:
+    """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
+
+    Every spec is validated (and every model loaded) before any episode runs or anything is written.
+    Returns ``{"results": [...], "oracle_minimal_force": {...}, "files": {...}, "recordings": [...]}``.
+    """
+    config = config or GraspLiftConfig()
+    out_dir = Path(out_dir)
+    policies = list(policies)
+    if not policies:
+        raise ConfigError("no policy to evaluate: give at least one --policy")
+    mus = [float(m) for m in mus]
+    if not mus:
+        raise ConfigError("the mu grid is empty")
+    for m in mus:
+        if not (math.isfinite(m) and 0.0 <= m <= MU_MAX):
+            raise ConfigError(f"mu = {m!r} is out of range; allowed [0, {MU_MAX:g}]")
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
+        raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"output folder {out_dir} exists and is not a folder")
+    for spec in policies:
+        check_policy_spec(spec)
+    built = [build_policy(spec, config) for spec in policies]
+
+    names: list[str] = []
+    for pol in built:
+        base = _safe_name(str(getattr(pol, "name", "policy")))
+        name, k = base, 2
+        while name in names:
+            name, k = f"{base}_{k}", k + 1
+        names.append(name)
+
+    t_start = time.perf_counter()
+    envs: dict = {}
+    results = []
+    for spec, name, pol in zip(policies, names, built):
+        if progress:
+            print(f"evaluating {name} ({spec}) on {len(mus)} mu x {episodes} episodes", file=sys.stderr)
+        t0 = time.perf_counter()
+        rows = evaluate_policy(pol, mus, episodes, config, seed, n_envs, _envs=envs, progress=progress)
+        results.append({"spec": spec, "name": name, "rows": rows, "seconds": round(time.perf_counter() - t0, 2)})
+
+    if progress:
+        print("oracle minimal-force curve", file=sys.stderr)
+    curve = oracle_curve(config, mus, progress=progress)
+
+    recordings: list[str] = []
+    if record:
+        recordings = _record_all(policies, names, built, mus, config, seed, out_dir / "recordings", progress)
+
+    summary = {
+        "config": to_dict(config),
+        "evaluation": {
+            "mu_grid": mus,
+            "episodes": int(episodes),
+            "seed": int(seed),
+            "seeds": [int(seed) + i for i in range(int(episodes))],
+            "reset_options": "{'mu': mu}; other randomisation as configured",
+            "n_envs": n_envs,
+            "policies": policies,
+            "training_mu_range": list(config.randomization.mu_range),
+            "success": "info['is_success'] at the episode's end: lift_target_m reached and held hold_time_s "
+                       "with less than hold_slip_tolerance_m slip",
+            "seconds": round(time.perf_counter() - t_start, 2),
+        },
+        "results": results,
+        "oracle_minimal_force": curve,
+        "recordings": recordings,
+    }
+    files = {
+        "json": out_dir / "evaluation.json",
+        "csv": out_dir / "evaluation.csv",
+        "success_png": out_dir / "success_vs_mu.png",
+        "pinch_png": out_dir / "pinch_vs_mu.png",
+    }
+    atomic_write_text(files["json"], json.dumps(_nan_to_none(summary), indent=2) + "\n")
+    atomic_write_text(files["csv"], _csv_text(results))
+    _plot_success(results, config, files["success_png"])
+    _plot_pinch(results, curve, files["pinch_png"])
+    return {"results": results, "oracle_minimal_force": curve, "files": {k: str(v) for k, v in files.items()},
+            "recordings": recordings}
+
+
+# ------------------------------------------------------------------------------------------------
+# recordings
+# ------------------------------------------------------------------------------------------------
+
+
+def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 0) -> dict[str, Any]:
+    """Record one episode of ``policy`` (batch interface) on the single env ``env`` at friction ``mu``."""
+    from ..envs.recording import record_episode
+
+    options = {"mu": float(mu)}
+    # the reset info the recorder's reset will produce (same seed, same options): the policy needs it
+    _, info = env.reset(seed=int(seed), options=options)
+    policy.reset([dict(info)])
+
+    def policy_fn(obs: np.ndarray) -> np.ndarray:
+        return np.asarray(policy.act(np.asarray(obs)[None]), dtype=np.float64).reshape(-1, 2)[0]
+
+    return record_episode(env, policy_fn, path, seed=int(seed), options=options)
+
+
+def _record_all(policies, names, built, mus, config, seed, folder: Path, progress: bool) -> list[str]:
+    from ..envs.grasp_lift import GraspLiftEnv
+
+    env = GraspLiftEnv(config)
+    paths = []
+    try:
+        for spec, name, pol in zip(policies, names, built):
+            for mu in mus:
+                path = folder / f"{name}_mu{_mu_label(mu)}.rrd"
+                summary = record_policy_episode(pol, env, path, mu, seed)
+                paths.append(summary["path"])
+                if progress:
+                    print(f"  recorded {path} ({summary['steps']} steps, success={summary['success']})", file=sys.stderr)
+    finally:
+        env.close()
+    return paths
+
+
+def format_table(results: list[dict[str, Any]]) -> str:
+    """A compact text table of the evaluation rows."""
+    head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'max N':>6} {'mean N':>6} {'slip mm':>7} " \
+           f"{'stress kPa':>10} {'t_lift s':>8}"
+    lines = [head, "-" * len(head)]
+    for pol in results:
+        for r in pol["rows"]:
+            ttl = r["mean_time_to_lift_s"]
+            ttl_s = "-" if ttl is None or not math.isfinite(ttl) else f"{ttl:.2f}"
+            lines.append(
+                f"{pol['name'][:16]:<16} {r['mu']:>5.2f} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f} "
+                f"{r['max_peak_pinch_N']:>6.2f} {r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
+                f"{r['mean_peak_stress_kPa']:>10.1f} {ttl_s:>8}"
+            )
+    return "\n".join(lines)

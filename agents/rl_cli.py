@@ -1,0 +1,157 @@
+"""The RL subcommands of ``msdgrasp``: train, evaluate, record, replay, soak.
+
+Only argparse wiring lives here; every handler imports its (torch-, rerun- or numba-heavy) module lazily,
+so ``msdgrasp --help`` stays fast and an unavailable optional module only breaks its own subcommand.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+DEFAULT_MODEL = Path("logs") / "train" / "final_model.zip"
+
+
+def _usage(message: str) -> Exception:
+    """A one-line input error (exit status 2). ConfigError rather than cli.UsageError: under
+    ``python -m msdgrasp.agents.cli`` the running module's UsageError is a different class object."""
+    from ..physics.config import ConfigError
+
+    return ConfigError(message)
+
+
+def _missing_module(command: str, exc: ImportError) -> Exception:
+    return _usage(f"the {command} command is unavailable: {exc}")
+
+
+# ------------------------------------------------------------------------------------------------
+# handlers
+# ------------------------------------------------------------------------------------------------
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    try:
+        from .training import train_cli
+    except ImportError as exc:
+        raise _missing_module("train", exc) from None
+    return train_cli(args)
+
+
+def _default_policies() -> list[str]:
+    return [str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else ["fixed", "oracle"]
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate, format_table, parse_mu_grid
+
+    mus = parse_mu_grid(args.mu_grid)
+    if args.episodes < 1:
+        raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    if args.n_envs is not None and args.n_envs < 1:
+        raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
+    policies = args.policy or _default_policies()
+    result = evaluate(policies, mus, args.episodes, args.out, seed=args.seed, record=args.record,
+                      progress=not args.quiet, n_envs=args.n_envs)
+    print(format_table(result["results"]))
+    curve = result["oracle_minimal_force"]
+    print("oracle minimal force (N): " + ", ".join(
+        f"mu={m:g}: {f:.2f}" for m, f in zip(curve["mu"], curve["minimal_force_N"])))
+    print(json.dumps({**result["files"], "recordings": result["recordings"]}, indent=2))
+    return 0
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from ..envs.core import GraspLiftConfig
+    from ..envs.grasp_lift import GraspLiftEnv
+    from .evaluation import build_policy, record_policy_episode
+
+    if not (math.isfinite(args.mu) and 0.0 <= args.mu <= 10.0):
+        raise _usage(f"--mu must be in [0, 10], got {args.mu}")
+    out = Path(args.out)
+    if "{episode" in str(out):
+        raise _usage(f"--out {out}: give one file name (no {{episode}} template)")
+    if out.is_dir():
+        raise _usage(f"--out {out} is a folder; give a file name such as {out / 'episode.rrd'}")
+    spec = args.policy or (str(DEFAULT_MODEL) if DEFAULT_MODEL.is_file() else "fixed")
+    config = GraspLiftConfig()
+    policy = build_policy(spec, config)
+    env = GraspLiftEnv(config)
+    try:
+        summary = record_policy_episode(policy, env, out, args.mu, args.seed)
+    finally:
+        env.close()
+    print(json.dumps({"policy": spec, "mu": args.mu, "seed": args.seed, **summary}, indent=2))
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from .replay import replay_cli
+
+    return replay_cli(args)
+
+
+def _cmd_soak(args: argparse.Namespace) -> int:
+    try:
+        from .soak import soak_cli
+    except ImportError as exc:
+        raise _missing_module("soak", exc) from None
+    return soak_cli(args)
+
+
+# ------------------------------------------------------------------------------------------------
+# parser
+# ------------------------------------------------------------------------------------------------
+
+
+def add_rl_commands(sub) -> None:
+    """Add train / evaluate / record / replay / soak to the ``msdgrasp`` subparsers ``sub``."""
+    t = sub.add_parser("train", help="train a PPO/SAC grasp policy (Stable-Baselines3)")
+    t.add_argument("--config", type=Path, default=None, help="training config (default configs/train/ppo.yaml)")
+    t.add_argument("--algo", choices=["ppo", "sac"], default=None, help="algorithm (default: from the config)")
+    t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
+    t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
+    t.add_argument("--seed", type=int, default=None, help="random seed")
+    t.add_argument("--out", type=Path, default=Path("logs") / "train", help="output folder (default logs/train)")
+    t.add_argument("--resume", type=Path, default=None, help="continue the run saved in this folder")
+    t.add_argument("--quiet", action="store_true", help="no progress output")
+    t.set_defaults(func=_cmd_train)
+
+    e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
+    e.add_argument("--policy", action="append", default=None, metavar="SPEC",
+                   help="PATH (saved model .zip) | fixed | fixed:<N> | reactive | oracle (repeatable; default "
+                        "logs/train/final_model.zip if it exists, else fixed and oracle)")
+    e.add_argument("--mu-grid", default="0.2:1.0:0.1",
+                   help="start:stop:step (stop included) or a comma list (default 0.2:1.0:0.1)")
+    e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")
+    e.add_argument("--n-envs", type=int, default=None, help="batch size (default: all episodes of one mu at once)")
+    e.add_argument("--seed", type=int, default=0, help="episode i is seeded seed + i (default 0)")
+    e.add_argument("--out", type=Path, default=Path("logs") / "evaluate", help="output folder (default logs/evaluate)")
+    e.add_argument("--record", action="store_true", help="also record one episode per policy and mu (.rrd)")
+    e.add_argument("--quiet", action="store_true", help="no progress output")
+    e.set_defaults(func=_cmd_evaluate)
+
+    r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
+    r.add_argument("--policy", default=None, metavar="SPEC",
+                   help="PATH | fixed | fixed:<N> | reactive | oracle (default logs/train/final_model.zip if it "
+                        "exists, else fixed)")
+    r.add_argument("--mu", type=float, default=0.5, help="friction coefficient (default 0.5)")
+    r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
+    r.add_argument("--out", type=Path, default=Path("logs") / "record" / "episode.rrd",
+                   help="recording to write (default logs/record/episode.rrd)")
+    r.set_defaults(func=_cmd_record)
+
+    from .replay import add_replay_arguments
+
+    p = sub.add_parser("replay", help="open a recording (.rrd) in the rerun viewer")
+    add_replay_arguments(p)
+    p.set_defaults(func=_cmd_replay)
+
+    s = sub.add_parser("soak", help="long random-action run of the vector env (stability soak test)")
+    s.add_argument("--steps", type=int, default=1_000_000, help="total environment steps (default 1000000)")
+    s.add_argument("--n-envs", type=int, default=16, help="parallel environments (default 16)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--out", type=Path, default=Path("logs") / "soak", help="output folder (default logs/soak)")
+    s.add_argument("--quiet", action="store_true", help="no progress output")
+    s.set_defaults(func=_cmd_soak)

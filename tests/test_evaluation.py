@@ -1,0 +1,293 @@
+"""Evaluation across friction (``msdgrasp evaluate``), the RL subcommands' wiring, and ``msdgrasp record``.
+
+Runtime: the oracle's bisection costs ~10 s per mu (cached per process), so the oracle runs at two mu
+values only and the CLI run at two more; episodes are few.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msdgrasp.agents.cli import build_parser, main
+from msdgrasp.agents.controllers import FixedForcePolicy, OraclePolicy, minimal_force
+from msdgrasp.agents.evaluation import CSV_COLUMNS, evaluate_policy, parse_mu_grid
+from msdgrasp.envs.core import GraspLiftConfig
+from msdgrasp.envs.grasp_lift import GraspLiftEnv
+from msdgrasp.physics.config import ConfigError
+
+CONFIG = GraspLiftConfig()
+ORACLE_MUS = (0.3, 0.9)
+FIXED_NAME = FixedForcePolicy(CONFIG).name  # the default fixed force ('fixed' spec), e.g. 'fixed2.5N'
+OUTPUTS = ("evaluation.json", "evaluation.csv", "success_vs_mu.png", "pinch_vs_mu.png")
+
+
+def _run_main(argv: list[str]) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main(argv)
+    return rc, out.getvalue(), err.getvalue()
+
+
+# ------------------------------------------------------------------------------------------------
+# mu grid
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("0.2:1.0:0.1", [0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]),
+    ("0.5:0.6:0.1", [0.5, 0.6]),
+    ("0.2:1.0:0.3", [0.2, 0.5, 0.8]),  # stop not on the grid: not added
+    ("0.4:0.4:0.1", [0.4]),
+    ("0.3,0.5", [0.3, 0.5]),
+    (" 0.9 , 0.3 ", [0.3, 0.9]),
+    ("0.5", [0.5]),
+    ("0", [0.0]),
+])
+def test_parse_mu_grid_good(text, expected):
+    got = parse_mu_grid(text)
+    assert isinstance(got, np.ndarray)
+    assert got.tolist() == pytest.approx(expected, abs=1e-12)
+    assert len(got) == len(expected)
+
+
+def test_parse_mu_grid_default_is_inclusive_and_exact():
+    got = parse_mu_grid("0.2:1.0:0.1")
+    assert len(got) == 9 and got[0] == 0.2 and got[-1] == 1.0
+    assert got[1] == 0.3  # rounded: no 0.30000000000000004 (recording names, oracle cache keys)
+    assert len(parse_mu_grid("0:1:0.01")) == 101  # the largest grid allowed
+
+
+@pytest.mark.parametrize("text, rule", [
+    ("a:1:0.1", "not a number"),
+    ("0.3,abc", "not a number"),
+    ("0.2:1.0:0", "step must be > 0"),
+    ("0.2:1.0:-0.1", "step must be > 0"),
+    ("1.0:0.2:0.1", "start (1) must be <= stop (0.2)"),
+    ("-0.1:0.5:0.1", "negative"),
+    ("0.3,-0.5", "negative"),
+    ("0:1:0.001", "at most 101"),
+    ("0.2:1.0", "three fields"),
+    ("0.3,,0.5", "empty entry"),
+    ("0.2:nan:0.1", "finite"),
+])
+def test_parse_mu_grid_malformed(text, rule):
+    with pytest.raises(ConfigError) as exc:
+        parse_mu_grid(text)
+    msg = str(exc.value)
+    assert repr(text) in msg, msg  # names the grid
+    assert rule in msg, msg  # and the rule
+
+
+def test_parse_mu_grid_empty():
+    with pytest.raises(ConfigError, match="empty"):
+        parse_mu_grid("  ")
+
+
+# ------------------------------------------------------------------------------------------------
+# policies across mu
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def envs():
+    """Shared vector envs (keyed by config and batch size) for evaluate_policy."""
+    return {}
+
+
+@pytest.fixture(scope="module")
+def fixed_default_rows(envs):
+    """The default fixed-force baseline (FixedForcePolicy(), what the 'fixed' spec runs) at the oracle's mu values."""
+    return evaluate_policy(FixedForcePolicy(CONFIG), ORACLE_MUS, episodes=4, config=CONFIG, seed=0, _envs=envs)
+
+
+def test_fixed_high_force_succeeds_at_high_friction(envs):
+    (row,) = evaluate_policy(FixedForcePolicy(CONFIG, force_N=2.5), [0.8], episodes=4, config=CONFIG, seed=0, _envs=envs)
+    assert row["episodes"] == 4 and row["mu"] == 0.8
+    assert row["success_rate"] >= 0.75, row
+    # the controller regulates the pinch force at its set-point
+    assert 2.3 < row["mean_peak_pinch_N"] < 2.8, row
+    assert row["max_peak_pinch_N"] >= row["mean_peak_pinch_N"]
+    assert 0 < row["mean_pinch_N"] < row["mean_peak_pinch_N"]
+    assert math.isfinite(row["mean_time_to_lift_s"]) and 0 < row["mean_time_to_lift_s"] < CONFIG.time_limit_s
+
+
+def test_oracle_succeeds_with_less_force_than_fixed_baseline(envs, fixed_default_rows):
+    rows = evaluate_policy(OraclePolicy(CONFIG), ORACLE_MUS, episodes=4, config=CONFIG, seed=0, _envs=envs)
+    for row, base in zip(rows, fixed_default_rows):
+        assert row["mu"] == base["mu"]
+        assert row["success_rate"] >= 0.75, row
+        assert row["mean_peak_pinch_N"] < base["mean_peak_pinch_N"], (row, base)
+        # the oracle holds about (1 + margin) x the minimal slip-free force of this mu
+        fmin = minimal_force(CONFIG, row["mu"])
+        assert fmin <= row["mean_peak_pinch_N"] <= 1.35 * fmin, (row, fmin)
+    # slipperier tissue needs more force
+    assert rows[0]["mean_peak_pinch_N"] > rows[1]["mean_peak_pinch_N"]
+
+
+# ------------------------------------------------------------------------------------------------
+# the evaluate CLI
+# ------------------------------------------------------------------------------------------------
+
+CLI_MU = "0.5:0.6:0.1"
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("evaluate")
+    rc, stdout, stderr = _run_main(["evaluate", "--policy", "fixed", "--mu-grid", CLI_MU, "--episodes", "2",
+                                    "--out", str(out), "--quiet"])
+    return rc, stdout, stderr, out
+
+
+def test_cli_evaluate_writes_the_four_files(cli_run):
+    rc, stdout, stderr, out = cli_run
+    assert rc == 0, stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUTS)  # no temp files left behind
+    for name in OUTPUTS:
+        assert (out / name).stat().st_size > 0
+        assert str(out / name) in stdout
+    for name in ("success_vs_mu.png", "pinch_vs_mu.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with open(out / "evaluation.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0].keys()) == CSV_COLUMNS
+    assert [(r["policy"], float(r["mu"]), int(r["episodes"])) for r in rows] == [(FIXED_NAME, 0.5, 2), (FIXED_NAME, 0.6, 2)]
+    data = json.loads((out / "evaluation.json").read_text())
+    assert data["config"]["randomization"]["mu_range"] == list(CONFIG.randomization.mu_range)
+    assert data["evaluation"]["mu_grid"] == [0.5, 0.6] and data["evaluation"]["seeds"] == [0, 1]
+    (pol,) = data["results"]
+    assert pol["spec"] == "fixed" and pol["name"] == FIXED_NAME and len(pol["rows"]) == 2
+    # the minimal-force reference curve is computed even though the oracle was not evaluated
+    curve = data["oracle_minimal_force"]
+    assert curve["mu"] == [0.5, 0.6]
+    assert curve["minimal_force_N"] == pytest.approx([minimal_force(CONFIG, 0.5), minimal_force(CONFIG, 0.6)])
+    # csv and json agree
+    for r, j in zip(rows, pol["rows"]):
+        for col in CSV_COLUMNS[2:-1]:
+            assert float(r[col]) == pytest.approx(j[col], rel=1e-5), col
+    assert FIXED_NAME in stdout and "success" in stdout  # the table
+
+
+def _hand_episode(env: GraspLiftEnv, seed: int, mu: float) -> dict[str, float]:
+    """One episode of the default fixed-force policy on a single env, metrics from the infos alone."""
+    policy = FixedForcePolicy(CONFIG)
+    obs, info = env.reset(seed=seed, options={"mu": mu})
+    policy.reset([info])
+    pinches, stresses, ttl = [], [], float("nan")
+    for step in range(1, CONFIG.max_episode_steps + 1):
+        obs, _, terminated, truncated, info = env.step(policy.act(obs[None])[0])
+        pinches.append(info["pinch_force_N"])
+        stresses.append(info["peak_stress_pa"])
+        if math.isnan(ttl) and info["lifted_m"] >= CONFIG.lift_target_m:
+            ttl = step * CONFIG.agent_dt_s
+        if terminated or truncated:
+            break
+    return {"success": bool(info["is_success"]), "peak_pinch_N": max(pinches), "mean_pinch_N": float(np.mean(pinches)),
+            "slip_mm": info["slip_distance_m"] * 1e3, "peak_stress_kPa": max(stresses) * 1e-3, "time_to_lift_s": ttl,
+            "steps": step}
+
+
+def test_json_values_match_episodes_run_by_hand(cli_run):
+    rc, _, stderr, out = cli_run
+    assert rc == 0, stderr
+    data = json.loads((out / "evaluation.json").read_text())
+    row = next(r for r in data["results"][0]["rows"] if r["mu"] == 0.5)
+    env = GraspLiftEnv(CONFIG)
+    hand = [_hand_episode(env, seed, 0.5) for seed in (0, 1)]
+    per = row["per_episode"]
+    assert per["success"] == [h["success"] for h in hand]
+    assert per["steps"] == [h["steps"] for h in hand]
+    for key in ("peak_pinch_N", "mean_pinch_N", "slip_mm", "peak_stress_kPa", "time_to_lift_s"):
+        assert per[key] == pytest.approx([h[key] for h in hand], rel=1e-6, nan_ok=True), key
+    assert row["success_rate"] == pytest.approx(np.mean([h["success"] for h in hand]))
+    assert row["mean_peak_pinch_N"] == pytest.approx(np.mean([h["peak_pinch_N"] for h in hand]), rel=1e-6)
+    assert row["max_peak_pinch_N"] == pytest.approx(max(h["peak_pinch_N"] for h in hand), rel=1e-6)
+    assert row["mean_pinch_N"] == pytest.approx(np.mean([h["mean_pinch_N"] for h in hand]), rel=1e-6)
+    assert row["mean_slip_mm"] == pytest.approx(np.mean([h["slip_mm"] for h in hand]), rel=1e-6)
+    assert row["mean_peak_stress_kPa"] == pytest.approx(np.mean([h["peak_stress_kPa"] for h in hand]), rel=1e-6)
+    lifted = [h["time_to_lift_s"] for h in hand if not math.isnan(h["time_to_lift_s"])]
+    if lifted:
+        assert row["mean_time_to_lift_s"] == pytest.approx(np.mean(lifted), rel=1e-6)
+    else:
+        assert row["mean_time_to_lift_s"] is None
+    assert row["episodes"] == 2
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--policy", "fixed", "--mu-grid", "0.6:0.2:0.1"], "'0.6:0.2:0.1'"),
+    (["--policy", "fixed", "--mu-grid", "0.2,x"], "not a number"),
+    (["--policy", "nonexistent.zip"], "nonexistent.zip"),
+    (["--policy", "fixed", "--policy", "nonexistent.zip"], "model file not found"),
+    (["--policy", "bogus"], "unknown policy 'bogus'"),
+    (["--policy", "fixed:-1"], "fixed:-1"),
+])
+def test_cli_evaluate_bad_input_exits_2_and_writes_nothing(tmp_path, monkeypatch, extra, needle):
+    import msdgrasp.agents.evaluation as evaluation
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("episodes ran before every input was validated")
+
+    monkeypatch.setattr(evaluation, "evaluate_policy", must_not_run)
+    out = tmp_path / "out"
+    out.mkdir()
+    rc, stdout, stderr = _run_main(["evaluate", *extra, "--episodes", "1", "--out", str(out), "--quiet"])
+    assert rc == 2, (stdout, stderr)
+    assert needle in stderr, stderr
+    assert stderr.startswith("msdgrasp evaluate: error:") and stderr.count("\n") == 1  # one line, no traceback
+    assert list(out.iterdir()) == []
+
+
+def test_rl_subcommands_are_wired():
+    parser = build_parser()
+    a = parser.parse_args(["train", "--algo", "sac", "--total-timesteps", "100", "--n-envs", "2", "--seed", "3",
+                           "--resume", "runs/x", "--quiet"])
+    assert (a.algo, a.total_timesteps, a.n_envs, a.seed, a.resume, a.quiet) == ("sac", 100, 2, 3, Path("runs/x"), True)
+    assert a.config is None and a.out == Path("logs/train")
+    e = parser.parse_args(["evaluate"])
+    assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (None, "0.2:1.0:0.1", 10, 0, Path("logs/evaluate"), False)
+    r = parser.parse_args(["record"])
+    assert (r.mu, r.out) == (0.5, Path("logs/record/episode.rrd"))
+    s = parser.parse_args(["soak"])
+    assert (s.steps, s.n_envs, s.out) == (1_000_000, 16, Path("logs/soak"))
+    p = parser.parse_args(["replay", "x.rrd", "--print-command"])
+    assert p.file == Path("x.rrd") and p.print_command
+    for args in (a, e, r, s, p):
+        assert callable(args.func)
+
+
+# ------------------------------------------------------------------------------------------------
+# record
+# ------------------------------------------------------------------------------------------------
+
+
+def test_cli_record_writes_a_recording(tmp_path, monkeypatch):
+    pytest.importorskip("rerun")
+    home = tmp_path / "home"
+    monkeypatch.setenv("HOME", str(home))
+    for var in ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME", "XDG_STATE_HOME"):
+        monkeypatch.setenv(var, str(home / var.lower()))
+    path = tmp_path / "rec" / "episode.rrd"
+    rc, stdout, stderr = _run_main(["record", "--policy", "fixed:2.5", "--mu", "0.8", "--seed", "1", "--out", str(path)])
+    assert rc == 0, stderr
+    assert path.is_file() and path.stat().st_size > 1000
+    assert path.read_bytes()[:3] == b"RRF"
+    summary = json.loads(stdout)
+    assert summary["path"] == str(path) and summary["size_bytes"] == path.stat().st_size
+    assert summary["policy"] == "fixed:2.5" and summary["mu"] == 0.8 and summary["steps"] > 0
+    assert summary["success"] is True  # fixed 2.5 N lifts at mu 0.8 (see the test above)
+    assert [p.name for p in path.parent.iterdir()] == ["episode.rrd"]  # no temp files left
+
+
+def test_cli_record_bad_policy_exits_2(tmp_path):
+    path = tmp_path / "rec" / "episode.rrd"
+    rc, _, stderr = _run_main(["record", "--policy", "nonexistent.zip", "--out", str(path)])
+    assert rc == 2 and "nonexistent.zip" in stderr
+    assert not path.exists()
