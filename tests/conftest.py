@@ -1,0 +1,88 @@
+"""Session-wide test setup: an isolated home, a headless matplotlib, shared meshes, a compiled kernel.
+
+The environment is set at import time, i.e. before any test module imports rerun, matplotlib or numba:
+
+* HOME and the XDG config/data/cache dirs point into a per-session temporary folder, so nothing a test
+  triggers (rerun, matplotlib, torch, tensorboard caches or telemetry state) reads or writes the real
+  user's home; removed at exit;
+* MPLBACKEND=Agg (no display needed);
+* NUMBA_CACHE_DIR (unless already set) is a folder named after a hash of all ``physics/*.py`` sources:
+  numba's ``cache=True`` invalidates a cached function only when *its own* file changes, so after an edit
+  of ``forces.py`` or ``contact.py`` the cached ``integrator.simulate`` would still run the old, inlined
+  callees. The folder lies in ``physics/__pycache__`` (kept between sessions, so the second run is fast)
+  or, when the package folder is not writable, in the session's temporary folder. Folders of other
+  source versions are removed once they are an hour old.
+"""
+
+from __future__ import annotations
+
+import atexit
+import hashlib
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+_SESSION_HOME = Path(tempfile.mkdtemp(prefix="msdgrasp-tests-home-"))
+atexit.register(shutil.rmtree, _SESSION_HOME, ignore_errors=True)
+for _var, _sub in (("XDG_CONFIG_HOME", ".config"), ("XDG_DATA_HOME", ".local/share"), ("XDG_CACHE_HOME", ".cache")):
+    (_SESSION_HOME / _sub).mkdir(parents=True, exist_ok=True)
+    os.environ[_var] = str(_SESSION_HOME / _sub)
+os.environ["HOME"] = str(_SESSION_HOME)
+os.environ["MPLBACKEND"] = "Agg"
+os.environ.setdefault("MPLCONFIGDIR", str(_SESSION_HOME / ".config" / "matplotlib"))
+
+_PHYSICS_DIR = Path(__file__).resolve().parent.parent / "physics"
+if "NUMBA_CACHE_DIR" not in os.environ:
+    _digest = hashlib.sha1()
+    for _src in sorted(_PHYSICS_DIR.glob("*.py")):
+        _digest.update(_src.name.encode() + b"\0" + _src.read_bytes())
+    _tag = f"numba-{_digest.hexdigest()[:16]}"
+    _base = _PHYSICS_DIR / "__pycache__"
+    try:
+        _base.mkdir(exist_ok=True)
+        if not os.access(_base, os.W_OK):
+            raise PermissionError(_base)
+        for _old in _base.glob("numba-*"):  # stale versions (an hour old: not a concurrent session's)
+            if _old.name != _tag and time.time() - _old.stat().st_mtime > 3600:
+                shutil.rmtree(_old, ignore_errors=True)
+    except OSError:
+        _base = _SESSION_HOME / ".cache"
+    os.environ["NUMBA_CACHE_DIR"] = str(_base / _tag)
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def sphere_coarse():
+    """The paper's test sample: a 50 mm sphere, coarse mesh (216 nodes)."""
+    from msdgrasp.physics.mesh import sphere_mesh
+
+    return sphere_mesh(0.05, "coarse")
+
+
+@pytest.fixture(scope="session")
+def spleen_coarse():
+    """The built-in spleen, coarse mesh (~240 nodes, node set "hilum")."""
+    from msdgrasp.physics.mesh import spleen_mesh
+
+    return spleen_mesh("coarse")
+
+
+@pytest.fixture(scope="session")
+def compiled_kernel(sphere_coarse):
+    """Compile (or load from numba's cache) the simulate kernel once per session: one 1 ms step of a
+    sphere between two plates, so later timings measure physics, not compilation."""
+    from msdgrasp.physics.simulation import Plate, Simulation
+    from msdgrasp.physics.tissue import TissueModel, TissueParams
+
+    model = TissueModel.from_params(sphere_coarse, TissueParams(youngs_modulus_pa=60e3))
+    z = sphere_coarse.nodes[:, 2]
+    sim = Simulation(
+        model, 1, plates=[Plate((0.0, 0.0, float(z.min())), (0.0, 0.0, 1.0)), Plate((0.0, 0.0, float(z.max())), (0.0, 0.0, -1.0))]
+    )
+    sim.step(1)
+    assert np.all(sim.finite())
+    return True
