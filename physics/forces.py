@@ -53,7 +53,7 @@ def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.n
 
 
 @njit(cache=True)
-def accumulate_spring_forces(
+def spring_loop(
     x: np.ndarray,  # (N,3) positions, m
     v: np.ndarray,  # (N,3) velocities, m/s
     edges: np.ndarray,  # (E,2) int
@@ -64,9 +64,15 @@ def accumulate_spring_forces(
     cdash: np.ndarray,  # (E,) N s/m, spring dashpot (0 = none)
     kscale: float,  # stiffness multiplier of this tissue (domain randomisation)
     use_dashpot: bool,
+    use_sls: bool,  # Maxwell branch (physics/viscoelastic.py); the next five are unused when False
+    kv: np.ndarray,  # (E,) Maxwell spring stiffness, N/m
+    decay: float,  # e^(-dt/tau)
+    gain: float,  # (tau/dt) (1 - e^(-dt/tau))
+    fv: np.ndarray,  # (E,) Maxwell branch force, N (state, updated)
+    dl_prev: np.ndarray,  # (E,) elongation at the previous substep, m (state, updated)
     f: np.ndarray,  # (N,3) out: forces are ADDED here
 ) -> None:
-    """Add every spring's (and dashpot's) force to ``f``. Pairwise equal and opposite: momentum-exact."""
+    """The one spring loop: springs (+ dashpots, + Maxwell branches) added to ``f``, momentum-exact."""
     for e in range(edges.shape[0]):
         i = edges[e, 0]
         j = edges[e, 1]
@@ -80,7 +86,13 @@ def accumulate_spring_forces(
         ux = dx * inv
         uy = dy * inv
         uz = dz * inv
-        fs = kscale * spring_force(length - rest_length[e], k1[e], k2[e], dlc[e])
+        dl = length - rest_length[e]
+        fs = kscale * spring_force(dl, k1[e], k2[e], dlc[e])
+        if use_sls:
+            fve = fv[e] * decay + kscale * kv[e] * (dl - dl_prev[e]) * gain
+            fv[e] = fve
+            dl_prev[e] = dl
+            fs += fve
         if use_dashpot:
             rel = (v[j, 0] - v[i, 0]) * ux + (v[j, 1] - v[i, 1]) * uy + (v[j, 2] - v[i, 2]) * uz
             fs += kscale * cdash[e] * rel
@@ -90,6 +102,26 @@ def accumulate_spring_forces(
         f[j, 0] -= fs * ux
         f[j, 1] -= fs * uy
         f[j, 2] -= fs * uz
+
+
+@njit(cache=True)
+def accumulate_spring_forces(
+    x: np.ndarray,
+    v: np.ndarray,
+    edges: np.ndarray,
+    rest_length: np.ndarray,
+    k1: np.ndarray,
+    k2: np.ndarray,
+    dlc: np.ndarray,
+    cdash: np.ndarray,
+    kscale: float,
+    use_dashpot: bool,
+    f: np.ndarray,
+) -> None:
+    """Add every spring's (and dashpot's) force to ``f`` (no Maxwell branch)."""
+    empty = np.empty(0)
+    spring_loop(x, v, edges, rest_length, k1, k2, dlc, cdash, kscale, use_dashpot, False, empty, 1.0, 0.0,
+                empty, empty, f)
 
 
 @njit(cache=True)

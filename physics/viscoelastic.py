@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .forces import spring_force
+from .forces import spring_loop
 
 
 @njit(cache=True)
@@ -45,33 +45,8 @@ def accumulate_spring_forces_sls(
     f: np.ndarray,  # (N,3) forces are ADDED here
 ) -> None:
     """Springs + dashpots (as :func:`.forces.accumulate_spring_forces`) plus the Maxwell branch."""
-    for e in range(edges.shape[0]):
-        i = edges[e, 0]
-        j = edges[e, 1]
-        dx = x[j, 0] - x[i, 0]
-        dy = x[j, 1] - x[i, 1]
-        dz = x[j, 2] - x[i, 2]
-        length = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if length < 1e-15:
-            continue
-        inv = 1.0 / length
-        ux = dx * inv
-        uy = dy * inv
-        uz = dz * inv
-        dl = length - rest_length[e]
-        fve = fv[e] * decay + kscale * kv[e] * (dl - dl_prev[e]) * gain
-        fv[e] = fve
-        dl_prev[e] = dl
-        fs = kscale * spring_force(dl, k1[e], k2[e], dlc[e]) + fve
-        if use_dashpot:
-            rel = (v[j, 0] - v[i, 0]) * ux + (v[j, 1] - v[i, 1]) * uy + (v[j, 2] - v[i, 2]) * uz
-            fs += kscale * cdash[e] * rel
-        f[i, 0] += fs * ux
-        f[i, 1] += fs * uy
-        f[i, 2] += fs * uz
-        f[j, 0] -= fs * ux
-        f[j, 1] -= fs * uy
-        f[j, 2] -= fs * uz
+    spring_loop(x, v, edges, rest_length, k1, k2, dlc, cdash, kscale, use_dashpot, True, kv, decay, gain, fv,
+                dl_prev, f)
 
 
 def elongations(x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> np.ndarray:
