@@ -780,7 +780,7 @@ def plot_scaling(report: dict, path: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..physics.config import atomic_write
+    from ..physics.config import save_figure
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     b = BATCH
@@ -807,15 +807,10 @@ def plot_scaling(report: dict, path: Path) -> Path | None:
     exp = (ph.get("scaling") or {}).get("exponent_us_per_ms_vs_nodes")
     ax.set_xlabel("nodes")
     ax.set_ylabel("compute per simulated ms (us)")
-    ax.set_title(f"MSD spleen cost vs mesh size" + (f" (slope {exp})" if exp else ""))
+    ax.set_title("MSD spleen cost vs mesh size" + (f" (slope {exp})" if exp else ""))
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    try:
-        atomic_write(path, lambda p: fig.savefig(p, dpi=120))
-    finally:
-        plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _out_paths(out: Path) -> tuple[Path, Path, Path]:

@@ -48,16 +48,25 @@ class FixedForcePolicy:
         if not 0 < pull <= 1:
             raise ValueError(f"pull must be in (0, 1], got {pull!r}")
         self.config = config or GraspLiftConfig()
-        self.force = np.array([float(force_N)])
+        self.force_N = float(force_N)
+        self.force = np.array([self.force_N])
         self.pull = pull
         self.gain = gain
         self.name = name or f"fixed{force_N:g}N"
         self._grasped = np.zeros(1, dtype=bool)
 
+    def setpoint(self, info: dict[str, Any]) -> float:
+        """Pinch-force set-point (N) at the start of an episode with reset info ``info``."""
+        return self.force_N
+
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
-        n = len(infos)
-        self._grasped = np.zeros(n, dtype=bool)
-        self.force = np.broadcast_to(self.force[:1], (n,)).copy()
+        self._grasped = np.zeros(len(infos), dtype=bool)
+        self.force = np.array([self.setpoint(info) for info in infos], dtype=np.float64)
+
+    def reset_one(self, index: int, info: dict[str, Any]) -> None:
+        """Start a new episode in batch slot ``index`` only (the others keep their state)."""
+        self._grasped[index] = False
+        self.force[index] = self.setpoint(info)
 
     def _pinch(self, obs: np.ndarray) -> np.ndarray:
         return obs[:, _NORMAL].sum(axis=1) * self.config.reference_force_N
@@ -82,9 +91,8 @@ class SlipReactivePolicy(FixedForcePolicy):
         self.max_force = max_force_N
         self.slip_threshold = slip_threshold
 
-    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
-        super().reset(infos)
-        self.force[:] = self.initial
+    def setpoint(self, info: dict[str, Any]) -> float:
+        return self.initial
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         obs = np.atleast_2d(obs)
@@ -102,12 +110,8 @@ class OraclePolicy(FixedForcePolicy):
         self.margin = margin
         self.tolerance = tolerance_N
 
-    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
-        super().reset(infos)
-        self.force = np.array([
-            (1.0 + self.margin) * minimal_force(self.config, round(float(info["mu"]), 3), self.pull, self.tolerance)
-            for info in infos
-        ])
+    def setpoint(self, info: dict[str, Any]) -> float:
+        return (1.0 + self.margin) * minimal_force(self.config, round(float(info["mu"]), 3), self.pull, self.tolerance)
 
 
 @functools.lru_cache(maxsize=256)

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..physics.config import ConfigError, atomic_write, atomic_write_text, to_dict
+from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
 
 DEFAULT_MU_GRID = "0.2:1.0:0.1"
 MAX_GRID_VALUES = 101
@@ -353,10 +353,7 @@ def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
     ax.set_title("Grasp-and-lift success vs friction")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, dpi=120))
-    plt.close(fig)
-    return out
+    return save_figure(fig, path)
 
 
 def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
@@ -377,10 +374,7 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, dpi=120))
-    plt.close(fig)
-    return out
+    return save_figure(fig, path)
 
 
 def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool = False) -> dict[str, Any]:

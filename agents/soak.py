@@ -98,11 +98,10 @@ class MixedPolicy:
         self.mode[i] = m
         self.mode_counts[MODES[m]] += 1
         self.hold_left[i] = 0
-        # per-episode state of the batched baseline controllers (their reset() resets the whole batch)
-        self.fixed._grasped[i] = False
+        # per-episode state of the batched baseline controllers; the fixed one gets a random set-point
+        self.fixed.reset_one(i, {})
         self.fixed.force[i] = self.rng.uniform(0.5, 8.0)
-        self.reactive._grasped[i] = False
-        self.reactive.force[i] = self.reactive.initial
+        self.reactive.reset_one(i, {})
 
     def reset_all(self) -> None:
         for i in range(self.n):

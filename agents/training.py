@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..envs.core import GraspLiftConfig
 from ..physics.config import (
     ConfigError,
@@ -198,10 +200,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     return summary
 
 
-def collect_demonstrations(config: TrainConfig) -> tuple["np.ndarray", "np.ndarray"]:
+def collect_demonstrations(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
     """(obs, actions) of the teacher controller on randomised episodes of the batched env."""
-    import numpy as np
-
     from ..envs.grasp_lift import GraspLiftVectorEnv
     from .controllers import make_policy
 
@@ -217,22 +217,13 @@ def collect_demonstrations(config: TrainConfig) -> tuple["np.ndarray", "np.ndarr
         obs, _, term, trunc, _ = env.core.step(act)
         for i in np.flatnonzero(term | trunc):
             env.core.reset(i)
-            _reset_one(teacher, i, float(env.core.mu[i]))
+            teacher.reset_one(i, {"mu": float(env.core.mu[i])})
         obs = env.core.obs.astype(np.float32)
     return np.concatenate(xs), np.concatenate(ys)
 
 
-def _reset_one(policy, index: int, mu: float) -> None:
-    """Reset the per-episode state of one batch slot of a baseline controller."""
-    if hasattr(policy, "_grasped"):
-        policy._grasped[index] = False
-    if hasattr(policy, "initial"):
-        policy.force[index] = policy.initial
-
-
 def behaviour_clone(model, config: TrainConfig) -> dict[str, float]:
     """Fit the PPO policy's mean action to teacher demonstrations (MSE), then set its action noise."""
-    import numpy as np
     import torch
 
     obs, act = collect_demonstrations(config)

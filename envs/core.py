@@ -323,7 +323,6 @@ class GraspLiftCore:
         self.slip_total += slip
         self.peak_pinch = np.maximum(self.peak_pinch, pinch)
         self.peak_stress = np.maximum(self.peak_stress, stress)
-        newly = (~self.lift_started) & (lift_new >= cfg.lift_started_m)
         self.lift_started |= lift_new >= cfg.lift_started_m
         at_target = lift_new >= cfg.lift_target_m
         first_target = at_target & np.isnan(self.time_to_lift)

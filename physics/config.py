@@ -239,5 +239,16 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write(path, lambda p: p.write_text(text))
 
 
+def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> Path:
+    """Lay out a matplotlib figure, write it atomically (format from the suffix), and close it."""
+    import matplotlib.pyplot as plt
+
+    try:
+        fig.tight_layout()
+        return atomic_write(path, lambda p: fig.savefig(p, dpi=dpi))
+    finally:
+        plt.close(fig)
+
+
 def write_yaml(path: str | os.PathLike, data: dict[str, Any]) -> Path:
     return atomic_write_text(path, yaml.safe_dump(to_dict(data), sort_keys=False))

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, atomic_write, check_range, from_dict, read_yaml
+from .config import ConfigError, atomic_write, check_range, from_dict, read_yaml, save_figure
 from .mesh import TetMesh, build_mesh
 from .simulation import Plate, Simulation
 from .tissue import TissueModel, TissueParams
@@ -191,10 +191,7 @@ def plot_compression(curves: Sequence[CompressionCurve], path: str | Path, title
     ax.set_title(title or "Unconstrained compression of the test sample")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, dpi=120))
-    plt.close(fig)
-    return out
+    return save_figure(fig, path)
 
 
 def load_tissue_params(path: str | Path) -> TissueParams:

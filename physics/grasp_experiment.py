@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, atomic_write, check_range
+from .config import ConfigError, atomic_write, check_range, save_figure
 from .contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
 from .scenario import GraspScene, sphere_scene, spleen_scene
 
@@ -215,10 +215,7 @@ def plot_grasp(runs: list[GraspRun], path: str | Path, protocol: GraspProtocol) 
     ax2.set_ylabel("tangential force along pull (N)")
     ax2.set_xlabel("time (s)")
     ax1.set_title("Spleen grasp: close 5 s, hold 7 s, pull (cf. paper Fig. 9)")
-    fig.tight_layout()
-    out = atomic_write(path, lambda p: fig.savefig(p, dpi=120))
-    plt.close(fig)
-    return out
+    return save_figure(fig, path)
 
 
 def _resolution(value):
@@ -288,9 +285,7 @@ def grasp_sphere_cli(args) -> int:
     ax.set_ylabel("pinch force, sum of jaws (N)")
     ax.set_title(f"Three-jaw grasp of the test sphere ({scene.mesh.n_nodes} nodes; cf. paper Fig. 7)")
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    png = atomic_write(out / "grasp_sphere.png", lambda p: fig.savefig(p, dpi=120))
-    plt.close(fig)
+    png = save_figure(fig, out / "grasp_sphere.png")
     print(json.dumps({"csv": str(csv), "png": str(png), "final_pinch_N": float(data["pinch_force_N"][-1]),
                       "final_displacement_mm": float(data["jaw_displacement_mm"][-1])}, indent=2))
     return 0

@@ -177,7 +177,6 @@ def spleen_scene(
     """
     tcfg = str(Path(tissue_config or builtin_config("tissue/spleen.yaml")).resolve())
     gcfg = str(Path(grasper_config or builtin_config("grasper/default.yaml")).resolve())
-    grasper = load_params(gcfg, "grasper", GrasperParams)
     depth = 0.035 if insert_depth_m is None else float(insert_depth_m)
     if not depth > 0:
         raise ConfigError(f"insert_depth_m must be > 0, got {insert_depth_m!r}")
