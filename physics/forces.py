@@ -150,14 +150,16 @@ def spring_energy(
 
 
 # -------------------------------------------------------------------------------------------------
-# Volume term per tet (not yet used by the integrator; see tests/test_tissue.py and the tissue docs).
-# A spring network resists a tet's collapse only through its six edge lengths, so under large
-# compression tets flatten and invert (the sphere's plate force then drops). The energy
-#     U_t = (k_t / 2) V0_t (J_t - 1)^2,   J_t = V_t / V0_t,
-# adds a bulk stiffness k_t (Pa) that opposes volume change and inversion (U_t grows until J = 0 and
-# keeps growing beyond: an inverted tet is pushed back). Its forces are -dU/dx_a = -k (J - 1) dV/dx_a,
-# with dV/dx_a = (area vector of the face opposite a, pointing away from a) / 3; they sum to zero
-# (momentum exact) and exert no torque.
+# Volume barrier per tet (TissueParams.volume_modulus_pa). A spring network resists a tet's collapse
+# only through its six edge lengths, so under large local compression (under the jaws, or the sphere
+# between plates beyond ~20 %) tets flatten and invert. With J_t = V_t / V0_t and a threshold J_c, the
+# energy
+#     U_t = (k_t / 2) V0_t (J_c - J_t)^2   for J_t < J_c,   0 otherwise,
+# adds a bulk stiffness k_t (Pa) only to strongly compressed tets (J_c = 0.5 by default: a tet that has
+# lost half its volume), and keeps growing through J = 0: an inverted tet is pushed back. Below the
+# threshold the network is the paper's pure MSD. Forces -dU/dx_a = -k (J - J_c) dV/dx_a, with
+# dV/dx_a = (area vector of the face opposite a, pointing away from a) / 3; they sum to zero
+# (momentum exact) and exert no torque. A threshold > 1 gives a two-sided volume term.
 # -------------------------------------------------------------------------------------------------
 
 
@@ -167,6 +169,7 @@ def accumulate_volume_forces(
     tets: np.ndarray,  # (T,4) int, positively oriented at rest
     rest_volume: np.ndarray,  # (T,) m^3
     kvol: np.ndarray,  # (T,) Pa
+    j_threshold: float,  # J_c: the barrier acts on tets with V / V0 < J_c
     kscale: float,
     f: np.ndarray,  # (N,3) out: forces are ADDED here
 ) -> None:
@@ -175,12 +178,16 @@ def accumulate_volume_forces(
         e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
         e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
         e3x, e3y, e3z = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1], x[d, 2] - x[a, 2]
+        # most tets are far from the threshold: test J before computing the gradients
+        vol = (e1x * (e2y * e3z - e2z * e3y) + e1y * (e2z * e3x - e2x * e3z) + e1z * (e2x * e3y - e2y * e3x)) / 6.0
+        if vol >= j_threshold * rest_volume[t]:
+            continue
+        jac = vol / rest_volume[t]
         # gradients of V = e1 . (e2 x e3) / 6 with respect to x_b, x_c, x_d
         gbx, gby, gbz = (e2y * e3z - e2z * e3y) / 6.0, (e2z * e3x - e2x * e3z) / 6.0, (e2x * e3y - e2y * e3x) / 6.0
         gcx, gcy, gcz = (e3y * e1z - e3z * e1y) / 6.0, (e3z * e1x - e3x * e1z) / 6.0, (e3x * e1y - e3y * e1x) / 6.0
         gdx, gdy, gdz = (e1y * e2z - e1z * e2y) / 6.0, (e1z * e2x - e1x * e2z) / 6.0, (e1x * e2y - e1y * e2x) / 6.0
-        vol = e1x * gbx + e1y * gby + e1z * gbz
-        s = -kscale * kvol[t] * (vol / rest_volume[t] - 1.0)
+        s = -kscale * kvol[t] * (jac - j_threshold)
         f[b, 0] += s * gbx
         f[b, 1] += s * gby
         f[b, 2] += s * gbz
@@ -196,8 +203,8 @@ def accumulate_volume_forces(
 
 
 @njit(cache=True)
-def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray) -> float:
-    """Energy (J) of the volume term: sum of (k / 2) V0 (V / V0 - 1)^2."""
+def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray, j_threshold: float) -> float:
+    """Energy (J) of the volume barrier: sum over tets with J < J_c of (k / 2) V0 (J_c - J)^2."""
     total = 0.0
     for t in range(tets.shape[0]):
         a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
@@ -205,6 +212,7 @@ def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol
         e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
         e3x, e3y, e3z = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1], x[d, 2] - x[a, 2]
         vol = (e1x * (e2y * e3z - e2z * e3y) + e1y * (e2z * e3x - e2x * e3z) + e1z * (e2x * e3y - e2y * e3x)) / 6.0
-        j = vol / rest_volume[t] - 1.0
-        total += 0.5 * kvol[t] * rest_volume[t] * j * j
+        j = j_threshold - vol / rest_volume[t]
+        if j > 0.0:
+            total += 0.5 * kvol[t] * rest_volume[t] * j * j
     return total

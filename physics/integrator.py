@@ -2,7 +2,8 @@
 
 Scheme (per substep of length dt, for each tissue b of the batch, all on the same mesh):
 
-1. forces: nonlinear springs (+ optional dashpots) + gravity + external nodal forces;
+1. forces: nonlinear springs (+ optional dashpots, Maxwell branches) + the volume barrier of strongly
+   compressed tets + gravity + external nodal forces;
 2. symplectic Euler with *implicit* nodal damping (the paper's Eq. 7, diagonal, so unconditionally
    stable): v <- (v + dt f/m) / (1 + dt (b0 + b1 |r - r0|)/m);  x <- x + dt v;
 3. anchors (fixed nodes) are held at their rest positions;
@@ -38,7 +39,7 @@ from .contact import (
     jaw_candidate,
     resolve_node_contact,
 )
-from .forces import accumulate_spring_forces
+from .forces import accumulate_spring_forces, accumulate_volume_forces
 from .viscoelastic import accumulate_spring_forces_sls
 
 
@@ -49,6 +50,7 @@ def simulate(
     # tissue (shared by the batch)
     x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot,
     use_sls, kv, tau, fv, dl_prev,  # Maxwell branch: bool, (E,), s, (B,E) state, (B,E) state
+    tets, rest_volume, kvol, vol_threshold,  # volume barrier: (T,4), (T,) m^3, (T,) Pa (empty: off), J_c
     mass, b0, b1, fixed, anchor_k, anchor_offset, gravity,  # (N,)x3, (N,) bool, (N,) N/m, (3,) m, (3,)
     surface_nodes, node_area,  # (Ns,) int, (N,) m^2 (midpoint-polygon area of surface nodes)
     kscale, mscale, f_ext,  # (B,), (B,), (B,N,3)
@@ -123,6 +125,8 @@ def simulate(
                     )
                 else:
                     accumulate_spring_forces(xb, vb, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, f)
+                if kvol.shape[0] > 0:
+                    accumulate_volume_forces(xb, tets, rest_volume, kvol, vol_threshold, ks, f)
                 # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
                 for i in range(n):
                     if fixed[i]:

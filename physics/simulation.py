@@ -241,6 +241,7 @@ class Simulation:
             self.model.rest_positions, self.model.edges, self.model.rest_length,
             self.model.k1, self.model.k2, self.model.dlc, self.model.cdash, self.use_dashpot,
             self.use_sls, self.model.kv, self.model.params.relaxation_time_s, self.fv, self.dl_prev,
+            self.model.tets, self.model.rest_volume, self.model.kvol, self.model.volume_threshold,
             self.model.mass, self.model.b0, self.model.b1, self.model.fixed, self.model.anchor_k,
             self.model.anchor_offset, self.model.gravity,
             self.surface_nodes, self.node_area,
