@@ -21,7 +21,7 @@ import time
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -60,6 +60,8 @@ class TrainConfig:
     bc_epochs: int = 40
     #: log standard deviation of the policy's action noise after cloning (exploration around the teacher)
     bc_log_std: float = -1.2
+    #: also fit the critic to the teacher's discounted returns during cloning (see :func:`behaviour_clone`)
+    bc_value_fit: bool = False
     ppo: dict = field(default_factory=lambda: {
         "learning_rate": 3e-4, "n_steps": 256, "batch_size": 1024, "n_epochs": 5, "gamma": 0.99,
         "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
@@ -77,6 +79,8 @@ class TrainConfig:
             val = getattr(self, name)
             if isinstance(val, bool) or not isinstance(val, int) or val < lo:
                 raise ConfigError(f"{name} must be an integer >= {lo}, got {val!r}")
+        if not isinstance(self.bc_value_fit, bool):
+            raise ConfigError(f"bc_value_fit must be true or false, got {self.bc_value_fit!r}")
         if not isinstance(self.seed, int) or isinstance(self.seed, bool):
             raise ConfigError(f"seed must be an integer, got {self.seed!r}")
         if not self.policy_net or any((not isinstance(h, int)) or h < 1 for h in self.policy_net):
@@ -200,8 +204,33 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     return summary
 
 
-def collect_demonstrations(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(obs, actions) of the teacher controller on randomised episodes of the batched env."""
+class Demonstrations(NamedTuple):
+    """Teacher rollouts: one row per (env step, sub-env)."""
+
+    obs: np.ndarray
+    actions: np.ndarray
+    #: discounted return from each step to the end of its episode (NaN: the episode was still running
+    #: when collection stopped, so its return is unknown)
+    returns: np.ndarray
+
+
+def _discounted_returns(rewards: np.ndarray, dones: np.ndarray, gamma: float) -> np.ndarray:
+    """Per-step discounted returns of (T, B) rewards; NaN after the last episode end of each column."""
+    ret = np.full(rewards.shape, np.nan)
+    acc = np.full(rewards.shape[1], np.nan)  # NaN until a finished episode is seen (going backwards)
+    for t in range(len(rewards) - 1, -1, -1):
+        acc = np.where(dones[t], 0.0, acc)
+        acc = rewards[t] + gamma * acc
+        ret[t] = acc
+    return ret
+
+
+def collect_demonstrations(config: TrainConfig) -> Demonstrations:
+    """Teacher rollouts on randomised episodes of the batched env (observations, actions, returns).
+
+    Returns are discounted with the PPO ``gamma`` (0.99 if unset); episodes ended by the time limit count
+    as ended (the tail beyond the limit is not bootstrapped).
+    """
     from ..envs.grasp_lift import GraspLiftVectorEnv
     from .controllers import make_policy
 
@@ -209,44 +238,74 @@ def collect_demonstrations(config: TrainConfig) -> tuple[np.ndarray, np.ndarray]
     teacher = make_policy(config.bc_teacher, config.env)
     obs, info = env.reset(seed=config.seed + 10_000)
     teacher.reset([{"mu": m} for m in env.core.mu])
-    xs, ys = [], []
+    xs, ys, rs, ds = [], [], [], []
     for _ in range(max(1, config.bc_steps // config.n_envs)):
         act = teacher.act(obs)
         xs.append(obs.copy())
         ys.append(act.copy())
-        obs, _, term, trunc, _ = env.core.step(act)
-        for i in np.flatnonzero(term | trunc):
+        obs, rew, term, trunc, _ = env.core.step(act)
+        done = term | trunc
+        rs.append(np.asarray(rew, dtype=np.float64))
+        ds.append(done)
+        for i in np.flatnonzero(done):
             env.core.reset(i)
             teacher.reset_one(i, {"mu": float(env.core.mu[i])})
         obs = env.core.obs.astype(np.float32)
-    return np.concatenate(xs), np.concatenate(ys)
+    gamma = float(config.ppo.get("gamma", 0.99))
+    returns = _discounted_returns(np.stack(rs), np.stack(ds), gamma)
+    return Demonstrations(np.concatenate(xs), np.concatenate(ys), returns.reshape(-1))
 
 
 def behaviour_clone(model, config: TrainConfig) -> dict[str, float]:
-    """Fit the PPO policy's mean action to teacher demonstrations (MSE), then set its action noise."""
+    """Fit the PPO policy's mean action to teacher demonstrations (MSE), then set its action noise.
+
+    With ``config.bc_value_fit`` the critic is fitted too, to the teacher's discounted returns (MSE), so
+    that PPO's first advantages are not computed from an untrained value function: with a random critic
+    the first updates are noise and drag the cloned policy away from the teacher (measured: the pinch
+    force collapsed from 2.3 N to 1.3 N and low-friction success from 90 % to 0 % in the first 50k steps).
+    """
     import torch
 
-    obs, act = collect_demonstrations(config)
+    demos = collect_demonstrations(config)
     policy = model.policy
     opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
-    x = torch.as_tensor(obs, dtype=torch.float32)
-    y = torch.as_tensor(act, dtype=torch.float32)
+    x = torch.as_tensor(demos.obs, dtype=torch.float32)
+    y = torch.as_tensor(demos.actions, dtype=torch.float32)
+    known = np.isfinite(demos.returns)
+    xv = x[torch.as_tensor(known)]
+    v = torch.as_tensor(demos.returns[known], dtype=torch.float32)
+    fit_value = config.bc_value_fit and len(v) > 0
     n = len(x)
+    if fit_value:
+        with torch.no_grad():  # start the critic at the mean return: Adam then only fits the variation
+            policy.value_net.bias.fill_(float(v.mean()))
     gen = torch.Generator().manual_seed(config.seed)
     loss_val = float("nan")
+    vloss_val = float("nan")
     for _ in range(config.bc_epochs):
         perm = torch.randperm(n, generator=gen)
-        for k in range(0, n, 512):
+        vperm = torch.randperm(len(v), generator=gen) if fit_value else None
+        for j, k in enumerate(range(0, n, 512)):
             idx = perm[k : k + 512]
             mean = policy.get_distribution(x[idx]).distribution.mean
             loss = torch.mean((mean - y[idx]) ** 2)
+            if fit_value:
+                vidx = vperm[(j * 512) % len(v) :][:512]
+                vloss = torch.mean((policy.predict_values(xv[vidx]).squeeze(-1) - v[vidx]) ** 2)
+                loss = loss + vloss
+                vloss_val = vloss.item()
             opt.zero_grad()
             loss.backward()
             opt.step()
-            loss_val = loss.item()
+            loss_val = torch.mean((mean.detach() - y[idx]) ** 2).item()
     with torch.no_grad():
         policy.log_std.fill_(config.bc_log_std)
-    return {"demo_steps": int(n), "final_mse": round(loss_val, 5)}
+    out = {"demo_steps": int(n), "final_mse": round(loss_val, 5)}
+    if fit_value:
+        out["value_fit_steps"] = int(len(v))
+        out["value_final_mse"] = round(vloss_val, 4)
+        out["return_std"] = round(float(v.std()), 3)
+    return out
 
 
 def train_cli(args) -> int:
