@@ -177,6 +177,14 @@ class ModelPolicy:
         self.model = load_model(path)
         self.name = name or Path(path).stem
 
+    @classmethod
+    def from_model(cls, model, name: str = "model") -> "ModelPolicy":
+        """Wrap an in-memory SB3 model (e.g. during training) without saving and reloading it."""
+        self = cls.__new__(cls)
+        self.model = model
+        self.name = name
+        return self
+
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
         pass
 

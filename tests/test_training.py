@@ -78,3 +78,94 @@ def test_default_training_config_loads_strictly():
     assert config.algo == "ppo" and config.bc_teacher == "reactive"
     with pytest.raises(ConfigError, match="bogus"):
         from_dict(TrainConfig, {**read_yaml(builtin_config("train/ppo.yaml")), "bogus": 1})
+
+
+# =================================================================================================
+# end to end: a short run saves models that load and act, keeps the best, resumes; bad inputs
+# =================================================================================================
+
+SHORT = {
+    "n_envs": 2, "bc_steps": 256, "bc_epochs": 2, "torch_threads": 1, "total_timesteps": 512,
+    "checkpoint_every": 256, "validation_episodes": 1, "validation_mu": [0.5, 0.9],
+    "ppo": {"n_steps": 128, "batch_size": 128, "n_epochs": 1, "learning_rate": 1e-4},
+}
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    from msdgrasp.agents.training import train
+
+    out = tmp_path_factory.mktemp("train")
+    summary = train(from_dict(TrainConfig, SHORT), out, progress=False)
+    return out, summary
+
+
+def test_short_run_saves_models_that_load_and_act(short_run):
+    import json
+
+    from msdgrasp.agents.controllers import ModelPolicy
+    from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+
+    out, summary = short_run
+    assert summary["timesteps"] >= 512
+    for name in ("final_model.zip", "best_model.zip", "config.yaml", "final_model.yaml", "validation.json",
+                 "train_summary.json"):
+        assert (out / name).is_file(), name
+    assert sorted(p.name for p in (out / "checkpoints").glob("model_*.zip"))  # periodic checkpoints
+    assert not list(out.rglob(".*.zip"))  # no temp files of the atomic writes left behind
+    env = GraspLiftVectorEnv(3)
+    obs, _ = env.reset(seed=0)
+    for path in (out / "final_model.zip", out / "best_model.zip"):
+        act = ModelPolicy(path).act(obs)
+        assert act.shape == (3, 2) and np.all(np.isfinite(act))
+    # the best model is the validation history's best: highest success, then lowest peak pinch
+    val = json.loads((out / "validation.json").read_text())
+    hist = val["history"]
+    assert len(hist) >= 2 and val["episodes_per_mu"] == 1 and val["validation_mu"] == [0.5, 0.9]
+    best = max(hist, key=lambda r: (r["success_rate"], -r["mean_peak_pinch_N"]))
+    assert (val["best"]["success_rate"], val["best"]["mean_peak_pinch_N"]) == (
+        best["success_rate"], best["mean_peak_pinch_N"])
+    assert summary["best_validation"] == val["best"]
+
+
+def test_resume_continues_the_step_count(short_run, tmp_path):
+    import shutil
+
+    from msdgrasp.agents.training import train
+
+    src, first = short_run
+    run = tmp_path / "run"
+    shutil.copytree(src, run)
+    cfg = from_dict(TrainConfig, {**SHORT, "total_timesteps": 1024})
+    summary = train(cfg, run, resume=True, progress=False)
+    assert summary["resumed_from"] >= 512
+    assert summary["timesteps"] >= 1024 > summary["resumed_from"]
+    # validation history continues from the first run's
+    import json
+
+    assert len(json.loads((run / "validation.json").read_text())["history"]) > len(
+        json.loads((src / "validation.json").read_text())["history"])
+
+
+@pytest.mark.parametrize("over, needle", [
+    ({"algo": "dqn"}, "algo"),
+    ({"total_timesteps": "many"}, "total_timesteps"),
+    ({"validation_mu": []}, "validation_mu"),
+    ({"validation_mu": [0.3, 5.0]}, "validation_mu"),
+    ({"validation_episodes": -1}, "validation_episodes"),
+    ({"learning_rat": 0.1}, "learning_rat"),
+])
+def test_bad_training_config_is_a_clear_error(over, needle):
+    with pytest.raises(ConfigError, match=needle):
+        from_dict(TrainConfig, {**SHORT, **over})
+
+
+def test_missing_or_corrupt_model_is_a_clear_error(tmp_path):
+    from msdgrasp.agents.training import load_model
+
+    with pytest.raises(ConfigError, match="not found"):
+        load_model(tmp_path / "nope.zip")
+    bad = tmp_path / "bad.zip"
+    bad.write_bytes(b"not a zip archive")
+    with pytest.raises(ConfigError, match="corrupt"):
+        load_model(bad)
