@@ -11,7 +11,7 @@ import json
 import math
 from pathlib import Path
 
-DEFAULT_MODEL = Path("logs") / "train" / "final_model.zip"
+DEFAULT_MODEL = Path("logs") / "train" / "best_model.zip"
 
 
 def _usage(message: str) -> Exception:
@@ -121,7 +121,7 @@ def add_rl_commands(sub) -> None:
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (saved model .zip) | fixed | fixed:<N> | reactive | oracle (repeatable; default "
-                        "logs/train/final_model.zip if it exists, else fixed and oracle)")
+                        "logs/train/best_model.zip if it exists, else fixed and oracle)")
     e.add_argument("--mu-grid", default="0.2:1.0:0.1",
                    help="start:stop:step (stop included) or a comma list (default 0.2:1.0:0.1)")
     e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")
@@ -134,7 +134,7 @@ def add_rl_commands(sub) -> None:
 
     r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
     r.add_argument("--policy", default=None, metavar="SPEC",
-                   help="PATH | fixed | fixed:<N> | reactive | oracle (default logs/train/final_model.zip if it "
+                   help="PATH | fixed | fixed:<N> | reactive | oracle (default logs/train/best_model.zip if it "
                         "exists, else fixed)")
     r.add_argument("--mu", type=float, default=0.5, help="friction coefficient (default 0.5)")
     r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
