@@ -163,6 +163,17 @@ def spring_energy(
 # -------------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always")
+def _tet_edges(x: np.ndarray, tets: np.ndarray, t: int):
+    """Edge vectors e1, e2, e3 (9 floats) from node a of tet t, and its signed volume e1 . (e2 x e3) / 6."""
+    a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+    e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+    e3x, e3y, e3z = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1], x[d, 2] - x[a, 2]
+    vol = (e1x * (e2y * e3z - e2z * e3y) + e1y * (e2z * e3x - e2x * e3z) + e1z * (e2x * e3y - e2y * e3x)) / 6.0
+    return e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol
+
+
 @njit(cache=True)
 def accumulate_volume_forces(
     x: np.ndarray,  # (N,3) positions, m
@@ -175,11 +186,8 @@ def accumulate_volume_forces(
 ) -> None:
     for t in range(tets.shape[0]):
         a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
-        e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
-        e3x, e3y, e3z = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1], x[d, 2] - x[a, 2]
+        e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
         # most tets are far from the threshold: test J before computing the gradients
-        vol = (e1x * (e2y * e3z - e2z * e3y) + e1y * (e2z * e3x - e2x * e3z) + e1z * (e2x * e3y - e2y * e3x)) / 6.0
         if vol >= j_threshold * rest_volume[t]:
             continue
         jac = vol / rest_volume[t]
@@ -207,11 +215,7 @@ def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol
     """Energy (J) of the volume barrier: sum over tets with J < J_c of (k / 2) V0 (J_c - J)^2."""
     total = 0.0
     for t in range(tets.shape[0]):
-        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
-        e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
-        e3x, e3y, e3z = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1], x[d, 2] - x[a, 2]
-        vol = (e1x * (e2y * e3z - e2z * e3y) + e1y * (e2z * e3x - e2x * e3z) + e1z * (e2x * e3y - e2y * e3x)) / 6.0
+        vol = _tet_edges(x, tets, t)[9]
         j = j_threshold - vol / rest_volume[t]
         if j > 0.0:
             total += 0.5 * kvol[t] * rest_volume[t] * j * j
