@@ -37,7 +37,7 @@ J_PEAK_PRESSURE = 8  # peak nodal contact pressure during the call, Pa
 N_JAW_COLS = 9
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def resolve_node_contact(
     x: np.ndarray,  # (N,3) positions after the explicit prediction (modified)
     v: np.ndarray,  # (N,3) velocities after the explicit prediction (modified)
@@ -100,7 +100,7 @@ def resolve_node_contact(
     v[i, 2] = vz
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def jaw_candidate(
     rx: float, ry: float, rz: float,  # node position relative to the grasper tip (axis point)
     ax: float, ay: float, az: float,  # grasper axis (unit, pointing from handle to tip)

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def spring_force(dl: float, k1: float, k2: float, dlc: float) -> float:
     """Tension (N) of one nonlinear spring stretched by ``dl`` metres (Eq. 4-6, corrected B)."""
     adl = abs(dl)
@@ -37,14 +37,14 @@ def spring_force(dl: float, k1: float, k2: float, dlc: float) -> float:
     return f if dl > 0.0 else -f
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def spring_tangent(dl: float, k1: float, k2: float, dlc: float) -> float:
     """dF/d(dl) (N/m): K1 + 3 K2 dl^2 inside dl_c, the constant B beyond."""
     adl = min(abs(dl), dlc)
     return k1 + 3.0 * k2 * adl * adl
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.ndarray:
     out = np.empty_like(dl)
     for i in range(dl.size):
@@ -52,7 +52,7 @@ def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.n
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def spring_loop(
     x: np.ndarray,  # (N,3) positions, m
     v: np.ndarray,  # (N,3) velocities, m/s
@@ -104,7 +104,7 @@ def spring_loop(
         f[j, 2] -= fs * uz
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def accumulate_spring_forces(
     x: np.ndarray,
     v: np.ndarray,
@@ -124,7 +124,7 @@ def accumulate_spring_forces(
                 empty, empty, f)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def spring_energy(
     x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray, k1: np.ndarray, k2: np.ndarray, dlc: np.ndarray
 ) -> float:
@@ -163,7 +163,7 @@ def spring_energy(
 # -------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _tet_edges(x: np.ndarray, tets: np.ndarray, t: int):
     """Edge vectors e1, e2, e3 (9 floats) from node a of tet t, and its signed volume e1 . (e2 x e3) / 6."""
     a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
@@ -174,7 +174,7 @@ def _tet_edges(x: np.ndarray, tets: np.ndarray, t: int):
     return e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def accumulate_volume_forces(
     x: np.ndarray,  # (N,3) positions, m
     tets: np.ndarray,  # (T,4) int, positively oriented at rest
@@ -210,7 +210,7 @@ def accumulate_volume_forces(
         f[a, 2] -= s * (gbz + gcz + gdz)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray, j_threshold: float) -> float:
     """Energy (J) of the volume barrier: sum over tets with J < J_c of (k / 2) V0 (J_c - J)^2."""
     total = 0.0

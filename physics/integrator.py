@@ -43,7 +43,7 @@ from .forces import accumulate_spring_forces, accumulate_volume_forces
 from .viscoelastic import accumulate_spring_forces_sls
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def simulate(
     # state (modified in place)
     x, v, t,  # (B,N,3), (B,N,3), (B,)
@@ -289,7 +289,7 @@ def simulate(
                         jaw_out[b, 2, J_SLIP_DIST] += slip2 / n_con2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def all_finite(x: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
     """out[b] = False where tissue b has a non-finite position or velocity (blow-up detection)."""
     for b in range(x.shape[0]):

@@ -25,7 +25,7 @@ from numba import njit
 from .forces import spring_loop
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def accumulate_spring_forces_sls(
     x: np.ndarray,
     v: np.ndarray,
