@@ -125,3 +125,169 @@ def jaw_candidate(
     phi = math.atan2(p2, p1)
     k = int(math.floor(phi / (2.0 * math.pi / 3.0) + 0.5)) % 3
     return k
+
+
+@njit(cache=True, error_model="numpy")
+def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarray) -> None:
+    """Outward direction u[k] of jaw k (azimuth 2 pi k / 3 about the axis from e1) and its lateral tj[k] = a x u."""
+    ax, ay, az = axis[0], axis[1], axis[2]
+    e1x, e1y, e1z = e1[0], e1[1], e1[2]
+    e2x = ay * e1z - az * e1y
+    e2y = az * e1x - ax * e1z
+    e2z = ax * e1y - ay * e1x
+    two_pi_3 = 2.0 * math.pi / 3.0
+    for k in range(3):
+        c = math.cos(two_pi_3 * k)
+        s = math.sin(two_pi_3 * k)
+        u[k, 0] = c * e1x + s * e2x
+        u[k, 1] = c * e1y + s * e2y
+        u[k, 2] = c * e1z + s * e2z
+        tj[k, 0] = ay * u[k, 2] - az * u[k, 1]
+        tj[k, 1] = az * u[k, 0] - ax * u[k, 2]
+        tj[k, 2] = ax * u[k, 1] - ay * u[k, 0]
+
+
+@njit(cache=True, error_model="numpy")
+def plate_contacts(
+    b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
+    fixed, surface_nodes,
+    pl_point, pl_normal, pl_vel, pl_mu,  # (B,P,3) in/out, (P,3), (B,P,3), (P,)
+    dt, avg, last_sub,  # substep, s; weight of this substep in the readouts; fill the last-substep readouts
+    plate_out, contact_state, contact_force,  # (B,P,3), (B,N), (B,N,3) out
+    res,  # (6,) scratch
+) -> None:
+    """Advance tissue b's plates by one substep and resolve every surface node behind one."""
+    for p in range(pl_normal.shape[0]):
+        pnx, pny, pnz = pl_normal[p, 0], pl_normal[p, 1], pl_normal[p, 2]
+        pvx, pvy, pvz = pl_vel[b, p, 0], pl_vel[b, p, 1], pl_vel[b, p, 2]
+        pl_point[b, p, 0] += dt * pvx
+        pl_point[b, p, 1] += dt * pvy
+        pl_point[b, p, 2] += dt * pvz
+        px, py, pz = pl_point[b, p, 0], pl_point[b, p, 1], pl_point[b, p, 2]
+        for q in range(surface_nodes.shape[0]):
+            i = surface_nodes[q]
+            if fixed[i]:
+                continue
+            d = -((xb[i, 0] - px) * pnx + (xb[i, 1] - py) * pny + (xb[i, 2] - pz) * pnz)
+            if d <= 0.0:
+                continue
+            resolve_node_contact(xb, vb, i, meff[i], pnx, pny, pnz, d, pvx, pvy, pvz, pl_mu[p], pl_mu[p], dt, res)
+            plate_out[b, p, 0] += avg * (res[0] * pnx + res[1])
+            plate_out[b, p, 1] += avg * (res[0] * pny + res[2])
+            plate_out[b, p, 2] += avg * (res[0] * pnz + res[3])
+            if last_sub:
+                contact_state[b, i] = np.int8(res[4])
+                contact_force[b, i, 0] += res[0] * pnx + res[1]
+                contact_force[b, i, 1] += res[0] * pny + res[2]
+                contact_force[b, i, 2] += res[0] * pnz + res[3]
+
+
+@njit(cache=True, error_model="numpy")
+def jaw_contacts(
+    b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
+    fixed, surface_nodes, node_area,  # (N,) bool, (Ns,) int, (N,) m^2
+    g_tip, g_axis, g_e1, g_radius,  # (B,3) in/out, (B,3), (B,3), (B,) in/out
+    g_vradius, g_vpull, g_rmin, g_rmax,  # (B,) m/s, (B,3) m/s, (B,), (B,)
+    jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,  # m, m, m, (B,), (B,)
+    u, tj,  # (3,3) jaw outward and lateral directions of tissue b (:func:`jaw_directions`)
+    dt, avg, last_sub,
+    jaw_out, contact_state, contact_force,  # (B,3,N_JAW_COLS), (B,N), (B,N,3) out
+    res,  # (6,) scratch
+) -> None:
+    """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection)."""
+    ax, ay, az = g_axis[b, 0], g_axis[b, 1], g_axis[b, 2]
+    e1x, e1y, e1z = g_e1[b, 0], g_e1[b, 1], g_e1[b, 2]
+    e2x = ay * e1z - az * e1y
+    e2y = az * e1x - ax * e1z
+    e2z = ax * e1y - ay * e1x
+    r_old = g_radius[b]
+    r_new = min(max(r_old + dt * g_vradius[b], g_rmin[b]), g_rmax[b])
+    vr = (r_new - r_old) / dt  # closing stops at the radius limits
+    g_radius[b] = r_new
+    for c in range(3):
+        g_tip[b, c] += dt * g_vpull[b, c]
+    cx, cy, cz = g_tip[b, 0], g_tip[b, 1], g_tip[b, 2]
+    n_con0 = 0.0
+    n_con1 = 0.0
+    n_con2 = 0.0
+    slip0 = 0.0
+    slip1 = 0.0
+    slip2 = 0.0
+    for q in range(surface_nodes.shape[0]):
+        i = surface_nodes[q]
+        if fixed[i]:
+            continue
+        rx = xb[i, 0] - cx
+        ry = xb[i, 1] - cy
+        rz = xb[i, 2] - cz
+        k = jaw_candidate(rx, ry, rz, ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z, r_new, jaw_length)
+        if k < 0:
+            continue
+        d = rx * u[k, 0] + ry * u[k, 1] + rz * u[k, 2] - r_new
+        if d <= 0.0 or d > jaw_depth:
+            continue
+        lat = rx * tj[k, 0] + ry * tj[k, 1] + rz * tj[k, 2]
+        pen_side = jaw_half_width - abs(lat)
+        if pen_side <= 0.0:
+            continue
+        # the node is inside jaw k's solid: push it out through the nearest wall (inner face, a side
+        # wall, the tip end or the base end), the closest-feature rule of a box
+        s_ax = rx * ax + ry * ay + rz * az
+        nx, ny, nz, pen = -u[k, 0], -u[k, 1], -u[k, 2], d
+        face = True
+        if pen_side < pen:
+            sg = 1.0 if lat > 0.0 else -1.0
+            nx, ny, nz, pen = sg * tj[k, 0], sg * tj[k, 1], sg * tj[k, 2], pen_side
+            face = False
+        if -s_ax < pen:
+            nx, ny, nz, pen = ax, ay, az, -s_ax
+            face = False
+        if s_ax + jaw_length < pen:
+            nx, ny, nz, pen = -ax, -ay, -az, s_ax + jaw_length
+            face = False
+        resolve_node_contact(
+            xb, vb, i, meff[i], nx, ny, nz, pen,
+            g_vpull[b, 0] + vr * u[k, 0], g_vpull[b, 1] + vr * u[k, 1], g_vpull[b, 2] + vr * u[k, 2],
+            mu_s[b], mu_k[b], dt, res,
+        )
+        # contact force on the tissue, split into the jaw face's normal and tangential parts
+        fx = res[0] * nx + res[1]
+        fy = res[0] * ny + res[2]
+        fz = res[0] * nz + res[3]
+        fn = -(fx * u[k, 0] + fy * u[k, 1] + fz * u[k, 2])
+        ftx = fx + fn * u[k, 0]
+        fty = fy + fn * u[k, 1]
+        ftz = fz + fn * u[k, 2]
+        if face and node_area[i] > 0.0:
+            pressure = res[0] / node_area[i]
+            if pressure > jaw_out[b, k, J_PEAK_PRESSURE]:
+                jaw_out[b, k, J_PEAK_PRESSURE] = pressure
+        jaw_out[b, k, J_NORMAL] += avg * fn
+        jaw_out[b, k, J_TX] += avg * ftx
+        jaw_out[b, k, J_TY] += avg * fty
+        jaw_out[b, k, J_TZ] += avg * ftz
+        if last_sub:
+            jaw_out[b, k, J_CONTACT] += 1.0
+            if res[4] == 1.0:
+                jaw_out[b, k, J_STICK] += 1.0
+            else:
+                jaw_out[b, k, J_SLIP] += 1.0
+            contact_state[b, i] = np.int8(res[4])
+            contact_force[b, i, 0] += fx
+            contact_force[b, i, 1] += fy
+            contact_force[b, i, 2] += fz
+        if k == 0:
+            n_con0 += 1.0
+            slip0 += res[5] * dt
+        elif k == 1:
+            n_con1 += 1.0
+            slip1 += res[5] * dt
+        else:
+            n_con2 += 1.0
+            slip2 += res[5] * dt
+    if n_con0 > 0.0:
+        jaw_out[b, 0, J_SLIP_DIST] += slip0 / n_con0
+    if n_con1 > 0.0:
+        jaw_out[b, 1, J_SLIP_DIST] += slip1 / n_con1
+    if n_con2 > 0.0:
+        jaw_out[b, 2, J_SLIP_DIST] += slip2 / n_con2

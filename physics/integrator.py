@@ -26,21 +26,15 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import (
-    J_CONTACT,
-    J_NORMAL,
-    J_PEAK_PRESSURE,
-    J_SLIP,
-    J_SLIP_DIST,
-    J_STICK,
-    J_TX,
-    J_TY,
-    J_TZ,
-    jaw_candidate,
-    resolve_node_contact,
-)
-from .forces import accumulate_spring_forces, accumulate_volume_forces
-from .viscoelastic import accumulate_spring_forces_sls
+from .contact import jaw_contacts, jaw_directions, plate_contacts
+from .forces import accumulate_volume_forces, accumulate_volume_forces_lanes, spring_loop, spring_loop_lanes
+
+
+#: batches of at least this many tissues compute springs and tets across tissues (SIMD lanes); smaller
+#: ones loop over tissues with the one-tissue kernels, which are faster when there are few lanes
+LANE_MIN = 16
+#: tissues advanced together in one lane block (bounds the block's state to a few MB of cache)
+LANE_BLOCK = 64
 
 
 @njit(cache=True, error_model="numpy")
@@ -69,97 +63,173 @@ def simulate(
     contact_state,  # (B,N) int8: 0 free, 1 stick, 2 slip (last substep)
     contact_force,  # (B,N,3) force on the tissue at contact nodes, N (last substep)
 ):
+    """Advance every tissue of the batch by ``n_steps`` outer steps. Tissues are independent.
+
+    Internally the batch runs in blocks of up to LANE_BLOCK tissues stored tissue-innermost (lane
+    layout, x[i, c, lane]): copied in at the start of the call and back at the end, so the per-substep
+    loops over springs, tets and nodes run across tissues with SIMD. A batch of one is a view.
+    """
     nb = x.shape[0]
     n = x.shape[1]
-    n_pl = pl_normal.shape[0]
+    ne = fv.shape[1]
+    if nb < LANE_MIN:
+        block = 1  # tissue after tissue, in place
+    else:  # equal blocks of LANE_MIN..LANE_BLOCK tissues
+        block = -(-nb // -(-nb // LANE_BLOCK))
+    for lane0 in range(0, nb, block):
+        nl = min(block, nb - lane0)
+        if nl == 1:  # x[b] (N,3) and (N,3,1) are the same memory
+            xl = x[lane0].reshape((n, 3, 1))
+            vl = v[lane0].reshape((n, 3, 1))
+            fvl = fv[lane0].reshape((ne, 1))
+            dll = dl_prev[lane0].reshape((ne, 1))
+        else:
+            xl = np.empty((n, 3, nl))
+            vl = np.empty((n, 3, nl))
+            fvl = np.empty((ne, nl))
+            dll = np.empty((ne, nl))
+            for lane in range(nl):
+                xl[:, :, lane] = x[lane0 + lane]
+                vl[:, :, lane] = v[lane0 + lane]
+                fvl[:, lane] = fv[lane0 + lane]
+                dll[:, lane] = dl_prev[lane0 + lane]
+        _advance_block(
+            lane0, xl, vl, fvl, dll, t,
+            x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot, use_sls, kv, tau,
+            tets, rest_volume, kvol, vol_threshold,
+            mass, b0, b1, fixed, anchor_k, anchor_offset, gravity, surface_nodes, node_area,
+            kscale, mscale, f_ext,
+            jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
+            jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
+            pl_point, pl_normal, pl_vel, pl_mu,
+            dt_outer, n_sub, n_steps,
+            jaw_out, plate_out, anchor_out, contact_state, contact_force,
+        )
+        if nl > 1:
+            for lane in range(nl):
+                x[lane0 + lane] = xl[:, :, lane]
+                v[lane0 + lane] = vl[:, :, lane]
+                fv[lane0 + lane] = fvl[:, lane]
+                dl_prev[lane0 + lane] = dll[:, lane]
+
+
+@njit(cache=True, error_model="numpy")
+def _advance_block(
+    lane0, x, v, fv, dl_prev, t,  # x, v (N,3,L); fv, dl_prev (E,L): lane l is tissue lane0 + l
+    x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot, use_sls, kv, tau,
+    tets, rest_volume, kvol, vol_threshold,
+    mass, b0, b1, fixed, anchor_k, anchor_offset, gravity, surface_nodes, node_area,
+    kscale, mscale, f_ext,
+    jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
+    jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
+    pl_point, pl_normal, pl_vel, pl_mu,
+    dt_outer, n_sub, n_steps,
+    jaw_out, plate_out, anchor_out, contact_state, contact_force,
+):
+    """:func:`simulate` for the L tissues of one lane block (arguments as there; x, v, fv, dl_prev in lanes)."""
+    n = x.shape[0]
+    nl = x.shape[2]
+    ne = fv.shape[0]
+    lanes = nl > 1
     dt = dt_outer / n_sub
-    f = np.empty((n, 3))
+    f = np.empty((n, 3, nl))
+    # one tissue: plain (N,3) views, the layout the one-tissue kernels are fastest on
+    x_one = x.reshape((n, 3 * nl)) if lanes else x.reshape((n, 3))
+    v_one = v.reshape((n, 3 * nl)) if lanes else v.reshape((n, 3))
+    f_one = f.reshape((n, 3 * nl)) if lanes else f.reshape((n, 3))
     # effective mass m + dt b of each node: the implicit nodal damper acts on the *constrained* velocity,
     # so a contact impulse must also overcome it (else reaction forces read low by 1 + dt b/m)
-    meff = np.empty(n)
+    meff = np.empty((n, nl))
+    fa = np.empty((3, nl))  # anchor spring force of one node
+    tmp = np.empty((3, nl))
+    ks = np.ascontiguousarray(kscale[lane0 : lane0 + nl])
+    ms = np.ascontiguousarray(mscale[lane0 : lane0 + nl])
     res = np.empty(6)
-    u = np.empty((3, 3))  # jaw outward directions
-    tj = np.empty((3, 3))  # jaw lateral directions
     ns = surface_nodes.shape[0]
-    two_pi_3 = 2.0 * math.pi / 3.0
     decay = math.exp(-dt / tau)
     gain = tau / dt * (1.0 - decay)
-    for b in range(nb):
-        xb = x[b]
-        vb = v[b]
-        ms = mscale[b]
-        ks = kscale[b]
+    u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
+    tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
+    f0 = np.empty((n, 3, nl))  # gravity + external forces: constant during the call
+    for lane in range(nl):
+        b = lane0 + lane
+        for i in range(n):
+            for c in range(3):
+                f0[i, c, lane] = mass[i] * ms[lane] * gravity[c] + f_ext[b, i, c]
+    for lane in range(nl):
+        b = lane0 + lane
         jaw_out[b, :, :] = 0.0
         plate_out[b, :, :] = 0.0
         anchor_out[b, :] = 0.0
-        ax, ay, az = g_axis[b, 0], g_axis[b, 1], g_axis[b, 2]
-        e1x, e1y, e1z = g_e1[b, 0], g_e1[b, 1], g_e1[b, 2]
-        e2x = ay * e1z - az * e1y
-        e2y = az * e1x - ax * e1z
-        e2z = ax * e1y - ay * e1x
-        for k in range(3):
-            c = math.cos(two_pi_3 * k)
-            s = math.sin(two_pi_3 * k)
-            u[k, 0] = c * e1x + s * e2x
-            u[k, 1] = c * e1y + s * e2y
-            u[k, 2] = c * e1z + s * e2z
-            # lateral direction along the face: a x u
-            tj[k, 0] = ay * u[k, 2] - az * u[k, 1]
-            tj[k, 1] = az * u[k, 0] - ax * u[k, 2]
-            tj[k, 2] = ax * u[k, 1] - ay * u[k, 0]
-        for step in range(n_steps):
-            last_step = step == n_steps - 1
-            for sub in range(n_sub):
-                last_sub = last_step and sub == n_sub - 1
-                avg = 1.0 / n_sub if last_step else 0.0
-                # ---- 1. forces
-                for i in range(n):
-                    m = mass[i] * ms
-                    f[i, 0] = m * gravity[0] + f_ext[b, i, 0]
-                    f[i, 1] = m * gravity[1] + f_ext[b, i, 1]
-                    f[i, 2] = m * gravity[2] + f_ext[b, i, 2]
-                if use_sls:
-                    accumulate_spring_forces_sls(
-                        xb, vb, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, kv, decay, gain,
-                        fv[b], dl_prev[b], f,
-                    )
+        jaw_directions(g_axis[b], g_e1[b], u[lane], tj[lane])
+    for step in range(n_steps):
+        last_step = step == n_steps - 1
+        for sub in range(n_sub):
+            last_sub = last_step and sub == n_sub - 1
+            avg = 1.0 / n_sub if last_step else 0.0
+            # ---- 1. forces
+            f[:] = f0
+            if lanes:
+                spring_loop_lanes(x, v, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, use_sls, kv, decay,
+                                  gain, fv, dl_prev, f, tmp)
+            else:
+                spring_loop(x_one, v_one, edges, rest_length, k1, k2, dlc, cdash, ks[0], use_dashpot, use_sls, kv, decay,
+                            gain, fv.reshape(ne), dl_prev.reshape(ne), f_one)
+            if kvol.shape[0] > 0:
+                if lanes:
+                    accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, vol_threshold, ks, f, tmp[0])
                 else:
-                    accumulate_spring_forces(xb, vb, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, f)
-                if kvol.shape[0] > 0:
-                    accumulate_volume_forces(xb, tets, rest_volume, kvol, vol_threshold, ks, f)
-                # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
-                for i in range(n):
-                    if fixed[i]:
+                    accumulate_volume_forces(x_one, tets, rest_volume, kvol, vol_threshold, ks[0], f_one)
+            # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
+            for i in range(n):
+                if fixed[i]:
+                    for lane in range(nl):
                         if last_sub:
-                            anchor_out[b, 0] -= f[i, 0]
-                            anchor_out[b, 1] -= f[i, 1]
-                            anchor_out[b, 2] -= f[i, 2]
-                        vb[i, 0] = 0.0
-                        vb[i, 1] = 0.0
-                        vb[i, 2] = 0.0
-                        continue
-                    m = mass[i] * ms
-                    dx = xb[i, 0] - x_rest[i, 0]
-                    dy = xb[i, 1] - x_rest[i, 1]
-                    dz = xb[i, 2] - x_rest[i, 2]
-                    ka = anchor_k[i]
-                    if ka > 0.0:  # compliant anchor: a preloaded spring (its preload scales with the mass)
-                        fax = -ka * (dx - ms * anchor_offset[0])
-                        fay = -ka * (dy - ms * anchor_offset[1])
-                        faz = -ka * (dz - ms * anchor_offset[2])
-                        f[i, 0] += fax
-                        f[i, 1] += fay
-                        f[i, 2] += faz
-                        if last_sub:
-                            anchor_out[b, 0] += fax
-                            anchor_out[b, 1] += fay
-                            anchor_out[b, 2] += faz
-                    damp = b0[i] + b1[i] * math.sqrt(dx * dx + dy * dy + dz * dz)
+                            anchor_out[lane0 + lane, 0] -= f[i, 0, lane]
+                            anchor_out[lane0 + lane, 1] -= f[i, 1, lane]
+                            anchor_out[lane0 + lane, 2] -= f[i, 2, lane]
+                        v[i, 0, lane] = 0.0
+                        v[i, 1, lane] = 0.0
+                        v[i, 2, lane] = 0.0
+                    continue
+                ka = anchor_k[i]
+                if ka > 0.0:  # compliant anchor: a preloaded spring (its preload scales with the mass)
+                    for lane in range(nl):
+                        fa[0, lane] = -ka * (x[i, 0, lane] - x_rest[i, 0] - ms[lane] * anchor_offset[0])
+                        fa[1, lane] = -ka * (x[i, 1, lane] - x_rest[i, 1] - ms[lane] * anchor_offset[1])
+                        fa[2, lane] = -ka * (x[i, 2, lane] - x_rest[i, 2] - ms[lane] * anchor_offset[2])
+                        f[i, 0, lane] += fa[0, lane]
+                        f[i, 1, lane] += fa[1, lane]
+                        f[i, 2, lane] += fa[2, lane]
+                    if last_sub:
+                        for lane in range(nl):
+                            anchor_out[lane0 + lane, 0] += fa[0, lane]
+                            anchor_out[lane0 + lane, 1] += fa[1, lane]
+                            anchor_out[lane0 + lane, 2] += fa[2, lane]
+                mi = mass[i]
+                bi0 = b0[i]
+                bi1 = b1[i]
+                xr0, xr1, xr2 = x_rest[i, 0], x_rest[i, 1], x_rest[i, 2]
+                for lane in range(nl):
+                    m = mi * ms[lane]
+                    dx = x[i, 0, lane] - xr0
+                    dy = x[i, 1, lane] - xr1
+                    dz = x[i, 2, lane] - xr2
+                    damp = bi0 + bi1 * math.sqrt(dx * dx + dy * dy + dz * dz)
                     inv = 1.0 / (1.0 + dt * damp / m)
-                    meff[i] = m + dt * damp
-                    for c in range(3):
-                        vb[i, c] = (vb[i, c] + dt * f[i, c] / m) * inv
-                        xb[i, c] += dt * vb[i, c]
+                    meff[i, lane] = m + dt * damp
+                    v0 = (v[i, 0, lane] + dt * f[i, 0, lane] / m) * inv
+                    v1 = (v[i, 1, lane] + dt * f[i, 1, lane] / m) * inv
+                    v2 = (v[i, 2, lane] + dt * f[i, 2, lane] / m) * inv
+                    v[i, 0, lane] = v0
+                    v[i, 1, lane] = v1
+                    v[i, 2, lane] = v2
+                    x[i, 0, lane] += dt * v0
+                    x[i, 1, lane] += dt * v1
+                    x[i, 2, lane] += dt * v2
+            # ---- 4. contacts, one tissue at a time (branchy, few nodes)
+            for lane in range(nl):
+                b = lane0 + lane
                 t[b] += dt
                 if last_sub:
                     for q in range(ns):
@@ -168,125 +238,32 @@ def simulate(
                         contact_force[b, i, 0] = 0.0
                         contact_force[b, i, 1] = 0.0
                         contact_force[b, i, 2] = 0.0
-                # ---- 4a. plates
-                for p in range(n_pl):
-                    pnx, pny, pnz = pl_normal[p, 0], pl_normal[p, 1], pl_normal[p, 2]
-                    pvx, pvy, pvz = pl_vel[b, p, 0], pl_vel[b, p, 1], pl_vel[b, p, 2]
-                    pl_point[b, p, 0] += dt * pvx
-                    pl_point[b, p, 1] += dt * pvy
-                    pl_point[b, p, 2] += dt * pvz
-                    px, py, pz = pl_point[b, p, 0], pl_point[b, p, 1], pl_point[b, p, 2]
-                    for q in range(ns):
-                        i = surface_nodes[q]
-                        if fixed[i]:
-                            continue
-                        d = -((xb[i, 0] - px) * pnx + (xb[i, 1] - py) * pny + (xb[i, 2] - pz) * pnz)
-                        if d <= 0.0:
-                            continue
-                        resolve_node_contact(
-                            xb, vb, i, meff[i], pnx, pny, pnz, d, pvx, pvy, pvz, pl_mu[p], pl_mu[p], dt, res
-                        )
-                        plate_out[b, p, 0] += avg * (res[0] * pnx + res[1])
-                        plate_out[b, p, 1] += avg * (res[0] * pny + res[2])
-                        plate_out[b, p, 2] += avg * (res[0] * pnz + res[3])
-                        if last_sub:
-                            contact_state[b, i] = np.int8(res[4])
-                            contact_force[b, i, 0] += res[0] * pnx + res[1]
-                            contact_force[b, i, 1] += res[0] * pny + res[2]
-                            contact_force[b, i, 2] += res[0] * pnz + res[3]
-                # ---- 4b. the three jaws (cylindrical detection about the grasper axis)
-                if jaw_active:
-                    r_old = g_radius[b]
-                    r_new = min(max(r_old + dt * g_vradius[b], g_rmin[b]), g_rmax[b])
-                    vr = (r_new - r_old) / dt  # closing stops at the radius limits
-                    g_radius[b] = r_new
-                    for c in range(3):
-                        g_tip[b, c] += dt * g_vpull[b, c]
-                    cx, cy, cz = g_tip[b, 0], g_tip[b, 1], g_tip[b, 2]
-                    n_con0 = 0.0
-                    n_con1 = 0.0
-                    n_con2 = 0.0
-                    slip0 = 0.0
-                    slip1 = 0.0
-                    slip2 = 0.0
-                    for q in range(ns):
-                        i = surface_nodes[q]
-                        if fixed[i]:
-                            continue
-                        rx = xb[i, 0] - cx
-                        ry = xb[i, 1] - cy
-                        rz = xb[i, 2] - cz
-                        k = jaw_candidate(rx, ry, rz, ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z, r_new, jaw_length)
-                        if k < 0:
-                            continue
-                        d = rx * u[k, 0] + ry * u[k, 1] + rz * u[k, 2] - r_new
-                        if d <= 0.0 or d > jaw_depth:
-                            continue
-                        lat = rx * tj[k, 0] + ry * tj[k, 1] + rz * tj[k, 2]
-                        pen_side = jaw_half_width - abs(lat)
-                        if pen_side <= 0.0:
-                            continue
-                        # the node is inside jaw k's solid: push it out through the nearest wall (inner
-                        # face, a side wall, the tip end or the base end), the closest-feature rule of a box
-                        s_ax = rx * ax + ry * ay + rz * az
-                        nx, ny, nz, pen = -u[k, 0], -u[k, 1], -u[k, 2], d
-                        face = True
-                        if pen_side < pen:
-                            sg = 1.0 if lat > 0.0 else -1.0
-                            nx, ny, nz, pen = sg * tj[k, 0], sg * tj[k, 1], sg * tj[k, 2], pen_side
-                            face = False
-                        if -s_ax < pen:
-                            nx, ny, nz, pen = ax, ay, az, -s_ax
-                            face = False
-                        if s_ax + jaw_length < pen:
-                            nx, ny, nz, pen = -ax, -ay, -az, s_ax + jaw_length
-                            face = False
-                        resolve_node_contact(
-                            xb, vb, i, meff[i], nx, ny, nz, pen,
-                            g_vpull[b, 0] + vr * u[k, 0], g_vpull[b, 1] + vr * u[k, 1], g_vpull[b, 2] + vr * u[k, 2],
-                            mu_s[b], mu_k[b], dt, res,
-                        )
-                        # contact force on the tissue, split into the jaw face's normal and tangential parts
-                        fx = res[0] * nx + res[1]
-                        fy = res[0] * ny + res[2]
-                        fz = res[0] * nz + res[3]
-                        fn = -(fx * u[k, 0] + fy * u[k, 1] + fz * u[k, 2])
-                        ftx = fx + fn * u[k, 0]
-                        fty = fy + fn * u[k, 1]
-                        ftz = fz + fn * u[k, 2]
-                        if face and node_area[i] > 0.0:
-                            pressure = res[0] / node_area[i]
-                            if pressure > jaw_out[b, k, J_PEAK_PRESSURE]:
-                                jaw_out[b, k, J_PEAK_PRESSURE] = pressure
-                        jaw_out[b, k, J_NORMAL] += avg * fn
-                        jaw_out[b, k, J_TX] += avg * ftx
-                        jaw_out[b, k, J_TY] += avg * fty
-                        jaw_out[b, k, J_TZ] += avg * ftz
-                        if last_sub:
-                            jaw_out[b, k, J_CONTACT] += 1.0
-                            if res[4] == 1.0:
-                                jaw_out[b, k, J_STICK] += 1.0
-                            else:
-                                jaw_out[b, k, J_SLIP] += 1.0
-                            contact_state[b, i] = np.int8(res[4])
-                            contact_force[b, i, 0] += fx
-                            contact_force[b, i, 1] += fy
-                            contact_force[b, i, 2] += fz
-                        if k == 0:
-                            n_con0 += 1.0
-                            slip0 += res[5] * dt
-                        elif k == 1:
-                            n_con1 += 1.0
-                            slip1 += res[5] * dt
-                        else:
-                            n_con2 += 1.0
-                            slip2 += res[5] * dt
-                    if n_con0 > 0.0:
-                        jaw_out[b, 0, J_SLIP_DIST] += slip0 / n_con0
-                    if n_con1 > 0.0:
-                        jaw_out[b, 1, J_SLIP_DIST] += slip1 / n_con1
-                    if n_con2 > 0.0:
-                        jaw_out[b, 2, J_SLIP_DIST] += slip2 / n_con2
+                if lanes:  # strided (N,3) views of one lane
+                    _contacts(b, x[:, :, lane], v[:, :, lane], meff[:, lane], u[lane], tj[lane], fixed, surface_nodes,
+                              node_area, jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
+                              jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, pl_point, pl_normal, pl_vel, pl_mu,
+                              dt, avg, last_sub, jaw_out, plate_out, contact_state, contact_force, res)
+                else:
+                    _contacts(b, x_one, v_one, meff.reshape(n), u[0], tj[0], fixed, surface_nodes,
+                              node_area, jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
+                              jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, pl_point, pl_normal, pl_vel, pl_mu,
+                              dt, avg, last_sub, jaw_out, plate_out, contact_state, contact_force, res)
+
+
+@njit(cache=True, error_model="numpy")
+def _contacts(
+    b, xb, vb, meff, u, tj, fixed, surface_nodes, node_area,
+    jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
+    jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, pl_point, pl_normal, pl_vel, pl_mu,
+    dt, avg, last_sub, jaw_out, plate_out, contact_state, contact_force, res,
+):
+    """Plates then jaws of tissue b for one substep (xb, vb (N,3) and meff (N,) of that tissue)."""
+    plate_contacts(b, xb, vb, meff, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu, dt, avg, last_sub,
+                   plate_out, contact_state, contact_force, res)
+    if jaw_active:
+        jaw_contacts(b, xb, vb, meff, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1, g_radius, g_vradius,
+                     g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, u, tj, dt, avg,
+                     last_sub, jaw_out, contact_state, contact_force, res)
 
 
 @njit(cache=True, error_model="numpy")
