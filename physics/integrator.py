@@ -140,6 +140,7 @@ def _advance_block(
     # effective mass m + dt b of each node: the implicit nodal damper acts on the *constrained* velocity,
     # so a contact impulse must also overcome it (else reaction forces read low by 1 + dt b/m)
     meff = np.empty((n, nl))
+    m_one = meff.reshape(n * nl)
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
     ks = np.ascontiguousarray(kscale[lane0 : lane0 + nl])
@@ -151,6 +152,8 @@ def _advance_block(
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
     f0 = np.empty((n, 3, nl))  # gravity + external forces: constant during the call
+    f_flat = f.reshape(n * 3 * nl)
+    f0_flat = f0.reshape(n * 3 * nl)
     for lane in range(nl):
         b = lane0 + lane
         for i in range(n):
@@ -168,7 +171,8 @@ def _advance_block(
             last_sub = last_step and sub == n_sub - 1
             avg = 1.0 / n_sub if last_step else 0.0
             # ---- 1. forces
-            f[:] = f0
+            for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
+                f_flat[k] = f0_flat[k]
             if lanes:
                 spring_loop_lanes(x, v, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, use_sls, kv, decay,
                                   gain, fv, dl_prev, f, tmp)
@@ -181,52 +185,12 @@ def _advance_block(
                 else:
                     accumulate_volume_forces(x_one, tets, rest_volume, kvol, vol_threshold, ks[0], f_one)
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
-            for i in range(n):
-                if fixed[i]:
-                    for lane in range(nl):
-                        if last_sub:
-                            anchor_out[lane0 + lane, 0] -= f[i, 0, lane]
-                            anchor_out[lane0 + lane, 1] -= f[i, 1, lane]
-                            anchor_out[lane0 + lane, 2] -= f[i, 2, lane]
-                        v[i, 0, lane] = 0.0
-                        v[i, 1, lane] = 0.0
-                        v[i, 2, lane] = 0.0
-                    continue
-                ka = anchor_k[i]
-                if ka > 0.0:  # compliant anchor: a preloaded spring (its preload scales with the mass)
-                    for lane in range(nl):
-                        fa[0, lane] = -ka * (x[i, 0, lane] - x_rest[i, 0] - ms[lane] * anchor_offset[0])
-                        fa[1, lane] = -ka * (x[i, 1, lane] - x_rest[i, 1] - ms[lane] * anchor_offset[1])
-                        fa[2, lane] = -ka * (x[i, 2, lane] - x_rest[i, 2] - ms[lane] * anchor_offset[2])
-                        f[i, 0, lane] += fa[0, lane]
-                        f[i, 1, lane] += fa[1, lane]
-                        f[i, 2, lane] += fa[2, lane]
-                    if last_sub:
-                        for lane in range(nl):
-                            anchor_out[lane0 + lane, 0] += fa[0, lane]
-                            anchor_out[lane0 + lane, 1] += fa[1, lane]
-                            anchor_out[lane0 + lane, 2] += fa[2, lane]
-                mi = mass[i]
-                bi0 = b0[i]
-                bi1 = b1[i]
-                xr0, xr1, xr2 = x_rest[i, 0], x_rest[i, 1], x_rest[i, 2]
-                for lane in range(nl):
-                    m = mi * ms[lane]
-                    dx = x[i, 0, lane] - xr0
-                    dy = x[i, 1, lane] - xr1
-                    dz = x[i, 2, lane] - xr2
-                    damp = bi0 + bi1 * math.sqrt(dx * dx + dy * dy + dz * dz)
-                    inv = 1.0 / (1.0 + dt * damp / m)
-                    meff[i, lane] = m + dt * damp
-                    v0 = (v[i, 0, lane] + dt * f[i, 0, lane] / m) * inv
-                    v1 = (v[i, 1, lane] + dt * f[i, 1, lane] / m) * inv
-                    v2 = (v[i, 2, lane] + dt * f[i, 2, lane] / m) * inv
-                    v[i, 0, lane] = v0
-                    v[i, 1, lane] = v1
-                    v[i, 2, lane] = v2
-                    x[i, 0, lane] += dt * v0
-                    x[i, 1, lane] += dt * v1
-                    x[i, 2, lane] += dt * v2
+            if lanes:
+                _update_nodes(x, v, f, meff, fa, ms, 0, nl, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k,
+                              anchor_offset, x_rest, anchor_out)
+            else:  # literal bounds: the lane loops vanish for one tissue
+                _update_nodes(x, v, f, meff, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k,
+                              anchor_offset, x_rest, anchor_out)
             # ---- 4. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
@@ -239,31 +203,77 @@ def _advance_block(
                         contact_force[b, i, 1] = 0.0
                         contact_force[b, i, 2] = 0.0
                 if lanes:  # strided (N,3) views of one lane
-                    _contacts(b, x[:, :, lane], v[:, :, lane], meff[:, lane], u[lane], tj[lane], fixed, surface_nodes,
-                              node_area, jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
-                              jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, pl_point, pl_normal, pl_vel, pl_mu,
-                              dt, avg, last_sub, jaw_out, plate_out, contact_state, contact_force, res)
+                    xb = x[:, :, lane]
+                    vb = v[:, :, lane]
+                    mb = meff[:, lane]
+                    plate_contacts(b, xb, vb, mb, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu, dt, avg,
+                                   last_sub, plate_out, contact_state, contact_force, res)
+                    if jaw_active:
+                        jaw_contacts(b, xb, vb, mb, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1, g_radius,
+                                     g_vradius, g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width, jaw_depth, mu_s,
+                                     mu_k, u[lane], tj[lane], dt, avg, last_sub, jaw_out, contact_state, contact_force,
+                                     res)
                 else:
-                    _contacts(b, x_one, v_one, meff.reshape(n), u[0], tj[0], fixed, surface_nodes,
-                              node_area, jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
-                              jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, pl_point, pl_normal, pl_vel, pl_mu,
-                              dt, avg, last_sub, jaw_out, plate_out, contact_state, contact_force, res)
+                    plate_contacts(b, x_one, v_one, m_one, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu,
+                                   dt, avg, last_sub, plate_out, contact_state, contact_force, res)
+                    if jaw_active:
+                        jaw_contacts(b, x_one, v_one, m_one, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1,
+                                     g_radius, g_vradius, g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width,
+                                     jaw_depth, mu_s, mu_k, u[0], tj[0], dt, avg, last_sub, jaw_out, contact_state,
+                                     contact_force, res)
 
 
-@njit(cache=True, error_model="numpy")
-def _contacts(
-    b, xb, vb, meff, u, tj, fixed, surface_nodes, node_area,
-    jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
-    jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, pl_point, pl_normal, pl_vel, pl_mu,
-    dt, avg, last_sub, jaw_out, plate_out, contact_state, contact_force, res,
-):
-    """Plates then jaws of tissue b for one substep (xb, vb (N,3) and meff (N,) of that tissue)."""
-    plate_contacts(b, xb, vb, meff, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu, dt, avg, last_sub,
-                   plate_out, contact_state, contact_force, res)
-    if jaw_active:
-        jaw_contacts(b, xb, vb, meff, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1, g_radius, g_vradius,
-                     g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k, u, tj, dt, avg,
-                     last_sub, jaw_out, contact_state, contact_force, res)
+@njit(cache=True, inline="always", error_model="numpy")
+def _update_nodes(x, v, f, meff, fa, ms, lo, hi, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k, anchor_offset,
+                  x_rest, anchor_out):
+    """Symplectic Euler with implicit nodal damping for lanes lo..hi-1; anchors held or sprung (steps 2-3)."""
+    n = x.shape[0]
+    for i in range(n):
+        if fixed[i]:
+            for lane in range(lo, hi):
+                if last_sub:
+                    anchor_out[lane0 + lane, 0] -= f[i, 0, lane]
+                    anchor_out[lane0 + lane, 1] -= f[i, 1, lane]
+                    anchor_out[lane0 + lane, 2] -= f[i, 2, lane]
+                v[i, 0, lane] = 0.0
+                v[i, 1, lane] = 0.0
+                v[i, 2, lane] = 0.0
+            continue
+        ka = anchor_k[i]
+        if ka > 0.0:  # compliant anchor: a preloaded spring (its preload scales with the mass)
+            for lane in range(lo, hi):
+                fa[0, lane] = -ka * (x[i, 0, lane] - x_rest[i, 0] - ms[lane] * anchor_offset[0])
+                fa[1, lane] = -ka * (x[i, 1, lane] - x_rest[i, 1] - ms[lane] * anchor_offset[1])
+                fa[2, lane] = -ka * (x[i, 2, lane] - x_rest[i, 2] - ms[lane] * anchor_offset[2])
+                f[i, 0, lane] += fa[0, lane]
+                f[i, 1, lane] += fa[1, lane]
+                f[i, 2, lane] += fa[2, lane]
+            if last_sub:
+                for lane in range(lo, hi):
+                    anchor_out[lane0 + lane, 0] += fa[0, lane]
+                    anchor_out[lane0 + lane, 1] += fa[1, lane]
+                    anchor_out[lane0 + lane, 2] += fa[2, lane]
+        mi = mass[i]
+        bi0 = b0[i]
+        bi1 = b1[i]
+        xr0, xr1, xr2 = x_rest[i, 0], x_rest[i, 1], x_rest[i, 2]
+        for lane in range(lo, hi):
+            m = mi * ms[lane]
+            dx = x[i, 0, lane] - xr0
+            dy = x[i, 1, lane] - xr1
+            dz = x[i, 2, lane] - xr2
+            damp = bi0 + bi1 * math.sqrt(dx * dx + dy * dy + dz * dz)
+            inv = 1.0 / (1.0 + dt * damp / m)
+            meff[i, lane] = m + dt * damp
+            v0 = (v[i, 0, lane] + dt * f[i, 0, lane] / m) * inv
+            v1 = (v[i, 1, lane] + dt * f[i, 1, lane] / m) * inv
+            v2 = (v[i, 2, lane] + dt * f[i, 2, lane] / m) * inv
+            v[i, 0, lane] = v0
+            v[i, 1, lane] = v1
+            v[i, 2, lane] = v2
+            x[i, 0, lane] += dt * v0
+            x[i, 1, lane] += dt * v1
+            x[i, 2, lane] += dt * v2
 
 
 @njit(cache=True, error_model="numpy")

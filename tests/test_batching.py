@@ -1,0 +1,88 @@
+"""Batching is an implementation detail: a tissue's trajectory does not depend on the batch it runs in.
+
+Batches of LANE_MIN or more tissues run springs, tets and the node update across tissues (SIMD lanes,
+in blocks of up to LANE_BLOCK); smaller ones run tissue after tissue. Each lane performs the same
+floating-point operations in the same order as the one-tissue kernels, so the results must agree
+*bitwise*, not within a tolerance: any drift means the two code paths compute different physics.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msdgrasp.physics.integrator import LANE_BLOCK, LANE_MIN
+from msdgrasp.physics.scenario import sphere_scene, spleen_scene
+from msdgrasp.physics.simulation import Plate, Simulation
+
+STATE = ("x", "v", "t", "fv", "dl_prev", "g_radius", "g_tip", "pl_point")
+READOUTS = ("jaw_out", "plate_out", "anchor_out", "contact_state", "contact_force")
+
+
+def _varied(sim: Simulation, rng: np.random.Generator, pull_direction: np.ndarray) -> dict:
+    """Give every tissue its own stiffness, mass, friction, jaw speed, pull and external load."""
+    B = sim.batch_size
+    settings = {
+        "stiffness": rng.uniform(0.8, 1.3, B),
+        "mass": rng.uniform(0.85, 1.2, B),
+        "mu": rng.uniform(0.1, 1.2, B),
+        "closing": rng.uniform(0.01, 0.03, B),
+        "pull": np.outer(rng.uniform(0.0, 0.03, B), pull_direction),
+        "load": rng.normal(0.0, 0.02, (B, 3)),
+    }
+    _apply(sim, settings, np.arange(B))
+    return settings
+
+
+def _apply(sim: Simulation, settings: dict, rows: np.ndarray) -> None:
+    sim.set_scales(stiffness=settings["stiffness"][rows], mass=settings["mass"][rows])
+    sim.set_friction(settings["mu"][rows])
+    sim.command(closing_speed=settings["closing"][rows], pull_velocity=settings["pull"][rows])
+    sim.f_ext[:, 7, :] = settings["load"][rows]
+
+
+def _assert_same(batch: Simulation, alone: Simulation, b: int) -> None:
+    for name in STATE + READOUTS:
+        got, want = getattr(batch, name)[b], getattr(alone, name)[0]
+        assert np.array_equal(got, want), f"tissue {b}: {name} differs by {np.max(np.abs(got - want)):.3g}"
+
+
+@pytest.mark.parametrize("batch_size", [LANE_MIN, LANE_BLOCK + 3])
+def test_a_tissue_in_a_lane_batch_moves_exactly_as_alone(batch_size):
+    scene = spleen_scene(resolution="coarse")
+    kw = {"max_stiffness_scale": 1.3, "min_mass_scale": 0.85}
+    batch = scene.simulation(batch_size, **kw)
+    settings = _varied(batch, np.random.default_rng(batch_size), scene.pull_direction)
+    batch.step(120)  # jaws close onto the organ: contacts, sticking and slipping, anchors loaded
+    batch.step(33)  # a second call: lane state goes out and comes back in
+    assert batch.jaw_contact_counts[:, :, 0].sum() > 0, "the scenario must reach contact"
+    for b in (0, LANE_MIN - 1, batch_size // 2, batch_size - 1):
+        alone = scene.simulation(1, **kw)
+        _apply(alone, settings, np.array([b]))
+        alone.step(120)
+        alone.step(33)
+        _assert_same(batch, alone, b)
+
+
+def test_plates_in_a_lane_batch_act_exactly_as_alone():
+    scene = sphere_scene(resolution="coarse")
+    z = scene.x_start[:, 2]
+    rng = np.random.default_rng(3)
+
+    def sim(batch_size: int) -> Simulation:
+        plates = [Plate((0.0, 0.0, z.min()), (0.0, 0.0, 1.0), mu=0.3),
+                  Plate((0.0, 0.0, z.max()), (0.0, 0.0, -1.0), (0.0, 0.0, -0.02), mu=0.3)]
+        s = Simulation(scene.model, batch_size, plates=plates, max_stiffness_scale=1.2)
+        s.set_state(scene.x_start)
+        return s
+
+    batch = sim(LANE_MIN + 2)
+    scales = rng.uniform(0.9, 1.2, batch.batch_size)
+    batch.set_scales(stiffness=scales)
+    batch.step(150)
+    assert np.all(batch.plate_out[:, 0, 2] > 0.0), "the bottom plate must push up on every tissue"
+    for b in (0, batch.batch_size - 1):
+        alone = sim(1)
+        alone.set_scales(stiffness=scales[b])
+        alone.step(150)
+        _assert_same(batch, alone, b)
