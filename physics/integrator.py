@@ -17,6 +17,13 @@ last outer step, i.e. what a 1 kHz force sensor would report.
 
 State is plain arrays with the batch first: x (B,N,3), v (B,N,3), grasper pose (B,3), radius (B,), ...
 Tissues of a batch differ by per-tissue stiffness and mass scale, friction, grasper pose and commands.
+
+Vectorisation across tissues: a batch of LANE_MIN or more runs in blocks of up to LANE_BLOCK tissues
+copied into a tissue-innermost "lane" layout (x[i, c, lane]) for the duration of the call. Springs, tets
+and the node update then loop over lanes innermost, with unit stride and no branches, and LLVM emits SIMD
+code for them (measured here: ~1.9x less time per tissue at B = 64 than tissue by tissue). Contacts stay
+per tissue (few nodes, branchy). Every lane performs the one-tissue kernels' floating-point operations
+in the same order, so a tissue's trajectory is bitwise the same in any batch (tests/test_batching.py).
 """
 
 from __future__ import annotations
