@@ -326,18 +326,18 @@ def accumulate_volume_forces_lanes(
         vthr = j_threshold * v0
         k = kvol[t]
         active = 0
-        for lane in range(nl):
+        for lane in range(nl):  # no division here: this pass runs for every tet and lane
             vol = _tet_edges_lane(x, a, b, c, d, lane)[9]
-            inside = vol < vthr
-            s[lane] = -kscale[lane] * k * (vol / v0 - j_threshold) if inside else 0.0
-            active += 1 if inside else 0
+            s[lane] = vol
+            active += 1 if vol < vthr else 0
         if active == 0:  # the common case: no tissue has this tet past the threshold
             continue
         for lane in range(nl):
-            e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, _ = _tet_edges_lane(x, a, b, c, d, lane)
-            gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
-            sl = s[lane]
-            if sl != 0.0:  # lanes outside the barrier add nothing (their gradient may be anything)
+            if s[lane] < vthr:
+                e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, _ = _tet_edges_lane(x, a, b, c, d, lane)
+                gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y,
+                                                                                e3z)
+                sl = -kscale[lane] * k * (s[lane] / v0 - j_threshold)
                 f[b, 0, lane] += sl * gbx
                 f[b, 1, lane] += sl * gby
                 f[b, 2, lane] += sl * gbz

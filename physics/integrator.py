@@ -147,6 +147,7 @@ def _advance_block(
     # effective mass m + dt b of each node: the implicit nodal damper acts on the *constrained* velocity,
     # so a contact impulse must also overcome it (else reaction forces read low by 1 + dt b/m)
     meff = np.empty((n, nl))
+    damp_inv = np.empty((n, nl))
     m_one = meff.reshape(n * nl)
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
@@ -158,6 +159,7 @@ def _advance_block(
     gain = tau / dt * (1.0 - decay)
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
+    _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv)
     f0 = np.empty((n, 3, nl))  # gravity + external forces: constant during the call
     f_flat = f.reshape(n * 3 * nl)
     f0_flat = f0.reshape(n * 3 * nl)
@@ -193,11 +195,11 @@ def _advance_block(
                     accumulate_volume_forces(x_one, tets, rest_volume, kvol, vol_threshold, ks[0], f_one)
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
             if lanes:
-                _update_nodes(x, v, f, meff, fa, ms, 0, nl, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k,
-                              anchor_offset, x_rest, anchor_out)
+                _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, nl, lane0, last_sub, dt, mass, b0, b1, fixed,
+                              anchor_k, anchor_offset, x_rest, anchor_out)
             else:  # literal bounds: the lane loops vanish for one tissue
-                _update_nodes(x, v, f, meff, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k,
-                              anchor_offset, x_rest, anchor_out)
+                _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed,
+                              anchor_k, anchor_offset, x_rest, anchor_out)
             # ---- 4. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
@@ -230,10 +232,25 @@ def _advance_block(
                                      contact_force, res)
 
 
+@njit(cache=True, error_model="numpy")
+def _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv):
+    """meff = m + dt b0 and damp_inv = 1 / (1 + dt b0 / m) of the nodes whose damping does not vary (b1 = 0)."""
+    for i in range(mass.shape[0]):
+        if b1[i] == 0.0:
+            for lane in range(ms.shape[0]):
+                m = mass[i] * ms[lane]
+                damp_inv[i, lane] = 1.0 / (1.0 + dt * b0[i] / m)  # as _update_nodes computes it with b1 = 0
+                meff[i, lane] = m + dt * b0[i]
+
+
 @njit(cache=True, inline="always", error_model="numpy")
-def _update_nodes(x, v, f, meff, fa, ms, lo, hi, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k, anchor_offset,
-                  x_rest, anchor_out):
-    """Symplectic Euler with implicit nodal damping for lanes lo..hi-1; anchors held or sprung (steps 2-3)."""
+def _update_nodes(x, v, f, meff, damp_inv, fa, ms, lo, hi, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k,
+                  anchor_offset, x_rest, anchor_out):
+    """Symplectic Euler with implicit nodal damping for lanes lo..hi-1; anchors held or sprung (steps 2-3).
+
+    meff and damp_inv (N,L) are m + dt b and 1 / (1 + dt b / m); for nodes with b1 = 0 they are constant and
+    filled by :func:`_constant_damping`, which saves a square root and two divisions per node and substep.
+    """
     n = x.shape[0]
     for i in range(n):
         if fixed[i]:
@@ -264,14 +281,18 @@ def _update_nodes(x, v, f, meff, fa, ms, lo, hi, lane0, last_sub, dt, mass, b0, 
         bi0 = b0[i]
         bi1 = b1[i]
         xr0, xr1, xr2 = x_rest[i, 0], x_rest[i, 1], x_rest[i, 2]
+        if bi1 != 0.0:  # displacement-dependent damping (Eq. 7); else damp_inv, meff hold for the call
+            for lane in range(lo, hi):
+                m = mi * ms[lane]
+                dx = x[i, 0, lane] - xr0
+                dy = x[i, 1, lane] - xr1
+                dz = x[i, 2, lane] - xr2
+                damp = bi0 + bi1 * math.sqrt(dx * dx + dy * dy + dz * dz)
+                damp_inv[i, lane] = 1.0 / (1.0 + dt * damp / m)
+                meff[i, lane] = m + dt * damp
         for lane in range(lo, hi):
             m = mi * ms[lane]
-            dx = x[i, 0, lane] - xr0
-            dy = x[i, 1, lane] - xr1
-            dz = x[i, 2, lane] - xr2
-            damp = bi0 + bi1 * math.sqrt(dx * dx + dy * dy + dz * dz)
-            inv = 1.0 / (1.0 + dt * damp / m)
-            meff[i, lane] = m + dt * damp
+            inv = damp_inv[i, lane]
             v0 = (v[i, 0, lane] + dt * f[i, 0, lane] / m) * inv
             v1 = (v[i, 1, lane] + dt * f[i, 1, lane] / m) * inv
             v2 = (v[i, 2, lane] + dt * f[i, 2, lane] / m) * inv
