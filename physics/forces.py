@@ -71,17 +71,33 @@ def spring_loop(
     fv: np.ndarray,  # (E,) Maxwell branch force, N (state, updated)
     dl_prev: np.ndarray,  # (E,) elongation at the previous substep, m (state, updated)
     f: np.ndarray,  # (N,3) out: forces are ADDED here
+    scratch: np.ndarray,  # (9,E) work space
 ) -> None:
-    """The one spring loop: springs (+ dashpots, + Maxwell branches) added to ``f``, momentum-exact."""
-    for e in range(edges.shape[0]):
+    """The one spring loop: springs (+ dashpots, + Maxwell branches) added to ``f``, momentum-exact.
+
+    Three passes: gather the edge vectors (indexed loads), compute every spring's force (contiguous
+    arrays, no branches: LLVM emits SIMD code), scatter in edge order. ~20% faster than one fused loop,
+    and bitwise the same (each spring's arithmetic and the order of the additions into f are unchanged).
+    A spring between coincident nodes (length < 1e-15 m, only in a collapsed mesh) has no direction: it
+    adds nothing and keeps its Maxwell state.
+    """
+    ne = edges.shape[0]
+    for e in range(ne):
         i = edges[e, 0]
         j = edges[e, 1]
-        dx = x[j, 0] - x[i, 0]
-        dy = x[j, 1] - x[i, 1]
-        dz = x[j, 2] - x[i, 2]
+        scratch[0, e] = x[j, 0] - x[i, 0]
+        scratch[1, e] = x[j, 1] - x[i, 1]
+        scratch[2, e] = x[j, 2] - x[i, 2]
+        if use_dashpot:
+            scratch[3, e] = v[j, 0] - v[i, 0]
+            scratch[4, e] = v[j, 1] - v[i, 1]
+            scratch[5, e] = v[j, 2] - v[i, 2]
+    for e in range(ne):
+        dx = scratch[0, e]
+        dy = scratch[1, e]
+        dz = scratch[2, e]
         length = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if length < 1e-15:
-            continue  # coincident nodes: direction undefined; happens only in a collapsed mesh
+        ok = length >= 1e-15
         inv = 1.0 / length
         ux = dx * inv
         uy = dy * inv
@@ -90,24 +106,30 @@ def spring_loop(
         fs = kscale * spring_force(dl, k1[e], k2[e], dlc[e])
         if use_sls:
             fve = fv[e] * decay + kscale * kv[e] * (dl - dl_prev[e]) * gain
-            fv[e] = fve
-            dl_prev[e] = dl
+            fv[e] = fve if ok else fv[e]
+            dl_prev[e] = dl if ok else dl_prev[e]
             fs += fve
         if use_dashpot:
-            rel = (v[j, 0] - v[i, 0]) * ux + (v[j, 1] - v[i, 1]) * uy + (v[j, 2] - v[i, 2]) * uz
+            rel = scratch[3, e] * ux + scratch[4, e] * uy + scratch[5, e] * uz
             fs += kscale * cdash[e] * rel
-        f[i, 0] += fs * ux
-        f[i, 1] += fs * uy
-        f[i, 2] += fs * uz
-        f[j, 0] -= fs * ux
-        f[j, 1] -= fs * uy
-        f[j, 2] -= fs * uz
+        scratch[6, e] = fs * ux if ok else 0.0
+        scratch[7, e] = fs * uy if ok else 0.0
+        scratch[8, e] = fs * uz if ok else 0.0
+    for e in range(ne):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        f[i, 0] += scratch[6, e]
+        f[i, 1] += scratch[7, e]
+        f[i, 2] += scratch[8, e]
+        f[j, 0] -= scratch[6, e]
+        f[j, 1] -= scratch[7, e]
+        f[j, 2] -= scratch[8, e]
 
 
 # -------------------------------------------------------------------------------------------------
 # Lane layout: a batch of tissues stored tissue-innermost, x[i, c, lane] (N,3,L). The loops over lanes
 # have no branches and unit stride, so LLVM turns them into SIMD code (4 tissues per AVX2 instruction):
-# the spring loop costs ~5 ns per spring and tissue at L = 64 instead of ~10 ns. Each lane does the same
+# the spring loop costs ~3.5 ns per spring and tissue at L = 64 instead of ~7.4 ns. Each lane does the same
 # floating-point operations in the same order as the one-tissue kernels, so results are bitwise equal.
 # -------------------------------------------------------------------------------------------------
 
@@ -194,7 +216,7 @@ def accumulate_spring_forces(
     """Add every spring's (and dashpot's) force to ``f`` (no Maxwell branch)."""
     empty = np.empty(0)
     spring_loop(x, v, edges, rest_length, k1, k2, dlc, cdash, kscale, use_dashpot, False, empty, 1.0, 0.0,
-                empty, empty, f)
+                empty, empty, f, np.empty((9, edges.shape[0])))
 
 
 @njit(cache=True, error_model="numpy")

@@ -151,6 +151,7 @@ def _advance_block(
     m_one = meff.reshape(n * nl)
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
+    spring_scratch = np.empty((9, 0 if lanes else ne))
     ks = np.ascontiguousarray(kscale[lane0 : lane0 + nl])
     ms = np.ascontiguousarray(mscale[lane0 : lane0 + nl])
     res = np.empty(6)
@@ -187,7 +188,7 @@ def _advance_block(
                                   gain, fv, dl_prev, f, tmp)
             else:
                 spring_loop(x_one, v_one, edges, rest_length, k1, k2, dlc, cdash, ks[0], use_dashpot, use_sls, kv, decay,
-                            gain, fv.reshape(ne), dl_prev.reshape(ne), f_one)
+                            gain, fv.reshape(ne), dl_prev.reshape(ne), f_one, spring_scratch)
             if kvol.shape[0] > 0:
                 if lanes:
                     accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, vol_threshold, ks, f, tmp[0])

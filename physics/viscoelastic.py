@@ -46,7 +46,7 @@ def accumulate_spring_forces_sls(
 ) -> None:
     """Springs + dashpots (as :func:`.forces.accumulate_spring_forces`) plus the Maxwell branch."""
     spring_loop(x, v, edges, rest_length, k1, k2, dlc, cdash, kscale, use_dashpot, True, kv, decay, gain, fv,
-                dl_prev, f)
+                dl_prev, f, np.empty((9, edges.shape[0])))
 
 
 def elongations(x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> np.ndarray:
