@@ -147,7 +147,7 @@ def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarr
         tj[k, 2] = ax * u[k, 1] - ay * u[k, 0]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def plate_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     fixed, surface_nodes,
@@ -182,7 +182,7 @@ def plate_contacts(
                 contact_force[b, i, 2] += res[0] * pnz + res[3]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def jaw_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     fixed, surface_nodes, node_area,  # (N,) bool, (Ns,) int, (N,) m^2

@@ -97,11 +97,7 @@ def simulate(
             vl = np.empty((n, 3, nl))
             fvl = np.empty((ne, nl))
             dll = np.empty((ne, nl))
-            for lane in range(nl):
-                xl[:, :, lane] = x[lane0 + lane]
-                vl[:, :, lane] = v[lane0 + lane]
-                fvl[:, lane] = fv[lane0 + lane]
-                dll[:, lane] = dl_prev[lane0 + lane]
+            _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, True)
         _advance_block(
             lane0, xl, vl, fvl, dll, t,
             x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot, use_sls, kv, tau,
@@ -115,11 +111,31 @@ def simulate(
             jaw_out, plate_out, anchor_out, contact_state, contact_force,
         )
         if nl > 1:
-            for lane in range(nl):
-                x[lane0 + lane] = xl[:, :, lane]
-                v[lane0 + lane] = vl[:, :, lane]
-                fv[lane0 + lane] = fvl[:, lane]
-                dl_prev[lane0 + lane] = dll[:, lane]
+            _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, False)
+
+
+@njit(cache=True, error_model="numpy")
+def _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, forward):
+    """Copy tissues lane0.. of the batch state into the lane block (forward) or back. Explicit loops:
+    numba's slice assignment would compile its shape-mismatch error formatting (~5 s of first-call compile)."""
+    n = xl.shape[0]
+    for lane in range(xl.shape[2]):
+        b = lane0 + lane
+        for i in range(n):
+            for c in range(3):
+                if forward:
+                    xl[i, c, lane] = x[b, i, c]
+                    vl[i, c, lane] = v[b, i, c]
+                else:
+                    x[b, i, c] = xl[i, c, lane]
+                    v[b, i, c] = vl[i, c, lane]
+        for e in range(fvl.shape[0]):
+            if forward:
+                fvl[e, lane] = fv[b, e]
+                dll[e, lane] = dl_prev[b, e]
+            else:
+                fv[b, e] = fvl[e, lane]
+                dl_prev[b, e] = dll[e, lane]
 
 
 @njit(cache=True, error_model="numpy")
@@ -150,7 +166,6 @@ def _advance_block(
     # so a contact impulse must also overcome it (else reaction forces read low by 1 + dt b/m)
     meff = np.empty((n, nl))
     damp_inv = np.empty((n, nl))
-    m_one = meff.reshape(n * nl)
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
     spring_scratch = np.empty((9, 0 if lanes else ne))
@@ -200,7 +215,7 @@ def _advance_block(
             if lanes:
                 _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, nl, lane0, last_sub, dt, mass, b0, b1, fixed,
                               anchor_k, anchor_offset, x_rest, anchor_out)
-            else:  # literal bounds: the lane loops vanish for one tissue
+            else:  # literal bounds: once LLVM inlines the call, the lane loops vanish for one tissue
                 _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed,
                               anchor_k, anchor_offset, x_rest, anchor_out)
             # ---- 4. contacts, one tissue at a time (branchy, few nodes)
@@ -214,25 +229,16 @@ def _advance_block(
                         contact_force[b, i, 0] = 0.0
                         contact_force[b, i, 1] = 0.0
                         contact_force[b, i, 2] = 0.0
-                if lanes:  # strided (N,3) views of one lane
-                    xb = x[:, :, lane]
-                    vb = v[:, :, lane]
-                    mb = meff[:, lane]
-                    plate_contacts(b, xb, vb, mb, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu, dt, avg,
-                                   last_sub, plate_out, contact_state, contact_force, res)
-                    if jaw_active:
-                        jaw_contacts(b, xb, vb, mb, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1, g_radius,
-                                     g_vradius, g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width, jaw_depth, mu_s,
-                                     mu_k, u[lane], tj[lane], dt, avg, last_sub, jaw_out, contact_state, contact_force,
-                                     res)
-                else:
-                    plate_contacts(b, x_one, v_one, m_one, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu,
-                                   dt, avg, last_sub, plate_out, contact_state, contact_force, res)
-                    if jaw_active:
-                        jaw_contacts(b, x_one, v_one, m_one, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1,
-                                     g_radius, g_vradius, g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width,
-                                     jaw_depth, mu_s, mu_k, u[0], tj[0], dt, avg, last_sub, jaw_out, contact_state,
-                                     contact_force, res)
+                # (N,3) views of one lane, strided in a lane block: one compiled contact code for both paths
+                xb = x[:, :, lane]
+                vb = v[:, :, lane]
+                mb = meff[:, lane]
+                plate_contacts(b, xb, vb, mb, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu, dt, avg,
+                               last_sub, plate_out, contact_state, contact_force, res)
+                if jaw_active:
+                    jaw_contacts(b, xb, vb, mb, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1, g_radius,
+                                 g_vradius, g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
+                                 u[lane], tj[lane], dt, avg, last_sub, jaw_out, contact_state, contact_force, res)
 
 
 @njit(cache=True, error_model="numpy")
@@ -246,7 +252,7 @@ def _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv):
                 meff[i, lane] = m + dt * b0[i]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _update_nodes(x, v, f, meff, damp_inv, fa, ms, lo, hi, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k,
                   anchor_offset, x_rest, anchor_out):
     """Symplectic Euler with implicit nodal damping for lanes lo..hi-1; anchors held or sprung (steps 2-3).
