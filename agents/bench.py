@@ -347,6 +347,9 @@ def bench_no_contact(resolution, min_time: float, repeats: int, batch: int = BAT
         "single_best_us_per_ms": _r(single["best_s"] * 1e6),
         "single_cpu_us_per_ms": _r(single["cpu_s"] * 1e6),
         "single_us_per_substep": _r(us1 / sim1.n_sub),
+        # whole substep (springs, tets, nodes) per spring: comparable across mesh sizes
+        "single_ns_per_spring_substep": _r(us1 / sim1.n_sub / len(model.edges) * 1e3),
+        f"batch{batch}_ns_per_spring_substep": _r(usb / batch / simb.n_sub / len(model.edges) * 1e3),
         "single_realtime_factor": _r(1000.0 / us1),
         f"batch{batch}_total_us_per_ms": _r(usb),
         f"batch{batch}_per_tissue_us_per_ms": _r(usb / batch),
@@ -531,7 +534,10 @@ def bench_physics(quick: bool, include_contact: bool = True, include_no_contact:
     min_time = 0.1 if quick else 0.5
     repeats = 1 if quick else 3
     settle_s, close_s = (0.5, 1.0) if quick else (2.0, 2.0)
-    out: dict[str, Any] = {"min_time_per_measurement_s": min_time, "dt_outer_s": DT_OUTER, "batch": BATCH}
+    from ..physics.integrator import LANE_BLOCK, LANE_MIN
+
+    out: dict[str, Any] = {"min_time_per_measurement_s": min_time, "dt_outer_s": DT_OUTER, "batch": BATCH,
+                           "lane_min": LANE_MIN, "lane_block": LANE_BLOCK}
     if include_no_contact:
         rows = []
         for res in resolutions:
@@ -758,12 +764,14 @@ def markdown(report: dict) -> str:
     b = BATCH
     if ph.get("no_contact"):
         lines += ["## Physics without contact (us of compute per simulated ms)", "",
-                  f"| resolution | nodes | springs | n_sub | single | x real time | batch {b} total | per tissue |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  f"| resolution | nodes | springs | n_sub | single | x real time | batch {b} total | per tissue "
+                  f"| ns per spring and substep: single / batch {b} |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for r in ph["no_contact"]:
             lines.append(f"| {r['resolution']} | {r['nodes']} | {r['springs']} | {r['n_sub']} | {r['single_us_per_ms']} | "
                          f"{r['single_realtime_factor']} | {r[f'batch{b}_total_us_per_ms']} | "
-                         f"{r[f'batch{b}_per_tissue_us_per_ms']} |")
+                         f"{r[f'batch{b}_per_tissue_us_per_ms']} | {r.get('single_ns_per_spring_substep', '-')} / "
+                         f"{r.get(f'batch{b}_ns_per_spring_substep', '-')} |")
         s = ph["scaling"]
         lines += ["", f"Log-log exponent of cost vs nodes: {s['exponent_us_per_ms_vs_nodes']} per simulated ms, "
                       f"{s['exponent_us_per_substep_vs_nodes']} per substep.", ""]

@@ -50,7 +50,8 @@ def test_bench_physics_quick_json(bench_quick):
     assert nodes == sorted(nodes)
     for r in ph["no_contact"]:
         for key in ("nodes", "springs", "n_sub", "single_us_per_ms", "single_cpu_us_per_ms", "single_realtime_factor",
-                    f"batch{bench.BATCH}_total_us_per_ms", f"batch{bench.BATCH}_per_tissue_us_per_ms"):
+                    f"batch{bench.BATCH}_total_us_per_ms", f"batch{bench.BATCH}_per_tissue_us_per_ms",
+                    "single_ns_per_spring_substep", f"batch{bench.BATCH}_ns_per_spring_substep"):
             assert _positive(r[key]), (r["resolution"], key, r[key])
         assert r["finite"] is True
     for r in ph["contact"]:
