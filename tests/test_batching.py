@@ -116,3 +116,18 @@ def test_dashpots_compliant_anchors_and_displacement_damping_in_lanes_act_exactl
     assert np.abs(batch.anchor_out).max() > 0.0
     for b in (0, LANE_MIN):
         _assert_same(batch, run(np.array([b])), b)
+
+
+def test_a_blown_up_tissue_does_not_touch_its_lane_neighbours():
+    """A NaN in one tissue stays there: the others of its lane block move bitwise as alone."""
+    scene = spleen_scene(resolution="coarse")
+    batch = scene.simulation(LANE_MIN)
+    batch.command(closing_speed=0.01)
+    batch.x[3, 10, 0] = np.nan
+    batch.step(40)
+    assert not batch.finite()[3] and batch.finite()[np.arange(LANE_MIN) != 3].all()
+    alone = scene.simulation(1)
+    alone.command(closing_speed=0.01)
+    alone.step(40)
+    for b in (2, 4, LANE_MIN - 1):
+        _assert_same(batch, alone, b)
