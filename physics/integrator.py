@@ -159,7 +159,8 @@ def _advance_block(
     lanes = nl > 1
     dt = dt_outer / n_sub
     f = np.empty((n, 3, nl))
-    # one tissue: plain (N,3) views, the layout the one-tissue kernels are fastest on
+    # one tissue: plain C-contiguous (N,3) views, the layout the one-tissue kernels are fastest on (in a lane
+    # block they are unused; the reshape there only gives numba one type for both branches)
     x_one = x.reshape((n, 3 * nl)) if lanes else x.reshape((n, 3))
     v_one = v.reshape((n, 3 * nl)) if lanes else v.reshape((n, 3))
     f_one = f.reshape((n, 3 * nl)) if lanes else f.reshape((n, 3))
