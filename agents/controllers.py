@@ -23,11 +23,19 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig
+from ..envs.core import OBS_NAMES, GraspLiftConfig
 
-# observation layout (see GraspLiftEnv's docstring)
+# observation layout (see GraspLiftEnv's docstring); a stacked history ends with the current frame
 _NORMAL = slice(4, 7)
 _SLIP = slice(13, 16)
+_TRAVEL = 2
+_N_FRAME = len(OBS_NAMES)
+
+
+def _current_frame(obs: np.ndarray, config: GraspLiftConfig) -> np.ndarray:
+    obs = np.atleast_2d(obs)
+    frame = obs.shape[1] // config.obs_history
+    return obs[:, frame * (config.obs_history - 1) : frame * config.obs_history]
 
 
 class Policy(Protocol):
@@ -72,12 +80,23 @@ class FixedForcePolicy:
         return obs[:, _NORMAL].sum(axis=1) * self.config.reference_force_N
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        obs = np.atleast_2d(obs)
+        cfg = self.config
+        obs = _current_frame(obs, cfg)
         pinch = self._pinch(obs)
-        self._grasped |= pinch >= self.force
-        close = np.where(self._grasped, np.clip(self.gain * (self.force - pinch) / self.force, -1.0, 1.0), 1.0)
-        pull = np.where(self._grasped, self.pull, 0.0)
-        return np.stack([close, pull], axis=1).astype(np.float32)
+        # grasped once the pinch force is (nearly) at the set-point: a force loop approaches it asymptotically
+        self._grasped |= pinch >= (0.95 if cfg.jaw_action == "force" else 1.0) * self.force
+        if cfg.jaw_action == "force":
+            jaw = np.clip(2.0 * self.force / cfg.max_pinch_force_N - 1.0, -1.0, 1.0)
+        else:  # regulate the force through the closing speed (P control at the agent rate)
+            jaw = np.where(self._grasped, np.clip(self.gain * (self.force - pinch) / self.force, -1.0, 1.0), 1.0)
+        if cfg.pull_action == "travel":  # a travel set-point that advances at the pull speed once grasped
+            travel = obs[:, _TRAVEL] * cfg.lift_target_m
+            step = self.pull * _max_pull_speed(cfg) * cfg.agent_dt_s
+            target = np.where(self._grasped, np.minimum(travel + step, cfg.max_travel_m), 0.0)
+            pull = 2.0 * target / cfg.max_travel_m - 1.0
+        else:
+            pull = np.where(self._grasped, self.pull, 0.0)
+        return np.stack([np.broadcast_to(jaw, pull.shape), pull], axis=1).astype(np.float32)
 
 
 class SlipReactivePolicy(FixedForcePolicy):
@@ -95,8 +114,8 @@ class SlipReactivePolicy(FixedForcePolicy):
         return self.initial
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        obs = np.atleast_2d(obs)
-        slipping = self._grasped & (obs[:, _SLIP].max(axis=1) > self.slip_threshold)
+        frame = _current_frame(obs, self.config)
+        slipping = self._grasped & (frame[:, _SLIP].max(axis=1) > self.slip_threshold)
         self.force = np.where(slipping, np.minimum(self.force + self.step, self.max_force), self.force)
         return super().act(obs)
 
@@ -112,6 +131,16 @@ class OraclePolicy(FixedForcePolicy):
 
     def setpoint(self, info: dict[str, Any]) -> float:
         return (1.0 + self.margin) * minimal_force(self.config, round(float(info["mu"]), 3), self.pull, self.tolerance)
+
+
+@functools.lru_cache(maxsize=8)
+def _max_pull_speed(config: GraspLiftConfig) -> float:
+    from ..physics.config import builtin_config
+    from ..physics.grasper import GrasperParams
+    from ..physics.scenario import load_params
+
+    path = config.grasper_config or builtin_config("grasper/env.yaml")
+    return load_params(path, "grasper", GrasperParams).max_pull_speed_m_s
 
 
 @functools.lru_cache(maxsize=256)

@@ -42,14 +42,20 @@ import numpy as np
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
 
-DEFAULT_MU_GRID = "0.2:1.0:0.1"
+#: the training range (0.3-0.9) and beyond it on both sides (0.15, 0.2, 1.0, 1.2: unseen in training)
+DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
+#: unseen tissue: stiffness and mass scales outside the training ranges (0.8-1.2, 0.9-1.1), at UNSEEN_MU
+UNSEEN_CONDITIONS = ({"stiffness_scale": 0.6}, {"stiffness_scale": 1.5}, {"mass_scale": 0.8}, {"mass_scale": 1.25})
+UNSEEN_MU = 0.5
+#: baselines every evaluation includes (a learned policy is always shown beside them)
+ALWAYS = ("reactive", "oracle")
 MAX_GRID_VALUES = 101
 MU_MAX = 10.0  # the env accepts mu in [0, 10]
 BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "oracle")
 
 CSV_COLUMNS = (
-    "policy", "mu", "success_rate", "mean_peak_pinch_N", "max_peak_pinch_N", "mean_pinch_N", "mean_slip_mm",
-    "mean_peak_stress_kPa", "mean_time_to_lift_s", "episodes",
+    "policy", "mu", "success_rate", "mean_peak_pinch_N", "peak_pinch_over_oracle_min", "max_peak_pinch_N",
+    "mean_pinch_N", "mean_slip_mm", "mean_peak_stress_kPa", "mean_time_to_lift_s", "episodes",
 )
 _GRID_HELP = "expected 'start:stop:step' (stop included, e.g. '0.2:1.0:0.1') or a comma list such as '0.3,0.5'"
 
@@ -134,13 +140,28 @@ def _nan_to_none(x: Any) -> Any:
     return x
 
 
-def _run_batch(env, policy, mu: float, seeds: Sequence[int]) -> dict[str, np.ndarray]:
+def _config_for(config: GraspLiftConfig, options: dict[str, float]) -> GraspLiftConfig:
+    """``config`` with its randomisation ranges widened to admit the pinned stiffness / mass scales (the
+    env sizes its stability substeps from those ranges; the draws themselves are discarded when pinned)."""
+    from dataclasses import replace
+
+    rnd = config.randomization
+    ks = options.get("stiffness_scale")
+    ms = options.get("mass_scale")
+    if ks is not None and ks > rnd.stiffness_scale_range[1]:
+        rnd = replace(rnd, stiffness_scale_range=(rnd.stiffness_scale_range[0], float(ks)))
+    if ms is not None and ms < rnd.mass_scale_range[0]:
+        rnd = replace(rnd, mass_scale_range=(float(ms), rnd.mass_scale_range[1]))
+    return config if rnd is config.randomization else replace(config, randomization=rnd)
+
+
+def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, float] | None = None) -> dict[str, np.ndarray]:
     """Run ``len(seeds) <= env.num_envs`` episodes at friction ``mu``; per-episode metrics (frozen at the end)."""
     B = env.num_envs
     n = len(seeds)
     # unused slots (a short last chunk) run too, with seeds continuing the sequence, and are ignored
     all_seeds = [int(s) for s in seeds] + [int(seeds[-1]) + 1 + k for k in range(B - n)]
-    obs, info = env.reset(seed=all_seeds, options={"mu": float(mu)})
+    obs, info = env.reset(seed=all_seeds, options={"mu": float(mu), **(options or {})})
     policy.reset([{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in info.items()} for i in range(B)])
     core = env.core
     done = np.zeros(B, dtype=bool)
@@ -156,7 +177,9 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int]) -> dict[str, np.nda
     }
     for _ in range(env.config.max_episode_steps + 1):
         act = np.asarray(policy.act(obs), dtype=np.float64).reshape(B, 2)
-        act = np.where(done[:, None], 0.0, np.nan_to_num(act, nan=0.0))  # finished tissues just rest
+        if not np.all(np.isfinite(act[~done])):
+            raise ConfigError(f"policy {getattr(policy, 'name', 'policy')!r} returned a non-finite action at mu={mu:g}")
+        act = np.where(done[:, None], _rest_action(env.config), act)  # finished tissues just rest
         obs, _, term, trunc, inf = core.step(act)
         live = ~done
         out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
@@ -185,6 +208,11 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int]) -> dict[str, np.nda
             break
     out["mean_pinch_N"] = out.pop("pinch_sum_N") / np.maximum(out["steps"], 1)
     return {k: v[:n] for k, v in out.items()}
+
+
+def _rest_action(config: GraspLiftConfig) -> np.ndarray:
+    """The action that leaves a finished tissue alone: jaws at zero force / speed, no pull."""
+    return np.array([-1.0 if config.jaw_action == "force" else 0.0, -1.0 if config.pull_action == "travel" else 0.0])
 
 
 def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -217,19 +245,22 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
 
 def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: GraspLiftConfig | None = None,
                     seed: int = 0, n_envs: int | None = None, *, _envs: dict | None = None,
-                    progress: bool = False) -> list[dict[str, Any]]:
+                    progress: bool = False, options: dict[str, float] | None = None) -> list[dict[str, Any]]:
     """One row of metrics per mu (see the module docstring) for ``policy`` over ``episodes`` episodes each.
 
-    Episode ``i`` (at every mu) is seeded ``seed + i`` with reset options ``{"mu": mu}``. ``n_envs`` caps the
-    batch size (default: all episodes of one mu in one batch).
+    Episode ``i`` (at every mu) is seeded ``seed + i`` with reset options ``{"mu": mu, **options}``
+    (``options`` pins e.g. ``stiffness_scale`` beyond the training range: the env is then built for it,
+    which changes only its stability substeps). ``n_envs`` caps the batch size (default: all episodes of
+    one mu in one batch).
     """
+    options = dict(options or {})
     from ..envs.grasp_lift import GraspLiftVectorEnv
 
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
     if n_envs is not None and (isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or n_envs < 1):
         raise ConfigError(f"n_envs must be an integer >= 1 or None, got {n_envs!r}")
-    config = config or GraspLiftConfig()
+    config = _config_for(config or GraspLiftConfig(), options)
     batch = int(min(n_envs or episodes, episodes))
     envs = _envs if _envs is not None else {}
     key = (config, batch)
@@ -242,7 +273,7 @@ def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: Gr
         chunks = []
         for start in range(0, episodes, batch):
             seeds = [seed + i for i in range(start, min(start + batch, episodes))]
-            chunks.append(_run_batch(env, policy, float(mu), seeds))
+            chunks.append(_run_batch(env, policy, float(mu), seeds, options))
         ep = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
         row = _summarise(float(mu), ep)
         rows.append(row)
@@ -394,19 +425,50 @@ def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool =
             "pull": ref.pull, "tolerance_N": ref.tolerance}
 
 
+def _task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
+    """The task to evaluate on: ``config`` if given, else the env config the model(s) were trained with
+    (all models must agree), else the default task. Returns (config, where it came from)."""
+    from .training import model_config_path, model_train_config
+
+    if config is not None:
+        return config, None
+    found: dict[str, GraspLiftConfig] = {}
+    for spec in policies:
+        if spec in ("fixed", "reactive", "oracle") or spec.startswith("fixed:"):
+            continue
+        train_cfg = model_train_config(spec)
+        if train_cfg is not None:
+            found[str(model_config_path(spec))] = train_cfg.env
+    if not found:
+        return GraspLiftConfig(), None
+    envs = list(found.values())
+    if any(e != envs[0] for e in envs[1:]):
+        raise ConfigError("the models were trained on different tasks (env configs differ: "
+                          + ", ".join(found) + "); evaluate them separately")
+    return envs[0], next(iter(found))
+
+
 def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
              config: GraspLiftConfig | None = None, seed: int = 0, record: bool = False,
-             progress: bool = True, n_envs: int | None = None) -> dict[str, Any]:
+             progress: bool = True, n_envs: int | None = None,
+             conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS) -> dict[str, Any]:
     """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
 
     Every spec is validated (and every model loaded) before any episode runs or anything is written.
+    The slip-reactive and oracle baselines are always added. Without ``config`` the task is the one the
+    model(s) were trained on (their saved config), else the default. Each policy also runs at
+    ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass outside the training ranges).
     Returns ``{"results": [...], "oracle_minimal_force": {...}, "files": {...}, "recordings": [...]}``.
     """
-    config = config or GraspLiftConfig()
     out_dir = Path(out_dir)
     policies = list(policies)
     if not policies:
         raise ConfigError("no policy to evaluate: give at least one --policy")
+    for spec in policies:
+        check_policy_spec(spec)
+    # the baselines are always there: a learned policy is never shown alone
+    policies += [b for b in ALWAYS if b not in policies]
+    config, trained_on = _task_of(policies, config)
     mus = [float(m) for m in mus]
     if not mus:
         raise ConfigError("the mu grid is empty")
@@ -417,8 +479,6 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
-    for spec in policies:
-        check_policy_spec(spec)
     built = [build_policy(spec, config) for spec in policies]
 
     names: list[str] = []
@@ -442,6 +502,20 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     if progress:
         print("oracle minimal-force curve", file=sys.stderr)
     curve = oracle_curve(config, mus, progress=progress)
+    minimal = dict(zip(curve["mu"], curve["minimal_force_N"]))
+    for pol in results:
+        for r in pol["rows"]:
+            r["peak_pinch_over_oracle_min"] = r["mean_peak_pinch_N"] / minimal[r["mu"]]
+
+    unseen = []
+    if conditions:
+        for spec, name, pol in zip(policies, names, built):
+            for opts in conditions:
+                row = evaluate_policy(pol, [UNSEEN_MU], episodes, config, seed, n_envs, _envs=envs, options=opts)[0]
+                unseen.append({"policy": name, "conditions": {"mu": UNSEEN_MU, **opts}, **row})
+                if progress:
+                    print(f"  {name}: {opts} at mu={UNSEEN_MU:g}: success={row['success_rate']:.2f} "
+                          f"peak pinch={row['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
 
     recordings: list[str] = []
     if record:
@@ -458,12 +532,14 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
             "n_envs": n_envs,
             "policies": policies,
             "training_mu_range": list(config.randomization.mu_range),
+            "training_config_from": trained_on,
             "success": "info['is_success'] at the episode's end: lift_target_m reached and held hold_time_s "
                        "with less than hold_slip_tolerance_m slip",
             "seconds": round(time.perf_counter() - t_start, 2),
         },
         "results": results,
         "oracle_minimal_force": curve,
+        "unseen_conditions": unseen,
         "recordings": recordings,
     }
     files = {
@@ -477,7 +553,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     _plot_success(results, config, files["success_png"])
     _plot_pinch(results, curve, files["pinch_png"])
     return {"results": results, "oracle_minimal_force": curve, "files": {k: str(v) for k, v in files.items()},
-            "recordings": recordings}
+            "recordings": recordings, "unseen_conditions": unseen, "config": config}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -518,10 +594,19 @@ def _record_all(policies, names, built, mus, config, seed, folder: Path, progres
     return paths
 
 
+def format_unseen(unseen: list[dict[str, Any]]) -> str:
+    """A text table of the unseen-tissue rows (stiffness / mass outside the training ranges)."""
+    lines = [f"{'policy':<16} {'conditions':<32} {'success':>7} {'peak N':>7}", "-" * 65]
+    for r in unseen:
+        cond = ", ".join(f"{k}={v:g}" for k, v in r["conditions"].items())
+        lines.append(f"{r['policy'][:16]:<16} {cond:<32} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f}")
+    return "\n".join(lines)
+
+
 def format_table(results: list[dict[str, Any]]) -> str:
     """A compact text table of the evaluation rows."""
-    head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'max N':>6} {'mean N':>6} {'slip mm':>7} " \
-           f"{'stress kPa':>10} {'t_lift s':>8}"
+    head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'/oracle':>7} {'max N':>6} {'mean N':>6} " \
+           f"{'slip mm':>7} {'stress kPa':>10} {'t_lift s':>8}"
     lines = [head, "-" * len(head)]
     for pol in results:
         for r in pol["rows"]:
@@ -529,7 +614,7 @@ def format_table(results: list[dict[str, Any]]) -> str:
             ttl_s = "-" if ttl is None or not math.isfinite(ttl) else f"{ttl:.2f}"
             lines.append(
                 f"{pol['name'][:16]:<16} {r['mu']:>5.2f} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f} "
-                f"{r['max_peak_pinch_N']:>6.2f} {r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
+                f"{r.get('peak_pinch_over_oracle_min', float('nan')):>7.2f} {r['max_peak_pinch_N']:>6.2f} {r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
                 f"{r['mean_peak_stress_kPa']:>10.1f} {ttl_s:>8}"
             )
     return "\n".join(lines)

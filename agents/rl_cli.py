@@ -40,21 +40,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _default_policies() -> list[str]:
-    return [str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else ["fixed", "oracle"]
+    return [str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else ["fixed"]
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import evaluate, format_table, parse_mu_grid
+    from .evaluation import UNSEEN_CONDITIONS, evaluate, format_table, format_unseen, parse_mu_grid
 
-    mus = parse_mu_grid(args.mu_grid)
+    from .evaluation import DEFAULT_MU_GRID
+
+    mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
     if args.n_envs is not None and args.n_envs < 1:
         raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
     result = evaluate(policies, mus, args.episodes, args.out, seed=args.seed, record=args.record,
-                      progress=not args.quiet, n_envs=args.n_envs)
+                      progress=not args.quiet, n_envs=args.n_envs,
+                      conditions=() if args.no_unseen else UNSEEN_CONDITIONS)
     print(format_table(result["results"]))
+    if result["unseen_conditions"]:
+        print(format_unseen(result["unseen_conditions"]))
     curve = result["oracle_minimal_force"]
     print("oracle minimal force (N): " + ", ".join(
         f"mu={m:g}: {f:.2f}" for m, f in zip(curve["mu"], curve["minimal_force_N"])))
@@ -112,7 +117,12 @@ def add_rl_commands(sub) -> None:
     t.add_argument("--algo", choices=["ppo", "sac"], default=None, help="algorithm (default: from the config)")
     t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
     t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
-    t.add_argument("--seed", type=int, default=None, help="random seed")
+    t.add_argument("--seed", type=int, default=None, help="random seed (one run)")
+    t.add_argument("--seeds", default=None, metavar="RANGE",
+                   help="train several seeds in parallel processes and evaluate each, e.g. 0-4 or 0,3,7: "
+                        "writes seed_<k>/ runs and seeds.json, seeds.md, learning_curves.png (aggregate over seeds)")
+    t.add_argument("--workers", type=int, default=None,
+                   help="processes for --seeds (default: one per CPU core, at most one per seed)")
     t.add_argument("--out", type=Path, default=Path("logs") / "train", help="output folder (default logs/train)")
     t.add_argument("--resume", type=Path, default=None, help="continue the run saved in this folder")
     t.add_argument("--quiet", action="store_true", help="no progress output")
@@ -121,9 +131,12 @@ def add_rl_commands(sub) -> None:
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (saved model .zip) | fixed | fixed:<N> | reactive | oracle (repeatable; default "
-                        "logs/train/best_model.zip if it exists, else fixed and oracle)")
-    e.add_argument("--mu-grid", default="0.2:1.0:0.1",
-                   help="start:stop:step (stop included) or a comma list (default 0.2:1.0:0.1)")
+                        "logs/train/best_model.zip if it exists, else fixed). reactive and oracle are always added")
+    e.add_argument("--mu-grid", default=None,
+                   help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
+                        "and the unseen 0.15, 0.2, 1.0, 1.2)")
+    e.add_argument("--no-unseen", action="store_true",
+                   help="skip the unseen tissues (stiffness 0.6 / 1.5, mass 0.8 / 1.25 at mu 0.5)")
     e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")
     e.add_argument("--n-envs", type=int, default=None, help="batch size (default: all episodes of one mu at once)")
     e.add_argument("--seed", type=int, default=0, help="episode i is seeded seed + i (default 0)")

@@ -45,19 +45,23 @@ ALGOS = ("ppo", "sac")
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A training run (hyper-parameters are passed to the SB3 algorithm as given)."""
+    """A training run (hyper-parameters are passed to the SB3 algorithm as given).
+
+    These defaults ARE the default run: ``configs/train/ppo.yaml`` spells the same values out (a test
+    checks that both agree), so ``msdgrasp train`` with or without ``--config configs/train/ppo.yaml``
+    trains the same thing.
+    """
 
     algo: str = "ppo"
-    total_timesteps: int = 250_000
+    total_timesteps: int = 300_000
     n_envs: int = 16
     seed: int = 0
-    checkpoint_every: int = 50_000
-    torch_threads: int = 2
+    checkpoint_every: int = 25_000
+    torch_threads: int = 1
     policy_net: tuple[int, ...] = (64, 64)
     #: behaviour-cloning warm start: a controller spec ('reactive', 'fixed', ...) whose actions the policy
-    #: imitates before RL (None: start from scratch). From scratch PPO settles on "never touch the
-    #: tissue" (every touch costs force and slip penalties before any lift is earned).
-    bc_teacher: str | None = "reactive"
+    #: imitates before RL. None (the default): PPO learns from scratch.
+    bc_teacher: str | None = None
     #: environment steps of teacher demonstrations
     bc_steps: int = 32_768
     bc_epochs: int = 40
@@ -71,7 +75,7 @@ class TrainConfig:
     validation_episodes: int = 6
     validation_mu: tuple[float, ...] = (0.3, 0.4, 0.5, 0.7, 0.9)
     ppo: dict = field(default_factory=lambda: {
-        "learning_rate": 3e-4, "n_steps": 256, "batch_size": 1024, "n_epochs": 5, "gamma": 0.99,
+        "learning_rate": 1e-3, "n_steps": 256, "batch_size": 1024, "n_epochs": 5, "gamma": 0.995,
         "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
     })
     sac: dict = field(default_factory=lambda: {
@@ -98,10 +102,28 @@ class TrainConfig:
             raise ConfigError(f"seed must be an integer, got {self.seed!r}")
         if not self.policy_net or any((not isinstance(h, int)) or h < 1 for h in self.policy_net):
             raise ConfigError(f"policy_net must be a list of positive layer widths, got {self.policy_net!r}")
+        for name in ALGOS:  # a typo in a hyper-parameter block fails here, before a run folder is made
+            block = getattr(self, name)
+            if not isinstance(block, dict):
+                raise ConfigError(f"{name} must be a mapping of {name.upper()} keyword arguments, got {block!r}")
+            unknown = sorted(set(block) - _algo_parameters(name))
+            if unknown:
+                raise ConfigError(f"{name}: unknown {name.upper()} argument(s) {unknown}; allowed: "
+                                  f"{sorted(_algo_parameters(name))}")
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
         return from_dict(cls, read_yaml(path), where=Path(path).name)
+
+
+#: arguments of the algorithms' constructors that the training run sets itself (not configurable)
+_RESERVED = {"self", "policy", "env", "seed", "device", "verbose", "tensorboard_log", "policy_kwargs", "_init_setup_model"}
+
+
+def _algo_parameters(name: str) -> set[str]:
+    import inspect
+
+    return set(inspect.signature(_algo_class(name).__init__).parameters) - _RESERVED
 
 
 def _algo_class(name: str):
@@ -110,21 +132,36 @@ def _algo_class(name: str):
     return {"ppo": PPO, "sac": SAC}[name]
 
 
+def model_config_path(path: str | Path) -> Path | None:
+    """The training config saved with a model: ``<model>.yaml`` or the run folder's ``config.yaml``."""
+    path = Path(path)
+    for cfg in (path.with_suffix(".yaml"), path.parent / "config.yaml", path.parent.parent / "config.yaml"):
+        if cfg.is_file():
+            return cfg
+    return None
+
+
+def model_train_config(path: str | Path) -> TrainConfig | None:
+    """The :class:`TrainConfig` a saved model was trained with (None: no config saved with it). A config
+    that is there but broken is an error, never skipped."""
+    cfg = model_config_path(path)
+    if cfg is None:
+        return None
+    try:
+        return TrainConfig.load(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"model {path}: its training config {cfg} is invalid: {exc}") from None
+
+
 def load_model(path: str | Path, env=None):
-    """Load a saved model; its algorithm comes from the config saved next to it (else PPO, then SAC)."""
+    """Load a saved model; its algorithm comes from the config saved next to it (without one: PPO, then SAC)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"model file not found: {path}")
     if not zipfile.is_zipfile(path):
         raise ConfigError(f"model file {path} is not a Stable-Baselines3 .zip archive (corrupt or wrong file)")
-    algos = list(ALGOS)
-    for cfg in (path.with_suffix(".yaml"), path.parent / "config.yaml", path.parent.parent / "config.yaml"):
-        if cfg.is_file():
-            try:
-                algos = [TrainConfig.load(cfg).algo]
-            except ConfigError:
-                pass
-            break
+    saved = model_train_config(path)
+    algos = [saved.algo] if saved is not None else list(ALGOS)
     errors = []
     for name in algos:
         try:
@@ -403,6 +440,17 @@ def train_cli(args) -> int:
             if val is not None:
                 data[key] = val
         config = from_dict(TrainConfig, data, where=Path(path).name)
+        if args.seeds is not None:
+            from .seeds import parse_seeds, run_seeds
+
+            if args.seed is not None:
+                raise ConfigError("give either --seed or --seeds, not both")
+            seeds = parse_seeds(args.seeds)
+            if args.workers is not None and args.workers < 1:
+                raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+            result = run_seeds(config, seeds, args.out, workers=args.workers, progress=not args.quiet)
+            print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
+            return 0
         summary = train(config, args.out, progress=not args.quiet)
     print(json.dumps(summary, indent=2))
     return 0

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from ..physics.config import ConfigError, check_range, from_dict, read_yaml, to_dict
-from ..physics.contact import J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP_DIST, J_TX, J_TZ
+from ..physics.config import ConfigError, check_choice, check_range, from_dict, read_yaml, to_dict
+from ..physics.contact import J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TZ
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
@@ -24,26 +24,41 @@ PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Weights of the reward terms (each term is reported in ``info["reward_terms"]``)."""
+    """Weights of the reward terms (each term is reported in ``info["reward_terms"]``).
 
-    #: per unit of lift progress toward the target (a full lift earns this much in total)
+    The design (measured, see the README): success dominates the return; every episode without success
+    pays the same failure penalty (never touching the tissue included); lift progress pays for the
+    highest lift reached, so a late slip does not make an attempt worse than no attempt; and the pinch
+    force is charged only *on success*, as a discount of the success bonus by the episode's peak pinch
+    force. So there is no "don't touch" local optimum, and at equal success less peak pinch is strictly
+    better.
+    """
+
+    #: w * increase of min(highest tissue lift so far / lift target, 1): a full lift earns w in total, once
     progress: float = 10.0
+    #: potential-based: w * (phi' - phi), phi = hold progress min(hold time / hold_time_s, 1) (0 below target)
+    hold: float = 10.0
     #: per mm of slip between jaws and tissue
-    slip_per_mm: float = 0.2
-    #: per second of pinch force equal to the reference force (scales linearly with force)
-    force_per_s: float = 0.5
+    slip_per_mm: float = 0.1
+    #: at success: -w * peak pinch force of the episode / reference force (a discount of the success bonus)
+    peak_force: float = 25.0
+    #: per second of pinch force equal to the reference force (scales linearly with force; every step)
+    force_per_s: float = 0.0
     #: per step in which the peak nodal stress exceeds the damage threshold
     damage: float = 5.0
-    success_bonus: float = 20.0
-    failure_penalty: float = 5.0
+    success_bonus: float = 50.0
+    #: once, when an episode ends without success (lost grasp, damage, numerical failure or time limit)
+    failure_penalty: float = 10.0
     #: potential-based shaping toward a first grip: w * (phi' - phi), phi = min(pinch / grasp_force_N, 1).
-    #: It sums to at most w over an episode, so it guides exploration without changing what is optimal.
-    grasp: float = 5.0
+    #: Useful with ``jaw_action: speed`` (the jaws must be closed by the policy); the force loop of
+    #: ``jaw_action: force`` closes them by itself.
+    grasp: float = 0.0
     grasp_force_N: float = 1.0
 
     def __post_init__(self) -> None:
         check_range("reward.grasp_force_N", self.grasp_force_N, 0.0, None, lo_inclusive=False)
-        for name in ("progress", "slip_per_mm", "force_per_s", "damage", "success_bonus", "failure_penalty", "grasp"):
+        for name in ("progress", "hold", "slip_per_mm", "peak_force", "force_per_s", "damage", "success_bonus",
+                     "failure_penalty", "grasp"):
             check_range(f"reward.{name}", getattr(self, name), 0.0, None)
 
 
@@ -84,6 +99,21 @@ class GraspLiftConfig:
     grasp_depth_m: float | None = 0.035
     #: physics steps (1 ms) per agent step: 33 -> 30.3 Hz agent rate
     physics_steps_per_action: int = 33
+    #: what action[0] commands: "force" = a pinch-force set-point in [0, max_pinch_force_N] that the jaw
+    #: motor's 1 kHz force loop tracks (a torque-controlled jaw); "speed" = the jaw closing speed
+    jaw_action: str = "force"
+    #: what action[1] commands: "travel" = a pull distance set-point in [0, max_travel_m] that the arm's
+    #: position loop tracks (speed-limited); "speed" = the pull speed
+    pull_action: str = "travel"
+    #: largest pinch-force set-point (jaw_action = force), N
+    max_pinch_force_N: float = 5.0
+    #: gain of the 1 kHz force loop: closing speed per newton of force error, m/s/N (limited to the
+    #: grasper's max closing speed)
+    force_loop_gain_m_s_per_N: float = 0.02
+    #: largest pull-distance set-point (pull_action = travel), m
+    max_travel_m: float = 0.06
+    #: observation frames stacked (oldest first); 1 = the current frame only
+    obs_history: int = 1
     #: lift (pull) of the grasped tissue that counts as success, m
     lift_target_m: float = 0.03
     #: the lift must be held this long, without slip, s
@@ -109,6 +139,13 @@ class GraspLiftConfig:
     def __post_init__(self) -> None:
         if self.scene not in ("spleen", "sphere"):
             raise ConfigError(f"scene = {self.scene!r} is not allowed; choose 'spleen' or 'sphere'")
+        check_choice("jaw_action", self.jaw_action, ("force", "speed"))
+        check_choice("pull_action", self.pull_action, ("travel", "speed"))
+        check_range("max_pinch_force_N", self.max_pinch_force_N, 0.0, 50.0, lo_inclusive=False)
+        check_range("force_loop_gain_m_s_per_N", self.force_loop_gain_m_s_per_N, 0.0, 1.0, lo_inclusive=False)
+        check_range("max_travel_m", self.max_travel_m, 0.0, 0.2, lo_inclusive=False)
+        if isinstance(self.obs_history, bool) or not isinstance(self.obs_history, int) or not 1 <= self.obs_history <= 16:
+            raise ConfigError(f"obs_history must be an integer in [1, 16], got {self.obs_history!r}")
         if not isinstance(self.physics_steps_per_action, int) or not 1 <= self.physics_steps_per_action <= 1000:
             raise ConfigError(f"physics_steps_per_action must be an integer in [1, 1000], got {self.physics_steps_per_action!r}")
         check_range("lift_target_m", self.lift_target_m, 0.0, 0.2, lo_inclusive=False)
@@ -143,7 +180,10 @@ OBS_NAMES = (
     "tangential_force_0", "tangential_force_1", "tangential_force_2",
     "contact_fraction_0", "contact_fraction_1", "contact_fraction_2",
     "slip_speed_0", "slip_speed_1", "slip_speed_2",
-    "prev_action_close", "prev_action_pull", "time_fraction",
+    "slipping_fraction_0", "slipping_fraction_1", "slipping_fraction_2",
+    "prev_action_jaw", "prev_action_pull", "time_fraction",
+    "lift_progress", "hold_progress", "hold_slip", "lift_lag", "peak_pinch", "best_lift",
+    "friction_use_0", "friction_use_1", "friction_use_2",
 )
 
 PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
@@ -199,7 +239,9 @@ class GraspLiftCore:
         self.nominal_contacts = np.maximum(on.sum(axis=0), 1).astype(np.float64)
         rng0 = np.random.default_rng(0)
         self.priv_nodes = np.sort(rng0.choice(mesh.n_nodes, size=min(cfg.privileged_nodes, mesh.n_nodes), replace=False))
-        self.obs_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0)
+        #: one observation frame; the observation is the last ``obs_history`` frames, oldest first
+        self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0)
+        self.obs_dim = self.frame_dim * cfg.obs_history
 
         # per-env episode state
         self.rngs = [np.random.default_rng() for _ in range(B)]
@@ -210,6 +252,7 @@ class GraspLiftCore:
         self.steps = np.zeros(B, dtype=np.int64)
         self.prev_action = np.zeros((B, 2))
         self.lift = np.zeros(B)
+        self.best_lift = np.zeros(B)
         self.grip = np.zeros(B)
         self.slip_total = np.zeros(B)
         self.hold_time = np.zeros(B)
@@ -218,6 +261,9 @@ class GraspLiftCore:
         self.peak_stress = np.zeros(B)
         self.lift_started = np.zeros(B, dtype=bool)
         self.time_to_lift = np.full(B, np.nan)
+        self.hold_progress = np.zeros(B)
+        self.travel_target = np.zeros(B)
+        self.frames = np.zeros((B, cfg.obs_history, self.frame_dim))
         self.obs = np.zeros((B, self.obs_dim))
 
     # ------------------------------------------------------------------------------------------
@@ -284,6 +330,7 @@ class GraspLiftCore:
         self.steps[index] = 0
         self.prev_action[index] = 0.0
         self.lift[index] = 0.0
+        self.best_lift[index] = 0.0
         self.grip[index] = 0.0
         self.slip_total[index] = 0.0
         self.hold_time[index] = 0.0
@@ -292,8 +339,12 @@ class GraspLiftCore:
         self.peak_stress[index] = 0.0
         self.lift_started[index] = False
         self.time_to_lift[index] = np.nan
+        self.hold_progress[index] = 0.0
+        self.travel_target[index] = 0.0
         self.sim.jaw_out[index] = 0.0
-        self._observe(np.array([index]), np.zeros((1, 3)))
+        if cfg.jaw_action == "force":  # the jaw motor starts in force control at zero force (jaws at rest)
+            self.sim.command_pinch_force(0.0, cfg.force_loop_gain_m_s_per_N, self.max_close, index)
+        self._observe(np.array([index]), np.zeros((1, 3)), fresh=True)
         return {"mu": mu, "mu_kinetic": mu_k, "stiffness_scale": ks, "mass_scale": ms}
 
     # ------------------------------------------------------------------------------------------
@@ -303,9 +354,19 @@ class GraspLiftCore:
         B = self.num_envs
         act = np.clip(actions, -1.0, 1.0)
         sim = self.sim
-        sim.command(closing_speed=act[:, 0] * self.max_close, pull_velocity=self.pull_dir * (act[:, 1] * self.max_pull)[:, None])
-        sim.step(cfg.physics_steps_per_action)
         dt = cfg.agent_dt_s
+        if cfg.jaw_action == "force":
+            sim.command_pinch_force(self.pinch_setpoint(act[:, 0]), cfg.force_loop_gain_m_s_per_N, self.max_close)
+        else:
+            sim.command(closing_speed=act[:, 0] * self.max_close)
+        if cfg.pull_action == "travel":
+            # the arm's position loop: reach the set-point within the step if the speed limit allows
+            self.travel_target = self.travel_setpoint(act[:, 1])
+            pull_speed = np.clip((self.travel_target - self.travel()) / dt, -self.max_pull, self.max_pull)
+        else:
+            pull_speed = act[:, 1] * self.max_pull
+        sim.command(pull_velocity=self.pull_dir * pull_speed[:, None])
+        sim.step(cfg.physics_steps_per_action)
         self.steps += 1
         finite = sim.finite()
         jo = sim.jaw_out
@@ -315,7 +376,11 @@ class GraspLiftCore:
         contact = jo[:, :, J_CONTACT].sum(axis=1)
         region_now = sim.x[:, self.region].mean(axis=1)
         lift_new = np.einsum("bi,bi->b", region_now - self.region0, self.pull_dir)
-        progress = (np.minimum(lift_new, cfg.lift_target_m) - np.minimum(self.lift, cfg.lift_target_m)) / cfg.lift_target_m
+        # progress pays for the highest lift reached (capped at the target), once: a lift that slips back is
+        # not charged again, so an attempt that fails late still beats never touching the tissue
+        best = np.maximum(self.best_lift, np.minimum(lift_new, cfg.lift_target_m))
+        progress = (best - self.best_lift) / cfg.lift_target_m
+        self.best_lift = best
         self.lift = lift_new
         grip = np.minimum(pinch / cfg.reward.grasp_force_N, 1.0)
         grip_gain = grip - self.grip
@@ -329,22 +394,34 @@ class GraspLiftCore:
         self.time_to_lift[first_target] = self.steps[first_target] * dt
         self.hold_time = np.where(at_target, self.hold_time + dt, 0.0)
         self.hold_slip = np.where(at_target, self.hold_slip + slip, 0.0)
-        success = at_target & (self.hold_time >= cfg.hold_time_s - 1e-9) & (self.hold_slip <= cfg.hold_slip_tolerance_m)
+        # a hold spoilt by slip starts over (the tissue is still at the target, the timer restarts)
+        spoilt = self.hold_slip > cfg.hold_slip_tolerance_m
+        self.hold_time[spoilt] = 0.0
+        self.hold_slip[spoilt] = 0.0
+        hold_new = np.minimum(self.hold_time / cfg.hold_time_s, 1.0) if cfg.hold_time_s > 0 else at_target.astype(float)
+        hold_gain = hold_new - self.hold_progress
+        self.hold_progress = hold_new
+        success = at_target & (self.hold_time >= cfg.hold_time_s - 1e-9)
         lost = self.lift_started & (contact == 0)
         damaged = stress > cfg.damage_stress_pa
         failed = ~finite
         terminated = success | lost | failed | (damaged & cfg.terminate_on_damage)
         truncated = (~terminated) & (self.steps >= cfg.max_episode_steps)
+        # every episode that ends without success pays the same failure penalty, running out of time
+        # (e.g. never touching the tissue) included: not touching is then no safe haven
+        unsuccessful = (terminated | truncated) & ~success
 
         w = cfg.reward
         terms = {
             "progress": w.progress * progress,
+            "hold": w.hold * hold_gain,
             "grasp": w.grasp * grip_gain,
             "slip": -w.slip_per_mm * slip * 1e3,
             "force": -w.force_per_s * (pinch / cfg.reference_force_N) * dt,
+            "peak_force": -w.peak_force * np.where(success, self.peak_pinch / cfg.reference_force_N, 0.0),
             "damage": -w.damage * damaged.astype(np.float64),
             "success": w.success_bonus * success.astype(np.float64),
-            "failure": -w.failure_penalty * (lost | failed).astype(np.float64),
+            "failure": -w.failure_penalty * unsuccessful.astype(np.float64),
         }
         reward = sum(terms.values())
         if np.any(failed):
@@ -360,11 +437,15 @@ class GraspLiftCore:
         self._observe(np.arange(B), noise)
         if np.any(failed):
             self.obs[np.flatnonzero(failed)] = 0.0
+            self.frames[np.flatnonzero(failed)] = 0.0
         infos = {
             "mu": self.mu.copy(),
             "pinch_force_N": pinch,
+            "peak_pinch_N": self.peak_pinch.copy(),
             "slip_distance_m": self.slip_total.copy(),
             "lifted_m": self.lift.copy(),
+            "travel_m": self.travel(),
+            "hold_time_s": self.hold_time.copy(),
             "peak_stress_pa": stress,
             "contact_nodes": contact,
             "is_success": success,
@@ -376,32 +457,63 @@ class GraspLiftCore:
         return self.obs.astype(np.float32), reward.astype(np.float64), terminated, truncated, infos
 
     # ------------------------------------------------------------------------------------------
-    def _observe(self, idx: np.ndarray, noise: np.ndarray) -> None:
+    def pinch_setpoint(self, a: np.ndarray) -> np.ndarray:
+        """Pinch-force set-point (N) of jaw action(s) ``a`` in [-1, 1] (jaw_action = force)."""
+        return 0.5 * (np.asarray(a, dtype=np.float64) + 1.0) * self.config.max_pinch_force_N
+
+    def travel_setpoint(self, a: np.ndarray) -> np.ndarray:
+        """Pull-distance set-point (m) of pull action(s) ``a`` in [-1, 1] (pull_action = travel)."""
+        return 0.5 * (np.asarray(a, dtype=np.float64) + 1.0) * self.config.max_travel_m
+
+    def travel(self, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """Grasper pull distance along the pull direction since the episode start, m."""
+        return np.einsum("bi,bi->b", self.sim.g_tip[idx] - self.tip0[idx], self.pull_dir[idx])
+
+    def _observe(self, idx: np.ndarray, noise: np.ndarray, fresh: bool = False) -> None:
+        """Write the current frame of sub-envs ``idx`` into the frame history and the observation.
+        ``fresh`` (reset): the history is filled with the current frame."""
         cfg = self.config
         sim = self.sim
         jo = sim.jaw_out[idx]
         ref = cfg.reference_force_N
         r = sim.g_radius[idx]
         rmin = sim.g_rmin[idx]
-        o = self.obs[idx]
+        lift_target = cfg.lift_target_m
+        o = np.empty((len(idx), self.frame_dim))
         o[:, 0] = (r - rmin) / (self.start_radius - rmin)
         o[:, 1] = -sim.g_vradius[idx] / self.max_close
-        o[:, 2] = np.einsum("bi,bi->b", sim.g_tip[idx] - self.tip0[idx], self.pull_dir[idx]) / cfg.lift_target_m
+        travel = self.travel(idx)
+        o[:, 2] = travel / lift_target
         o[:, 3] = np.einsum("bi,bi->b", sim.g_vpull[idx], self.pull_dir[idx]) / self.max_pull
         o[:, 4:7] = (jo[:, :, J_NORMAL] + noise) / ref
         o[:, 7:10] = (np.linalg.norm(jo[:, :, J_TX : J_TZ + 1], axis=2) + np.abs(noise)) / ref
         o[:, 10:13] = np.minimum(jo[:, :, J_CONTACT] / self.nominal_contacts, 2.0)
         o[:, 13:16] = jo[:, :, J_SLIP_DIST] / cfg.agent_dt_s / self.max_pull
-        o[:, 16:18] = self.prev_action[idx]
-        o[:, 18] = self.steps[idx] * cfg.agent_dt_s / cfg.time_limit_s
+        # incipient slip (what a tactile array sees): the share of each jaw's contact nodes that slip
+        o[:, 16:19] = jo[:, :, J_SLIP] / np.maximum(jo[:, :, J_CONTACT], 1.0)
+        o[:, 19:21] = self.prev_action[idx]
+        o[:, 21] = self.steps[idx] * cfg.agent_dt_s / cfg.time_limit_s
+        o[:, 22] = self.lift[idx] / lift_target
+        o[:, 23] = self.hold_progress[idx]
+        o[:, 24] = self.hold_slip[idx] / cfg.hold_slip_tolerance_m if cfg.hold_slip_tolerance_m > 0 else 0.0
+        # grasper travel minus tissue lift: how far the tissue has slid out of (or lags) the jaws
+        o[:, 25] = (travel - self.lift[idx]) / lift_target
+        o[:, 26] = self.peak_pinch[idx] / ref
+        o[:, 27] = self.best_lift[idx] / lift_target
+        # friction utilisation |T| / N per jaw (<= mu while the jaw sticks); 0.05 N keeps it finite off contact
+        o[:, 28:31] = o[:, 7:10] / np.maximum(o[:, 4:7], 0.05 / ref)
         if cfg.privileged_obs:
             n0 = len(OBS_NAMES)
             o[:, n0] = self.mu[idx]
             o[:, n0 + 1] = sim.kscale[idx]
             o[:, n0 + 2] = sim.mscale[idx]
             disp = sim.x[idx][:, self.priv_nodes] - self.scene.x_start[self.priv_nodes]
-            o[:, n0 + 3 :] = disp.reshape(len(idx), -1) / cfg.lift_target_m
-        self.obs[idx] = o
+            o[:, n0 + 3 :] = disp.reshape(len(idx), -1) / lift_target
+        if fresh:
+            self.frames[idx] = o[:, None, :]
+        else:
+            self.frames[idx] = np.concatenate([self.frames[idx][:, 1:], o[:, None, :]], axis=1)
+        self.obs[idx] = self.frames[idx].reshape(len(idx), -1)
 
     def info_at_reset(self, index: int, draws: dict[str, float]) -> dict[str, Any]:
         return {**draws, "pinch_force_N": 0.0, "slip_distance_m": 0.0, "lifted_m": 0.0, "peak_stress_pa": 0.0,

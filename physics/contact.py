@@ -36,6 +36,14 @@ J_SLIP_DIST = 7  # slip distance accumulated over the call, m (mean over the jaw
 J_PEAK_PRESSURE = 8  # peak nodal contact pressure during the call, Pa
 N_JAW_COLS = 9
 
+# columns of the jaw force loop g_force[b, col] (the 1 kHz pinch-force controller of a torque-driven jaw
+# motor, run by the integrator at every outer step; see physics.integrator)
+G_SETPOINT = 0  # pinch-force set-point, N; < 0 switches the loop off (the closing speed is then commanded)
+G_GAIN = 1  # closing speed per newton of force error, m/s/N
+G_VMAX = 2  # largest closing/opening speed the loop may command, m/s
+G_PINCH = 3  # pinch force (sum of the jaws' normal forces) averaged over the last outer step, N
+G_COLS = 4
+
 
 @njit(cache=True, inline="always", error_model="numpy")
 def resolve_node_contact(
@@ -193,6 +201,7 @@ def jaw_contacts(
     dt, avg, last_sub,
     jaw_out, contact_state, contact_force,  # (B,3,N_JAW_COLS), (B,N), (B,N,3) out
     res,  # (6,) scratch
+    g_force, inv_sub,  # (B,G_COLS) force loop (pinch of this outer step accumulated into G_PINCH), 1 / n_sub
 ) -> None:
     """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection)."""
     ax, ay, az = g_axis[b, 0], g_axis[b, 1], g_axis[b, 2]
@@ -263,6 +272,7 @@ def jaw_contacts(
             if pressure > jaw_out[b, k, J_PEAK_PRESSURE]:
                 jaw_out[b, k, J_PEAK_PRESSURE] = pressure
         jaw_out[b, k, J_NORMAL] += avg * fn
+        g_force[b, G_PINCH] += inv_sub * fn
         jaw_out[b, k, J_TX] += avg * ftx
         jaw_out[b, k, J_TY] += avg * fty
         jaw_out[b, k, J_TZ] += avg * ftz

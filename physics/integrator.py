@@ -34,7 +34,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import jaw_contacts, jaw_directions, plate_contacts
+from .contact import G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, jaw_contacts, jaw_directions, plate_contacts
 from .forces import accumulate_volume_forces, accumulate_volume_forces_lanes, spring_loop, spring_loop_lanes
 
 
@@ -72,6 +72,7 @@ def simulate(
     anchor_out,  # (B,3) force on the tissue by the anchors, N
     contact_state,  # (B,N) int8: 0 free, 1 stick, 2 slip (last substep)
     contact_force,  # (B,N,3) force on the tissue at contact nodes, N (last substep)
+    g_force,  # (B,G_COLS) jaw force loop: set-point, gain, speed limit (in), last outer step's pinch (out)
 ):
     """Advance every tissue of the batch by ``n_steps`` outer steps. Tissues are independent.
 
@@ -109,7 +110,7 @@ def simulate(
             jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
             pl_point, pl_normal, pl_vel, pl_mu,
             dt_outer, n_sub, n_steps,
-            jaw_out, plate_out, anchor_out, contact_state, contact_force,
+            jaw_out, plate_out, anchor_out, contact_state, contact_force, g_force,
         )
         if nl > 1:
             _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, False)
@@ -150,7 +151,7 @@ def _advance_block(
     jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
     pl_point, pl_normal, pl_vel, pl_mu,
     dt_outer, n_sub, n_steps,
-    jaw_out, plate_out, anchor_out, contact_state, contact_force,
+    jaw_out, plate_out, anchor_out, contact_state, contact_force, g_force,
 ):
     """:func:`simulate` for the L tissues of one lane block (arguments as there; x, v, fv, dl_prev in lanes)."""
     n = x.shape[0]
@@ -194,8 +195,13 @@ def _advance_block(
         plate_out[b, :, :] = 0.0
         anchor_out[b, :] = 0.0
         jaw_directions(g_axis[b], g_e1[b], u[lane], tj[lane])
+    inv_sub = 1.0 / n_sub
     for step in range(n_steps):
         last_step = step == n_steps - 1
+        if jaw_active:
+            for lane in range(nl):
+                b = lane0 + lane
+                _force_loop(g_force, g_vradius, b)
         for sub in range(n_sub):
             last_sub = last_step and sub == n_sub - 1
             avg = 1.0 / n_sub if last_step else 0.0
@@ -240,7 +246,21 @@ def _advance_block(
                 if jaw_active:
                     jaw_contacts(b, xb, vb, mb, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1, g_radius,
                                  g_vradius, g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
-                                 u[lane], tj[lane], dt, avg, last_sub, jaw_out, contact_state, contact_force, res)
+                                 u[lane], tj[lane], dt, avg, last_sub, jaw_out, contact_state, contact_force, res,
+                                 g_force, inv_sub)
+
+
+@njit(cache=True, error_model="numpy")
+def _force_loop(g_force, g_vradius, b):
+    """The jaw motor's 1 kHz pinch-force loop of tissue b, run once per outer step: closing speed
+    proportional to the force error of the last step, limited to the motor's speed (P control of the
+    radius rate = integral action on the radius, so a steady set-point is held without offset).
+    Then it clears the pinch accumulator that :func:`.contact.jaw_contacts` fills during the step."""
+    if g_force[b, G_SETPOINT] >= 0.0:
+        vmax = g_force[b, G_VMAX]
+        vc = g_force[b, G_GAIN] * (g_force[b, G_SETPOINT] - g_force[b, G_PINCH])
+        g_vradius[b] = -min(max(vc, -vmax), vmax)
+    g_force[b, G_PINCH] = 0.0
 
 
 @njit(cache=True, error_model="numpy")

@@ -15,6 +15,11 @@ import numpy as np
 
 from .config import ConfigError, check_range
 from .contact import (
+    G_COLS,
+    G_GAIN,
+    G_PINCH,
+    G_SETPOINT,
+    G_VMAX,
     J_CONTACT,
     J_NORMAL,
     J_PEAK_PRESSURE,
@@ -129,6 +134,9 @@ class Simulation:
         self.g_vpull = np.zeros((B, 3))
         self.g_rmin = np.full(B, gp.min_radius_m)
         self.g_rmax = np.full(B, gp.open_radius_m)
+        # jaw force loop (off: set-point < 0): see command_pinch_force
+        self.g_force = np.zeros((B, G_COLS))
+        self.g_force[:, G_SETPOINT] = -1.0
         self.mu_s = np.full(B, gp.mu)
         self.mu_k = np.full(B, gp.mu_k)
 
@@ -174,6 +182,8 @@ class Simulation:
         self.g_radius[idx] = self.g_rmax[idx]
         self.g_vradius[idx] = 0.0
         self.g_vpull[idx] = 0.0
+        self.g_force[idx, G_SETPOINT] = -1.0
+        self.g_force[idx, G_PINCH] = 0.0
         self.pl_point[idx] = self._plate_init
         self.pl_vel[idx] = self._plate_vel
         self.jaw_out[idx] = 0.0
@@ -234,6 +244,19 @@ class Simulation:
         if pull_velocity is not None:
             self.g_vpull[idx] = _batch(pull_velocity, len(idx), "pull_velocity", (3,))
 
+    def command_pinch_force(self, setpoint_N, gain_m_s_per_N: float, max_speed_m_s, indices=None) -> None:
+        """Hand the jaw radius to the 1 kHz pinch-force loop (a torque-controlled jaw motor): at every outer
+        step the closing speed becomes ``gain * (setpoint - pinch of the last step)``, limited to
+        ``max_speed_m_s``. A negative set-point switches the loop off; :meth:`command` then sets the speed."""
+        idx = self._idx(indices)
+        check_range("pinch-force gain (m/s/N)", gain_m_s_per_N, 0.0, None, lo_inclusive=False)
+        self.g_force[idx, G_SETPOINT] = _batch(setpoint_N, len(idx), "pinch-force set-point")
+        self.g_force[idx, G_GAIN] = gain_m_s_per_N
+        vmax = _batch(max_speed_m_s, len(idx), "max closing speed")
+        if np.any(vmax <= 0):
+            raise ConfigError(f"max closing speed must be > 0 m/s, got {vmax}")
+        self.g_force[idx, G_VMAX] = vmax
+
     def step(self, n_steps: int = 1) -> None:
         """Advance all tissues by ``n_steps`` outer steps (n_steps x n_sub substeps) in one kernel call."""
         simulate(
@@ -254,7 +277,7 @@ class Simulation:
             self.mu_s, self.mu_k,
             self.pl_point, self.pl_normal, self.pl_vel, self.pl_mu,
             self.dt, self.n_sub, int(n_steps),
-            self.jaw_out, self.plate_out, self.anchor_out, self.contact_state, self.contact_force,
+            self.jaw_out, self.plate_out, self.anchor_out, self.contact_state, self.contact_force, self.g_force,
         )
 
     # -- readouts ---------------------------------------------------------------------------------

@@ -75,11 +75,11 @@ def test_spaces():
     assert env.action_space == spaces.Box(-1.0, 1.0, (2,), np.float32)
     assert isinstance(env.observation_space, spaces.Box)
     assert env.observation_space.dtype == np.float32
-    assert env.observation_space.shape == (19,) == (len(OBS_NAMES),)
+    assert env.observation_space.shape == (len(OBS_NAMES),) == (31,)
     obs, _ = env.reset(seed=1)
-    assert obs.dtype == np.float32 and obs.shape == (19,)
+    assert obs.dtype == np.float32 and obs.shape == (len(OBS_NAMES),)
     obs, *_ = env.step(np.zeros(2, np.float32))
-    assert obs.dtype == np.float32 and obs.shape == (19,)
+    assert obs.dtype == np.float32 and obs.shape == (len(OBS_NAMES),)
 
     priv = GraspLiftEnv(privileged_obs=True)
     n = priv.observation_space.shape[0]
@@ -115,7 +115,7 @@ def test_make_vec_reproduces_single_envs_exactly():
     venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point")
     assert isinstance(venv, GraspLiftVectorEnv)
     assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
-    assert venv.action_space.shape == (n, 2) and venv.observation_space.shape == (n, 19)
+    assert venv.action_space.shape == (n, 2) and venv.observation_space.shape == (n, len(OBS_NAMES))
     acts = np.stack([_actions(steps, rng_seed=100 + i) for i in range(n)], axis=1)  # (steps, n, 2)
 
     obs_v, info_v = venv.reset(seed=seed)
@@ -149,7 +149,7 @@ def test_vector_env_autoreset_same_step():
     for k in range(venv.config.max_episode_steps):
         obs, r, term, trunc, info = venv.step(zero)
     assert np.all(trunc) and not np.any(term)
-    assert "final_obs" in info and info["final_obs"].shape == (2, 19)
+    assert "final_obs" in info and info["final_obs"].shape == (2, len(OBS_NAMES))
     assert np.all(info["_final_obs"])
     assert np.all(np.isfinite(info["final_obs"]))
     # the returned observation is the first one of the next episode (time fraction 0)
@@ -191,7 +191,7 @@ def test_out_of_range_actions_are_clipped():
     np.testing.assert_array_equal(o_big, o_one)
     np.testing.assert_array_equal(o_big2, o_one2)
     assert r_big == r_one
-    assert o_one[OBS_NAMES.index("prev_action_close")] == 1.0  # the clipped action is what is observed
+    assert o_one[OBS_NAMES.index("prev_action_jaw")] == 1.0  # the clipped action is what is observed
 
 
 @pytest.mark.parametrize(
@@ -287,7 +287,7 @@ def test_default_time_limit():
 def test_reward_terms_sum_to_reward():
     env = GraspLiftEnv()
     env.reset(seed=9)
-    expected = {"progress", "grasp", "slip", "force", "damage", "success", "failure"}
+    expected = {"progress", "hold", "grasp", "slip", "force", "peak_force", "damage", "success", "failure"}
     seen_nonzero = set()
     for a in _actions(40, rng_seed=5):
         _, r, terminated, truncated, info = env.step(a)
@@ -299,7 +299,7 @@ def test_reward_terms_sum_to_reward():
             assert key in info
         if terminated or truncated:
             env.reset()
-    assert {"force", "progress"} <= seen_nonzero  # the closing/pulling sequence produces those terms
+    assert {"progress", "slip"} <= seen_nonzero  # the closing/pulling sequence produces those terms
 
 
 # -- rendering --------------------------------------------------------------------------------------
@@ -345,11 +345,11 @@ def test_sb3_adapter_reset_step_shapes_and_terminal_observation():
     venv = make_sb3_env(3, None, seed=5)
     assert isinstance(venv, GraspLiftSB3VecEnv)
     assert isinstance(venv, sb3.common.vec_env.VecEnv)
-    assert venv.observation_space.shape == (19,) and venv.action_space.shape == (2,)
+    assert venv.observation_space.shape == (len(OBS_NAMES),) and venv.action_space.shape == (2,)
     obs = venv.reset()
-    assert obs.shape == (3, 19) and obs.dtype == np.float32
+    assert obs.shape == (3, len(OBS_NAMES)) and obs.dtype == np.float32
     obs, rew, dones, infos = venv.step(np.zeros((3, 2), np.float32))
-    assert obs.shape == (3, 19) and rew.shape == (3,) and dones.shape == (3,) and dones.dtype == bool
+    assert obs.shape == (3, len(OBS_NAMES)) and rew.shape == (3,) and dones.shape == (3,) and dones.dtype == bool
     assert isinstance(infos, list) and len(infos) == 3
     assert all("is_success" in i and "TimeLimit.truncated" in i for i in infos)
     with pytest.raises(ValueError):
@@ -363,7 +363,7 @@ def test_sb3_adapter_reset_step_shapes_and_terminal_observation():
     for info in infos:
         assert info["TimeLimit.truncated"] is True
         term = info["terminal_observation"]
-        assert term.shape == (19,) and term[OBS_NAMES.index("time_fraction")] > 0.99
+        assert term.shape == (len(OBS_NAMES),) and term[OBS_NAMES.index("time_fraction")] > 0.99
         assert info["episode"]["l"] == short.config.max_episode_steps
     assert np.all(obs[:, OBS_NAMES.index("time_fraction")] == 0.0)  # already reset
     # attributes, methods, wrappers

@@ -143,7 +143,7 @@ CLI_MU = "0.5:0.6:0.1"
 def cli_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("evaluate")
     rc, stdout, stderr = _run_main(["evaluate", "--policy", "fixed", "--mu-grid", CLI_MU, "--episodes", "2",
-                                    "--out", str(out), "--quiet"])
+                                    "--out", str(out), "--quiet", "--no-unseen"])
     return rc, stdout, stderr, out
 
 
@@ -159,13 +159,15 @@ def test_cli_evaluate_writes_the_four_files(cli_run):
     with open(out / "evaluation.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert tuple(rows[0].keys()) == CSV_COLUMNS
-    assert [(r["policy"], float(r["mu"]), int(r["episodes"])) for r in rows] == [(FIXED_NAME, 0.5, 2), (FIXED_NAME, 0.6, 2)]
+    # the slip-reactive controller and the oracle are always evaluated beside the asked-for policy
+    assert [(r["policy"], float(r["mu"]), int(r["episodes"])) for r in rows] == [
+        (name, mu, 2) for name in (FIXED_NAME, "reactive", "oracle") for mu in (0.5, 0.6)]
     data = json.loads((out / "evaluation.json").read_text())
     assert data["config"]["randomization"]["mu_range"] == list(CONFIG.randomization.mu_range)
     assert data["evaluation"]["mu_grid"] == [0.5, 0.6] and data["evaluation"]["seeds"] == [0, 1]
-    (pol,) = data["results"]
+    pol = data["results"][0]
+    assert [p["spec"] for p in data["results"]] == ["fixed", "reactive", "oracle"]
     assert pol["spec"] == "fixed" and pol["name"] == FIXED_NAME and len(pol["rows"]) == 2
-    # the minimal-force reference curve is computed even though the oracle was not evaluated
     curve = data["oracle_minimal_force"]
     assert curve["mu"] == [0.5, 0.6]
     assert curve["minimal_force_N"] == pytest.approx([minimal_force(CONFIG, 0.5), minimal_force(CONFIG, 0.6)])
@@ -252,7 +254,7 @@ def test_rl_subcommands_are_wired():
     assert (a.algo, a.total_timesteps, a.n_envs, a.seed, a.resume, a.quiet) == ("sac", 100, 2, 3, Path("runs/x"), True)
     assert a.config is None and a.out == Path("logs/train")
     e = parser.parse_args(["evaluate"])
-    assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (None, "0.2:1.0:0.1", 10, 0, Path("logs/evaluate"), False)
+    assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (None, None, 10, 0, Path("logs/evaluate"), False)
     r = parser.parse_args(["record"])
     assert (r.mu, r.out) == (0.5, Path("logs/record/episode.rrd"))
     s = parser.parse_args(["soak"])
