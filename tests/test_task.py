@@ -1,0 +1,152 @@
+"""Specs of the task design: the force / travel control interface, the observation of success state,
+and a reward under which success dominates, not touching is no haven and less force is better.
+
+Each test runs short batched episodes of the coarse spleen (one numba call per step for the batch).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msdgrasp.agents.controllers import FixedForcePolicy
+from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, RewardConfig
+from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+from msdgrasp.physics.config import ConfigError
+
+NOMINAL = {"stiffness_scale": 1.0, "mass_scale": 1.0, "pose_offset_m": 0.0, "pose_tilt_deg": 0.0,
+           "pose_azimuth_deg": 0.0}
+
+
+def _episodes(env: GraspLiftVectorEnv, policy, mus, seed: int = 0) -> dict[str, np.ndarray]:
+    """Run one episode per sub-env (sub-env i at mu[i]); returns, outcomes and per-step traces."""
+    core = env.core
+    env.reset(seed=seed)
+    infos = [core.reset(i, {**NOMINAL, "mu": float(m)}) for i, m in enumerate(mus)]
+    obs = core.obs.astype(np.float32)
+    if hasattr(policy, "reset"):
+        policy.reset(infos)
+    B = env.num_envs
+    ret = np.zeros(B)
+    done = np.zeros(B, dtype=bool)
+    success = np.zeros(B, dtype=bool)
+    peak = np.zeros(B)
+    pinch, travel, target = [], [], []
+    for _ in range(env.config.max_episode_steps):
+        act = policy.act(obs) if hasattr(policy, "act") else policy(obs)
+        obs, r, term, trunc, info = core.step(act)
+        ret += np.where(done, 0.0, r)
+        pinch.append(info["pinch_force_N"].copy())
+        travel.append(info["travel_m"].copy())
+        target.append(core.travel_target.copy())
+        ended = ~done & (term | trunc)
+        success |= ended & info["is_success"]
+        peak = np.where(ended, info["peak_pinch_N"], peak)
+        done |= term | trunc
+        if done.all():
+            break
+    return {"return": ret, "success": success, "peak": peak, "pinch": np.array(pinch), "travel": np.array(travel),
+            "target": np.array(target)}
+
+
+# -- the control interface ---------------------------------------------------------------------------
+def test_force_loop_holds_the_pinch_set_point():
+    """A constant set-point (jaw_action = force) is tracked by the 1 kHz loop: within 3% once settled."""
+    env = GraspLiftVectorEnv(3)
+    setpoints = np.array([0.8, 1.5, 3.0])
+    a_jaw = 2.0 * setpoints / env.config.max_pinch_force_N - 1.0
+    run = _episodes(env, lambda obs: np.stack([a_jaw, np.full(3, -1.0)], axis=1), [0.5, 0.5, 0.5])
+    settled = run["pinch"][150:]  # 5 s in: the jaws have closed on the tissue (no pull: travel set-point 0)
+    np.testing.assert_allclose(settled.mean(axis=0), setpoints, rtol=0.03)
+    assert np.all(np.abs(run["travel"]) < 1e-9)
+
+
+def test_travel_set_point_is_reached_at_the_speed_limit():
+    """pull_action = travel: the arm reaches a set-point within one step when the speed limit allows it, and
+    moves at the limit (20 mm/s) otherwise."""
+    env = GraspLiftVectorEnv(1)
+    cfg = env.config
+    run = _episodes(env, lambda obs: np.array([[-1.0, 2 * 0.03 / cfg.max_travel_m - 1.0]]), [0.5])
+    step_mm = env.core.max_pull * cfg.agent_dt_s * 1e3
+    travel_mm = run["travel"][:, 0] * 1e3
+    np.testing.assert_allclose(np.diff(travel_mm[:40]), step_mm, rtol=1e-6)  # speed limited on the way
+    assert travel_mm[-1] == pytest.approx(30.0, abs=1e-6)  # then exactly at the 30 mm set-point
+
+
+def test_speed_mode_is_still_available():
+    """jaw_action = speed / pull_action = speed: the fixed-force controller still lifts at mu 0.5."""
+    cfg = GraspLiftConfig(jaw_action="speed", pull_action="speed")
+    env = GraspLiftVectorEnv(2, cfg)
+    run = _episodes(env, FixedForcePolicy(cfg, 2.5), [0.5, 0.8])
+    assert run["success"].all()
+    assert np.all(run["peak"] > 2.4) and np.all(run["peak"] < 3.0)
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("jaw_action", "torque", "jaw_action"), ("pull_action", "position", "pull_action"),
+    ("max_pinch_force_N", 0.0, "max_pinch_force_N"), ("max_travel_m", 0.5, "max_travel_m"),
+    ("obs_history", 0, "obs_history"), ("force_loop_gain_m_s_per_N", -1.0, "force_loop_gain"),
+])
+def test_bad_control_config_names_the_field(field, value, match):
+    with pytest.raises(ConfigError, match=match):
+        GraspLiftConfig(**{field: value})
+
+
+# -- observations ------------------------------------------------------------------------------------
+def test_observation_history_stacks_frames_oldest_first():
+    one = GraspLiftVectorEnv(1)
+    three = GraspLiftVectorEnv(1, GraspLiftConfig(obs_history=3))
+    n = len(OBS_NAMES)
+    assert three.single_observation_space.shape == (3 * n,)
+    o1, _ = one.reset(seed=4)
+    o3, _ = three.reset(seed=4)
+    np.testing.assert_array_equal(o3[0], np.tile(o1[0], 3))  # at reset: the first frame three times
+    frames = [o1[0]]
+    for a in ([0.2, -1.0], [0.4, -1.0], [0.6, -0.5]):
+        o1, *_ = one.step(np.array([a]))
+        o3, *_ = three.step(np.array([a]))
+        frames.append(o1[0])
+    np.testing.assert_array_equal(o3[0], np.concatenate(frames[-3:]))
+
+
+def test_success_state_is_observed():
+    """Lift progress, hold progress and the tissue lag behind the grasper are in the observation, and they
+    move as the episode does: hold progress reaches ~1 at success."""
+    env = GraspLiftVectorEnv(1)
+    pol = FixedForcePolicy(env.config, 2.0)
+    core = env.core
+    env.reset(seed=1)
+    core.reset(0, {**NOMINAL, "mu": 0.6})
+    pol.reset([{}])
+    obs = core.obs.astype(np.float32)
+    lift_i, hold_i, lag_i = (OBS_NAMES.index(k) for k in ("lift_progress", "hold_progress", "lift_lag"))
+    for _ in range(env.config.max_episode_steps):
+        prev = obs
+        obs, r, term, trunc, info = core.step(pol.act(obs))
+        if term[0] or trunc[0]:
+            break
+    assert info["is_success"][0]
+    assert prev[0, lift_i] >= 1.0 and prev[0, hold_i] > 0.9
+    assert abs(prev[0, lag_i]) < 0.05  # held: the tissue follows the grasper (< 1.5 mm of 30 mm)
+
+
+# -- reward ------------------------------------------------------------------------------------------
+def test_reward_scale_success_dominates_and_no_touch_is_no_haven():
+    """Returns on the nominal tissue: never touching < a weak grip that lifts then slips (mu 0.2) <
+    any success; among successes, less peak pinch earns more (mu 0.8: 1.0 N > 2.5 N)."""
+    w = RewardConfig()
+    env = GraspLiftVectorEnv(4)
+    never = _episodes(env, lambda obs: np.full((4, 2), -1.0), [0.8] * 4)
+    np.testing.assert_allclose(never["return"], -w.failure_penalty, atol=0.01)  # the failure penalty alone
+    pol = FixedForcePolicy(env.config, 1.0)
+    runs = _episodes(env, pol, [0.2, 0.8, 0.8, 0.8])
+    pol2 = FixedForcePolicy(env.config, 2.5)
+    strong = _episodes(env, pol2, [0.8] * 4)
+    weak_low_mu, weak_ok = runs["return"][0], runs["return"][1]
+    assert not runs["success"][0] and runs["success"][1] and strong["success"][0]
+    assert never["return"][0] < weak_low_mu < strong["return"][0] < weak_ok
+    # the force discount is the documented one: 5 points per newton of peak pinch
+    gap = weak_ok - strong["return"][0]
+    expected = w.peak_force * (strong["peak"][0] - runs["peak"][1]) / env.config.reference_force_N
+    assert gap == pytest.approx(expected, abs=0.5)  # slip differs a little between the two
+    assert w.success_bonus > 2 * w.peak_force * 2.5 / env.config.reference_force_N  # success dominates
