@@ -222,9 +222,33 @@ class ModelPolicy:
         return np.asarray(action, dtype=np.float32)
 
 
+class ConstantPolicy:
+    """The same action every step: ``zero`` (action 0: in the default force/travel mode a 2.5 N set-point
+    and a 30 mm travel set-point from the first step) or ``idle`` (never touch: no force, no pull)."""
+
+    def __init__(self, action: Sequence[float], name: str) -> None:
+        self.action = np.asarray(action, dtype=np.float32)
+        self.name = name
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return np.tile(self.action, (np.atleast_2d(obs).shape[0], 1))
+
+
+def idle_action(config: GraspLiftConfig) -> np.ndarray:
+    """The action that leaves the tissue alone: jaws at zero force (or still), no pull."""
+    return np.array([-1.0 if config.jaw_action == "force" else 0.0, -1.0 if config.pull_action == "travel" else 0.0])
+
+
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
-    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | a path to a saved model (.zip)."""
+    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | 'zero' | 'idle' | a path to a saved model (.zip)."""
     config = config or GraspLiftConfig()
+    if spec == "zero":
+        return ConstantPolicy([0.0, 0.0], "zero")
+    if spec == "idle":
+        return ConstantPolicy(idle_action(config), "idle")
     if spec == "fixed":
         return FixedForcePolicy(config)
     if spec.startswith("fixed:"):

@@ -41,6 +41,7 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
+from .controllers import idle_action
 
 #: the training range (0.3-0.9) and beyond it on both sides (0.15, 0.2, 1.0, 1.2: unseen in training)
 DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
@@ -51,11 +52,12 @@ UNSEEN_MU = 0.5
 ALWAYS = ("reactive", "oracle")
 MAX_GRID_VALUES = 101
 MU_MAX = 10.0  # the env accepts mu in [0, 10]
-BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "oracle")
+BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "oracle", "zero", "idle")
+_NAMED = ("fixed", "reactive", "oracle", "zero", "idle")
 
 CSV_COLUMNS = (
     "policy", "mu", "success_rate", "mean_peak_pinch_N", "peak_pinch_over_oracle_min", "max_peak_pinch_N",
-    "mean_pinch_N", "mean_slip_mm", "mean_peak_stress_kPa", "mean_time_to_lift_s", "episodes",
+    "mean_pinch_N", "mean_slip_mm", "mean_peak_stress_kPa", "mean_time_to_lift_s", "mean_return", "episodes",
 )
 _GRID_HELP = "expected 'start:stop:step' (stop included, e.g. '0.2:1.0:0.1') or a comma list such as '0.3,0.5'"
 
@@ -169,6 +171,7 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, 
         "success": np.zeros(B, dtype=bool),
         "peak_pinch_N": np.zeros(B),
         "pinch_sum_N": np.zeros(B),
+        "return": np.zeros(B),
         "steps": np.zeros(B, dtype=np.int64),
         "slip_mm": np.zeros(B),
         "peak_stress_kPa": np.zeros(B),
@@ -179,10 +182,11 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, 
         act = np.asarray(policy.act(obs), dtype=np.float64).reshape(B, 2)
         if not np.all(np.isfinite(act[~done])):
             raise ConfigError(f"policy {getattr(policy, 'name', 'policy')!r} returned a non-finite action at mu={mu:g}")
-        act = np.where(done[:, None], _rest_action(env.config), act)  # finished tissues just rest
-        obs, _, term, trunc, inf = core.step(act)
+        act = np.where(done[:, None], idle_action(env.config), act)  # finished tissues just rest
+        obs, rew, term, trunc, inf = core.step(act)
         live = ~done
         out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
+        out["return"][live] += rew[live]
         out["steps"][live] += 1
         ended = live & (term | trunc)
         if ended.any():
@@ -210,11 +214,6 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, 
     return {k: v[:n] for k, v in out.items()}
 
 
-def _rest_action(config: GraspLiftConfig) -> np.ndarray:
-    """The action that leaves a finished tissue alone: jaws at zero force / speed, no pull."""
-    return np.array([-1.0 if config.jaw_action == "force" else 0.0, -1.0 if config.pull_action == "travel" else 0.0])
-
-
 def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
     ttl = ep["time_to_lift_s"]
     lifted = np.isfinite(ttl)
@@ -225,6 +224,7 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
         "mean_peak_pinch_N": float(np.mean(ep["peak_pinch_N"])),
         "max_peak_pinch_N": float(np.max(ep["peak_pinch_N"])),
         "mean_pinch_N": float(np.mean(ep["mean_pinch_N"])),
+        "mean_return": float(np.mean(ep["return"])),
         "mean_slip_mm": float(np.mean(ep["slip_mm"])),
         "mean_peak_stress_kPa": float(np.mean(ep["peak_stress_kPa"])),
         "mean_time_to_lift_s": float(np.mean(ttl[lifted])) if lifted.any() else float("nan"),
@@ -234,6 +234,7 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
             "success": [bool(v) for v in ep["success"]],
             "peak_pinch_N": [float(v) for v in ep["peak_pinch_N"]],
             "mean_pinch_N": [float(v) for v in ep["mean_pinch_N"]],
+            "return": [float(v) for v in ep["return"]],
             "slip_mm": [float(v) for v in ep["slip_mm"]],
             "peak_stress_kPa": [float(v) for v in ep["peak_stress_kPa"]],
             "time_to_lift_s": [float(v) for v in ttl],
@@ -292,7 +293,7 @@ def check_policy_spec(spec: str) -> None:
     """Raise ConfigError for an unusable spec (bad ``fixed:<N>``, unknown name, missing model file)."""
     if not isinstance(spec, str) or not spec.strip():
         raise ConfigError(f"policy {spec!r}: empty policy spec; use one of {', '.join(BUILTIN_POLICIES)} or a model path")
-    if spec in ("fixed", "reactive", "oracle"):
+    if spec in _NAMED:
         return
     if spec.startswith("fixed:"):
         value = spec.split(":", 1)[1]
@@ -434,7 +435,7 @@ def _task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[G
         return config, None
     found: dict[str, GraspLiftConfig] = {}
     for spec in policies:
-        if spec in ("fixed", "reactive", "oracle") or spec.startswith("fixed:"):
+        if spec in _NAMED or spec.startswith("fixed:"):
             continue
         train_cfg = model_train_config(spec)
         if train_cfg is not None:

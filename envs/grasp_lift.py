@@ -45,49 +45,72 @@ class GraspLiftEnv(gym.Env):
 
     ## Action space: ``Box(-1, 1, (2,), float32)``
 
-    | index | action | unit after scaling |
+    What the actions command is selectable (``GraspLiftConfig.jaw_action`` / ``pull_action``):
+
+    | index | default (``jaw_action="force"``, ``pull_action="travel"``) | alternative (``"speed"``) |
     |---|---|---|
-    | 0 | jaw closing speed (> 0 closes, < 0 opens), x ``max_closing_speed_m_s`` | m/s (radius rate) |
-    | 1 | pull speed away from the anchors (< 0 pushes back), x ``max_pull_speed_m_s`` | m/s |
+    | 0 | pinch-force set-point (a + 1) / 2 x ``max_pinch_force_N`` (0-5 N), tracked by the jaw motor's 1 kHz force loop (closing speed = 0.02 m/s per N of error, at most ``max_closing_speed_m_s``) | jaw closing speed a x 4 mm/s (> 0 closes) |
+    | 1 | pull-distance set-point (a + 1) / 2 x ``max_travel_m`` (0-60 mm), tracked by the arm at up to ``max_pull_speed_m_s`` (20 mm/s) | pull speed a x 20 mm/s |
 
-    Values outside [-1, 1] are clipped; NaN/inf or a wrong shape raises ``ValueError``.
+    Values outside [-1, 1] are clipped; NaN/inf or a wrong shape raises ``ValueError``. So action 0 is a
+    2.5 N grip and a 30 mm lift target, and -1 is "jaws relaxed, grasper at its start".
 
-    ## Observation space: ``Box(-inf, inf, (19,), float32)`` (+ privileged, optional)
+    ## Observation space: ``Box(-inf, inf, (31 x obs_history,), float32)`` (+ privileged, optional)
+
+    One frame (``OBS_NAMES``); with ``obs_history = k`` the last k frames are concatenated, oldest first.
 
     | index | observation | scaling |
     |---|---|---|
     | 0 | jaw opening (R - R_min) / (R_start - R_min) | 1 = open, 0 = closed |
     | 1 | jaw closing speed | / max closing speed |
-    | 2 | grasper pull distance | / lift target |
+    | 2 | grasper pull distance (travel) | / lift target |
     | 3 | grasper pull speed | / max pull speed |
-    | 4-6 | normal force of jaw 0, 1, 2 (noisy sensor) | / reference force |
+    | 4-6 | normal force of jaw 0, 1, 2 (noisy sensor) | / reference force (5 N) |
     | 7-9 | tangential force magnitude of jaw 0, 1, 2 (noisy) | / reference force |
     | 10-12 | contact nodes of jaw 0, 1, 2 | / nodes on the jaw's footprint |
     | 13-15 | slip speed of the tissue under jaw 0, 1, 2 | / max pull speed |
-    | 16-17 | previous action | as given |
-    | 18 | elapsed time | / time limit |
-    | 19- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, displacements of 16 nodes / lift target | |
+    | 16-18 | share of jaw 0, 1, 2's contact nodes that slip (incipient slip, a tactile array's view) | 0-1 |
+    | 19-20 | previous action | as given |
+    | 21 | elapsed time | / time limit |
+    | 22 | tissue lift (mean of the grasped region along the pull) | / lift target |
+    | 23 | hold progress: time held at the target without slip | / hold_time_s |
+    | 24 | slip accumulated during the current hold | / hold_slip_tolerance_m |
+    | 25 | lag of the tissue behind the grasper (travel - lift) | / lift target |
+    | 26 | peak pinch force so far (what the force discount will charge) | / reference force |
+    | 27 | highest lift so far (what progress has paid) | / lift target |
+    | 28-30 | friction utilisation \|T\| / N of jaw 0, 1, 2 (<= mu while sticking) | ratio |
+    | 31- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, displacements of 16 nodes / lift target | |
 
     ## Rewards (each term in ``info["reward_terms"]``, weights in ``RewardConfig``)
 
-    | term | value per step |
-    |---|---|
-    | progress | +w * (increase of the grasped region's lift, capped at the target) / target |
-    | grasp | +w * increase of min(pinch / grasp_force_N, 1) (potential-based shaping toward a grip) |
-    | slip | -w * slip distance this step in mm |
-    | force | -w * (pinch force / reference force) * step duration |
-    | damage | -w if the peak nodal stress exceeds ``damage_stress_pa`` |
-    | success | +w once, on success |
-    | failure | -w once, when the grasp is lost after lifting began or the physics fails |
+    | term | value | scale over an episode |
+    |---|---|---|
+    | progress | +10 x increase of min(highest lift so far / target, 1) | 0 ... +10 (once) |
+    | hold | +10 x change of the hold progress (potential-based: a hold that is lost is paid back) | 0 ... +10 |
+    | slip | -0.1 per mm of jaw/tissue slip | ~0 (held) ... -4 (slid off) |
+    | peak_force | on success: -50 x episode peak pinch / 5 N | -2 (0.2 N) ... -50 (5 N) |
+    | success | +50 once, on success | +50 |
+    | failure | -10 once, when the episode ends without success (lost grasp, damage, blow-up, time limit) | -10 |
+    | damage | -5 per step with peak nodal stress above ``damage_stress_pa`` (terminates) | |
+    | grasp, force | off by default (shaping toward a first grip for ``jaw_action="speed"``; cost per N s of pinch) | 0 |
+
+    Returns (``msdgrasp evaluate --policy zero --policy idle --policy fixed`` over mu 0.3-0.9, 10 episodes
+    per mu; the reactive and oracle columns come with every evaluation):
+
+    RETURNS_TABLE
+
+    Success therefore dominates: any success earns more than any failure, never touching the tissue
+    earns the failure penalty like every other failure, and at equal success each newton of peak pinch
+    costs 10 points.
 
     ## Episode end
-    Terminated on success (grasped region lifted ``lift_target_m`` and held ``hold_time_s`` with less than
-    ``hold_slip_tolerance_m`` slip), on a lost grasp after lifting began, on tissue damage, or on a
-    numerical failure (``info["error"]`` says so; the observation is zeros, never NaN). Truncated at
-    ``time_limit_s`` (10 s = 304 steps).
+    Terminated on success (grasped region lifted ``lift_target_m`` and held ``hold_time_s`` while it
+    slipped less than ``hold_slip_tolerance_m``; a hold spoilt by slip starts over), on a lost grasp after
+    lifting began, on tissue damage, or on a numerical failure (``info["error"]`` says so; the observation
+    is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
 
-    ``info``: mu, pinch_force_N, slip_distance_m, lifted_m, peak_stress_pa, contact_nodes, is_success,
-    reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
+    ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,
+    peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure, reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
     randomisation for evaluation.
     """
 
