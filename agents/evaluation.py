@@ -202,6 +202,8 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, 
                     o = "numerical_failure"
                 elif inf["lost_grasp"][i]:
                     o = "lost_grasp"
+                elif inf["slipped"][i]:
+                    o = "slipped"
                 elif term[i] and inf["damaged"][i]:
                     o = "damaged"
                 else:

@@ -53,7 +53,7 @@ class TrainConfig:
     """
 
     algo: str = "ppo"
-    total_timesteps: int = 300_000
+    total_timesteps: int = 400_000
     n_envs: int = 16
     seed: int = 0
     checkpoint_every: int = 25_000
@@ -73,9 +73,9 @@ class TrainConfig:
     #: at each friction in ``validation_mu`` (seeds disjoint from ``msdgrasp evaluate``'s); the best (highest
     #: success rate, then lowest mean peak pinch) is kept as ``best_model.zip``. 0 disables it.
     validation_episodes: int = 6
-    validation_mu: tuple[float, ...] = (0.3, 0.4, 0.5, 0.7, 0.9)
+    validation_mu: tuple[float, ...] = (0.2, 0.3, 0.5, 0.7, 0.9)
     ppo: dict = field(default_factory=lambda: {
-        "learning_rate": 1e-3, "n_steps": 256, "batch_size": 1024, "n_epochs": 5, "gamma": 0.995,
+        "learning_rate": 1e-3, "n_steps": 256, "batch_size": 1024, "n_epochs": 10, "gamma": 0.995,
         "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
     })
     sac: dict = field(default_factory=lambda: {

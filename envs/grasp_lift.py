@@ -55,7 +55,7 @@ class GraspLiftEnv(gym.Env):
     Values outside [-1, 1] are clipped; NaN/inf or a wrong shape raises ``ValueError``. So action 0 is a
     2.5 N grip and a 30 mm lift target, and -1 is "jaws relaxed, grasper at its start".
 
-    ## Observation space: ``Box(-inf, inf, (31 x obs_history,), float32)`` (+ privileged, optional)
+    ## Observation space: ``Box(-inf, inf, (32 x obs_history,), float32)`` (+ privileged, optional)
 
     One frame (``OBS_NAMES``); with ``obs_history = k`` the last k frames are concatenated, oldest first.
 
@@ -78,8 +78,9 @@ class GraspLiftEnv(gym.Env):
     | 25 | lag of the tissue behind the grasper (travel - lift) | / lift target |
     | 26 | peak pinch force so far (what the force discount will charge) | / reference force |
     | 27 | highest lift so far (what progress has paid) | / lift target |
-    | 28-30 | friction utilisation \|T\| / N of jaw 0, 1, 2 (<= mu while sticking) | ratio |
-    | 31- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, displacements of 16 nodes / lift target | |
+    | 28-30 | friction utilisation abs(T) / N of jaw 0, 1, 2 (<= mu while sticking) | ratio |
+    | 31 | slip since lifting began | / lift_slip_tolerance_m (1 ends the episode) |
+    | 32- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, displacements of 16 nodes / lift target | |
 
     ## Rewards (each term in ``info["reward_terms"]``, weights in ``RewardConfig``)
 
@@ -105,8 +106,9 @@ class GraspLiftEnv(gym.Env):
 
     ## Episode end
     Terminated on success (grasped region lifted ``lift_target_m`` and held ``hold_time_s`` while it
-    slipped less than ``hold_slip_tolerance_m``; a hold spoilt by slip starts over), on a lost grasp after
-    lifting began, on tissue damage, or on a numerical failure (``info["error"]`` says so; the observation
+    slipped less than ``hold_slip_tolerance_m``; a hold spoilt by slip starts over), when the tissue has
+    slipped more than ``lift_slip_tolerance_m`` (2 mm) since lifting began (not a slip-free lift), on a
+    lost grasp after lifting began, on tissue damage, or on a numerical failure (``info["error"]`` says so; the observation
     is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,

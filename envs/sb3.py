@@ -42,8 +42,9 @@ from .grasp_lift import _check_action, _config
 
 #: core attributes that hold one entry per sub-env (``get_attr``/``set_attr`` address entry i)
 PER_ENV_ATTRS = (
-    "rngs", "mu", "pull_dir", "tip0", "region0", "steps", "prev_action", "lift", "slip_total", "hold_time",
-    "hold_slip", "peak_pinch", "peak_stress", "lift_started", "time_to_lift", "obs",
+    "rngs", "mu", "pull_dir", "tip0", "region0", "steps", "prev_action", "lift", "best_lift", "slip_total",
+    "lift_slip", "hold_time", "hold_slip", "hold_progress", "travel_target", "peak_pinch", "peak_stress",
+    "lift_started", "time_to_lift", "obs",
 )
 ERROR_MESSAGE = "numerical failure: the tissue state became non-finite (blow-up); episode terminated"
 

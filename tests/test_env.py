@@ -75,7 +75,7 @@ def test_spaces():
     assert env.action_space == spaces.Box(-1.0, 1.0, (2,), np.float32)
     assert isinstance(env.observation_space, spaces.Box)
     assert env.observation_space.dtype == np.float32
-    assert env.observation_space.shape == (len(OBS_NAMES),) == (31,)
+    assert env.observation_space.shape == (len(OBS_NAMES),) == (32,)
     obs, _ = env.reset(seed=1)
     assert obs.dtype == np.float32 and obs.shape == (len(OBS_NAMES),)
     obs, *_ = env.step(np.zeros(2, np.float32))
