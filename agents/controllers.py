@@ -201,10 +201,13 @@ class ModelPolicy:
     """A trained Stable-Baselines3 model (deterministic actions)."""
 
     def __init__(self, path: str | Path, name: str | None = None) -> None:
-        from .training import load_model
+        from .training import load_model, model_train_config
 
         self.model = load_model(path)
-        self.name = name or Path(path).stem
+        if name is None:  # named by what it is: "PPO (seed 3)" when its training config is saved with it
+            cfg = model_train_config(path)
+            name = f"{cfg.algo.upper()} (seed {cfg.seed})" if cfg is not None else Path(path).stem
+        self.name = name
 
     @classmethod
     def from_model(cls, model, name: str = "model") -> "ModelPolicy":

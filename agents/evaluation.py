@@ -132,13 +132,14 @@ def parse_mu_grid(text: str) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 
 
-def _nan_to_none(x: Any) -> Any:
+def nan_to_none(x: Any) -> Any:
+    """NaN/inf floats (also nested in dicts and lists) as None: JSON's null instead of invalid NaN."""
     if isinstance(x, float) and not math.isfinite(x):
         return None
     if isinstance(x, dict):
-        return {k: _nan_to_none(v) for k, v in x.items()}
+        return {k: nan_to_none(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_nan_to_none(v) for v in x]
+        return [nan_to_none(v) for v in x]
     return x
 
 
@@ -333,7 +334,25 @@ def build_policy(spec: str, config: GraspLiftConfig):
 
 
 def _safe_name(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.+-]", "_", name) or "policy"
+    """A display name as a file name: 'PPO (seed 3)' -> 'PPO_seed_3'."""
+    return re.sub(r"[^A-Za-z0-9_.+-]+", "_", name).strip("_") or "policy"
+
+
+def expand_policy_specs(specs: Sequence[str]) -> list[str]:
+    """Model paths with a wildcard (``logs/train/seed_*/best_model.zip``) expand to the sorted matches; a
+    pattern without a match is an error (never silently dropped)."""
+    import glob
+
+    out: list[str] = []
+    for spec in specs:
+        if isinstance(spec, str) and any(c in spec for c in "*?["):
+            matches = sorted(glob.glob(spec))
+            if not matches:
+                raise ConfigError(f"policy {spec!r}: no saved model matches this pattern")
+            out += matches
+        else:
+            out.append(spec)
+    return out
 
 
 def _mu_label(mu: float) -> str:
@@ -428,7 +447,7 @@ def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool =
             "pull": ref.pull, "tolerance_N": ref.tolerance}
 
 
-def _task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
+def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
     """The task to evaluate on: ``config`` if given, else the env config the model(s) were trained with
     (all models must agree), else the default task. Returns (config, where it came from)."""
     from .training import model_config_path, model_train_config
@@ -464,14 +483,14 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     Returns ``{"results": [...], "oracle_minimal_force": {...}, "files": {...}, "recordings": [...]}``.
     """
     out_dir = Path(out_dir)
-    policies = list(policies)
+    policies = expand_policy_specs(policies)
     if not policies:
         raise ConfigError("no policy to evaluate: give at least one --policy")
     for spec in policies:
         check_policy_spec(spec)
     # the baselines are always there: a learned policy is never shown alone
     policies += [b for b in ALWAYS if b not in policies]
-    config, trained_on = _task_of(policies, config)
+    config, trained_on = task_of(policies, config)
     mus = [float(m) for m in mus]
     if not mus:
         raise ConfigError("the mu grid is empty")
@@ -486,7 +505,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 
     names: list[str] = []
     for pol in built:
-        base = _safe_name(str(getattr(pol, "name", "policy")))
+        base = str(getattr(pol, "name", "policy")) or "policy"
         name, k = base, 2
         while name in names:
             name, k = f"{base}_{k}", k + 1
@@ -551,7 +570,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         "success_png": out_dir / "success_vs_mu.png",
         "pinch_png": out_dir / "pinch_vs_mu.png",
     }
-    atomic_write_text(files["json"], json.dumps(_nan_to_none(summary), indent=2) + "\n")
+    atomic_write_text(files["json"], json.dumps(nan_to_none(summary), indent=2) + "\n")
     atomic_write_text(files["csv"], _csv_text(results))
     _plot_success(results, config, files["success_png"])
     _plot_pinch(results, curve, files["pinch_png"])
@@ -587,7 +606,7 @@ def _record_all(policies, names, built, mus, config, seed, folder: Path, progres
     try:
         for spec, name, pol in zip(policies, names, built):
             for mu in mus:
-                path = folder / f"{name}_mu{_mu_label(mu)}.rrd"
+                path = folder / f"{_safe_name(name)}_mu{_mu_label(mu)}.rrd"
                 summary = record_policy_episode(pol, env, path, mu, seed)
                 paths.append(summary["path"])
                 if progress:

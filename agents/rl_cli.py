@@ -12,6 +12,15 @@ import math
 from pathlib import Path
 
 DEFAULT_MODEL = Path("logs") / "train" / "best_model.zip"
+#: the models of ``msdgrasp train --seeds`` with the default output folder
+DEFAULT_SEED_MODELS = Path("logs") / "train" / "seed_*" / "best_model.zip"
+
+
+def _default_models() -> list[str]:
+    """logs/train/best_model.zip (one run) or every logs/train/seed_*/best_model.zip (a multi-seed run)."""
+    if DEFAULT_MODEL.is_file():
+        return [str(DEFAULT_MODEL)]
+    return sorted(str(p) for p in Path().glob(str(DEFAULT_SEED_MODELS)))
 
 
 def _usage(message: str) -> Exception:
@@ -40,7 +49,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _default_policies() -> list[str]:
-    return [str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else ["fixed"]
+    return _default_models() or ["fixed"]
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -68,9 +77,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    from ..envs.core import GraspLiftConfig
     from ..envs.grasp_lift import GraspLiftEnv
-    from .evaluation import build_policy, record_policy_episode
+    from .evaluation import build_policy, check_policy_spec, record_policy_episode, task_of
 
     if not (math.isfinite(args.mu) and 0.0 <= args.mu <= 10.0):
         raise _usage(f"--mu must be in [0, 10], got {args.mu}")
@@ -79,8 +87,9 @@ def _cmd_record(args: argparse.Namespace) -> int:
         raise _usage(f"--out {out}: give one file name (no {{episode}} template)")
     if out.is_dir():
         raise _usage(f"--out {out} is a folder; give a file name such as {out / 'episode.rrd'}")
-    spec = args.policy or (str(DEFAULT_MODEL) if DEFAULT_MODEL.is_file() else "fixed")
-    config = GraspLiftConfig()
+    spec = args.policy or next(iter(_default_models()), "fixed")
+    check_policy_spec(spec)
+    config, _ = task_of([spec], None)  # a model runs on the task it was trained on
     policy = build_policy(spec, config)
     env = GraspLiftEnv(config)
     try:
@@ -131,7 +140,8 @@ def add_rl_commands(sub) -> None:
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (saved model .zip) | fixed | fixed:<N> | reactive | oracle (repeatable; default "
-                        "logs/train/best_model.zip if it exists, else fixed). reactive and oracle are always added")
+                        "logs/train/best_model.zip, else every logs/train/seed_*/best_model.zip, else fixed). "
+                        "reactive and oracle are always added")
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
                         "and the unseen 0.15, 0.2, 1.0, 1.2)")
@@ -147,8 +157,8 @@ def add_rl_commands(sub) -> None:
 
     r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
     r.add_argument("--policy", default=None, metavar="SPEC",
-                   help="PATH | fixed | fixed:<N> | reactive | oracle (default logs/train/best_model.zip if it "
-                        "exists, else fixed)")
+                   help="PATH | fixed | fixed:<N> | reactive | oracle | zero | idle (default "
+                        "logs/train/best_model.zip, else logs/train/seed_0's, else fixed)")
     r.add_argument("--mu", type=float, default=0.5, help="friction coefficient (default 0.5)")
     r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     r.add_argument("--out", type=Path, default=Path("logs") / "record" / "episode.rrd",

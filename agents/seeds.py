@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
+from .evaluation import nan_to_none
 
 #: friction values of the per-seed evaluation; REFERENCE_MU are the ones the headline numbers average
 EVAL_MU = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -207,21 +208,11 @@ def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int
         "baselines": baselines,
     }
     files = {"json": out / "seeds.json", "md": out / "seeds.md", "png": out / "learning_curves.png"}
-    atomic_write_text(files["json"], json.dumps(_finite(result), indent=2) + "\n")
+    atomic_write_text(files["json"], json.dumps(nan_to_none(result), indent=2) + "\n")
     atomic_write_text(files["md"], format_markdown(result))
     plot_learning_curves(seed_recs, files["png"])
     result["files"] = {k: str(v) for k, v in files.items()}
     return result
-
-
-def _finite(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    return x
 
 
 def _fmt(x: float, digits: int = 3) -> str:

@@ -288,9 +288,10 @@ VALIDATION_SEED_OFFSET = 100_000
 class BestModel:
     """Scores saved models on validation episodes and keeps the best as ``best_model.zip``.
 
-    PPO fine-tuning of the cloned policy is not monotonic (measured: success over mu 0.3-0.9 went
-    59 % -> 99 % -> 83 % at 50k / 150k / 250k steps of one run), so the last model is not the one to
-    ship. The history goes to ``validation.json`` (atomic), which a resumed run reads back.
+    PPO is not monotonic (a run's validation success can dip between checkpoints while it trades force
+    against slip), so the last model is not necessarily the one to ship. The key is the success rate,
+    then the lower mean peak pinch. The history goes to ``validation.json`` (atomic), which a resumed run
+    reads back, and is the learning curve of ``msdgrasp train --seeds``.
     """
 
     def __init__(self, config: TrainConfig, out: Path, resume: bool = False) -> None:

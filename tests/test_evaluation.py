@@ -293,3 +293,29 @@ def test_cli_record_bad_policy_exits_2(tmp_path):
     rc, _, stderr = _run_main(["record", "--policy", "nonexistent.zip", "--out", str(path)])
     assert rc == 2 and "nonexistent.zip" in stderr
     assert not path.exists()
+
+
+def test_unseen_tissue_options_build_an_env_for_them():
+    """Pinning a stiffness above the training range evaluates on that tissue (the env gets the substeps it
+    needs), and the pinned scale is what the episode runs with."""
+    from msdgrasp.agents.controllers import FixedForcePolicy
+
+    pol = FixedForcePolicy(CONFIG, 2.5)
+    envs: dict = {}
+    (row,) = evaluate_policy(pol, [0.5], 2, CONFIG, _envs=envs, options={"stiffness_scale": 1.5})
+    ((cfg, _), env), = envs.items()
+    assert cfg.randomization.stiffness_scale_range[1] == 1.5 and env.core.sim.kscale[0] == 1.5
+    assert row["success_rate"] == 1.0  # the cautious 2.5 N grip also holds a stiffer spleen
+
+
+def test_policy_patterns_expand_or_fail(tmp_path):
+    from msdgrasp.agents.evaluation import expand_policy_specs
+    from msdgrasp.physics.config import ConfigError
+
+    for k in (1, 0):
+        (tmp_path / f"seed_{k}").mkdir()
+        (tmp_path / f"seed_{k}" / "best_model.zip").write_bytes(b"")
+    got = expand_policy_specs([str(tmp_path / "seed_*" / "best_model.zip"), "fixed"])
+    assert got == [str(tmp_path / "seed_0" / "best_model.zip"), str(tmp_path / "seed_1" / "best_model.zip"), "fixed"]
+    with pytest.raises(ConfigError, match="no saved model matches"):
+        expand_policy_specs([str(tmp_path / "nothing_*.zip")])

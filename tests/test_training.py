@@ -157,10 +157,37 @@ def test_resume_continues_the_step_count(short_run, tmp_path):
     ({"validation_mu": [0.3, 5.0]}, "validation_mu"),
     ({"validation_episodes": -1}, "validation_episodes"),
     ({"learning_rat": 0.1}, "learning_rat"),
+    ({"ppo": {"learning_rat": 0.1}}, "ppo: unknown PPO argument.*learning_rat"),  # a typo inside the block
+    ({"ppo": [1, 2]}, "ppo must be a mapping"),
 ])
 def test_bad_training_config_is_a_clear_error(over, needle):
     with pytest.raises(ConfigError, match=needle):
         from_dict(TrainConfig, {**SHORT, **over})
+
+
+def test_cli_typo_in_the_ppo_block_fails_before_any_output(tmp_path):
+    import yaml
+
+    from msdgrasp.agents.cli import main
+
+    cfg = tmp_path / "typo.yaml"
+    cfg.write_text(yaml.safe_dump({**SHORT, "ppo": {"n_step": 64}}))
+    out = tmp_path / "run"
+    assert main(["train", "--config", str(cfg), "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()  # nothing half-made
+
+
+def test_broken_config_next_to_a_model_is_an_error_not_a_guess(tmp_path):
+    from msdgrasp.agents.training import load_model
+
+    model = tmp_path / "m.zip"
+    import zipfile
+
+    with zipfile.ZipFile(model, "w") as z:
+        z.writestr("data", "{}")
+    (tmp_path / "m.yaml").write_text("algo: dqn\n")
+    with pytest.raises(ConfigError, match="training config .* is invalid"):
+        load_model(model)
 
 
 def test_missing_or_corrupt_model_is_a_clear_error(tmp_path):
