@@ -204,7 +204,7 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, 
                 elif inf["lost_grasp"][i]:
                     o = "lost_grasp"
                 elif inf["slipped"][i]:
-                    o = "slipped"
+                    o = "slipped"  # more than lift_slip_tolerance_m after lifting began: ran out the clock
                 elif term[i] and inf["damaged"][i]:
                     o = "damaged"
                 else:

@@ -169,7 +169,8 @@ def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int
     cfg_dict = to_dict(config)
     t0 = time.perf_counter()
     ctx = get_context("spawn")  # fork would copy torch/numba thread pools into the workers
-    with ProcessPoolExecutor(max_workers=workers + 1, mp_context=ctx) as pool:
+    # the baselines take the first slot, then the seeds: never more than `workers` processes at a time
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         base_future = pool.submit(_baselines, to_dict(config.env), episodes, list(mus))
         futures = {s: pool.submit(_train_and_evaluate, cfg_dict, s, str(out), episodes, list(mus)) for s in seeds}
         per_seed = []

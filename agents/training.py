@@ -53,7 +53,7 @@ class TrainConfig:
     """
 
     algo: str = "ppo"
-    total_timesteps: int = 400_000
+    total_timesteps: int = 350_000
     n_envs: int = 16
     seed: int = 0
     checkpoint_every: int = 25_000

@@ -79,7 +79,7 @@ class GraspLiftEnv(gym.Env):
     | 26 | peak pinch force so far (what the force discount will charge) | / reference force |
     | 27 | highest lift so far (what progress has paid) | / lift target |
     | 28-30 | friction utilisation abs(T) / N of jaw 0, 1, 2 (<= mu while sticking) | ratio |
-    | 31 | slip since lifting began | / lift_slip_tolerance_m (1 ends the episode) |
+    | 31 | slip since lifting began | / lift_slip_tolerance_m (above 1 no success is possible) |
     | 32- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, displacements of 16 nodes / lift target | |
 
     ## Rewards (each term in ``info["reward_terms"]``, weights in ``RewardConfig``)
@@ -106,9 +106,10 @@ class GraspLiftEnv(gym.Env):
 
     ## Episode end
     Terminated on success (grasped region lifted ``lift_target_m`` and held ``hold_time_s`` while it
-    slipped less than ``hold_slip_tolerance_m``; a hold spoilt by slip starts over), when the tissue has
-    slipped more than ``lift_slip_tolerance_m`` (2 mm) since lifting began (not a slip-free lift), on a
-    lost grasp after lifting began, on tissue damage, or on a numerical failure (``info["error"]`` says so; the observation
+    slipped less than ``hold_slip_tolerance_m``; a hold spoilt by slip starts over; and only if the tissue
+    has slipped less than ``lift_slip_tolerance_m`` (2 mm) since lifting began: beyond that the lift is not
+    slip-free and the episode can no longer succeed, ``info["slipped"]``), on a lost grasp after lifting
+    began, on tissue damage, or on a numerical failure (``info["error"]`` says so; the observation
     is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,
