@@ -95,10 +95,16 @@ class GraspLiftEnv(gym.Env):
     | damage | -5 per step with peak nodal stress above ``damage_stress_pa`` (terminates) | |
     | grasp, force | off by default (shaping toward a first grip for ``jaw_action="speed"``; cost per N s of pinch) | 0 |
 
-    Returns (``msdgrasp evaluate --policy zero --policy idle --policy fixed`` over mu 0.3-0.9, 10 episodes
-    per mu; the reactive and oracle columns come with every evaluation):
+    Returns (``msdgrasp evaluate --policy zero --policy idle --policy fixed --mu-grid 0.3:0.9:0.1``, 10
+    episodes per mu, mean over mu; the reactive and oracle rows come with every evaluation):
 
-    RETURNS_TABLE
+    | policy | success | mean peak pinch | mean return (range over mu) |
+    |---|---|---|---|
+    | idle (never touch: action (-1, -1)) | 0% | 0 N | -10.0 |
+    | zero (action (0, 0): 2.5 N and 30 mm from the first step, so it pulls away before it grips) | 0% | 0.06 N | -10.1 (-10.4 ... -9.8) |
+    | fixed 2.5 N (close, then pull at 10 mm/s) | 100% | 2.49 N | 45.0 (44.9 ... 45.1) |
+    | slip-reactive (1.2 N, +0.3 N per sensed slip) | 100% | 1.70 N | 53.0 (41.3 ... 58.1) |
+    | oracle (knows mu: minimal slip-free force + 10%) | 97% | 1.00 N | 58.5 (50.2 ... 62.9) |
 
     Success therefore dominates: any success earns more than any failure, never touching the tissue
     earns the failure penalty like every other failure, and at equal success each newton of peak pinch
