@@ -83,7 +83,7 @@ def test_spaces():
 
     priv = GraspLiftEnv(privileged_obs=True)
     n = priv.observation_space.shape[0]
-    assert n == 19 + 3 + 3 * priv.config.privileged_nodes
+    assert n == len(OBS_NAMES) + 3 + 3 * priv.config.privileged_nodes
     obs, _ = priv.reset(seed=1, options={"mu": 0.42})
     assert obs.shape == (n,) and obs.dtype == np.float32
     assert obs[19] == pytest.approx(0.42, rel=1e-6)  # mu is the first privileged entry
