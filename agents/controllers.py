@@ -23,13 +23,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..envs.core import OBS_NAMES, GraspLiftConfig
+from ..envs.core import GraspLiftConfig
 
 # observation layout (see GraspLiftEnv's docstring); a stacked history ends with the current frame
 _NORMAL = slice(4, 7)
 _SLIP = slice(13, 16)
 _TRAVEL = 2
-_N_FRAME = len(OBS_NAMES)
 
 
 def _current_frame(obs: np.ndarray, config: GraspLiftConfig) -> np.ndarray:

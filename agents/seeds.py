@@ -48,14 +48,14 @@ def parse_seeds(text: str) -> list[int]:
         if "-" in raw[1:]:
             lo_s, hi_s = raw.split("-", 1) if not raw.startswith("-") else (None, None)
             lo, hi = int(lo_s), int(hi_s)
-            if hi < lo:
-                raise ConfigError(f"--seeds {text!r}: the range end {hi} is below its start {lo}")
             seeds = list(range(lo, hi + 1))
         else:
             seeds = [int(p) for p in raw.split(",")]
     except (TypeError, ValueError):
         raise ConfigError(f"--seeds {text!r}: expected a range such as '0-4' or a comma list such as '0,3,7' "
                           "of integers >= 0") from None
+    if "-" in raw[1:] and not seeds:
+        raise ConfigError(f"--seeds {text!r}: the range end is below its start")
     if any(s < 0 for s in seeds):
         raise ConfigError(f"--seeds {text!r}: seeds must be integers >= 0")
     if len(set(seeds)) != len(seeds):
@@ -160,9 +160,9 @@ def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output folder {out} exists and is not a folder")
     seeds = list(seeds)
-    workers = int(workers or min(len(seeds), os.cpu_count() or 1))
-    if workers < 1:
-        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
+    workers = workers or min(len(seeds), os.cpu_count() or 1)
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
     config = replace(config, torch_threads=1)  # one core per process: processes are the parallelism

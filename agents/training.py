@@ -425,6 +425,8 @@ def behaviour_clone(model, config: TrainConfig) -> dict[str, float]:
 
 def train_cli(args) -> int:
     if args.resume is not None:
+        if args.seeds is not None:
+            raise ConfigError("--resume continues one run; it cannot be combined with --seeds")
         run_dir = Path(args.resume)
         if not (run_dir / "config.yaml").is_file():
             raise ConfigError(f"--resume {run_dir}: no config.yaml there (not a training run folder)")
@@ -447,8 +449,6 @@ def train_cli(args) -> int:
             if args.seed is not None:
                 raise ConfigError("give either --seed or --seeds, not both")
             seeds = parse_seeds(args.seeds)
-            if args.workers is not None and args.workers < 1:
-                raise ConfigError(f"--workers must be >= 1, got {args.workers}")
             result = run_seeds(config, seeds, args.out, workers=args.workers, progress=not args.quiet)
             print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
             return 0
