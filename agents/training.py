@@ -74,6 +74,12 @@ class TrainConfig:
     #: success rate, then lowest mean peak pinch) is kept as ``best_model.zip``. 0 disables it.
     validation_episodes: int = 6
     validation_mu: tuple[float, ...] = (0.2, 0.3, 0.5, 0.7, 0.9)
+    #: learning-rate schedule: "constant", or "linear" (from the algorithm's learning_rate down to 0 at
+    #: total_timesteps; a resumed run anneals over the steps that remain)
+    lr_schedule: str = "constant"
+    #: PPO only: the critic also sees the privileged entries of the observation (mu, stiffness and mass
+    #: scales, node displacements); the actor does not (agents/networks.py). Needs env.privileged_obs.
+    asymmetric_critic: bool = False
     ppo: dict = field(default_factory=lambda: {
         "learning_rate": 1e-3, "n_steps": 256, "batch_size": 1024, "n_epochs": 10, "gamma": 0.995,
         "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
@@ -86,6 +92,13 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_choice("algo", self.algo, ALGOS)
+        check_choice("lr_schedule", self.lr_schedule, ("constant", "linear"))
+        if not isinstance(self.asymmetric_critic, bool):
+            raise ConfigError(f"asymmetric_critic must be true or false, got {self.asymmetric_critic!r}")
+        if self.asymmetric_critic and self.algo != "ppo":
+            raise ConfigError(f"asymmetric_critic is implemented for algo 'ppo' only, got algo {self.algo!r}")
+        if self.asymmetric_critic and not self.env.privileged_obs:
+            raise ConfigError("asymmetric_critic: true needs env.privileged_obs: true (the critic's extra inputs)")
         for name, lo in (("total_timesteps", 1), ("n_envs", 1), ("checkpoint_every", 1), ("torch_threads", 1),
                          ("bc_steps", 1), ("bc_epochs", 0), ("validation_episodes", 0)):
             val = getattr(self, name)
@@ -207,9 +220,21 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
         model = algo_cls.load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
     else:
         kwargs = dict(config.ppo if config.algo == "ppo" else config.sac)
+        if config.lr_schedule == "linear":
+            from stable_baselines3.common.utils import LinearSchedule
+
+            kwargs["learning_rate"] = LinearSchedule(float(kwargs.get("learning_rate", 3e-4)), 0.0, 1.0)
+        policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net)}
+        if config.asymmetric_critic:
+            from ..envs.core import OBS_NAMES
+            from .networks import AsymmetricActorCriticPolicy, actor_mask
+
+            core = venv.core
+            policy = AsymmetricActorCriticPolicy
+            policy_kwargs["actor_mask"] = actor_mask(len(OBS_NAMES), core.frame_dim, config.env.obs_history)
         model = algo_cls(
-            "MlpPolicy", venv, seed=config.seed, device="cpu", verbose=0, tensorboard_log=str(out / "tb"),
-            policy_kwargs={"net_arch": list(config.policy_net)}, **kwargs,
+            policy, venv, seed=config.seed, device="cpu", verbose=0, tensorboard_log=str(out / "tb"),
+            policy_kwargs=policy_kwargs, **kwargs,
         )
 
     selector = BestModel(config, out, resume=resume)
