@@ -6,22 +6,18 @@ The environment is set at import time, i.e. before any test module imports rerun
   triggers (rerun, matplotlib, torch, tensorboard caches or telemetry state) reads or writes the real
   user's home; removed at exit;
 * MPLBACKEND=Agg (no display needed);
-* NUMBA_CACHE_DIR (unless already set) is a folder named after a hash of all ``physics/*.py`` sources:
-  numba's ``cache=True`` invalidates a cached function only when *its own* file changes, so after an edit
-  of ``forces.py`` or ``contact.py`` the cached ``integrator.simulate`` would still run the old, inlined
-  callees. The folder lies in ``physics/__pycache__`` (kept between sessions, so the second run is fast)
-  or, when the package folder is not writable, in the session's temporary folder. Folders of other
-  source versions are removed once they are an hour old.
+* NUMBA_CACHE_DIR (unless already set) is ``physics/__pycache__/numba-tests`` (kept between sessions, so
+  the second run is fast) or, when the package folder is not writable, the session's temporary folder.
+  Stale kernels are no concern: ``msdgrasp.physics.numba_cache`` keys every physics kernel on all physics
+  sources (tests/test_numba_cache.py).
 """
 
 from __future__ import annotations
 
 import atexit
-import hashlib
 import os
 import shutil
 import tempfile
-import time
 from pathlib import Path
 
 _SESSION_HOME = Path(tempfile.mkdtemp(prefix="msdgrasp-tests-home-"))
@@ -35,21 +31,14 @@ os.environ.setdefault("MPLCONFIGDIR", str(_SESSION_HOME / ".config" / "matplotli
 
 _PHYSICS_DIR = Path(__file__).resolve().parent.parent / "physics"
 if "NUMBA_CACHE_DIR" not in os.environ:
-    _digest = hashlib.sha1()
-    for _src in sorted(_PHYSICS_DIR.glob("*.py")):
-        _digest.update(_src.name.encode() + b"\0" + _src.read_bytes())
-    _tag = f"numba-{_digest.hexdigest()[:16]}"
     _base = _PHYSICS_DIR / "__pycache__"
     try:
         _base.mkdir(exist_ok=True)
         if not os.access(_base, os.W_OK):
             raise PermissionError(_base)
-        for _old in _base.glob("numba-*"):  # stale versions (an hour old: not a concurrent session's)
-            if _old.name != _tag and time.time() - _old.stat().st_mtime > 3600:
-                shutil.rmtree(_old, ignore_errors=True)
     except OSError:
         _base = _SESSION_HOME / ".cache"
-    os.environ["NUMBA_CACHE_DIR"] = str(_base / _tag)
+    os.environ["NUMBA_CACHE_DIR"] = str(_base / "numba-tests")
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
