@@ -12,11 +12,10 @@ __version__ = "0.1.0"
 
 
 def _register_envs() -> None:
-    # Registration only stores entry-point strings: importing msdgrasp stays cheap (no numba).
-    try:
-        from .envs.registration import register_envs
-    except ImportError:  # pragma: no cover - envs not built yet / optional deps missing
-        return
+    # Registration only stores entry-point strings: importing msdgrasp stays cheap (no numba). A missing
+    # dependency (gymnasium) is an ImportError here, never a silently unregistered env.
+    from .envs.registration import register_envs
+
     register_envs()
 
 

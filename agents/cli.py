@@ -17,11 +17,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from .errors import UsageError
+
 DEFAULT_LOGS = Path("logs")
-
-
-class UsageError(Exception):
-    """Bad command-line input: printed as one line, exit status 2."""
 
 
 def _add_out(p: argparse.ArgumentParser, default: str) -> None:
@@ -170,10 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_rl_commands(sub) -> None:
     """train/evaluate/record/replay/soak live in agents/ modules that import torch lazily."""
-    try:
-        from .rl_cli import add_rl_commands
-    except ImportError:
-        return
+    from .rl_cli import add_rl_commands
+
     add_rl_commands(sub)
 
 

@@ -14,14 +14,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+from .errors import UsageError
+
 RRD_MAGIC = b"RRF"
 
 
 def _usage_error(message: str) -> Exception:
-    try:
-        from .cli import UsageError
-    except ImportError:  # pragma: no cover - cli missing
-        return FileNotFoundError(message)
     return UsageError(message)
 
 

@@ -24,11 +24,10 @@ def _default_models() -> list[str]:
 
 
 def _usage(message: str) -> Exception:
-    """A one-line input error (exit status 2). ConfigError rather than cli.UsageError: under
-    ``python -m msdgrasp.agents.cli`` the running module's UsageError is a different class object."""
-    from ..physics.config import ConfigError
+    """A one-line input error (exit status 2)."""
+    from .errors import UsageError
 
-    return ConfigError(message)
+    return UsageError(message)
 
 
 def _missing_module(command: str, exc: ImportError) -> Exception:

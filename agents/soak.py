@@ -204,12 +204,9 @@ def run_soak(steps: int = 1_000_000, n_envs: int = 16, seed: int = 0, progress: 
     obs = full_reset()
     bar = None
     if progress:
-        try:
-            from tqdm import tqdm
+        from tqdm import tqdm
 
-            bar = tqdm(total=vsteps * N, unit="step", desc="soak", file=sys.stderr, mininterval=1.0)
-        except ImportError:
-            bar = None
+        bar = tqdm(total=vsteps * N, unit="step", desc="soak", file=sys.stderr, mininterval=1.0)
     aborted = None
     for k in range(vsteps):
         if k > 0 and rng.random() < 0.002:  # pinned extremes for every sub-env (in-flight episodes dropped)

@@ -244,3 +244,15 @@ def test_replay_cli(recorded, tmp_path, capsys):
     assert replay_cli(parser.parse_args([str(recorded[0]), "--web", "--print-command"])) == 0
     out = capsys.readouterr().out.split()
     assert Path(out[0]).name == "rerun" and "--web-viewer" in out and out[-1] == str(recorded[0])
+
+
+@pytest.mark.parametrize("launcher", [["-m", "msdgrasp.agents.cli"], ["-c", "import sys; from msdgrasp.agents.cli import main; sys.exit(main())"]])
+def test_a_missing_recording_is_one_line_and_exit_2_however_the_cli_is_started(launcher, tmp_path):
+    """``python -m msdgrasp.agents.cli`` runs cli.py as __main__; the error class must still be caught."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, *launcher, "replay", str(tmp_path / "nope.rrd")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [f"msdgrasp replay: error: recording not found: {tmp_path / 'nope.rrd'}"]
