@@ -271,7 +271,6 @@ def test_rl_subcommands_are_wired():
 
 
 def test_cli_record_writes_a_recording(tmp_path, monkeypatch):
-    pytest.importorskip("rerun")
     home = tmp_path / "home"
     monkeypatch.setenv("HOME", str(home))
     for var in ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME", "XDG_STATE_HOME"):

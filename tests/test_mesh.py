@@ -21,7 +21,7 @@ from msdgrasp.physics.mesh import (
     validate_tets,
 )
 
-meshio = pytest.importorskip("meshio")
+import meshio  # noqa: E402  (a dependency: a missing meshio fails, never skips)
 
 # Minimum radius-ratio quality the generators achieve (sphere 0.541 at every resolution; spleen
 # 0.405 coarse / 0.375 medium / 0.33 xfine); thresholds leave a margin but catch slivers.

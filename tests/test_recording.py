@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-rr = pytest.importorskip("rerun")
+import rerun as rr  # noqa: E402  (a dependency: a missing rerun fails, never skips)
 from rerun.chunk import RrdReader  # noqa: E402
 
 from msdgrasp.envs.grasp_lift import GraspLiftEnv  # noqa: E402
