@@ -60,7 +60,6 @@ from __future__ import annotations
 import atexit
 import functools
 import os
-import tempfile
 import uuid
 import warnings
 import weakref
@@ -70,6 +69,8 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
+from ..physics.config import publish, temp_beside
 
 __all__ = ["RecordingError", "RecordingWarning", "RerunRecorder", "record_episode", "stress_colors"]
 
@@ -151,11 +152,9 @@ def _prepare_destination(path: Path) -> None:
 
 def _make_temp(path: Path) -> Path:
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+        return temp_beside(path, suffix=".part")
     except OSError as exc:
         raise _error(f"cannot record to {path}: cannot create a file in {path.parent}", path, exc) from None
-    os.close(fd)
-    return Path(tmp)
 
 
 class _Sink:
@@ -208,7 +207,7 @@ class _Sink:
                 os.fsync(fh.fileno())
             if not RrdReader(self.tmp).recordings():  # raises on a truncated/corrupt file
                 raise RecordingError(f"recording {self.path} failed: the written file holds no recording", self.path)
-            os.replace(self.tmp, self.path)
+            publish(self.tmp, self.path)
             self._gc.detach()
         except RecordingError:
             self.discard()

@@ -26,11 +26,12 @@ from __future__ import annotations
 
 import itertools
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from .config import atomic_write
 
 __all__ = [
     "MeshError",
@@ -765,17 +766,13 @@ def save_mesh(mesh: TetMesh, path: str | os.PathLike, file_format: str | None = 
         point_data=point_data,
         cell_data=cell_data,
     )
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.stem}.", suffix=p.suffix)
-    os.close(fd)
-    try:
+    def write(tmp: Path) -> None:
         try:
             meshio.write(tmp, m, file_format=fmt)
         except Exception as exc:
             raise MeshError(f"cannot write mesh file {p} (format {fmt or p.suffix!r}): {exc}") from exc
-        os.replace(tmp, p)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+
+    atomic_write(p, write)
 
 
 def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwargs) -> TetMesh:

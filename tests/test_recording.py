@@ -256,3 +256,16 @@ def test_a_missing_recording_is_one_line_and_exit_2_however_the_cli_is_started(l
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [f"msdgrasp replay: error: recording not found: {tmp_path / 'nope.rrd'}"]
+
+
+def test_recordings_are_readable_like_every_other_output(recorded, tmp_path):
+    """A recording gets the permissions of a normally created file (umask), not mkstemp's 0600."""
+    import os
+
+    from msdgrasp.physics.config import atomic_write_text
+
+    other = atomic_write_text(tmp_path / "other.json", "{}")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert recorded[0].stat().st_mode & 0o777 == 0o666 & ~umask
+    assert other.stat().st_mode & 0o777 == 0o666 & ~umask
