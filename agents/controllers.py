@@ -24,6 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
+from .models import load_model, model_train_config
 
 # observation layout (see GraspLiftEnv's docstring); a stacked history ends with the current frame
 _NORMAL = slice(4, 7)
@@ -134,6 +135,8 @@ class OraclePolicy(FixedForcePolicy):
 
 @functools.lru_cache(maxsize=8)
 def _max_pull_speed(config: GraspLiftConfig) -> float:
+    if config.max_pull_speed_m_s is not None:
+        return config.max_pull_speed_m_s
     from ..physics.config import builtin_config
     from ..physics.grasper import GrasperParams
     from ..physics.scenario import load_params
@@ -200,7 +203,6 @@ class ModelPolicy:
     """A trained Stable-Baselines3 model (deterministic actions)."""
 
     def __init__(self, path: str | Path, name: str | None = None) -> None:
-        from .training import load_model, model_train_config
 
         self.model = load_model(path)
         if name is None:  # named by what it is: "PPO (seed 3)" when its training config is saved with it

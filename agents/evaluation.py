@@ -41,7 +41,8 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
-from .controllers import idle_action
+from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
+from .models import model_config_path, model_train_config
 
 #: the training range (0.3-0.9) and beyond it on both sides (0.15, 0.2, 1.0, 1.2: unseen in training)
 DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
@@ -322,7 +323,6 @@ def check_policy_spec(spec: str) -> None:
 
 def build_policy(spec: str, config: GraspLiftConfig):
     """``make_policy`` after :func:`check_policy_spec`, with every failure as ConfigError."""
-    from .controllers import make_policy
 
     check_policy_spec(spec)
     try:
@@ -432,7 +432,6 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
 
 def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool = False) -> dict[str, Any]:
     """The oracle's minimal slip-free fixed force at each mu (bisection in simulation, cached per mu)."""
-    from .controllers import OraclePolicy, minimal_force
 
     ref = OraclePolicy(config)
     forces = []
@@ -450,7 +449,6 @@ def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool =
 def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
     """The task to evaluate on: ``config`` if given, else the env config the model(s) were trained with
     (all models must agree), else the default task. Returns (config, where it came from)."""
-    from .training import model_config_path, model_train_config
 
     if config is not None:
         return config, None

@@ -40,11 +40,42 @@ def _missing_module(command: str, exc: ImportError) -> Exception:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from ..physics.config import builtin_config, from_dict, read_yaml, to_dict
+    from .models import TrainConfig
+
     try:
-        from .training import train_cli
+        from .seeds import parse_seeds, run_seeds
+        from .training import train
     except ImportError as exc:
         raise _missing_module("train", exc) from None
-    return train_cli(args)
+    if args.resume is not None:
+        if args.seeds is not None:
+            raise _usage("--resume continues one run; it cannot be combined with --seeds")
+        run_dir = Path(args.resume)
+        if not (run_dir / "config.yaml").is_file():
+            raise _usage(f"--resume {run_dir}: no config.yaml there (not a training run folder)")
+        config = TrainConfig.load(run_dir / "config.yaml")
+        if args.total_timesteps:
+            config = from_dict(TrainConfig, {**to_dict(config), "total_timesteps": args.total_timesteps})
+        summary = train(config, run_dir, resume=True, progress=not args.quiet)
+    else:
+        path = args.config or builtin_config("train/ppo.yaml")
+        data = read_yaml(path)
+        for key, val in (("algo", args.algo), ("total_timesteps", args.total_timesteps), ("n_envs", args.n_envs),
+                         ("seed", args.seed)):
+            if val is not None:
+                data[key] = val
+        config = from_dict(TrainConfig, data, where=Path(path).name)
+        if args.seeds is not None:
+            if args.seed is not None:
+                raise _usage("give either --seed or --seeds, not both")
+            result = run_seeds(config, parse_seeds(args.seeds), args.out, workers=args.workers,
+                               progress=not args.quiet)
+            print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
+            return 0
+        summary = train(config, args.out, progress=not args.quiet)
+    print(json.dumps(summary, indent=2))
+    return 0
 
 
 def _default_policies() -> list[str]:

@@ -32,8 +32,12 @@ from typing import Any
 
 import numpy as np
 
-from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
-from .evaluation import nan_to_none
+from ..envs.core import GraspLiftConfig
+from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
+from .controllers import ModelPolicy, make_policy
+from .evaluation import evaluate_policy, nan_to_none, oracle_curve
+from .models import TrainConfig
+from .training import train
 
 #: friction values of the per-seed evaluation; REFERENCE_MU are the ones the headline numbers average
 EVAL_MU = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -105,11 +109,6 @@ def aggregate(values: Sequence[float]) -> dict[str, Any]:
 
 def _train_and_evaluate(config_dict: dict[str, Any], seed: int, out: str, episodes: int,
                         mus: Sequence[float]) -> dict[str, Any]:
-    from ..physics.config import from_dict
-    from .controllers import ModelPolicy
-    from .evaluation import evaluate_policy
-    from .training import TrainConfig, train
-
     config = from_dict(TrainConfig, {**config_dict, "seed": seed}, where="seeds")
     run = Path(out) / f"seed_{seed}"
     t0 = time.perf_counter()
@@ -123,11 +122,6 @@ def _train_and_evaluate(config_dict: dict[str, Any], seed: int, out: str, episod
 
 
 def _baselines(env_dict: dict[str, Any], episodes: int, mus: Sequence[float]) -> dict[str, Any]:
-    from ..envs.core import GraspLiftConfig
-    from ..physics.config import from_dict
-    from .controllers import make_policy
-    from .evaluation import evaluate_policy, oracle_curve
-
     env = from_dict(GraspLiftConfig, env_dict, where="env")
     out = {name: evaluate_policy(make_policy(name, env), mus, episodes, env) for name in ("reactive", "oracle")}
     out["oracle_minimal_force"] = oracle_curve(env, mus)

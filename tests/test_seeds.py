@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents.seeds import aggregate, bootstrap_ci, iqm, parse_seeds, run_seeds
-from msdgrasp.agents.training import TrainConfig
+from msdgrasp.agents.models import TrainConfig
 from msdgrasp.physics.config import ConfigError, from_dict
 
 
