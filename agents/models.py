@@ -34,6 +34,9 @@ class TrainConfig:
     checkpoint_every: int = 25_000
     torch_threads: int = 1
     policy_net: tuple[int, ...] = (64, 64)
+    #: PPO only: initial log standard deviation of the Gaussian action noise (SB3's default is 0, i.e. a
+    #: standard deviation of 1 in action units, which is +-2.5 N on the pinch set-point)
+    log_std_init: float = 0.0
     #: behaviour-cloning warm start: a controller spec ('reactive', 'fixed', ...) whose actions the policy
     #: imitates before RL. None (the default): PPO learns from scratch.
     bc_teacher: str | None = None
@@ -84,6 +87,8 @@ class TrainConfig:
                 or any(isinstance(m, bool) or not isinstance(m, (int, float)) or not 0.0 <= m <= 2.0 for m in mus)):
             raise ConfigError(f"validation_mu must be a non-empty list of friction coefficients in [0, 2], got {mus!r}")
         object.__setattr__(self, "validation_mu", tuple(float(m) for m in mus))
+        if isinstance(self.log_std_init, bool) or not isinstance(self.log_std_init, (int, float)) or not -5.0 <= self.log_std_init <= 1.0:
+            raise ConfigError(f"log_std_init must be a number in [-5, 1], got {self.log_std_init!r}")
         if not isinstance(self.bc_value_fit, bool):
             raise ConfigError(f"bc_value_fit must be true or false, got {self.bc_value_fit!r}")
         if not isinstance(self.seed, int) or isinstance(self.seed, bool):

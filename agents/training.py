@@ -74,6 +74,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
 
             kwargs["learning_rate"] = LinearSchedule(float(kwargs.get("learning_rate", 3e-4)), 0.0, 1.0)
         policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net)}
+        if config.algo == "ppo":
+            policy_kwargs["log_std_init"] = float(config.log_std_init)
         if config.asymmetric_critic:
             from ..envs.core import OBS_NAMES
             from .networks import AsymmetricActorCriticPolicy, actor_mask
