@@ -26,7 +26,7 @@ def asymmetric_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("asym")
     cfg = from_dict(TrainConfig, {
         "total_timesteps": 512, "n_envs": 2, "checkpoint_every": 10**6, "validation_episodes": 0,
-        "asymmetric_critic": True, "lr_schedule": "linear",
+        "asymmetric_critic": True, "lr_schedule": "linear", "log_std_init": -1.0,
         "ppo": {"learning_rate": 1e-3, "n_steps": 128, "batch_size": 64, "n_epochs": 2},
         "env": {"privileged_obs": True, "obs_history": 2}})
     train(cfg, out, progress=False)
@@ -57,6 +57,11 @@ def test_the_saved_actor_is_blind_to_privileged_entries_and_the_critic_is_not(as
     assert np.abs(a2 - a0).max() > 1e-4
 
 
+def test_log_std_init_sets_the_initial_action_noise(asymmetric_run):
+    # 512 steps with 2 epochs of updates at lr <= 1e-3 move a log std by far less than 0.1
+    np.testing.assert_allclose(asymmetric_run.policy.log_std.detach().numpy(), -1.0, atol=0.1)
+
+
 def test_linear_schedule_anneals_the_learning_rate_to_zero(asymmetric_run):
     sched = asymmetric_run.lr_schedule
     assert sched(1.0) == pytest.approx(1e-3)
@@ -69,6 +74,7 @@ def test_linear_schedule_anneals_the_learning_rate_to_zero(asymmetric_run):
     ({"asymmetric_critic": True, "algo": "sac", "env": {"privileged_obs": True}}, "algo 'ppo' only"),
     ({"asymmetric_critic": "yes"}, "asymmetric_critic"),
     ({"lr_schedule": "cosine"}, "lr_schedule"),
+    ({"log_std_init": 3.0}, "log_std_init"),
 ])
 def test_bad_training_options_name_the_field(over, field):
     with pytest.raises(ConfigError, match=field):
