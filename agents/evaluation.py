@@ -470,7 +470,7 @@ def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[Gr
 
 def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
              config: GraspLiftConfig | None = None, seed: int = 0, record: bool = False,
-             progress: bool = True, n_envs: int | None = None,
+             progress: bool = True, n_envs: int | None = None, video: bool = False,
              conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS) -> dict[str, Any]:
     """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
 
@@ -539,7 +539,9 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 
     recordings: list[str] = []
     if record:
-        recordings = _record_all(policies, names, built, mus, config, seed, out_dir / "recordings", progress)
+        recordings = _record_all(names, built, mus, config, seed, out_dir / "recordings", progress)
+    if video:
+        recordings += _record_all(names, built, mus, config, seed, out_dir / "videos", progress, suffix=".mp4")
 
     summary = {
         "config": to_dict(config),
@@ -582,8 +584,10 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 
 
 def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 0) -> dict[str, Any]:
-    """Record one episode of ``policy`` (batch interface) on the single env ``env`` at friction ``mu``."""
+    """Record one episode of ``policy`` (batch interface) on the single env ``env`` at friction ``mu``:
+    a rerun recording for a ``.rrd`` path, a video for ``.mp4`` / ``.gif``."""
     from ..envs.recording import record_episode
+    from ..envs.video import VIDEO_SUFFIXES, record_video
 
     options = {"mu": float(mu)}
     # the reset info the recorder's reset will produce (same seed, same options): the policy needs it
@@ -593,18 +597,20 @@ def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 
     def policy_fn(obs: np.ndarray) -> np.ndarray:
         return np.asarray(policy.act(np.asarray(obs)[None]), dtype=np.float64).reshape(-1, 2)[0]
 
+    if Path(path).suffix.lower() in VIDEO_SUFFIXES:
+        return record_video(env, policy_fn, path, seed=int(seed), options=options)
     return record_episode(env, policy_fn, path, seed=int(seed), options=options)
 
 
-def _record_all(policies, names, built, mus, config, seed, folder: Path, progress: bool) -> list[str]:
+def _record_all(names, built, mus, config, seed, folder: Path, progress: bool, suffix: str = ".rrd") -> list[str]:
     from ..envs.grasp_lift import GraspLiftEnv
 
     env = GraspLiftEnv(config)
     paths = []
     try:
-        for spec, name, pol in zip(policies, names, built):
+        for name, pol in zip(names, built):
             for mu in mus:
-                path = folder / f"{_safe_name(name)}_mu{_mu_label(mu)}.rrd"
+                path = folder / f"{_safe_name(name)}_mu{_mu_label(mu)}{suffix}"
                 summary = record_policy_episode(pol, env, path, mu, seed)
                 paths.append(summary["path"])
                 if progress:

@@ -94,7 +94,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
     result = evaluate(policies, mus, args.episodes, args.out, seed=args.seed, record=args.record,
-                      progress=not args.quiet, n_envs=args.n_envs,
+                      progress=not args.quiet, n_envs=args.n_envs, video=args.video,
                       conditions=() if args.no_unseen else UNSEEN_CONDITIONS)
     print(format_table(result["results"]))
     if result["unseen_conditions"]:
@@ -117,6 +117,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
         raise _usage(f"--out {out}: give one file name (no {{episode}} template)")
     if out.is_dir():
         raise _usage(f"--out {out} is a folder; give a file name such as {out / 'episode.rrd'}")
+    if args.video is not None:
+        from ..envs.video import check_video_path
+
+        check_video_path(args.video)
     spec = args.policy or next(iter(_default_models()), "fixed")
     check_policy_spec(spec)
     config, _ = task_of([spec], None)  # a model runs on the task it was trained on
@@ -124,6 +128,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
     env = GraspLiftEnv(config)
     try:
         summary = record_policy_episode(policy, env, out, args.mu, args.seed)
+        if args.video is not None:  # the same episode again (same seed), rendered
+            summary["video"] = record_policy_episode(policy, env, args.video, args.mu, args.seed)["path"]
     finally:
         env.close()
     print(json.dumps({"policy": spec, "mu": args.mu, "seed": args.seed, **summary}, indent=2))
@@ -182,6 +188,7 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--seed", type=int, default=0, help="episode i is seeded seed + i (default 0)")
     e.add_argument("--out", type=Path, default=Path("logs") / "evaluate", help="output folder (default logs/evaluate)")
     e.add_argument("--record", action="store_true", help="also record one episode per policy and mu (.rrd)")
+    e.add_argument("--video", action="store_true", help="also write one video per policy and mu (videos/*.mp4)")
     e.add_argument("--quiet", action="store_true", help="no progress output")
     e.set_defaults(func=_cmd_evaluate)
 
@@ -193,6 +200,8 @@ def add_rl_commands(sub) -> None:
     r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     r.add_argument("--out", type=Path, default=Path("logs") / "record" / "episode.rrd",
                    help="recording to write (default logs/record/episode.rrd)")
+    r.add_argument("--video", type=Path, default=None, metavar="PATH",
+                   help="also write the episode as a video: PATH ending in .mp4 or .gif")
     r.set_defaults(func=_cmd_record)
 
     from .replay import add_replay_arguments

@@ -327,7 +327,7 @@ def test_render_rgb_array():
     env = gym.make(ENV_ID, render_mode="rgb_array")
     env.reset(seed=0)
     f0 = env.render()
-    assert isinstance(f0, np.ndarray) and f0.dtype == np.uint8 and f0.shape == (360, 480, 3)
+    assert isinstance(f0, np.ndarray) and f0.dtype == np.uint8 and f0.shape == (480, 640, 3)
     for _ in range(25):
         env.step(np.array([1.0, 1.0]))
     f1 = env.render()
@@ -348,7 +348,7 @@ def test_render_helper_sizes_and_cache():
     render_rgb(venv.core, 0, width=200, height=150)
     assert len(venv.core._render_cache) == 1  # figure reused
     frames = venv.render()
-    assert frames.shape == (2, 360, 480, 3) and frames.dtype == np.uint8
+    assert frames.shape == (2, 480, 640, 3) and frames.dtype == np.uint8
     with pytest.raises(IndexError):
         render_rgb(venv.core, 2)
     with pytest.raises(ValueError, match="color_by"):
