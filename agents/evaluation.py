@@ -43,6 +43,7 @@ from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .models import model_config_path, model_train_config
+from .stats import bootstrap_ci, wilson_interval
 
 #: the training range (0.3-0.9) and beyond it on both sides (0.15, 0.2, 1.0, 1.2: unseen in training)
 DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
@@ -222,10 +223,13 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
     ttl = ep["time_to_lift_s"]
     lifted = np.isfinite(ttl)
     outcomes = {o: int(np.sum(ep["outcome"] == o)) for o in sorted(set(ep["outcome"].tolist()))}
+    n = int(len(ep["success"]))
     return {
         "mu": float(mu),
         "success_rate": float(np.mean(ep["success"])),
+        "success_ci95": list(wilson_interval(int(np.sum(ep["success"])), n)),
         "mean_peak_pinch_N": float(np.mean(ep["peak_pinch_N"])),
+        "peak_pinch_ci95_N": list(bootstrap_ci(ep["peak_pinch_N"])),
         "max_peak_pinch_N": float(np.max(ep["peak_pinch_N"])),
         "mean_pinch_N": float(np.mean(ep["mean_pinch_N"])),
         "mean_return": float(np.mean(ep["return"])),
@@ -388,6 +392,17 @@ def _style(k: int) -> dict[str, Any]:
             "markersize": 7 - 0.6 * (k % 4), "alpha": 0.9}
 
 
+def display_name(name: str) -> str:
+    """What a policy is, for plots and tables: 'reactive' -> 'slip-reactive', 'fixed2.5N' -> 'fixed 2.5 N'."""
+    if name == "reactive":
+        return "slip-reactive"
+    if name == "oracle":
+        return "oracle (min. force + 10%)"
+    if name.startswith("fixed") and name.endswith("N"):
+        return f"fixed {name[5:-1]} N"
+    return name
+
+
 def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
     import matplotlib
 
@@ -395,17 +410,23 @@ def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     lo, hi = config.randomization.mu_range
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(7.0, 4.4))
     ax.axvspan(lo, hi, color="tab:gray", alpha=0.15, label=f"training range of mu [{lo:g}, {hi:g}]")
+    n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
     for k, pol in enumerate(results):
-        mus = [r["mu"] for r in pol["rows"]]
-        ax.plot(mus, [r["success_rate"] for r in pol["rows"]], label=pol["name"], **_style(k))
+        rows = pol["rows"]
+        mus = np.array([r["mu"] for r in rows]) + (k - (len(results) - 1) / 2) * 0.006  # dodge overlapping bars
+        rate = np.array([r["success_rate"] for r in rows])
+        ci = np.array([r["success_ci95"] for r in rows])
+        ax.errorbar(mus, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], label=display_name(pol["name"]), capsize=2,
+                    elinewidth=0.8, **_style(k))
     ax.set_xlabel("friction coefficient mu")
     ax.set_ylabel("success rate (slip-free lift)")
     ax.set_ylim(-0.05, 1.05)
-    ax.set_title("Grasp-and-lift success vs friction")
+    ax.set_title(f"Grasp-and-lift success vs friction (n = {'/'.join(map(str, n))} episodes per point, "
+                 "95% Wilson intervals)", fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     return save_figure(fig, path)
 
 
@@ -415,18 +436,33 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(7.0, 4.4))
+    n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
+    failed_label = "a failed episode's peak pinch"
     for k, pol in enumerate(results):
-        mus = [r["mu"] for r in pol["rows"]]
-        ax.plot(mus, [r["mean_peak_pinch_N"] for r in pol["rows"]], label=f"{pol['name']} (mean peak)", **_style(k))
-    ax.plot(oracle_curve["mu"], oracle_curve["minimal_force_N"], color="black", linestyle="--", marker="x",
+        rows = pol["rows"]
+        dodge = (k - (len(results) - 1) / 2) * 0.006
+        mus = np.array([r["mu"] for r in rows]) + dodge
+        mean = np.array([r["mean_peak_pinch_N"] for r in rows])
+        ci = np.array([r["peak_pinch_ci95_N"] for r in rows])
+        line = ax.errorbar(mus, mean, yerr=[mean - ci[:, 0], ci[:, 1] - mean], capsize=2, elinewidth=0.8,
+                           label=f"{display_name(pol['name'])} (mean peak, all episodes)", **_style(k))
+        colour = line[0].get_color()
+        for r, m in zip(rows, mus):  # failed episodes are in the mean: show them
+            bad = [p for p, ok in zip(r["per_episode"]["peak_pinch_N"], r["per_episode"]["success"]) if not ok]
+            if bad:
+                ax.scatter([m] * len(bad), bad, marker="x", s=14, color=colour, linewidths=0.8,
+                           label=failed_label, zorder=3)
+                failed_label = None
+    ax.plot(oracle_curve["mu"], oracle_curve["minimal_force_N"], color="black", linestyle="--", marker="+",
             label="minimal slip-free force (oracle bisection)")
     ax.set_xlabel("friction coefficient mu")
-    ax.set_ylabel("pinch force (N)")
-    ax.set_title("Pinch force vs friction")
+    ax.set_ylabel("peak pinch force (N)")
+    ax.set_title(f"Peak pinch force vs friction (n = {'/'.join(map(str, n))} episodes per point, 95% bootstrap "
+                 "intervals; x: failed episodes)", fontsize=9)
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     return save_figure(fig, path)
 
 

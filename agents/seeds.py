@@ -35,8 +35,9 @@ import numpy as np
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
 from .controllers import ModelPolicy, make_policy
-from .evaluation import evaluate_policy, nan_to_none, oracle_curve
+from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve
 from .models import TrainConfig
+from .stats import bootstrap_ci, iqm  # noqa: F401  (re-exported)
 from .training import train
 
 #: friction values of the per-seed evaluation; REFERENCE_MU are the ones the headline numbers average
@@ -70,28 +71,8 @@ def parse_seeds(text: str) -> list[int]:
 
 
 # ------------------------------------------------------------------------------------------------
-# statistics
+# statistics (iqm, bootstrap_ci: agents/stats.py)
 # ------------------------------------------------------------------------------------------------
-
-
-def iqm(values: Sequence[float]) -> float:
-    """Interquartile mean (Agarwal et al. 2021): the mean of the middle 50% (scipy's trimmed mean)."""
-    from scipy.stats import trim_mean
-
-    return float(trim_mean(np.asarray(values, dtype=np.float64), 0.25))
-
-
-def bootstrap_ci(values: Sequence[float], confidence: float = 0.95, seed: int = 0) -> tuple[float, float]:
-    """Percentile-bootstrap interval of the mean (scipy.stats.bootstrap, 10k resamples). One value or no
-    spread: the value itself at both ends."""
-    from scipy.stats import bootstrap
-
-    x = np.asarray(values, dtype=np.float64)
-    if len(x) < 2 or np.ptp(x) == 0.0:
-        return float(np.mean(x)), float(np.mean(x))
-    res = bootstrap((x,), np.mean, confidence_level=confidence, n_resamples=10_000, method="percentile",
-                    random_state=np.random.default_rng(seed))
-    return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
 def aggregate(values: Sequence[float]) -> dict[str, Any]:
@@ -232,8 +213,8 @@ def format_markdown(result: dict[str, Any]) -> str:
 
     for rec in result["per_seed"]:
         lines.append(row(f"PPO (seed {rec['seed']})", rec))
-    lines.append(row("slip-reactive", result["baselines"]["reactive"]))
-    lines.append(row("oracle (min. force + 10%)", result["baselines"]["oracle"]))
+    lines.append(row(display_name("reactive"), result["baselines"]["reactive"]))
+    lines.append(row(display_name("oracle"), result["baselines"]["oracle"]))
     curve = result["oracle_minimal_force"]
     lines.append("| oracle minimal force (N) | " + " | ".join(f"{f:.2f}" for f in curve["minimal_force_N"])
                  + " | | | |")
