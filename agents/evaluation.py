@@ -619,7 +619,8 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 # ------------------------------------------------------------------------------------------------
 
 
-def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 0) -> dict[str, Any]:
+def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 0,
+                          still: str | Path | None = None) -> dict[str, Any]:
     """Record one episode of ``policy`` (batch interface) on the single env ``env`` at friction ``mu``:
     a rerun recording for a ``.rrd`` path, a video for ``.mp4`` / ``.gif``."""
     from ..envs.recording import record_episode
@@ -634,7 +635,7 @@ def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 
         return np.asarray(policy.act(np.asarray(obs)[None]), dtype=np.float64).reshape(-1, 2)[0]
 
     if Path(path).suffix.lower() in VIDEO_SUFFIXES:
-        return record_video(env, policy_fn, path, seed=int(seed), options=options)
+        return record_video(env, policy_fn, path, seed=int(seed), options=options, still=still)
     return record_episode(env, policy_fn, path, seed=int(seed), options=options)
 
 

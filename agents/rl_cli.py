@@ -121,6 +121,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         from ..envs.video import check_video_path
 
         check_video_path(args.video)
+    if args.still is not None and (args.video is None or Path(args.still).suffix.lower() != ".png"):
+        raise _usage(f"--still {args.still}: needs --video and a file name ending in .png")
     spec = args.policy or next(iter(_default_models()), "fixed")
     check_policy_spec(spec)
     config, _ = task_of([spec], None)  # a model runs on the task it was trained on
@@ -129,7 +131,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
     try:
         summary = record_policy_episode(policy, env, out, args.mu, args.seed)
         if args.video is not None:  # the same episode again (same seed), rendered
-            summary["video"] = record_policy_episode(policy, env, args.video, args.mu, args.seed)["path"]
+            video = record_policy_episode(policy, env, args.video, args.mu, args.seed, still=args.still)
+            summary["video"] = video["path"]
+            if args.still is not None:
+                summary["still"] = video["still"]
     finally:
         env.close()
     print(json.dumps({"policy": spec, "mu": args.mu, "seed": args.seed, **summary}, indent=2))
@@ -202,6 +207,8 @@ def add_rl_commands(sub) -> None:
                    help="recording to write (default logs/record/episode.rrd)")
     r.add_argument("--video", type=Path, default=None, metavar="PATH",
                    help="also write the episode as a video: PATH ending in .mp4 or .gif")
+    r.add_argument("--still", type=Path, default=None, metavar="PNG",
+                   help="with --video: also save the video's last frame (the outcome) as a PNG")
     r.set_defaults(func=_cmd_record)
 
     from .replay import add_replay_arguments

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..physics.config import ConfigError, publish, temp_beside
+from ..physics.config import ConfigError, atomic_write, publish, temp_beside
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
@@ -68,15 +68,19 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
 
 def record_video(env: Any, policy_fn: Callable[[np.ndarray], np.ndarray], path: str | os.PathLike, *,
                  seed: int | None = None, options: dict[str, Any] | None = None, color_by: str = "strain",
-                 width: int = 640, height: int = 480, gif_fps: float = 10.0) -> dict[str, Any]:
+                 width: int = 640, height: int = 480, gif_fps: float = 10.0,
+                 still: str | os.PathLike | None = None) -> dict[str, Any]:
     """Run one episode of ``policy_fn(obs) -> action`` on ``env`` and write it as a video.
 
     An mp4 gets every agent step at the agent rate (~30 fps, real time); a GIF every k-th step at about
-    ``gif_fps`` (still real time, a smaller file). Returns a summary (path, frames, steps, success).
+    ``gif_fps`` (still real time, a smaller file). ``still``: also write the episode's last frame (its
+    outcome) as a PNG. Returns a summary (path, frames, steps, success).
     """
     from .render import render_rgb
 
     p = check_video_path(path)
+    if still is not None and Path(still).suffix.lower() != ".png":
+        raise ConfigError(f"still {still}: the file name must end in .png")
     core = env.unwrapped.core
     obs, info = env.reset(seed=seed, options=options)
     agent_fps = 1.0 / core.config.agent_dt_s
@@ -90,8 +94,13 @@ def record_video(env: Any, policy_fn: Callable[[np.ndarray], np.ndarray], path: 
         if steps % every == 0 or terminated or truncated:
             frames.append(render_rgb(core, 0, width, height, color_by))
     write_video(frames, p, agent_fps / every)
-    return {"path": str(p), "frames": len(frames), "steps": steps, "fps": agent_fps / every,
-            "success": bool(info.get("is_success", False))}
+    summary = {"path": str(p), "frames": len(frames), "steps": steps, "fps": agent_fps / every,
+               "success": bool(info.get("is_success", False))}
+    if still is not None:
+        import imageio.v3 as iio
+
+        summary["still"] = str(atomic_write(still, lambda tmp: iio.imwrite(tmp, frames[-1], extension=".png")))
+    return summary
 
 
 def read_video(path: str | os.PathLike) -> np.ndarray:

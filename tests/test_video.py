@@ -34,9 +34,16 @@ def test_an_episode_becomes_a_video_with_one_frame_per_step(tmp_path, suffix, fp
     _, info = env.reset(seed=1, options={"mu": 0.5})
     policy.reset([info])
     out = tmp_path / f"episode{suffix}"
-    summary = record_video(env, act, out, seed=1, options={"mu": 0.5}, width=320, height=240)
+    summary = record_video(env, act, out, seed=1, options={"mu": 0.5}, width=320, height=240,
+                           still=tmp_path / "last.png")
     assert summary["steps"] == SHORT.max_episode_steps == 46
     frames = read_video(out)
+    import imageio.v3 as iio
+
+    last = iio.imread(tmp_path / "last.png")
+    assert last.shape == (240, 320, 3)
+    assert np.abs(last.astype(int) - frames[-1].astype(int)).mean() < 8  # the video's last frame (lossy mp4)
+    (tmp_path / "last.png").unlink()
     # mp4: the reset frame + one per agent step; GIF: every 3rd step at ~10 fps (+ reset and last frame)
     expected = 47 if suffix == ".mp4" else 1 + 46 // 3 + (46 % 3 != 0)
     assert summary["frames"] == expected and frames.shape == (expected, 240, 320, 3)
