@@ -12,7 +12,7 @@ import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..envs.core import GraspLiftConfig
+from ..envs.core import GraspLiftConfig, RandomizationConfig
 from ..physics.config import ConfigError, check_choice, from_dict, read_yaml
 
 ALGOS = ("ppo", "sac")
@@ -28,15 +28,16 @@ class TrainConfig:
     """
 
     algo: str = "ppo"
-    total_timesteps: int = 350_000
+    total_timesteps: int = 300_000
     n_envs: int = 16
     seed: int = 0
     checkpoint_every: int = 25_000
     torch_threads: int = 1
     policy_net: tuple[int, ...] = (64, 64)
-    #: PPO only: initial log standard deviation of the Gaussian action noise (SB3's default is 0, i.e. a
-    #: standard deviation of 1 in action units, which is +-2.5 N on the pinch set-point)
-    log_std_init: float = 0.0
+    #: PPO only: initial log standard deviation of the action noise. With gSDE (ppo.use_sde, the default)
+    #: the noise is exp(log_std) times the policy's latent features; -2 is the SB3 zoo's gSDE setting. Without
+    #: gSDE, SB3's default 0 is a standard deviation of 1 in action units (+-2.5 N on the pinch set-point).
+    log_std_init: float = -2.0
     #: behaviour-cloning warm start: a controller spec ('reactive', 'fixed', ...) whose actions the policy
     #: imitates before RL. None (the default): PPO learns from scratch.
     bc_teacher: str | None = None
@@ -54,19 +55,23 @@ class TrainConfig:
     validation_mu: tuple[float, ...] = (0.2, 0.3, 0.5, 0.7, 0.9)
     #: learning-rate schedule: "constant", or "linear" (from the algorithm's learning_rate down to 0 at
     #: total_timesteps; a resumed run anneals over the steps that remain)
-    lr_schedule: str = "constant"
+    lr_schedule: str = "linear"
     #: PPO only: the critic also sees the privileged entries of the observation (mu, stiffness and mass
     #: scales, node displacements); the actor does not (agents/networks.py). Needs env.privileged_obs.
-    asymmetric_critic: bool = False
+    asymmetric_critic: bool = True
     ppo: dict = field(default_factory=lambda: {
-        "learning_rate": 1e-3, "n_steps": 256, "batch_size": 1024, "n_epochs": 10, "gamma": 0.995,
+        "learning_rate": 1e-3, "n_steps": 256, "batch_size": 1024, "n_epochs": 10, "gamma": 0.999,
         "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
+        "use_sde": True, "sde_sample_freq": 4,
     })
     sac: dict = field(default_factory=lambda: {
         "learning_rate": 3e-4, "buffer_size": 200_000, "batch_size": 256, "gamma": 0.99, "tau": 0.005,
         "learning_starts": 2000, "train_freq": 1, "gradient_steps": 1,
     })
-    env: GraspLiftConfig = field(default_factory=GraspLiftConfig)
+    #: the training task: the default GraspLift task, with the privileged entries the critic needs and
+    #: friction drawn log-uniformly (the low-friction end, where grasps fail, comes up twice as often)
+    env: GraspLiftConfig = field(default_factory=lambda: GraspLiftConfig(
+        privileged_obs=True, randomization=RandomizationConfig(mu_distribution="log_uniform")))
 
     def __post_init__(self) -> None:
         check_choice("algo", self.algo, ALGOS)
