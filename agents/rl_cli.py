@@ -65,6 +65,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          ("seed", args.seed)):
             if val is not None:
                 data[key] = val
+        if args.algo == "sac":  # the asymmetric critic is PPO's (documented in --algo's help)
+            data["asymmetric_critic"] = False
         config = from_dict(TrainConfig, data, where=Path(path).name)
         if args.seeds is not None:
             if args.seed is not None:
@@ -164,7 +166,8 @@ def add_rl_commands(sub) -> None:
     """Add train / evaluate / record / replay / soak to the ``msdgrasp`` subparsers ``sub``."""
     t = sub.add_parser("train", help="train a PPO/SAC grasp policy (Stable-Baselines3)")
     t.add_argument("--config", type=Path, default=None, help="training config (default configs/train/ppo.yaml)")
-    t.add_argument("--algo", choices=["ppo", "sac"], default=None, help="algorithm (default: from the config)")
+    t.add_argument("--algo", choices=["ppo", "sac"], default=None,
+                   help="algorithm (default: from the config); sac trains with a symmetric critic (asymmetric_critic: false)")
     t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
     t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
     t.add_argument("--seed", type=int, default=None, help="random seed (one run)")

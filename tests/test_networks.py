@@ -70,7 +70,7 @@ def test_linear_schedule_anneals_the_learning_rate_to_zero(asymmetric_run):
 
 
 @pytest.mark.parametrize("over, field", [
-    ({"asymmetric_critic": True}, "privileged_obs"),
+    ({"asymmetric_critic": True, "env": {}}, "privileged_obs"),
     ({"asymmetric_critic": True, "algo": "sac", "env": {"privileged_obs": True}}, "algo 'ppo' only"),
     ({"asymmetric_critic": "yes"}, "asymmetric_critic"),
     ({"lr_schedule": "cosine"}, "lr_schedule"),

@@ -116,7 +116,12 @@ def test_short_run_saves_models_that_load_and_act(short_run):
         assert (out / name).is_file(), name
     assert sorted(p.name for p in (out / "checkpoints").glob("model_*.zip"))  # periodic checkpoints
     assert not list(out.rglob(".*.zip"))  # no temp files of the atomic writes left behind
-    env = GraspLiftVectorEnv(3)
+    from msdgrasp.agents.models import model_train_config
+
+    # a model runs on the task it was trained on (here with the critic's privileged entries)
+    task = model_train_config(out / "final_model.zip").env
+    assert task.privileged_obs
+    env = GraspLiftVectorEnv(3, task)
     obs, _ = env.reset(seed=0)
     for path in (out / "final_model.zip", out / "best_model.zip"):
         act = ModelPolicy(path).act(obs)
