@@ -204,3 +204,12 @@ def test_missing_or_corrupt_model_is_a_clear_error(tmp_path):
     bad.write_bytes(b"not a zip archive")
     with pytest.raises(ConfigError, match="corrupt"):
         load_model(bad)
+
+
+def test_every_shipped_training_config_loads_strictly():
+    """configs/train/*.yaml and the experiment configs behind docs/task-design.md stay valid."""
+    paths = sorted(builtin_config("train/ppo.yaml").parent.rglob("*.yaml"))
+    assert len(paths) >= 11
+    for path in paths:
+        config = TrainConfig.load(path)
+        assert config.algo in ("ppo", "sac"), path
