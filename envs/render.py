@@ -110,7 +110,7 @@ class _Frame:
         t_end = core.config.time_limit_s
         ins.set_xlim(0.0, t_end)
         ins.set_ylim(0.0, core.config.max_pinch_force_N)
-        self.inset_r.set_ylim(0.0, 1.5 * core.config.lift_target_m * 1e3)
+        self.inset_r.set_ylim(0.0, max(1.5 * core.config.lift_target_m, core.config.max_travel_m) * 1e3)
         self.inset_r.axhline(core.config.lift_target_m * 1e3, color="#d62728", linewidth=0.6, linestyle=":")
         (self.pinch_line,) = ins.plot([], [], color="k", linewidth=1.0)
         (self.lift_line,) = self.inset_r.plot([], [], color="#d62728", linewidth=1.0)
