@@ -454,8 +454,10 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
                 ax.scatter([m] * len(bad), bad, marker="x", s=14, color=colour, linewidths=0.8,
                            label=failed_label, zorder=3)
                 failed_label = None
-    ax.plot(oracle_curve["mu"], oracle_curve["minimal_force_N"], color="black", linestyle="--", marker="+",
-            label="minimal slip-free force (oracle bisection)")
+    limit = oracle_curve.get("search_limit_N", np.inf)
+    held = [f if f < limit - 1e-9 else np.nan for f in oracle_curve["minimal_force_N"]]
+    ax.plot(oracle_curve["mu"], held, color="black", linestyle="--", marker="+",
+            label=f"minimal slip-free force (oracle bisection; none up to {limit:g} N where missing)")
     ax.set_xlabel("friction coefficient mu")
     ax.set_ylabel("peak pinch force (N)")
     ax.set_title(f"Peak pinch force vs friction (n = {'/'.join(map(str, n))} episodes per point, 95% bootstrap "
@@ -479,7 +481,9 @@ def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool =
             print(f"  minimal force: mu={float(mu):g} -> {forces[-1]:.3f} N ({time.perf_counter() - t0:.1f} s)",
                   file=sys.stderr)
     return {"mu": [float(m) for m in mus], "minimal_force_N": forces, "oracle_margin": ref.margin,
-            "pull": ref.pull, "tolerance_N": ref.tolerance}
+            "pull": ref.pull, "tolerance_N": ref.tolerance,
+            # the bisection's upper end: a minimal force equal to it means no force up to it holds
+            "search_limit_N": 2.0 * config.reference_force_N}
 
 
 def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
