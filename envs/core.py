@@ -119,6 +119,9 @@ class GraspLiftConfig:
     force_loop_gain_m_s_per_N: float = 0.02
     #: largest pull-distance set-point (pull_action = travel), m
     max_travel_m: float = 0.06
+    #: the arm's pull-speed limit, m/s: the travel loop's top speed and the scale of a speed action
+    #: (None: the grasper config's max_pull_speed_m_s)
+    max_pull_speed_m_s: float | None = None
     #: observation frames stacked (oldest first); 1 = the current frame only
     obs_history: int = 1
     #: lift (pull) of the grasped tissue that counts as success, m
@@ -168,6 +171,8 @@ class GraspLiftConfig:
         check_range("reference_force_N", self.reference_force_N, 0.0, None, lo_inclusive=False)
         check_range("damage_stress_pa", self.damage_stress_pa, 0.0, None, lo_inclusive=False)
         check_range("lift_started_m", self.lift_started_m, 0.0, None)
+        if self.max_pull_speed_m_s is not None:
+            check_range("max_pull_speed_m_s", self.max_pull_speed_m_s, 0.0, 0.1, lo_inclusive=False)
         if self.anchor_stiffness_n_per_m is not None:
             check_range("anchor_stiffness_n_per_m", self.anchor_stiffness_n_per_m, 0.0, None, lo_inclusive=False)
         if not isinstance(self.privileged_nodes, int) or self.privileged_nodes < 1:
@@ -232,7 +237,7 @@ class GraspLiftCore:
         )
         g = self.scene.grasper
         self.max_close = g.max_closing_speed_m_s
-        self.max_pull = g.max_pull_speed_m_s
+        self.max_pull = g.max_pull_speed_m_s if cfg.max_pull_speed_m_s is None else cfg.max_pull_speed_m_s
         # start radius: clear of the tissue even with the largest pose offset
         self.start_radius = min(g.open_radius_m, self.scene.start_radius + rnd.pose_offset_m)
         mesh = self.scene.mesh

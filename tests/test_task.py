@@ -61,13 +61,14 @@ def test_force_loop_holds_the_pinch_set_point():
     assert np.all(np.abs(run["travel"]) < 1e-9)
 
 
-def test_travel_set_point_is_reached_at_the_speed_limit():
+@pytest.mark.parametrize("limit_m_s, speed_mm_s", [(None, 20.0), (0.01, 10.0)])
+def test_travel_set_point_is_reached_at_the_speed_limit(limit_m_s, speed_mm_s):
     """pull_action = travel: the arm reaches a set-point within one step when the speed limit allows it, and
-    moves at the limit (20 mm/s) otherwise."""
-    env = GraspLiftVectorEnv(1)
+    moves at the limit otherwise (the grasper's 20 mm/s, or max_pull_speed_m_s)."""
+    env = GraspLiftVectorEnv(1, GraspLiftConfig(max_pull_speed_m_s=limit_m_s))
     cfg = env.config
     run = _episodes(env, lambda obs: np.array([[-1.0, 2 * 0.03 / cfg.max_travel_m - 1.0]]), [0.5])
-    step_mm = env.core.max_pull * cfg.agent_dt_s * 1e3
+    step_mm = speed_mm_s * cfg.agent_dt_s
     travel_mm = run["travel"][:, 0] * 1e3
     np.testing.assert_allclose(np.diff(travel_mm[:40]), step_mm, rtol=1e-6)  # speed limited on the way
     assert travel_mm[-1] == pytest.approx(30.0, abs=1e-6)  # then exactly at the 30 mm set-point
@@ -86,6 +87,7 @@ def test_speed_mode_is_still_available():
     ("jaw_action", "torque", "jaw_action"), ("pull_action", "position", "pull_action"),
     ("max_pinch_force_N", 0.0, "max_pinch_force_N"), ("max_travel_m", 0.5, "max_travel_m"),
     ("obs_history", 0, "obs_history"), ("force_loop_gain_m_s_per_N", -1.0, "force_loop_gain"),
+    ("max_pull_speed_m_s", 0.0, "max_pull_speed_m_s"), ("max_pull_speed_m_s", 0.5, "max_pull_speed_m_s"),
 ])
 def test_bad_control_config_names_the_field(field, value, match):
     with pytest.raises(ConfigError, match=match):
