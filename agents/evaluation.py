@@ -410,7 +410,7 @@ def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     lo, hi = config.randomization.mu_range
-    fig, ax = plt.subplots(figsize=(7.0, 4.4))
+    fig, ax = plt.subplots(figsize=(10.0, 4.4))
     ax.axvspan(lo, hi, color="tab:gray", alpha=0.15, label=f"training range of mu [{lo:g}, {hi:g}]")
     n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
     for k, pol in enumerate(results):
@@ -426,7 +426,8 @@ def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
     ax.set_title(f"Grasp-and-lift success vs friction (n = {'/'.join(map(str, n))} episodes per point, "
                  "95% Wilson intervals)", fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside, not over, the data
+    fig.tight_layout()
     return save_figure(fig, path)
 
 
@@ -436,7 +437,7 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.0, 4.4))
+    fig, ax = plt.subplots(figsize=(10.0, 4.4))
     n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
     failed_label = "a failed episode's peak pinch"
     for k, pol in enumerate(results):
@@ -464,7 +465,8 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
                  "intervals; x: failed episodes)", fontsize=9)
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside, not over, the data
+    fig.tight_layout()
     return save_figure(fig, path)
 
 
