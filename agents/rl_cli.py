@@ -119,12 +119,14 @@ def _cmd_record(args: argparse.Namespace) -> int:
         raise _usage(f"--out {out}: give one file name (no {{episode}} template)")
     if out.is_dir():
         raise _usage(f"--out {out} is a folder; give a file name such as {out / 'episode.rrd'}")
-    if args.video is not None:
-        from ..envs.video import check_video_path
+    from ..envs.video import check_still_path, check_video_path
 
+    if args.video is not None:
         check_video_path(args.video)
-    if args.still is not None and (args.video is None or Path(args.still).suffix.lower() != ".png"):
-        raise _usage(f"--still {args.still}: needs --video and a file name ending in .png")
+    if args.still is not None:
+        if args.video is None:
+            raise _usage(f"--still {args.still}: needs --video (the still is the video's last frame)")
+        check_still_path(args.still)
     spec = args.policy or next(iter(_default_models()), "fixed")
     check_policy_spec(spec)
     config, _ = task_of([spec], None)  # a model runs on the task it was trained on

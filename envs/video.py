@@ -32,19 +32,25 @@ def check_video_path(path: str | os.PathLike) -> Path:
     return p
 
 
+def check_still_path(path: str | os.PathLike) -> Path:
+    """The path of a still frame (.png), or a one-line error."""
+    p = Path(path)
+    if p.suffix.lower() != ".png":
+        raise ConfigError(f"still {p}: the file name must end in .png")
+    return p
+
+
 def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: float) -> Path:
-    """Encode (H, W, 3) uint8 frames to ``path`` (.mp4 or .gif), atomically; returns the path."""
+    """Encode (H, W, 3) uint8 frames to ``path`` (.mp4 or .gif), atomically; returns the path.
+
+    Frames are streamed to the encoder as they come (a 10 s episode at 640 x 480 is ~280 MB of raw frames):
+    pass a generator to render while encoding. On any error the partial file is removed.
+    """
     import imageio.v2 as imageio
 
     p = check_video_path(path)
     if not 0 < fps <= 240:
         raise ConfigError(f"video fps must be in (0, 240], got {fps}")
-    frames = [np.asarray(f) for f in frames]
-    if not frames:
-        raise ConfigError(f"video {p}: no frames to write")
-    shape = frames[0].shape
-    if len(shape) != 3 or shape[2] != 3 or any(f.shape != shape or f.dtype != np.uint8 for f in frames):
-        raise ConfigError(f"video {p}: frames must all be (H, W, 3) uint8 images of one size, first is {shape}")
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_beside(p)
     try:
@@ -52,13 +58,21 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
             # macro_block_size 8: 480- and 360-pixel sides are encoded as they are (no silent resize)
             writer = imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
                                         macro_block_size=8, pixelformat="yuv420p")
-            try:
-                for f in frames:
-                    writer.append_data(f)
-            finally:
-                writer.close()
         else:
-            imageio.mimsave(tmp, frames, format="GIF", duration=1000.0 / fps, loop=0)
+            writer = imageio.get_writer(tmp, format="GIF", mode="I", duration=1000.0 / fps, loop=0)
+        shape = None
+        try:
+            for f in frames:
+                f = np.asarray(f)
+                shape = f.shape if shape is None else shape
+                if len(shape) != 3 or shape[2] != 3 or f.shape != shape or f.dtype != np.uint8:
+                    raise ConfigError(f"video {p}: frames must all be (H, W, 3) uint8 images of one size, "
+                                      f"got {f.shape} {f.dtype} after {shape}")
+                writer.append_data(f)
+            if shape is None:
+                raise ConfigError(f"video {p}: no frames to write")
+        finally:
+            writer.close()
         publish(tmp, p)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -79,27 +93,35 @@ def record_video(env: Any, policy_fn: Callable[[np.ndarray], np.ndarray], path: 
     from .render import render_rgb
 
     p = check_video_path(path)
-    if still is not None and Path(still).suffix.lower() != ".png":
-        raise ConfigError(f"still {still}: the file name must end in .png")
+    if still is not None:
+        check_still_path(still)
     core = env.unwrapped.core
     obs, info = env.reset(seed=seed, options=options)
     agent_fps = 1.0 / core.config.agent_dt_s
     every = 1 if p.suffix.lower() == ".mp4" else max(1, int(round(agent_fps / gif_fps)))
-    frames = [render_rgb(core, 0, width, height, color_by)]
-    steps = 0
-    terminated = truncated = False
-    while not (terminated or truncated):
-        obs, _, terminated, truncated, info = env.step(policy_fn(obs))
-        steps += 1
-        if steps % every == 0 or terminated or truncated:
-            frames.append(render_rgb(core, 0, width, height, color_by))
-    write_video(frames, p, agent_fps / every)
-    summary = {"path": str(p), "frames": len(frames), "steps": steps, "fps": agent_fps / every,
-               "success": bool(info.get("is_success", False))}
+    run = {"steps": 0, "frames": 0, "info": info, "last": None}
+
+    def frames():  # rendered while the encoder consumes them: the reset state, every k-th step, the last
+        nonlocal obs
+        done = False
+        while True:
+            if run["steps"] % every == 0 or done:
+                run["last"] = render_rgb(core, 0, width, height, color_by)
+                run["frames"] += 1
+                yield run["last"]
+            if done:
+                return
+            obs, _, terminated, truncated, run["info"] = env.step(policy_fn(obs))
+            run["steps"] += 1
+            done = terminated or truncated
+
+    write_video(frames(), p, agent_fps / every)
+    summary = {"path": str(p), "frames": run["frames"], "steps": run["steps"], "fps": agent_fps / every,
+               "success": bool(run["info"].get("is_success", False))}
     if still is not None:
         import imageio.v3 as iio
 
-        summary["still"] = str(atomic_write(still, lambda tmp: iio.imwrite(tmp, frames[-1], extension=".png")))
+        summary["still"] = str(atomic_write(still, lambda tmp: iio.imwrite(tmp, run["last"], extension=".png")))
     return summary
 
 
