@@ -403,6 +403,37 @@ def display_name(name: str) -> str:
     return name
 
 
+def _dodge(k: int, n: int) -> float:
+    """Sideways offset of policy k of n, so that coinciding points of different policies stay visible."""
+    return (k - (n - 1) / 2) * 0.006
+
+
+def _errorbars(ax, results, key: str, ci_key: str, suffix: str = "") -> list[str]:
+    """One error-bar curve per policy of ``row[key]`` with ``row[ci_key]`` as its interval (policies
+    dodged sideways); returns the line colours."""
+    colours = []
+    for k, pol in enumerate(results):
+        rows = pol["rows"]
+        mus = np.array([r["mu"] for r in rows]) + _dodge(k, len(results))
+        value = np.array([r[key] for r in rows])
+        ci = np.array([r[ci_key] for r in rows])
+        line = ax.errorbar(mus, value, yerr=[value - ci[:, 0], ci[:, 1] - value], capsize=2, elinewidth=0.8,
+                           label=display_name(pol["name"]) + suffix, **_style(k))
+        colours.append(line[0].get_color())
+    return colours
+
+
+def _finish(ax, fig, xlabel: str, ylabel: str, title: str, results, intervals: str, path: Path) -> Path:
+    n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(f"{title} (n = {'/'.join(map(str, n))} episodes per point, {intervals})", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside, not over, the data
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
     import matplotlib
 
@@ -412,23 +443,10 @@ def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
     lo, hi = config.randomization.mu_range
     fig, ax = plt.subplots(figsize=(10.0, 4.4))
     ax.axvspan(lo, hi, color="tab:gray", alpha=0.15, label=f"training range of mu [{lo:g}, {hi:g}]")
-    n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
-    for k, pol in enumerate(results):
-        rows = pol["rows"]
-        mus = np.array([r["mu"] for r in rows]) + (k - (len(results) - 1) / 2) * 0.006  # dodge overlapping bars
-        rate = np.array([r["success_rate"] for r in rows])
-        ci = np.array([r["success_ci95"] for r in rows])
-        ax.errorbar(mus, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], label=display_name(pol["name"]), capsize=2,
-                    elinewidth=0.8, **_style(k))
-    ax.set_xlabel("friction coefficient mu")
-    ax.set_ylabel("success rate (slip-free lift)")
+    _errorbars(ax, results, "success_rate", "success_ci95")
     ax.set_ylim(-0.05, 1.05)
-    ax.set_title(f"Grasp-and-lift success vs friction (n = {'/'.join(map(str, n))} episodes per point, "
-                 "95% Wilson intervals)", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside, not over, the data
-    fig.tight_layout()
-    return save_figure(fig, path)
+    return _finish(ax, fig, "friction coefficient mu", "success rate (slip-free lift)",
+                   "Grasp-and-lift success vs friction", results, "95% Wilson intervals", path)
 
 
 def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
@@ -438,36 +456,23 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(10.0, 4.4))
-    n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
+    colours = _errorbars(ax, results, "mean_peak_pinch_N", "peak_pinch_ci95_N", " (mean peak, all episodes)")
     failed_label = "a failed episode's peak pinch"
-    for k, pol in enumerate(results):
-        rows = pol["rows"]
-        dodge = (k - (len(results) - 1) / 2) * 0.006
-        mus = np.array([r["mu"] for r in rows]) + dodge
-        mean = np.array([r["mean_peak_pinch_N"] for r in rows])
-        ci = np.array([r["peak_pinch_ci95_N"] for r in rows])
-        line = ax.errorbar(mus, mean, yerr=[mean - ci[:, 0], ci[:, 1] - mean], capsize=2, elinewidth=0.8,
-                           label=f"{display_name(pol['name'])} (mean peak, all episodes)", **_style(k))
-        colour = line[0].get_color()
-        for r, m in zip(rows, mus):  # failed episodes are in the mean: show them
+    for k, (pol, colour) in enumerate(zip(results, colours)):
+        dodge = _dodge(k, len(results))
+        for r in pol["rows"]:  # failed episodes are in the mean: show them
             bad = [p for p, ok in zip(r["per_episode"]["peak_pinch_N"], r["per_episode"]["success"]) if not ok]
             if bad:
-                ax.scatter([m] * len(bad), bad, marker="x", s=14, color=colour, linewidths=0.8,
+                ax.scatter([r["mu"] + dodge] * len(bad), bad, marker="x", s=14, color=colour, linewidths=0.8,
                            label=failed_label, zorder=3)
                 failed_label = None
-    limit = oracle_curve.get("search_limit_N", np.inf)
+    limit = oracle_curve["search_limit_N"]
     held = [f if f < limit - 1e-9 else np.nan for f in oracle_curve["minimal_force_N"]]
     ax.plot(oracle_curve["mu"], held, color="black", linestyle="--", marker="+",
             label=f"minimal slip-free force (oracle bisection; none up to {limit:g} N where missing)")
-    ax.set_xlabel("friction coefficient mu")
-    ax.set_ylabel("peak pinch force (N)")
-    ax.set_title(f"Peak pinch force vs friction (n = {'/'.join(map(str, n))} episodes per point, 95% bootstrap "
-                 "intervals; x: failed episodes)", fontsize=9)
     ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside, not over, the data
-    fig.tight_layout()
-    return save_figure(fig, path)
+    return _finish(ax, fig, "friction coefficient mu", "peak pinch force (N)", "Peak pinch force vs friction",
+                   results, "95% bootstrap intervals; x: failed episodes", path)
 
 
 def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool = False) -> dict[str, Any]:
