@@ -14,7 +14,7 @@
 
 The camera looks at the grasped end of the organ and the grasper (the anchored far end is cut off). One
 matplotlib Figure per core and image size is built on the first call and cached on the core
-(``core._render_cache``); later frames update the artists, so a frame costs one Agg draw (~40 ms at 640 x
+(``core._render_cache``); later frames update the artists, so a frame costs one Agg draw (~50 ms at 640 x
 480). Rendering runs only when asked (``render_mode="rgb_array"`` and ``env.render()``, ``msdgrasp record
 --video``); :mod:`msdgrasp.envs.video` writes frames to mp4 or GIF.
 """
