@@ -23,7 +23,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig
+from ..envs.core import GraspLiftConfig, pinch_action
 from .models import load_model, model_train_config
 
 # observation layout (see GraspLiftEnv's docstring); a stacked history ends with the current frame
@@ -86,7 +86,7 @@ class FixedForcePolicy:
         # grasped once the pinch force is (nearly) at the set-point: a force loop approaches it asymptotically
         self._grasped |= pinch >= (0.95 if cfg.jaw_action == "force" else 1.0) * self.force
         if cfg.jaw_action == "force":
-            jaw = np.clip(2.0 * self.force / cfg.max_pinch_force_N - 1.0, -1.0, 1.0)
+            jaw = pinch_action(self.force, cfg)
         else:  # regulate the force through the closing speed (P control at the agent rate)
             jaw = np.where(self._grasped, np.clip(self.gain * (self.force - pinch) / self.force, -1.0, 1.0), 1.0)
         if cfg.pull_action == "travel":  # a travel set-point that advances at the pull speed once grasped
@@ -94,6 +94,8 @@ class FixedForcePolicy:
             step = self.pull * _max_pull_speed(cfg) * cfg.agent_dt_s
             target = np.where(self._grasped, np.minimum(travel + step, cfg.max_travel_m), 0.0)
             pull = 2.0 * target / cfg.max_travel_m - 1.0
+        elif cfg.pull_action == "forward_speed":
+            pull = np.where(self._grasped, 2.0 * self.pull - 1.0, -1.0)
         else:
             pull = np.where(self._grasped, self.pull, 0.0)
         return np.stack([np.broadcast_to(jaw, pull.shape), pull], axis=1).astype(np.float32)
@@ -243,7 +245,7 @@ class ConstantPolicy:
 
 def idle_action(config: GraspLiftConfig) -> np.ndarray:
     """The action that leaves the tissue alone: jaws at zero force (or still), no pull."""
-    return np.array([-1.0 if config.jaw_action == "force" else 0.0, -1.0 if config.pull_action == "travel" else 0.0])
+    return np.array([-1.0 if config.jaw_action == "force" else 0.0, 0.0 if config.pull_action == "speed" else -1.0])
 
 
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:

@@ -110,10 +110,15 @@ class GraspLiftConfig:
     #: motor's 1 kHz force loop tracks (a torque-controlled jaw); "speed" = the jaw closing speed
     jaw_action: str = "force"
     #: what action[1] commands: "travel" = a pull distance set-point in [0, max_travel_m] that the arm's
-    #: position loop tracks (speed-limited); "speed" = the pull speed
+    #: position loop tracks (speed-limited); "speed" = the pull speed in [-1, 1] x the arm's top speed;
+    #: "forward_speed" = the pull speed in [0, 1] x the top speed (action -1: stand still, 0: half speed)
     pull_action: str = "travel"
     #: largest pinch-force set-point (jaw_action = force), N
     max_pinch_force_N: float = 5.0
+    #: shape of the pinch-force action: set-point = ((a + 1) / 2) ** p x max_pinch_force_N. p = 1 is linear
+    #: (action 0: half the largest force); p = 2 spends more of the action range on light grips (action 0:
+    #: a quarter of it, 1.25 N at 5 N)
+    pinch_action_exponent: float = 1.0
     #: gain of the 1 kHz force loop: closing speed per newton of force error, m/s/N (limited to the
     #: grasper's max closing speed)
     force_loop_gain_m_s_per_N: float = 0.02
@@ -155,8 +160,9 @@ class GraspLiftConfig:
         if self.scene not in ("spleen", "sphere"):
             raise ConfigError(f"scene = {self.scene!r} is not allowed; choose 'spleen' or 'sphere'")
         check_choice("jaw_action", self.jaw_action, ("force", "speed"))
-        check_choice("pull_action", self.pull_action, ("travel", "speed"))
+        check_choice("pull_action", self.pull_action, ("travel", "speed", "forward_speed"))
         check_range("max_pinch_force_N", self.max_pinch_force_N, 0.0, 50.0, lo_inclusive=False)
+        check_range("pinch_action_exponent", self.pinch_action_exponent, 1.0, 4.0)
         check_range("force_loop_gain_m_s_per_N", self.force_loop_gain_m_s_per_N, 0.0, 1.0, lo_inclusive=False)
         check_range("max_travel_m", self.max_travel_m, 0.0, 0.2, lo_inclusive=False)
         if isinstance(self.obs_history, bool) or not isinstance(self.obs_history, int) or not 1 <= self.obs_history <= 16:
@@ -205,6 +211,13 @@ OBS_NAMES = (
 )
 
 PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
+
+
+def pinch_action(force_N: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:
+    """The jaw action whose pinch-force set-point is ``force_N`` (jaw_action = force), clipped to [-1, 1]:
+    the inverse of :meth:`GraspLiftCore.pinch_setpoint`."""
+    frac = np.clip(np.asarray(force_N, dtype=np.float64) / config.max_pinch_force_N, 0.0, 1.0)
+    return 2.0 * frac ** (1.0 / config.pinch_action_exponent) - 1.0
 
 
 def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -384,6 +397,8 @@ class GraspLiftCore:
             # the arm's position loop: reach the set-point within the step if the speed limit allows
             self.travel_target = self.travel_setpoint(act[:, 1])
             pull_speed = np.clip((self.travel_target - self.travel()) / dt, -self.max_pull, self.max_pull)
+        elif cfg.pull_action == "forward_speed":
+            pull_speed = 0.5 * (act[:, 1] + 1.0) * self.max_pull
         else:
             pull_speed = act[:, 1] * self.max_pull
         sim.command(pull_velocity=self.pull_dir * pull_speed[:, None])
@@ -484,7 +499,8 @@ class GraspLiftCore:
     # ------------------------------------------------------------------------------------------
     def pinch_setpoint(self, a: np.ndarray) -> np.ndarray:
         """Pinch-force set-point (N) of jaw action(s) ``a`` in [-1, 1] (jaw_action = force)."""
-        return 0.5 * (np.asarray(a, dtype=np.float64) + 1.0) * self.config.max_pinch_force_N
+        cfg = self.config
+        return (0.5 * (np.asarray(a, dtype=np.float64) + 1.0)) ** cfg.pinch_action_exponent * cfg.max_pinch_force_N
 
     def travel_setpoint(self, a: np.ndarray) -> np.ndarray:
         """Pull-distance set-point (m) of pull action(s) ``a`` in [-1, 1] (pull_action = travel)."""

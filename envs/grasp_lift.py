@@ -49,8 +49,8 @@ class GraspLiftEnv(gym.Env):
 
     | index | default (``jaw_action="force"``, ``pull_action="travel"``) | alternative (``"speed"``) |
     |---|---|---|
-    | 0 | pinch-force set-point (a + 1) / 2 x ``max_pinch_force_N`` (0-5 N), tracked by the jaw motor's 1 kHz force loop (closing speed = 0.02 m/s per N of error, at most ``max_closing_speed_m_s``) | jaw closing speed a x 4 mm/s (> 0 closes) |
-    | 1 | pull-distance set-point (a + 1) / 2 x ``max_travel_m`` (0-60 mm), tracked by the arm at up to ``max_pull_speed_m_s`` (20 mm/s) | pull speed a x 20 mm/s |
+    | 0 | pinch-force set-point ((a + 1) / 2) ** p x ``max_pinch_force_N`` (0-5 N; p = ``pinch_action_exponent``), tracked by the jaw motor's 1 kHz force loop (closing speed = 0.02 m/s per N of error, at most ``max_closing_speed_m_s``) | jaw closing speed a x 4 mm/s (> 0 closes) |
+    | 1 | pull-distance set-point (a + 1) / 2 x ``max_travel_m`` (0-60 mm), tracked by the arm at up to ``max_pull_speed_m_s`` (20 mm/s) | pull speed a x 20 mm/s (``"forward_speed"``: (a + 1) / 2 x 20 mm/s) |
 
     Values outside [-1, 1] are clipped; NaN/inf or a wrong shape raises ``ValueError``. So action 0 is a
     2.5 N grip and a 30 mm lift target, and -1 is "jaws relaxed, grasper at its start".

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents.controllers import FixedForcePolicy
-from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, RewardConfig
+from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, RewardConfig, pinch_action
 from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
 from msdgrasp.physics.config import ConfigError
 
@@ -83,7 +83,33 @@ def test_speed_mode_is_still_available():
     assert np.all(run["peak"] > 2.4) and np.all(run["peak"] < 3.0)
 
 
+@pytest.mark.parametrize("exponent, force_at_zero_N", [(1.0, 2.5), (2.0, 1.25)])
+def test_pinch_action_exponent_shapes_the_set_point(exponent, force_at_zero_N):
+    """set-point = ((a + 1) / 2) ** p x 5 N: the ends stay 0 and 5 N, action 0 gives 5 / 2**p N, and
+    pinch_action (what the controllers use) inverts it."""
+    core = GraspLiftCore(GraspLiftConfig(pinch_action_exponent=exponent))
+    a = np.linspace(-1.0, 1.0, 9)
+    sp = core.pinch_setpoint(a)
+    assert sp[0] == 0.0 and sp[-1] == pytest.approx(5.0) and sp[4] == pytest.approx(force_at_zero_N)
+    assert np.all(np.diff(sp) > 0)
+    np.testing.assert_allclose(pinch_action(sp, core.config), a, atol=1e-12)
+
+
+def test_forward_speed_pull_maps_the_action_to_zero_to_top_speed():
+    """pull_action = forward_speed: action -1 stands still, 0 pulls at half the arm's top speed (10 mm/s),
+    and the fixed-force controller still lifts with it."""
+    cfg = GraspLiftConfig(pull_action="forward_speed")
+    env = GraspLiftVectorEnv(2, cfg)
+    run = _episodes(env, lambda obs: np.array([[-1.0, -1.0], [-1.0, 0.0]]), [0.5, 0.5])
+    step_mm = np.diff(run["travel"][:20], axis=0) * 1e3
+    np.testing.assert_allclose(step_mm[:, 0], 0.0, atol=1e-9)
+    np.testing.assert_allclose(step_mm[:, 1], 10.0 * cfg.agent_dt_s, rtol=1e-6)
+    lift = _episodes(env, FixedForcePolicy(cfg, 2.5), [0.5, 0.8])
+    assert lift["success"].all()
+
+
 @pytest.mark.parametrize("field, value, match", [
+    ("pinch_action_exponent", 0.5, "pinch_action_exponent"),
     ("jaw_action", "torque", "jaw_action"), ("pull_action", "position", "pull_action"),
     ("max_pinch_force_N", 0.0, "max_pinch_force_N"), ("max_travel_m", 0.5, "max_travel_m"),
     ("obs_history", 0, "obs_history"), ("force_loop_gain_m_s_per_N", -1.0, "force_loop_gain"),
