@@ -43,6 +43,10 @@ class RewardConfig:
     #: at success: -w * peak pinch force of the episode / reference force (a discount of the success bonus;
     #: 50 = 10 points per N. Measured: 25 left the learned force 10-20% higher at equal success)
     peak_force: float = 50.0
+    #: when the peak-force charge is paid: "at_success" (all of it with the success bonus) or "as_made"
+    #: (each rise of the episode's peak pinch is charged in the step that makes it, and the sum is refunded
+    #: when the episode ends without success: the same total for every episode, paid where the force is set)
+    peak_force_timing: str = "at_success"
     #: per second of pinch force equal to the reference force (scales linearly with force; every step)
     force_per_s: float = 0.0
     #: per step in which the peak nodal stress exceeds the damage threshold
@@ -57,6 +61,7 @@ class RewardConfig:
     grasp_force_N: float = 1.0
 
     def __post_init__(self) -> None:
+        check_choice("reward.peak_force_timing", self.peak_force_timing, ("at_success", "as_made"))
         check_range("reward.grasp_force_N", self.grasp_force_N, 0.0, None, lo_inclusive=False)
         for name in ("progress", "hold", "slip_per_mm", "peak_force", "force_per_s", "damage", "success_bonus",
                      "failure_penalty", "grasp"):
@@ -422,6 +427,7 @@ class GraspLiftCore:
         grip_gain = grip - self.grip
         self.grip = grip
         self.slip_total += slip
+        peak_rise = np.maximum(pinch - self.peak_pinch, 0.0)
         self.peak_pinch = np.maximum(self.peak_pinch, pinch)
         self.peak_stress = np.maximum(self.peak_stress, stress)
         self.lift_started |= lift_new >= cfg.lift_started_m
@@ -450,13 +456,17 @@ class GraspLiftCore:
         unsuccessful = (terminated | truncated) & ~success
 
         w = cfg.reward
+        if w.peak_force_timing == "at_success":
+            peak_charge = np.where(success, self.peak_pinch, 0.0)
+        else:  # charged as made, refunded without success
+            peak_charge = peak_rise - np.where(unsuccessful, self.peak_pinch, 0.0)
         terms = {
             "progress": w.progress * progress,
             "hold": w.hold * hold_gain,
             "grasp": w.grasp * grip_gain,
             "slip": -w.slip_per_mm * slip * 1e3,
             "force": -w.force_per_s * (pinch / cfg.reference_force_N) * dt,
-            "peak_force": -w.peak_force * np.where(success, self.peak_pinch / cfg.reference_force_N, 0.0),
+            "peak_force": -w.peak_force * peak_charge / cfg.reference_force_N,
             "damage": -w.damage * damaged.astype(np.float64),
             "success": w.success_bonus * success.astype(np.float64),
             "failure": -w.failure_penalty * unsuccessful.astype(np.float64),

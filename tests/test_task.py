@@ -173,10 +173,38 @@ def test_reward_scale_success_dominates_and_no_touch_is_no_haven():
     weak_low_mu, weak_ok = runs["return"][0], runs["return"][1]
     assert not runs["success"][0] and runs["success"][1] and strong["success"][0]
     assert never["return"][0] < weak_low_mu < strong["return"][0] < weak_ok
-    # the force discount is the documented one: 5 points per newton of peak pinch
+    # the force discount is the documented one: 10 points per newton of peak pinch
     gap = weak_ok - strong["return"][0]
     expected = w.peak_force * (strong["peak"][0] - runs["peak"][1]) / env.config.reference_force_N
     assert gap == pytest.approx(expected, abs=0.5)  # slip differs a little between the two
     # success dominates: a success at the cautious 2.5 N still nets more than the best possible failure
     # (full progress and hold shaping, then the failure penalty)
     assert w.success_bonus - w.peak_force * 2.5 / env.config.reference_force_N > w.progress + w.hold - w.failure_penalty
+
+
+def test_peak_force_charged_as_made_has_the_same_returns_and_pays_when_the_force_rises():
+    """reward.peak_force_timing = as_made: each rise of the peak pinch is charged in its step and the sum is
+    refunded without success, so every episode's return equals the at_success one (within float sums),
+    while the charge of a success is paid by the time the grip is closed, long before the success."""
+    mus = [0.2, 0.8]  # a 1 N grip fails at mu 0.2 and succeeds at 0.8
+    made = GraspLiftConfig(reward=RewardConfig(peak_force_timing="as_made"))
+    at_end = _episodes(GraspLiftVectorEnv(2), FixedForcePolicy(GraspLiftConfig(), 1.0), mus)
+    env = GraspLiftVectorEnv(2, made)
+    as_made = _episodes(env, FixedForcePolicy(made, 1.0), mus)
+    assert list(as_made["success"]) == list(at_end["success"]) == [False, True]
+    np.testing.assert_allclose(as_made["return"], at_end["return"], atol=1e-9)
+    # timing: run the successful episode again and sum the charge paid before the lift begins
+    env.reset(seed=0)
+    env.core.reset(0, {**NOMINAL, "mu": 0.8})
+    pol = FixedForcePolicy(made, 1.0)
+    pol.reset([{}])
+    obs = env.core.obs.astype(np.float32)
+    charged_before_lift = 0.0
+    for _ in range(made.max_episode_steps):
+        obs, _, term, trunc, info = env.core.step(pol.act(obs[:1]).repeat(2, axis=0))
+        if info["lifted_m"][0] < made.lift_started_m:
+            charged_before_lift += info["reward_terms"]["peak_force"][0]
+        if term[0] or trunc[0]:
+            break
+    full = made.reward.peak_force * info["peak_pinch_N"][0] / made.reference_force_N
+    assert -charged_before_lift == pytest.approx(full, rel=0.1)
