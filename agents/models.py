@@ -68,10 +68,13 @@ class TrainConfig:
         "learning_rate": 3e-4, "buffer_size": 200_000, "batch_size": 256, "gamma": 0.99, "tau": 0.005,
         "learning_starts": 2000, "train_freq": 1, "gradient_steps": 1,
     })
-    #: the training task: the default GraspLift task, with the privileged entries the critic needs and
-    #: friction drawn log-uniformly (the low-friction end, where grasps fail, comes up twice as often)
+    #: the training task: the default GraspLift task, with the privileged entries the critic needs,
+    #: friction drawn log-uniformly (the low-friction end, where grasps fail, comes up twice as often), a
+    #: pinch action that spends more of its range on light grips (action 0: 1.25 N) and a pull-speed action
+    #: (action 0: 10 mm/s) instead of a travel set-point (docs/task-design.md, session 3)
     env: GraspLiftConfig = field(default_factory=lambda: GraspLiftConfig(
-        privileged_obs=True, randomization=RandomizationConfig(mu_distribution="log_uniform")))
+        privileged_obs=True, pinch_action_exponent=2.0, pull_action="forward_speed",
+        randomization=RandomizationConfig(mu_distribution="log_uniform")))
 
     def __post_init__(self) -> None:
         check_choice("algo", self.algo, ALGOS)
