@@ -11,7 +11,7 @@ physics
     held, so contact is active while timing). Timed with ``time.perf_counter`` over >= 0.5 s per
     measurement (``--quick``: 0.1 s) after a warm-up call, so numba compilation is excluded. Also: the
     fitted log-log exponent of cost vs node count; a plain NumPy implementation of the same MSD step
-    (:class:`NumpyMSD`, the reference) with its speed and a force/state cross-check against the numba
+    (:class:`~msdgrasp.physics.reference.NumpyMSD`, the reference) with its speed and a force/state cross-check against the numba
     kernel; and MuJoCo's flex soft body on the same tet mesh at 1 kHz when ``mujoco`` is importable.
 grasp
     Only the with-contact part of ``physics``.
@@ -29,35 +29,16 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import platform
 import statistics
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-#: outer physics step of every measurement (the env's 1 kHz)
-DT_OUTER = 1e-3
-#: batch size of the batched physics measurements: a full lane block (physics/integrator.py), so the
-#: per-tissue figure is what the SIMD-across-tissues path delivers
-BATCH = 64
-#: vector-env sizes of the env benchmark (``--quick`` skips the largest)
-ENV_SIZES = (1, 16, 64, 256)
-
-TARGETS = {
-    "coarse_us_per_ms": 10.0,  # >= 100x real time
-    "fine_us_per_ms": 200.0,  # >= 5x real time
-    "contact_overhead": 0.50,  # contact adds <= 50 %
-    "coarse_contact_us_per_ms": 10.0,  # >= 100x real time with contact
-    "mujoco_speedup": 10.0,  # >= 10x faster than MuJoCo flex at equal nodes
-    "env_single_steps_per_s": 1000.0,
-    "env_batched_steps_per_s": 2000.0,
-}
-
+from ..physics.reference import DT_OUTER, NumpyMSD, cross_check, spleen_model
+from .bench_report import BATCH, ENV_SIZES, _out_paths, _r, evaluate_targets, machine_info, markdown, plot_scaling
 
 # ------------------------------------------------------------------------------------------------
 # timing helpers
@@ -96,217 +77,12 @@ def time_per_unit(run: Callable[[int], Any], min_time: float, repeats: int = 3, 
         samples.append(el / n)
         total += el
         units += n
-        if len(samples) > 4 * repeats:
+        # a probe slowed by a busy machine sizes the calls too small: re-size them from the fastest one
+        n = max(1, min(max_units, math.ceil(chunk / max(min(samples), 1e-12))))
+        if len(samples) > 8 * repeats:
             break
     return {"median_s": statistics.median(samples), "best_s": min(samples), "cpu_s": statistics.median(cpu),
             "units": units, "seconds": total}
-
-
-def _r(x: float, nd: int = 3) -> float:
-    """Round to ``nd`` significant digits (JSON readability)."""
-    if x is None or not math.isfinite(x) or x == 0:
-        return x
-    return round(x, -int(math.floor(math.log10(abs(x)))) + nd - 1)
-
-
-# ------------------------------------------------------------------------------------------------
-# models
-# ------------------------------------------------------------------------------------------------
-
-
-def spleen_params():
-    from ..physics.config import builtin_config
-    from ..physics.scenario import load_params
-    from ..physics.tissue import TissueParams
-
-    return load_params(builtin_config("tissue/spleen.yaml"), "tissue", TissueParams)
-
-
-_MODELS: dict = {}
-
-
-def spleen_model(resolution: str | int):
-    """The spleen anchored (rigidly) at its hilum, at ``resolution`` (cached per process)."""
-    if resolution not in _MODELS:
-        from ..physics.mesh import spleen_mesh
-        from ..physics.tissue import TissueModel
-
-        mesh = spleen_mesh(resolution)
-        _MODELS[resolution] = TissueModel.from_params(mesh, spleen_params(), fixed_nodes=mesh.node_sets["hilum"])
-    return _MODELS[resolution]
-
-
-# ------------------------------------------------------------------------------------------------
-# the NumPy reference
-# ------------------------------------------------------------------------------------------------
-
-
-def numpy_spring_law(dl: np.ndarray, k1: np.ndarray, k2: np.ndarray, dlc: np.ndarray) -> np.ndarray:
-    """The spring law of :func:`msdgrasp.physics.forces.spring_force`, vectorised."""
-    adl = np.abs(dl)
-    a = k1 * dlc + k2 * dlc * dlc * dlc
-    b = k1 + 3.0 * k2 * dlc * dlc
-    outer = a + b * (adl - dlc)
-    return np.where(adl <= dlc, k1 * dl + k2 * dl * dl * dl, np.where(dl > 0.0, outer, -outer))
-
-
-class NumpyMSD:
-    """Plain NumPy implementation of the same MSD step as the numba kernel (no contact): the reference.
-
-    Springs (the paper's law, optional spring dashpot, the Maxwell branch) and the volume barrier are
-    evaluated for all edges / tets at once and scattered to the nodes with ``np.add.at``; symplectic Euler with implicit nodal damping;
-    rigid anchors held, compliant anchors as springs. ``x, v`` are (N,3), ``fv, dl_prev`` (E,).
-    """
-
-    def __init__(self, model, n_sub: int, dt_outer: float = DT_OUTER, kscale: float = 1.0, mscale: float = 1.0):
-        self.model = model
-        self.n_sub = int(n_sub)
-        self.dt = dt_outer / self.n_sub
-        self.kscale = float(kscale)
-        self.mscale = float(mscale)
-        p = model.params
-        self.use_dashpot = p.spring_damping_time_s > 0.0
-        self.use_sls = p.relaxation_strength > 0.0
-        self.decay = math.exp(-self.dt / p.relaxation_time_s)
-        self.gain = p.relaxation_time_s / self.dt * (1.0 - self.decay)
-        self.i = model.edges[:, 0]
-        self.j = model.edges[:, 1]
-        self.m = model.mass * self.mscale
-        self.free = ~model.fixed if model.fixed.size else np.ones(model.n_nodes, bool)
-        self.x = model.rest_positions.copy()
-        self.v = np.zeros_like(self.x)
-        self.fv = np.zeros(len(model.edges))
-        self.dl_prev = np.zeros(len(model.edges))
-
-    def spring_forces(self, x, v, fv, dl_prev, out=None, update=True) -> np.ndarray:
-        """(N,3) spring (+ dashpot + Maxwell) forces; updates ``fv``/``dl_prev`` in place if ``update``."""
-        mdl = self.model
-        d = x[self.j] - x[self.i]
-        length = np.sqrt(np.einsum("ij,ij->i", d, d))
-        ok = length >= 1e-15
-        u = d / np.where(ok, length, 1.0)[:, None]
-        dl = length - mdl.rest_length
-        fs = self.kscale * numpy_spring_law(dl, mdl.k1, mdl.k2, mdl.dlc)
-        if self.use_sls:
-            fve = fv * self.decay + self.kscale * mdl.kv * (dl - dl_prev) * self.gain
-            if update:
-                fv[ok] = fve[ok]
-                dl_prev[ok] = dl[ok]
-            fs = fs + fve
-        if self.use_dashpot:
-            rel = np.einsum("ij,ij->i", v[self.j] - v[self.i], u)
-            fs = fs + self.kscale * mdl.cdash * rel
-        fu = np.where(ok, fs, 0.0)[:, None] * u
-        f = np.zeros_like(x) if out is None else out
-        np.add.at(f, self.i, fu)
-        np.add.at(f, self.j, -fu)
-        return f
-
-    def volume_forces(self, x, out=None) -> np.ndarray:
-        """(N,3) forces of the volume barrier (tets compressed below the threshold), vectorised."""
-        mdl = self.model
-        f = np.zeros_like(x) if out is None else out
-        if not mdl.kvol.size:
-            return f
-        p = x[mdl.tets]
-        e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-        g = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=1) / 6.0  # dV/dx_b,c,d
-        jac = np.einsum("ti,ti->t", e1, g[:, 0]) / mdl.rest_volume
-        s = np.where(jac < mdl.volume_threshold, -self.kscale * mdl.kvol * (jac - mdl.volume_threshold), 0.0)
-        fg = s[:, None, None] * g
-        for k in range(3):
-            np.add.at(f, mdl.tets[:, k + 1], fg[:, k])
-        np.add.at(f, mdl.tets[:, 0], -fg.sum(axis=1))
-        return f
-
-    def step(self, n_steps: int = 1) -> None:
-        mdl = self.model
-        dt = self.dt
-        x, v = self.x, self.v
-        m = self.m[:, None]
-        fg = m * mdl.gravity[None, :]
-        x0 = mdl.rest_positions
-        fixed = ~self.free
-        ka = mdl.anchor_k[:, None] if mdl.anchor_k.size else None
-        for _ in range(int(n_steps) * self.n_sub):
-            f = fg.copy()
-            self.spring_forces(x, v, self.fv, self.dl_prev, out=f)
-            self.volume_forces(x, out=f)
-            disp = x - x0
-            if ka is not None:
-                f += -ka * (disp - self.mscale * mdl.anchor_offset[None, :])
-            damp = mdl.b0 + mdl.b1 * np.sqrt(np.einsum("ij,ij->i", disp, disp))
-            inv = 1.0 / (1.0 + dt * damp / self.m)
-            v[:] = (v + dt * f / m) * inv[:, None]
-            v[fixed] = 0.0
-            x += dt * v  # anchored nodes have v = 0: they stay where they are
-
-
-def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10, model=None) -> dict:
-    """NumPy vs numba: spring forces at one perturbed state, and the state after ``steps`` ms.
-
-    ``model`` (default: the anchored spleen at ``resolution``) may be any TissueModel. Returns the largest
-    difference relative to the largest magnitude (forces, Maxwell forces, positions' displacement).
-    """
-    from ..physics.forces import accumulate_spring_forces, accumulate_volume_forces
-    from ..physics.simulation import Simulation
-    from ..physics.viscoelastic import accumulate_spring_forces_sls
-
-    custom = model is not None
-    model = model if custom else spleen_model(resolution)
-    sim = Simulation(model, 1, dt=DT_OUTER)
-    ref = NumpyMSD(model, sim.n_sub)
-    rng = np.random.default_rng(seed)
-    h = float(np.mean(model.rest_length))
-    x = model.rest_positions + rng.normal(0.0, 0.12 * h, (model.n_nodes, 3))  # some springs beyond dl_c
-    v = rng.normal(0.0, 0.05, (model.n_nodes, 3))
-    E = len(model.edges)
-    fv = rng.normal(0.0, 0.01, E)
-    dl_prev = rng.normal(0.0, 0.05 * h, E)
-    ks = 1.3
-    ref.kscale = ks
-    f_np = ref.spring_forces(x, v, fv_np := fv.copy(), dlp_np := dl_prev.copy())
-    f_nb = np.zeros_like(x)
-    fv_nb, dlp_nb = fv.copy(), dl_prev.copy()
-    if ref.use_sls:
-        accumulate_spring_forces_sls(x, v, model.edges, model.rest_length, model.k1, model.k2, model.dlc, model.cdash,
-                                     ks, ref.use_dashpot, model.kv, ref.decay, ref.gain, fv_nb, dlp_nb, f_nb)
-    else:
-        accumulate_spring_forces(x, v, model.edges, model.rest_length, model.k1, model.k2, model.dlc, model.cdash,
-                                 ks, ref.use_dashpot, f_nb)
-    if model.kvol.size:
-        ref.volume_forces(x, out=f_np)
-        accumulate_volume_forces(x, model.tets, model.rest_volume, model.kvol, model.volume_threshold, ks, f_nb)
-    beyond = float(np.mean(np.abs(np.linalg.norm(x[ref.j] - x[ref.i], axis=1) - model.rest_length) > model.dlc))
-    force_rel = float(np.max(np.abs(f_np - f_nb)) / np.max(np.abs(f_nb)))
-    fv_rel = float(np.max(np.abs(fv_np - fv_nb)) / max(np.max(np.abs(fv_nb)), 1e-300))
-
-    # trajectories: `steps` outer steps from rest under gravity, kernel vs reference
-    ref.kscale = 1.0
-    ref.x = model.rest_positions.copy()
-    ref.v[:] = 0.0
-    ref.fv[:] = 0.0
-    ref.dl_prev[:] = 0.0
-    sim.reset()
-    sim.step(steps)
-    ref.step(steps)
-    disp = np.max(np.abs(sim.x[0] - model.rest_positions))
-    state_rel = float(np.max(np.abs(sim.x[0] - ref.x)) / max(disp, 1e-300))
-    if model.kvol.size:
-        p = x[model.tets]
-        jac = np.einsum("ti,ti->t", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
-        active = float(np.mean(jac / model.rest_volume < model.volume_threshold))
-    else:
-        active = 0.0
-    return {
-        "resolution": model.mesh.name if custom else resolution,
-        "springs_beyond_dl_c_fraction": _r(beyond),
-        "tets_in_volume_barrier_fraction": _r(active),
-        "max_rel_diff_forces": force_rel,
-        "max_rel_diff_maxwell_forces": fv_rel,
-        "state_steps_ms": steps,
-        "max_rel_diff_displacement": state_rel,
-    }
 
 
 # ------------------------------------------------------------------------------------------------
@@ -571,7 +347,8 @@ def bench_physics(quick: bool, include_contact: bool = True, include_no_contact:
         ours = {r["resolution"]: r["single_us_per_ms"] for r in out["no_contact"]}
         progress("NumPy reference")
         out["numpy_reference"] = {
-            "cross_check": cross_check("coarse"),
+            "cross_check": {k: _r(v) if isinstance(v, float) and k.endswith("_fraction") else v
+                            for k, v in cross_check("coarse").items()},
             "rows": [bench_numpy(res, min_time, repeats, ours.get(res)) for res in ("coarse", "medium")],
         }
         progress("MuJoCo flex")
@@ -642,99 +419,6 @@ def bench_env(quick: bool, seed: int = 0, progress: Callable[[str], None] = lamb
             "vector": vec}
 
 
-# ------------------------------------------------------------------------------------------------
-# targets, report
-# ------------------------------------------------------------------------------------------------
-
-
-def _target(value, limit, kind: str, unit: str, note: str = "", cpu_value=None) -> dict:
-    def ok(v):
-        return None if v is None else bool(v <= limit if kind == "<=" else v >= limit)
-
-    d = {"value": value, "target": f"{kind} {_r(limit)}", "unit": unit, "pass": ok(value)}
-    if cpu_value is not None:  # the same from process CPU time (less sensitive to a busy machine)
-        d["value_cpu_time"] = cpu_value
-        d["pass_cpu_time"] = ok(cpu_value)
-    if note:
-        d["note"] = note
-    return d
-
-
-def evaluate_targets(report: dict) -> dict:
-    """Pass/fail flags against the issue's targets (wall-clock medians; CPU-time values alongside)."""
-    t: dict[str, dict] = {}
-    ph = report.get("physics", {})
-    nc = {r["resolution"]: r for r in ph.get("no_contact", [])}
-    co = {r["resolution"]: r for r in ph.get("contact", [])}
-    if "coarse" in nc:
-        r = nc["coarse"]
-        t["coarse_physics_le_10us_per_ms"] = _target(r["single_us_per_ms"], TARGETS["coarse_us_per_ms"], "<=",
-                                                     "us per simulated ms", ">= 100x real time, one tissue",
-                                                     r["single_cpu_us_per_ms"])
-    if "fine" in nc:
-        r = nc["fine"]
-        t["fine_physics_le_200us_per_ms"] = _target(r["single_us_per_ms"], TARGETS["fine_us_per_ms"], "<=",
-                                                    "us per simulated ms", ">= 5x real time, one tissue",
-                                                    r["single_cpu_us_per_ms"])
-    if "coarse" in co:
-        r = co["coarse"]
-        if "overhead_single" in r:
-            cpu = _r(r["single_cpu_us_per_ms"] / nc["coarse"]["single_cpu_us_per_ms"] - 1.0)
-            t["coarse_contact_overhead_le_50pct"] = _target(r["overhead_single"], TARGETS["contact_overhead"], "<=",
-                                                            "fraction", "contact / no-contact - 1, one tissue", cpu)
-        t["coarse_contact_ge_100x_realtime"] = _target(r["single_us_per_ms"], TARGETS["coarse_contact_us_per_ms"],
-                                                       "<=", "us per simulated ms", "one tissue, jaws closed",
-                                                       r["single_cpu_us_per_ms"])
-        t[f"coarse_contact_ge_100x_realtime_batch{BATCH}"] = _target(
-            r[f"batch{BATCH}_per_tissue_us_per_ms"], TARGETS["coarse_contact_us_per_ms"], "<=",
-            "us per simulated ms", f"per tissue in a batch of {BATCH} on one core, jaws closed")
-    mj = ph.get("mujoco") or {}
-    rows = [r for r in mj.get("rows", []) if r.get("speedup_vs_mujoco")]
-    if rows:
-        worst = min(rows, key=lambda r: r["speedup_vs_mujoco"])
-        t["mujoco_speedup_ge_10x"] = _target(worst["speedup_vs_mujoco"], TARGETS["mujoco_speedup"], ">=",
-                                             "MuJoCo time / ours", f"one tissue, worst of {len(rows)} resolutions "
-                                             f"({worst['resolution']})")
-        batched = [r for r in rows if r.get("speedup_batch_per_tissue")]
-        if batched:
-            worst_b = min(batched, key=lambda r: r["speedup_batch_per_tissue"])
-            t[f"mujoco_speedup_ge_10x_batch{BATCH}"] = _target(
-                worst_b["speedup_batch_per_tissue"], TARGETS["mujoco_speedup"], ">=", "MuJoCo time / ours",
-                f"ours per tissue in a batch of {BATCH}, worst resolution ({worst_b['resolution']})")
-    env = report.get("env")
-    if env:
-        s = env["single"]
-        t["env_single_ge_1000_steps_per_s"] = _target(s["steps_per_s"], TARGETS["env_single_steps_per_s"], ">=",
-                                                      "agent steps/s", "GraspLiftEnv, coarse", s.get("cpu_steps_per_s"))
-        batched = [r for r in env["vector"] if r["n_envs"] > 1]
-        if batched:
-            best = max(batched, key=lambda r: r["total_steps_per_s"])
-            t["env_batched_ge_2000_steps_per_s"] = _target(best["total_steps_per_s"],
-                                                           TARGETS["env_batched_steps_per_s"], ">=",
-                                                           "aggregate agent steps/s",
-                                                           f"best batched vector env (N={best['n_envs']})",
-                                                           best.get("cpu_total_steps_per_s"))
-    return t
-
-
-def machine_info() -> dict:
-    import numba
-
-    info = {
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "numba": numba.__version__,
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-    }
-    try:
-        info["load_average_1min"] = _r(os.getloadavg()[0])
-    except OSError:
-        pass
-    return info
-
-
 def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[str], None] = lambda s: None) -> dict:
     if what not in ("physics", "grasp", "env", "all"):
         from ..physics.config import ConfigError
@@ -753,132 +437,6 @@ def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[st
     report["all_targets_pass"] = bool(all(flags)) if flags else None
     report["elapsed_s"] = _r(time.perf_counter() - t0)
     return report
-
-
-def markdown(report: dict) -> str:
-    lines = [f"# msdgrasp bench {report['what']}{' (quick)' if report['quick'] else ''}", ""]
-    m = report["machine"]
-    lines += [f"Python {m['python']}, NumPy {m['numpy']}, numba {m['numba']}, {m['cpu_count']} CPUs, "
-              f"{m['platform']}; load {m.get('load_average_1min', '?')}; total {report['elapsed_s']} s.", ""]
-    ph = report.get("physics", {})
-    b = BATCH
-    if ph.get("no_contact"):
-        lines += ["## Physics without contact (us of compute per simulated ms)", "",
-                  f"| resolution | nodes | springs | n_sub | single | x real time | batch {b} total | per tissue "
-                  f"| ns per spring and substep: single / batch {b} |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for r in ph["no_contact"]:
-            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['springs']} | {r['n_sub']} | {r['single_us_per_ms']} | "
-                         f"{r['single_realtime_factor']} | {r[f'batch{b}_total_us_per_ms']} | "
-                         f"{r[f'batch{b}_per_tissue_us_per_ms']} | {r.get('single_ns_per_spring_substep', '-')} / "
-                         f"{r.get(f'batch{b}_ns_per_spring_substep', '-')} |")
-        s = ph["scaling"]
-        lines += ["", f"Log-log exponent of cost vs nodes: {s['exponent_us_per_ms_vs_nodes']} per simulated ms, "
-                      f"{s['exponent_us_per_substep_vs_nodes']} per substep.", ""]
-    if ph.get("contact"):
-        lines += ["## Physics with contact (jaws closed on the inferior pole)", "",
-                  f"| resolution | nodes | n_sub | contact nodes | single | x real time | overhead | batch {b} total | per tissue |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for r in ph["contact"]:
-            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['n_sub']} | {r['contact_nodes']} | "
-                         f"{r['single_us_per_ms']} | {r['single_realtime_factor']} | {r.get('overhead_single', '-')} | "
-                         f"{r[f'batch{b}_total_us_per_ms']} | {r[f'batch{b}_per_tissue_us_per_ms']} |")
-        lines.append("")
-    if ph.get("numpy_reference"):
-        nr = ph["numpy_reference"]
-        cc = nr["cross_check"]
-        lines += ["## NumPy reference", "",
-                  f"Cross-check ({cc['resolution']}): max rel. force diff {cc['max_rel_diff_forces']:.2e}, "
-                  f"Maxwell {cc['max_rel_diff_maxwell_forces']:.2e}, displacement after {cc['state_steps_ms']} ms "
-                  f"{cc['max_rel_diff_displacement']:.2e}.", "",
-                  "| resolution | nodes | NumPy us/ms | ours us/ms | ours/NumPy |", "|---|---|---|---|---|"]
-        for r in nr["rows"]:
-            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['numpy_us_per_ms']} | {r['numba_us_per_ms']} | "
-                         f"{r['ratio_ours_over_numpy']} |")
-        lines.append("")
-    mj = ph.get("mujoco")
-    if mj:
-        lines += ["## MuJoCo flex", ""]
-        if not mj["available"]:
-            lines += [f"Not available: {mj['reason']}", ""]
-        else:
-            lines += [f"MuJoCo {mj['version']}: {mj['model']}.", "",
-                      f"| resolution | nodes | MuJoCo us/ms | ours us/ms | ours/MuJoCo | ours, batch {b}, per tissue "
-                      "| MuJoCo/ours (batched) | finite |", "|---|---|---|---|---|---|---|---|"]
-            for r in mj["rows"]:
-                if "error" in r:
-                    lines.append(f"| {r['resolution']} | - | error: {r['error']} | | | | | |")
-                else:
-                    lines.append(f"| {r['resolution']} | {r['nodes']} | {r['mujoco_us_per_ms']} | {r['ours_us_per_ms']} | "
-                                 f"{r['ratio_ours_over_mujoco']} | {r.get(f'ours_batch{b}_per_tissue_us_per_ms', '-')} | "
-                                 f"{r.get('speedup_batch_per_tissue', '-')} | {r['finite']} |")
-            lines.append("")
-    env = report.get("env")
-    if env:
-        lines += ["## Env (agent steps/s, coarse spleen, random actions)", "",
-                  "| env | N | total steps/s | per env steps/s |", "|---|---|---|---|",
-                  f"| GraspLiftEnv | 1 | {env['single']['steps_per_s']} | {env['single']['steps_per_s']} |"]
-        for r in env["vector"]:
-            lines.append(f"| GraspLiftVectorEnv | {r['n_envs']} | {r['total_steps_per_s']} | {r['per_env_steps_per_s']} |")
-        lines.append("")
-    if report["targets"]:
-        lines += ["## Targets", "", "| target | value (wall) | limit | pass | value (CPU time) | pass (CPU) |",
-                  "|---|---|---|---|---|---|"]
-        yn = {True: "yes", False: "NO", None: "-"}
-        for k, v in report["targets"].items():
-            lines.append(f"| {k} | {v['value']} | {v['target']} | {yn[v['pass']]} | {v.get('value_cpu_time', '-')} | "
-                         f"{yn[v.get('pass_cpu_time')]} |")
-        lines.append("")
-    return "\n".join(lines)
-
-
-def plot_scaling(report: dict, path: Path) -> Path | None:
-    ph = report.get("physics", {})
-    if not ph.get("no_contact") and not ph.get("contact"):
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..physics.config import save_figure
-
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    b = BATCH
-
-    def series(rows, key, label, style):
-        pts = [(r["nodes"], r[key]) for r in rows if r.get(key)]
-        if pts:
-            n, c = zip(*pts)
-            ax.loglog(n, c, style, label=label)
-
-    nc = ph.get("no_contact", [])
-    series(nc, "single_us_per_ms", "no contact, 1 tissue", "o-")
-    series(nc, f"batch{b}_per_tissue_us_per_ms", f"no contact, batch {b} (per tissue)", "s--")
-    series(ph.get("contact", []), "single_us_per_ms", "contact, 1 tissue", "^-")
-    if ph.get("numpy_reference"):
-        series(ph["numpy_reference"]["rows"], "numpy_us_per_ms", "NumPy reference", "x:")
-    mj = ph.get("mujoco") or {}
-    if mj.get("available"):
-        series([r for r in mj["rows"] if "error" not in r], "mujoco_us_per_ms", "MuJoCo flex", "d:")
-    ax.axhline(1000.0, color="k", lw=0.8, ls="--")
-    ax.text(ax.get_xlim()[0], 1000.0, " real time", va="bottom", fontsize=8)
-    ax.axhline(TARGETS["fine_us_per_ms"], color="0.5", lw=0.8, ls=":")
-    ax.axhline(TARGETS["coarse_us_per_ms"], color="0.5", lw=0.8, ls=":")
-    exp = (ph.get("scaling") or {}).get("exponent_us_per_ms_vs_nodes")
-    ax.set_xlabel("nodes")
-    ax.set_ylabel("compute per simulated ms (us)")
-    ax.set_title("MSD spleen cost vs mesh size" + (f" (slope {exp})" if exp else ""))
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    return save_figure(fig, path)
-
-
-def _out_paths(out: Path) -> tuple[Path, Path, Path]:
-    out = Path(out)
-    if out.suffix.lower() != ".json":
-        out = out / "bench.json"
-    return out, out.with_suffix(".md"), out.with_name(out.stem + "_scaling.png")
 
 
 def bench_cli(args) -> int:

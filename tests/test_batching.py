@@ -92,11 +92,11 @@ def test_dashpots_compliant_anchors_and_displacement_damping_in_lanes_act_exactl
     """The optional terms the spleen scene leaves off: spring dashpots, b1 > 0 (Eq. 7), sprung anchors."""
     from dataclasses import replace
 
-    from msdgrasp.agents import bench
+    from msdgrasp.physics import reference
     from msdgrasp.physics.tissue import TissueModel
 
-    model = bench.spleen_model("coarse")
-    params = replace(bench.spleen_params(), spring_damping_time_s=0.002, damping_disp_rate_per_m_s=500.0)
+    model = reference.spleen_model("coarse")
+    params = replace(reference.spleen_params(), spring_damping_time_s=0.002, damping_disp_rate_per_m_s=500.0)
     model = TissueModel.from_params(model.mesh, params, fixed_nodes=model.mesh.node_sets["hilum"],
                                     anchor_stiffness_n_per_m=8.0)
     assert model.b1.max() > 0 and model.anchor_k.max() > 0 and model.cdash.max() > 0

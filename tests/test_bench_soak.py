@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents import bench, soak
+from msdgrasp.physics import reference
 from msdgrasp.agents.cli import main
 from msdgrasp.physics.config import ConfigError, replace
 from msdgrasp.physics.mesh import spleen_mesh
@@ -95,13 +96,13 @@ def test_bench_writes_files(bench_quick):
 @pytest.mark.parametrize("variant", ["spleen_sls", "dashpot_compliant_anchors"])
 def test_numpy_reference_matches_numba(variant):
     if variant == "spleen_sls":
-        res = bench.cross_check("coarse", seed=3)
+        res = reference.cross_check("coarse", seed=3)
     else:
         mesh = spleen_mesh("coarse")
-        params = replace(bench.spleen_params(), relaxation_strength=0.0, spring_damping_time_s=0.002,
+        params = replace(reference.spleen_params(), relaxation_strength=0.0, spring_damping_time_s=0.002,
                          damping_disp_rate_per_m_s=500.0)
         model = TissueModel.from_params(mesh, params, fixed_nodes=mesh.node_sets["hilum"], anchor_stiffness_n_per_m=8.0)
-        res = bench.cross_check(model=model, seed=4)
+        res = reference.cross_check(model=model, seed=4)
     assert res["springs_beyond_dl_c_fraction"] > 0.05  # both branches of the spring law are exercised
     assert res["max_rel_diff_forces"] < 1e-10
     assert res["max_rel_diff_maxwell_forces"] < 1e-10
@@ -113,7 +114,7 @@ def test_numpy_spring_law_matches_kernel():
 
     dl = np.linspace(-0.01, 0.01, 2001)
     k1, k2, dlc = 50.0, 5e5, 2e-3
-    ref = bench.numpy_spring_law(dl, np.full_like(dl, k1), np.full_like(dl, k2), np.full_like(dl, dlc))
+    ref = reference.numpy_spring_law(dl, np.full_like(dl, k1), np.full_like(dl, k2), np.full_like(dl, dlc))
     np.testing.assert_allclose(ref, spring_force_array(dl, k1, k2, dlc), rtol=1e-13, atol=1e-15)
 
 

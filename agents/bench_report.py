@@ -1,0 +1,254 @@
+"""The benchmark report of ``msdgrasp bench``: the issue's speed targets, pass/fail flags, the machine, a
+markdown table and the log-log scaling plot (agents/bench.py measures; this module only reads reports).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+#: batch size of the batched physics measurements: a full lane block (physics/integrator.py), so the
+#: per-tissue figure is what the SIMD-across-tissues path delivers
+BATCH = 64
+#: vector-env sizes of the env benchmark (``--quick`` skips the largest)
+ENV_SIZES = (1, 16, 64, 256)
+
+TARGETS = {
+    "coarse_us_per_ms": 10.0,  # >= 100x real time
+    "fine_us_per_ms": 200.0,  # >= 5x real time
+    "contact_overhead": 0.50,  # contact adds <= 50 %
+    "coarse_contact_us_per_ms": 10.0,  # >= 100x real time with contact
+    "mujoco_speedup": 10.0,  # >= 10x faster than MuJoCo flex at equal nodes
+    "env_single_steps_per_s": 1000.0,
+    "env_batched_steps_per_s": 2000.0,
+}
+
+
+def _r(x: float, nd: int = 3) -> float:
+    """Round to ``nd`` significant digits (JSON readability)."""
+    if x is None or not math.isfinite(x) or x == 0:
+        return x
+    return round(x, -int(math.floor(math.log10(abs(x)))) + nd - 1)
+
+
+# ------------------------------------------------------------------------------------------------
+# targets, report
+# ------------------------------------------------------------------------------------------------
+
+
+def _target(value, limit, kind: str, unit: str, note: str = "", cpu_value=None) -> dict:
+    def ok(v):
+        return None if v is None else bool(v <= limit if kind == "<=" else v >= limit)
+
+    d = {"value": value, "target": f"{kind} {_r(limit)}", "unit": unit, "pass": ok(value)}
+    if cpu_value is not None:  # the same from process CPU time (less sensitive to a busy machine)
+        d["value_cpu_time"] = cpu_value
+        d["pass_cpu_time"] = ok(cpu_value)
+    if note:
+        d["note"] = note
+    return d
+
+
+def evaluate_targets(report: dict) -> dict:
+    """Pass/fail flags against the issue's targets (wall-clock medians; CPU-time values alongside)."""
+    t: dict[str, dict] = {}
+    ph = report.get("physics", {})
+    nc = {r["resolution"]: r for r in ph.get("no_contact", [])}
+    co = {r["resolution"]: r for r in ph.get("contact", [])}
+    if "coarse" in nc:
+        r = nc["coarse"]
+        t["coarse_physics_le_10us_per_ms"] = _target(r["single_us_per_ms"], TARGETS["coarse_us_per_ms"], "<=",
+                                                     "us per simulated ms", ">= 100x real time, one tissue",
+                                                     r["single_cpu_us_per_ms"])
+    if "fine" in nc:
+        r = nc["fine"]
+        t["fine_physics_le_200us_per_ms"] = _target(r["single_us_per_ms"], TARGETS["fine_us_per_ms"], "<=",
+                                                    "us per simulated ms", ">= 5x real time, one tissue",
+                                                    r["single_cpu_us_per_ms"])
+    if "coarse" in co:
+        r = co["coarse"]
+        if "overhead_single" in r:
+            cpu = _r(r["single_cpu_us_per_ms"] / nc["coarse"]["single_cpu_us_per_ms"] - 1.0)
+            t["coarse_contact_overhead_le_50pct"] = _target(r["overhead_single"], TARGETS["contact_overhead"], "<=",
+                                                            "fraction", "contact / no-contact - 1, one tissue", cpu)
+        t["coarse_contact_ge_100x_realtime"] = _target(r["single_us_per_ms"], TARGETS["coarse_contact_us_per_ms"],
+                                                       "<=", "us per simulated ms", "one tissue, jaws closed",
+                                                       r["single_cpu_us_per_ms"])
+        t[f"coarse_contact_ge_100x_realtime_batch{BATCH}"] = _target(
+            r[f"batch{BATCH}_per_tissue_us_per_ms"], TARGETS["coarse_contact_us_per_ms"], "<=",
+            "us per simulated ms", f"per tissue in a batch of {BATCH} on one core, jaws closed")
+    mj = ph.get("mujoco") or {}
+    rows = [r for r in mj.get("rows", []) if r.get("speedup_vs_mujoco")]
+    if rows:
+        worst = min(rows, key=lambda r: r["speedup_vs_mujoco"])
+        t["mujoco_speedup_ge_10x"] = _target(worst["speedup_vs_mujoco"], TARGETS["mujoco_speedup"], ">=",
+                                             "MuJoCo time / ours", f"one tissue, worst of {len(rows)} resolutions "
+                                             f"({worst['resolution']})")
+        batched = [r for r in rows if r.get("speedup_batch_per_tissue")]
+        if batched:
+            worst_b = min(batched, key=lambda r: r["speedup_batch_per_tissue"])
+            t[f"mujoco_speedup_ge_10x_batch{BATCH}"] = _target(
+                worst_b["speedup_batch_per_tissue"], TARGETS["mujoco_speedup"], ">=", "MuJoCo time / ours",
+                f"ours per tissue in a batch of {BATCH}, worst resolution ({worst_b['resolution']})")
+    env = report.get("env")
+    if env:
+        s = env["single"]
+        t["env_single_ge_1000_steps_per_s"] = _target(s["steps_per_s"], TARGETS["env_single_steps_per_s"], ">=",
+                                                      "agent steps/s", "GraspLiftEnv, coarse", s.get("cpu_steps_per_s"))
+        batched = [r for r in env["vector"] if r["n_envs"] > 1]
+        if batched:
+            best = max(batched, key=lambda r: r["total_steps_per_s"])
+            t["env_batched_ge_2000_steps_per_s"] = _target(best["total_steps_per_s"],
+                                                           TARGETS["env_batched_steps_per_s"], ">=",
+                                                           "aggregate agent steps/s",
+                                                           f"best batched vector env (N={best['n_envs']})",
+                                                           best.get("cpu_total_steps_per_s"))
+    return t
+
+
+def machine_info() -> dict:
+    import numba
+
+    info = {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "numba": numba.__version__,
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+    }
+    try:
+        info["load_average_1min"] = _r(os.getloadavg()[0])
+    except OSError:
+        pass
+    return info
+
+
+def markdown(report: dict) -> str:
+    lines = [f"# msdgrasp bench {report['what']}{' (quick)' if report['quick'] else ''}", ""]
+    m = report["machine"]
+    lines += [f"Python {m['python']}, NumPy {m['numpy']}, numba {m['numba']}, {m['cpu_count']} CPUs, "
+              f"{m['platform']}; load {m.get('load_average_1min', '?')}; total {report['elapsed_s']} s.", ""]
+    ph = report.get("physics", {})
+    b = BATCH
+    if ph.get("no_contact"):
+        lines += ["## Physics without contact (us of compute per simulated ms)", "",
+                  f"| resolution | nodes | springs | n_sub | single | x real time | batch {b} total | per tissue "
+                  f"| ns per spring and substep: single / batch {b} |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in ph["no_contact"]:
+            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['springs']} | {r['n_sub']} | {r['single_us_per_ms']} | "
+                         f"{r['single_realtime_factor']} | {r[f'batch{b}_total_us_per_ms']} | "
+                         f"{r[f'batch{b}_per_tissue_us_per_ms']} | {r.get('single_ns_per_spring_substep', '-')} / "
+                         f"{r.get(f'batch{b}_ns_per_spring_substep', '-')} |")
+        s = ph["scaling"]
+        lines += ["", f"Log-log exponent of cost vs nodes: {s['exponent_us_per_ms_vs_nodes']} per simulated ms, "
+                      f"{s['exponent_us_per_substep_vs_nodes']} per substep.", ""]
+    if ph.get("contact"):
+        lines += ["## Physics with contact (jaws closed on the inferior pole)", "",
+                  f"| resolution | nodes | n_sub | contact nodes | single | x real time | overhead | batch {b} total | per tissue |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in ph["contact"]:
+            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['n_sub']} | {r['contact_nodes']} | "
+                         f"{r['single_us_per_ms']} | {r['single_realtime_factor']} | {r.get('overhead_single', '-')} | "
+                         f"{r[f'batch{b}_total_us_per_ms']} | {r[f'batch{b}_per_tissue_us_per_ms']} |")
+        lines.append("")
+    if ph.get("numpy_reference"):
+        nr = ph["numpy_reference"]
+        cc = nr["cross_check"]
+        lines += ["## NumPy reference", "",
+                  f"Cross-check ({cc['resolution']}): max rel. force diff {cc['max_rel_diff_forces']:.2e}, "
+                  f"Maxwell {cc['max_rel_diff_maxwell_forces']:.2e}, displacement after {cc['state_steps_ms']} ms "
+                  f"{cc['max_rel_diff_displacement']:.2e}.", "",
+                  "| resolution | nodes | NumPy us/ms | ours us/ms | ours/NumPy |", "|---|---|---|---|---|"]
+        for r in nr["rows"]:
+            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['numpy_us_per_ms']} | {r['numba_us_per_ms']} | "
+                         f"{r['ratio_ours_over_numpy']} |")
+        lines.append("")
+    mj = ph.get("mujoco")
+    if mj:
+        lines += ["## MuJoCo flex", ""]
+        if not mj["available"]:
+            lines += [f"Not available: {mj['reason']}", ""]
+        else:
+            lines += [f"MuJoCo {mj['version']}: {mj['model']}.", "",
+                      f"| resolution | nodes | MuJoCo us/ms | ours us/ms | ours/MuJoCo | ours, batch {b}, per tissue "
+                      "| MuJoCo/ours (batched) | finite |", "|---|---|---|---|---|---|---|---|"]
+            for r in mj["rows"]:
+                if "error" in r:
+                    lines.append(f"| {r['resolution']} | - | error: {r['error']} | | | | | |")
+                else:
+                    lines.append(f"| {r['resolution']} | {r['nodes']} | {r['mujoco_us_per_ms']} | {r['ours_us_per_ms']} | "
+                                 f"{r['ratio_ours_over_mujoco']} | {r.get(f'ours_batch{b}_per_tissue_us_per_ms', '-')} | "
+                                 f"{r.get('speedup_batch_per_tissue', '-')} | {r['finite']} |")
+            lines.append("")
+    env = report.get("env")
+    if env:
+        lines += ["## Env (agent steps/s, coarse spleen, random actions)", "",
+                  "| env | N | total steps/s | per env steps/s |", "|---|---|---|---|",
+                  f"| GraspLiftEnv | 1 | {env['single']['steps_per_s']} | {env['single']['steps_per_s']} |"]
+        for r in env["vector"]:
+            lines.append(f"| GraspLiftVectorEnv | {r['n_envs']} | {r['total_steps_per_s']} | {r['per_env_steps_per_s']} |")
+        lines.append("")
+    if report["targets"]:
+        lines += ["## Targets", "", "| target | value (wall) | limit | pass | value (CPU time) | pass (CPU) |",
+                  "|---|---|---|---|---|---|"]
+        yn = {True: "yes", False: "NO", None: "-"}
+        for k, v in report["targets"].items():
+            lines.append(f"| {k} | {v['value']} | {v['target']} | {yn[v['pass']]} | {v.get('value_cpu_time', '-')} | "
+                         f"{yn[v.get('pass_cpu_time')]} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_scaling(report: dict, path: Path) -> Path | None:
+    ph = report.get("physics", {})
+    if not ph.get("no_contact") and not ph.get("contact"):
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..physics.config import save_figure
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    b = BATCH
+
+    def series(rows, key, label, style):
+        pts = [(r["nodes"], r[key]) for r in rows if r.get(key)]
+        if pts:
+            n, c = zip(*pts)
+            ax.loglog(n, c, style, label=label)
+
+    nc = ph.get("no_contact", [])
+    series(nc, "single_us_per_ms", "no contact, 1 tissue", "o-")
+    series(nc, f"batch{b}_per_tissue_us_per_ms", f"no contact, batch {b} (per tissue)", "s--")
+    series(ph.get("contact", []), "single_us_per_ms", "contact, 1 tissue", "^-")
+    if ph.get("numpy_reference"):
+        series(ph["numpy_reference"]["rows"], "numpy_us_per_ms", "NumPy reference", "x:")
+    mj = ph.get("mujoco") or {}
+    if mj.get("available"):
+        series([r for r in mj["rows"] if "error" not in r], "mujoco_us_per_ms", "MuJoCo flex", "d:")
+    ax.axhline(1000.0, color="k", lw=0.8, ls="--")
+    ax.text(ax.get_xlim()[0], 1000.0, " real time", va="bottom", fontsize=8)
+    ax.axhline(TARGETS["fine_us_per_ms"], color="0.5", lw=0.8, ls=":")
+    ax.axhline(TARGETS["coarse_us_per_ms"], color="0.5", lw=0.8, ls=":")
+    exp = (ph.get("scaling") or {}).get("exponent_us_per_ms_vs_nodes")
+    ax.set_xlabel("nodes")
+    ax.set_ylabel("compute per simulated ms (us)")
+    ax.set_title("MSD spleen cost vs mesh size" + (f" (slope {exp})" if exp else ""))
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return save_figure(fig, path)
+
+
+def _out_paths(out: Path) -> tuple[Path, Path, Path]:
+    out = Path(out)
+    if out.suffix.lower() != ".json":
+        out = out / "bench.json"
+    return out, out.with_suffix(".md"), out.with_name(out.stem + "_scaling.png")

@@ -1,0 +1,215 @@
+"""The NumPy reference of the MSD step: the same physics as the numba kernel, written for clarity, not speed.
+
+:class:`NumpyMSD` evaluates springs (the paper's law, the optional spring dashpot, the Maxwell branch) and
+the volume barrier for all edges / tets at once and integrates with the kernel's scheme; :func:`cross_check`
+compares forces and trajectories with the kernel (the tests' oracle; ``msdgrasp bench physics`` reports it
+and times the reference beside the kernel).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+DT_OUTER = 1e-3  # s: the outer physics step of the env and the benchmarks
+
+
+# ------------------------------------------------------------------------------------------------
+# models
+# ------------------------------------------------------------------------------------------------
+
+
+def spleen_params():
+    from .config import builtin_config
+    from .scenario import load_params
+    from .tissue import TissueParams
+
+    return load_params(builtin_config("tissue/spleen.yaml"), "tissue", TissueParams)
+
+
+_MODELS: dict = {}
+
+
+def spleen_model(resolution: str | int):
+    """The spleen anchored (rigidly) at its hilum, at ``resolution`` (cached per process)."""
+    if resolution not in _MODELS:
+        from .mesh import spleen_mesh
+        from .tissue import TissueModel
+
+        mesh = spleen_mesh(resolution)
+        _MODELS[resolution] = TissueModel.from_params(mesh, spleen_params(), fixed_nodes=mesh.node_sets["hilum"])
+    return _MODELS[resolution]
+
+
+# ------------------------------------------------------------------------------------------------
+# the NumPy reference
+# ------------------------------------------------------------------------------------------------
+
+
+def numpy_spring_law(dl: np.ndarray, k1: np.ndarray, k2: np.ndarray, dlc: np.ndarray) -> np.ndarray:
+    """The spring law of :func:`msdgrasp.physics.forces.spring_force`, vectorised."""
+    adl = np.abs(dl)
+    a = k1 * dlc + k2 * dlc * dlc * dlc
+    b = k1 + 3.0 * k2 * dlc * dlc
+    outer = a + b * (adl - dlc)
+    return np.where(adl <= dlc, k1 * dl + k2 * dl * dl * dl, np.where(dl > 0.0, outer, -outer))
+
+
+class NumpyMSD:
+    """Plain NumPy implementation of the same MSD step as the numba kernel (no contact): the reference.
+
+    Springs (the paper's law, optional spring dashpot, the Maxwell branch) and the volume barrier are
+    evaluated for all edges / tets at once and scattered to the nodes with ``np.add.at``; symplectic Euler with implicit nodal damping;
+    rigid anchors held, compliant anchors as springs. ``x, v`` are (N,3), ``fv, dl_prev`` (E,).
+    """
+
+    def __init__(self, model, n_sub: int, dt_outer: float = DT_OUTER, kscale: float = 1.0, mscale: float = 1.0):
+        self.model = model
+        self.n_sub = int(n_sub)
+        self.dt = dt_outer / self.n_sub
+        self.kscale = float(kscale)
+        self.mscale = float(mscale)
+        p = model.params
+        self.use_dashpot = p.spring_damping_time_s > 0.0
+        self.use_sls = p.relaxation_strength > 0.0
+        self.decay = math.exp(-self.dt / p.relaxation_time_s)
+        self.gain = p.relaxation_time_s / self.dt * (1.0 - self.decay)
+        self.i = model.edges[:, 0]
+        self.j = model.edges[:, 1]
+        self.m = model.mass * self.mscale
+        self.free = ~model.fixed if model.fixed.size else np.ones(model.n_nodes, bool)
+        self.x = model.rest_positions.copy()
+        self.v = np.zeros_like(self.x)
+        self.fv = np.zeros(len(model.edges))
+        self.dl_prev = np.zeros(len(model.edges))
+
+    def spring_forces(self, x, v, fv, dl_prev, out=None, update=True) -> np.ndarray:
+        """(N,3) spring (+ dashpot + Maxwell) forces; updates ``fv``/``dl_prev`` in place if ``update``."""
+        mdl = self.model
+        d = x[self.j] - x[self.i]
+        length = np.sqrt(np.einsum("ij,ij->i", d, d))
+        ok = length >= 1e-15
+        u = d / np.where(ok, length, 1.0)[:, None]
+        dl = length - mdl.rest_length
+        fs = self.kscale * numpy_spring_law(dl, mdl.k1, mdl.k2, mdl.dlc)
+        if self.use_sls:
+            fve = fv * self.decay + self.kscale * mdl.kv * (dl - dl_prev) * self.gain
+            if update:
+                fv[ok] = fve[ok]
+                dl_prev[ok] = dl[ok]
+            fs = fs + fve
+        if self.use_dashpot:
+            rel = np.einsum("ij,ij->i", v[self.j] - v[self.i], u)
+            fs = fs + self.kscale * mdl.cdash * rel
+        fu = np.where(ok, fs, 0.0)[:, None] * u
+        f = np.zeros_like(x) if out is None else out
+        np.add.at(f, self.i, fu)
+        np.add.at(f, self.j, -fu)
+        return f
+
+    def volume_forces(self, x, out=None) -> np.ndarray:
+        """(N,3) forces of the volume barrier (tets compressed below the threshold), vectorised."""
+        mdl = self.model
+        f = np.zeros_like(x) if out is None else out
+        if not mdl.kvol.size:
+            return f
+        p = x[mdl.tets]
+        e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+        g = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=1) / 6.0  # dV/dx_b,c,d
+        jac = np.einsum("ti,ti->t", e1, g[:, 0]) / mdl.rest_volume
+        s = np.where(jac < mdl.volume_threshold, -self.kscale * mdl.kvol * (jac - mdl.volume_threshold), 0.0)
+        fg = s[:, None, None] * g
+        for k in range(3):
+            np.add.at(f, mdl.tets[:, k + 1], fg[:, k])
+        np.add.at(f, mdl.tets[:, 0], -fg.sum(axis=1))
+        return f
+
+    def step(self, n_steps: int = 1) -> None:
+        mdl = self.model
+        dt = self.dt
+        x, v = self.x, self.v
+        m = self.m[:, None]
+        fg = m * mdl.gravity[None, :]
+        x0 = mdl.rest_positions
+        fixed = ~self.free
+        ka = mdl.anchor_k[:, None] if mdl.anchor_k.size else None
+        for _ in range(int(n_steps) * self.n_sub):
+            f = fg.copy()
+            self.spring_forces(x, v, self.fv, self.dl_prev, out=f)
+            self.volume_forces(x, out=f)
+            disp = x - x0
+            if ka is not None:
+                f += -ka * (disp - self.mscale * mdl.anchor_offset[None, :])
+            damp = mdl.b0 + mdl.b1 * np.sqrt(np.einsum("ij,ij->i", disp, disp))
+            inv = 1.0 / (1.0 + dt * damp / self.m)
+            v[:] = (v + dt * f / m) * inv[:, None]
+            v[fixed] = 0.0
+            x += dt * v  # anchored nodes have v = 0: they stay where they are
+
+
+def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10, model=None) -> dict:
+    """NumPy vs numba: spring forces at one perturbed state, and the state after ``steps`` ms.
+
+    ``model`` (default: the anchored spleen at ``resolution``) may be any TissueModel. Returns the largest
+    difference relative to the largest magnitude (forces, Maxwell forces, positions' displacement).
+    """
+    from .forces import accumulate_spring_forces, accumulate_volume_forces
+    from .simulation import Simulation
+    from .viscoelastic import accumulate_spring_forces_sls
+
+    custom = model is not None
+    model = model if custom else spleen_model(resolution)
+    sim = Simulation(model, 1, dt=DT_OUTER)
+    ref = NumpyMSD(model, sim.n_sub)
+    rng = np.random.default_rng(seed)
+    h = float(np.mean(model.rest_length))
+    x = model.rest_positions + rng.normal(0.0, 0.12 * h, (model.n_nodes, 3))  # some springs beyond dl_c
+    v = rng.normal(0.0, 0.05, (model.n_nodes, 3))
+    E = len(model.edges)
+    fv = rng.normal(0.0, 0.01, E)
+    dl_prev = rng.normal(0.0, 0.05 * h, E)
+    ks = 1.3
+    ref.kscale = ks
+    f_np = ref.spring_forces(x, v, fv_np := fv.copy(), dl_prev.copy())
+    f_nb = np.zeros_like(x)
+    fv_nb, dlp_nb = fv.copy(), dl_prev.copy()
+    if ref.use_sls:
+        accumulate_spring_forces_sls(x, v, model.edges, model.rest_length, model.k1, model.k2, model.dlc, model.cdash,
+                                     ks, ref.use_dashpot, model.kv, ref.decay, ref.gain, fv_nb, dlp_nb, f_nb)
+    else:
+        accumulate_spring_forces(x, v, model.edges, model.rest_length, model.k1, model.k2, model.dlc, model.cdash,
+                                 ks, ref.use_dashpot, f_nb)
+    if model.kvol.size:
+        ref.volume_forces(x, out=f_np)
+        accumulate_volume_forces(x, model.tets, model.rest_volume, model.kvol, model.volume_threshold, ks, f_nb)
+    beyond = float(np.mean(np.abs(np.linalg.norm(x[ref.j] - x[ref.i], axis=1) - model.rest_length) > model.dlc))
+    force_rel = float(np.max(np.abs(f_np - f_nb)) / np.max(np.abs(f_nb)))
+    fv_rel = float(np.max(np.abs(fv_np - fv_nb)) / max(np.max(np.abs(fv_nb)), 1e-300))
+
+    # trajectories: `steps` outer steps from rest under gravity, kernel vs reference
+    ref.kscale = 1.0
+    ref.x = model.rest_positions.copy()
+    ref.v[:] = 0.0
+    ref.fv[:] = 0.0
+    ref.dl_prev[:] = 0.0
+    sim.reset()
+    sim.step(steps)
+    ref.step(steps)
+    disp = np.max(np.abs(sim.x[0] - model.rest_positions))
+    state_rel = float(np.max(np.abs(sim.x[0] - ref.x)) / max(disp, 1e-300))
+    if model.kvol.size:
+        p = x[model.tets]
+        jac = np.einsum("ti,ti->t", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
+        active = float(np.mean(jac / model.rest_volume < model.volume_threshold))
+    else:
+        active = 0.0
+    return {
+        "resolution": model.mesh.name if custom else resolution,
+        "springs_beyond_dl_c_fraction": beyond,
+        "tets_in_volume_barrier_fraction": active,
+        "max_rel_diff_forces": force_rel,
+        "max_rel_diff_maxwell_forces": fv_rel,
+        "state_steps_ms": steps,
+        "max_rel_diff_displacement": state_rel,
+    }
