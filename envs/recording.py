@@ -60,7 +60,6 @@ from __future__ import annotations
 import atexit
 import functools
 import os
-import uuid
 import warnings
 import weakref
 from collections.abc import Callable
@@ -70,11 +69,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from ..physics.config import publish, temp_beside
+from .rrd_file import RecordingError, RecordingWarning, RrdSink, check_destination, recording_error
 
 __all__ = ["RecordingError", "RecordingWarning", "RerunRecorder", "record_episode", "stress_colors"]
 
-APPLICATION_ID = "msdgrasp"
 TIMELINE_TIME = "sim_time"
 TIMELINE_STEP = "step"
 
@@ -85,21 +83,6 @@ JAW_COLORS = np.array([[255, 160, 40, 255], [170, 90, 230, 255], [40, 190, 230, 
 STICK_COLOR = (40, 200, 60, 255)
 SLIP_COLOR = (230, 40, 40, 255)
 ANCHOR_COLOR = (250, 220, 40, 255)
-
-
-class RecordingError(OSError):
-    """A recording cannot be written (unusable path, I/O failure, rerun failure)."""
-
-    def __init__(self, message: str, path: str | os.PathLike | None = None) -> None:
-        super().__init__(message)
-        self.filename = None if path is None else str(path)
-
-    def __str__(self) -> str:
-        return str(self.args[0])
-
-
-class RecordingWarning(UserWarning):
-    """A recording failed with ``on_error="warn"``: the recording was dropped, the env runs on."""
 
 
 # ------------------------------------------------------------------------------------------------
@@ -124,116 +107,6 @@ def stress_colors(values: np.ndarray, vmax: float, signed: bool = True) -> np.nd
     out[:, :3] = np.round(rgb).astype(np.uint8)
     out[:, 3] = 255
     return out
-
-
-# ------------------------------------------------------------------------------------------------
-# one output file
-# ------------------------------------------------------------------------------------------------
-
-
-def _error(message: str, path, exc: BaseException | None = None) -> RecordingError:
-    detail = ""
-    if exc is not None:
-        detail = f": {getattr(exc, 'strerror', None) or exc}"
-    return RecordingError(f"{message}{detail}", path)
-
-
-def _prepare_destination(path: Path) -> None:
-    """Raise RecordingError unless a file can be created at ``path`` (creates missing folders)."""
-    if path.is_dir():
-        raise RecordingError(f"cannot record to {path}: it is a directory", path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise _error(f"cannot record to {path}: cannot create its folder {path.parent}", path, exc) from None
-    if not path.parent.is_dir():
-        raise RecordingError(f"cannot record to {path}: {path.parent} is not a folder", path)
-
-
-def _make_temp(path: Path) -> Path:
-    try:
-        return temp_beside(path, suffix=".part")
-    except OSError as exc:
-        raise _error(f"cannot record to {path}: cannot create a file in {path.parent}", path, exc) from None
-
-
-class _Sink:
-    """A RecordingStream writing to a temp file that becomes ``path`` on :meth:`commit`."""
-
-    def __init__(self, path: Path, name: str) -> None:
-        import rerun as rr
-
-        self.path = path
-        _prepare_destination(path)
-        self.tmp = _make_temp(path)
-        self.episodes: list[str] = []
-        try:
-            self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4(), default_enabled=True)
-            if not self.rec.is_enabled():
-                raise RecordingError(
-                    f"cannot record to {path}: rerun logging is disabled (environment variable RERUN=off)", path
-                )
-            self.rec.save(str(self.tmp))
-            self.rec.set_log_time_enabled(False)
-            self.rec.set_log_tick_enabled(False)
-            self.rec.send_recording_name(name)
-        except RecordingError:
-            self.tmp.unlink(missing_ok=True)
-            raise
-        except Exception as exc:
-            self.tmp.unlink(missing_ok=True)
-            raise _error(f"cannot record to {path}: rerun could not open the file sink", path, exc) from None
-        # garbage-collected unfinished (no close()): remove the temp file. Not at interpreter exit, where
-        # the recorder's own atexit hook finishes the file instead.
-        self._gc = weakref.finalize(self, _discard_unfinished, self.rec, self.tmp, path)
-        self._gc.atexit = False
-
-    def log(self, *args: Any, **kwargs: Any) -> None:
-        """``RecordingStream.log`` in strict mode: bad data raises instead of a logged warning."""
-        self.rec.log(*args, strict=True, **kwargs)
-
-    def commit(self, blueprint) -> Path:
-        """Finish the file (footer), check it, and move it onto the destination atomically."""
-        from rerun.chunk import RrdReader
-
-        try:
-            if blueprint is not None:
-                self.rec.send_blueprint(blueprint, make_active=True, make_default=True)
-            self.rec.flush()
-            self.rec.disconnect()  # writes the footer and closes the file
-            if not self.tmp.is_file():
-                raise RecordingError(f"recording {self.path} failed: its temp file {self.tmp} disappeared", self.path)
-            with open(self.tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            if not RrdReader(self.tmp).recordings():  # raises on a truncated/corrupt file
-                raise RecordingError(f"recording {self.path} failed: the written file holds no recording", self.path)
-            publish(self.tmp, self.path)
-            self._gc.detach()
-        except RecordingError:
-            self.discard()
-            raise
-        except Exception as exc:
-            self.discard()
-            raise _error(f"recording {self.path} failed while finishing the file", self.path, exc) from None
-        return self.path
-
-    def discard(self) -> None:
-        self._gc.detach()
-        try:
-            self.rec.disconnect()
-        except Exception:  # noqa: BLE001 - best effort
-            pass
-        self.tmp.unlink(missing_ok=True)
-
-
-def _discard_unfinished(rec, tmp: Path, path: Path) -> None:
-    try:
-        rec.disconnect()
-    except Exception:  # noqa: BLE001 - best effort
-        pass
-    tmp.unlink(missing_ok=True)
-    warnings.warn(f"rerun recording {path} dropped: its recorder was garbage-collected without close()",
-                  RecordingWarning, stacklevel=2)
 
 
 def _finish_at_exit(ref: weakref.ReferenceType) -> None:
@@ -328,7 +201,7 @@ class RerunRecorder(gym.Wrapper):
                                   + [[4 * k, 4 * k + 2, 4 * k + 3] for k in range(3)], dtype=np.uint32)
         self._jaw_vcolors = np.repeat(JAW_COLORS, 4, axis=0)
 
-        self._sink: _Sink | None = None
+        self._sink: RrdSink | None = None
         self._disabled = False  # single-file mode after a failure (warn): nothing more is recorded
         self._episode = -1  # index of the current episode (counts every reset)
         self._prefix: str | None = None  # entity prefix of the episode being recorded, None if not recording
@@ -339,10 +212,9 @@ class RerunRecorder(gym.Wrapper):
 
         try:
             if self.per_episode:
-                _prepare_destination(probe)
-                _make_temp(probe).unlink()
+                check_destination(probe)
             else:
-                self._sink = _Sink(probe, name or probe.name)
+                self._sink = RrdSink(probe, name or probe.name)
         except RecordingError as exc:
             self._fail(exc, stage="opening")
         self._atexit = functools.partial(_finish_at_exit, weakref.ref(self))
@@ -422,7 +294,7 @@ class RerunRecorder(gym.Wrapper):
     def _fail(self, exc: BaseException, stage: str) -> None:
         if not isinstance(exc, RecordingError):
             where = self._sink.path if self._sink is not None else self.path
-            exc = _error(f"recording {where} failed while {stage}", where, exc)
+            exc = recording_error(f"recording {where} failed while {stage}", where, exc)
         # drop what is broken: the current episode (and, in single-file mode, the whole file)
         self._prefix = None
         self._scalars = {}
@@ -444,7 +316,7 @@ class RerunRecorder(gym.Wrapper):
             self._fail(exc, stage or fn.__name__.strip("_").replace("_", " "))
             return None
 
-    def _commit(self, sink: _Sink) -> None:
+    def _commit(self, sink: RrdSink) -> None:
         bp = self._blueprint(sink.episodes) if self.use_blueprint else None
         self.paths.append(sink.commit(bp))
 
@@ -454,7 +326,7 @@ class RerunRecorder(gym.Wrapper):
         k = self._episode
         if self.per_episode:
             path = Path(self._template.format(episode=k))
-            self._sink = _Sink(path, self._name or path.name)
+            self._sink = RrdSink(path, self._name or path.name)
         sink = self._sink
         if sink is None:
             return
