@@ -12,7 +12,6 @@ field on invalid input (no traceback); outputs are written atomically.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,71 +31,25 @@ def _add_out(p: argparse.ArgumentParser, default: str) -> None:
 
 
 def _cmd_compress(args: argparse.Namespace) -> int:
-    from ..physics.config import builtin_config, from_dict
-    from ..physics.experiments import (
-        CompressionConfig,
-        load_tissue_params,
-        plot_compression,
-        run_compression,
-        tissue_mesh_from_config,
-        write_compression_csv,
-    )
-    from ..physics.mesh import build_mesh
+    from .experiment_cli import compress_cli
 
-    cfg_path = args.config or builtin_config("tissue/sphere.yaml")
-    params = load_tissue_params(cfg_path)
-    mesh = tissue_mesh_from_config(cfg_path)
-    if args.resolution is not None or args.diameter_mm is not None:
-        from ..physics.config import read_yaml
-
-        mesh_cfg = dict(read_yaml(cfg_path).get("mesh", {}))
-        shape = mesh_cfg.pop("shape", "sphere")
-        res = args.resolution or mesh_cfg.pop("resolution", "coarse")
-        mesh_cfg.pop("resolution", None)
-        if args.diameter_mm is not None:
-            mesh_cfg["diameter_m"] = args.diameter_mm * 1e-3
-        mesh = build_mesh(shape, _resolution(res), **mesh_cfg)
-    cfg = from_dict(
-        CompressionConfig,
-        {
-            "rates_mm_per_min": list(args.rate or (6.0, 60.0)),
-            "deformation_fraction": args.deformation,
-            "samples": args.samples,
-        },
-        where="compress",
-    )
-    curves = run_compression(mesh, params, cfg, progress=not args.quiet)
-    out = Path(args.out)
-    csv = write_compression_csv(curves, out / "compress.csv")
-    png = plot_compression(curves, out / "compress.png", title=f"Compression of {mesh.name} ({mesh.n_nodes} nodes)")
-    summary = {
-        "csv": str(csv),
-        "png": str(png),
-        "final_force_N": {f"{c.rate_mm_per_min:g}": round(float(c.force_N[-1]), 4) for c in curves},
-        "final_deformation_mm": round(float(curves[0].deformation_mm[-1]), 3),
-    }
-    print(json.dumps(summary, indent=2))
-    return 0
-
-
-def _resolution(value: str) -> str | int:
-    return int(value) if str(value).isdigit() else value
+    return compress_cli(args)
 
 
 def _cmd_grasp(args: argparse.Namespace) -> int:
-    from ..physics.grasp_experiment import grasp_cli
+    from .experiment_cli import grasp_cli
 
     return grasp_cli(args)
 
 
 def _cmd_grasp_sphere(args: argparse.Namespace) -> int:
-    from ..physics.grasp_experiment import grasp_sphere_cli
+    from .experiment_cli import grasp_sphere_cli
 
     return grasp_sphere_cli(args)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from ..physics.calibration import calibrate_cli
+    from .experiment_cli import calibrate_cli
 
     return calibrate_cli(args)
 

@@ -24,7 +24,6 @@ config (``mesh:``, ``tissue:`` in uniform mode, ``calibration:``) that loads bac
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -34,15 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, builtin_config, from_dict, read_yaml, to_dict, write_yaml
+from .config import ConfigError, from_dict, to_dict
 from .experiments import (
     CompressionConfig,
     CompressionCurve,
     compression_model,
-    load_tissue_params,
-    read_compression_csv,
     run_compression,
-    tissue_mesh_from_config,
 )
 from .mesh import TetMesh
 from .tissue import TissueModel, TissueParams
@@ -492,36 +488,3 @@ def tissue_config_dict(
         "note": "fitted with gravity off; uniform-mode constants are specific to this mesh and resolution",
     }
     return {"mesh": dict(mesh_section), "tissue": tissue, "calibration": calib}
-
-
-def calibrate_cli(args) -> int:
-    """``msdgrasp calibrate --data CSV [--config YAML] [--out YAML] [--max-evals N] [--quiet]``."""
-    max_evals = args.max_evals
-    if isinstance(max_evals, bool) or not isinstance(max_evals, int) or max_evals < 10:
-        raise ConfigError(f"--max-evals must be an integer >= 10, got {max_evals!r}")
-    out = Path(args.out)
-    if out.is_dir():
-        raise ConfigError(f"--out {out} is a folder; give the path of the tissue config (YAML) to write")
-    cfg_path = Path(args.config) if args.config is not None else builtin_config("tissue/sphere.yaml")
-    mesh_section = read_yaml(cfg_path).get("mesh", {})
-    if not isinstance(mesh_section, dict):
-        raise ConfigError(f"{cfg_path}: the mesh section must be a mapping")
-    base = load_tissue_params(cfg_path)
-    mesh = tissue_mesh_from_config(cfg_path)
-
-    data_path = Path(args.data)
-    curves = read_compression_csv(data_path)
-    z = mesh.nodes[:, 2]
-    validate_curves(curves, float(z.max() - z.min()), where=str(data_path))
-
-    try:
-        result = fit_compression(curves, mesh, base, max_evals=max_evals, progress=not args.quiet)
-    except FloatingPointError as exc:
-        raise ConfigError(f"{exc}; config {cfg_path}") from None
-    doc = tissue_config_dict(result, mesh_section, data_path)
-    written = write_yaml(out, doc)
-    # the written file must load back
-    load_tissue_params(written)
-    summary = {"out": str(written), **result.summary()}
-    print(json.dumps(summary, indent=2))
-    return 0

@@ -8,7 +8,6 @@ speed until the grasp is lost (no jaw touches the tissue any more), the tissue t
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import numpy as np
 
 from .config import ConfigError, atomic_write, check_range, save_figure
 from .contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
-from .scenario import GraspScene, sphere_scene, spleen_scene
+from .scenario import GraspScene
 
 PHASES = ("close", "hold", "pull")
 
@@ -218,28 +217,6 @@ def plot_grasp(runs: list[GraspRun], path: str | Path, protocol: GraspProtocol) 
     return save_figure(fig, path)
 
 
-def _resolution(value):
-    if value is None:
-        return None
-    return int(value) if str(value).isdigit() else value
-
-
-def grasp_cli(args) -> int:
-    protocol = GraspProtocol(**({"pull_time_s": args.pull_time} if args.pull_time is not None else {}))
-    mus = args.mu or [0.4, 0.6, 0.8]
-    scene = spleen_scene(args.config, args.grasper, _resolution(args.resolution))
-    runs = run_grasp(scene, mus, protocol, progress=not args.quiet)
-    out = Path(args.out)
-    files = []
-    for r in runs:
-        files.append(str(write_grasp_csv(r, out / f"grasp_mu{r.mu:g}.csv")))
-    files.append(str(plot_grasp(runs, out / "grasp.png", protocol)))
-    summary = {"files": files, "runs": [r.summary for r in runs]}
-    atomic_write(out / "grasp_summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
-    print(json.dumps(summary, indent=2))
-    return 0
-
-
 # ------------------------------------------------------------------------------------------------
 # sphere pinch test (paper Fig. 7)
 # ------------------------------------------------------------------------------------------------
@@ -267,25 +244,23 @@ def run_sphere_grasp(
             "pinch_force_N": arr[:, 3], "contact_nodes": arr[:, 4]}
 
 
-def grasp_sphere_cli(args) -> int:
+def plot_sphere_grasp(data: dict[str, np.ndarray], path: str | Path, title: str) -> Path:
+    """Pinch force vs jaw displacement of :func:`run_sphere_grasp` (paper Fig. 7)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    scene = sphere_scene(args.config, args.grasper, _resolution(args.resolution))
-    data = run_sphere_grasp(scene)
-    out = Path(args.out)
-    cols = list(data)
-    lines = [",".join(cols)] + [",".join(f"{data[c][i]:.6g}" for c in cols) for i in range(len(data["time_s"]))]
-    csv = atomic_write(out / "grasp_sphere.csv", lambda p: p.write_text("\n".join(lines) + "\n"))
     fig, ax = plt.subplots(figsize=(6, 4.2))
     ax.plot(data["jaw_displacement_mm"], data["pinch_force_N"])
     ax.set_xlabel("jaw displacement (mm)")
     ax.set_ylabel("pinch force, sum of jaws (N)")
-    ax.set_title(f"Three-jaw grasp of the test sphere ({scene.mesh.n_nodes} nodes; cf. paper Fig. 7)")
+    ax.set_title(title)
     ax.grid(alpha=0.3)
-    png = save_figure(fig, out / "grasp_sphere.png")
-    print(json.dumps({"csv": str(csv), "png": str(png), "final_pinch_N": float(data["pinch_force_N"][-1]),
-                      "final_displacement_mm": float(data["jaw_displacement_mm"][-1])}, indent=2))
-    return 0
+    return save_figure(fig, path)
+
+
+def write_sphere_grasp_csv(data: dict[str, np.ndarray], path: str | Path) -> Path:
+    cols = list(data)
+    lines = [",".join(cols)] + [",".join(f"{data[c][i]:.6g}" for c in cols) for i in range(len(data["time_s"]))]
+    return atomic_write(path, lambda p: p.write_text("\n".join(lines) + "\n"))

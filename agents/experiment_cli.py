@@ -1,0 +1,139 @@
+"""Command-line handlers of the paper's experiments and the calibration (``msdgrasp experiment ...``,
+``msdgrasp calibrate``): read the arguments, call the physics, write the outputs atomically, print a JSON
+summary. The physics modules hold no argument parsing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..physics.calibration import fit_compression, tissue_config_dict, validate_curves
+from ..physics.config import ConfigError, atomic_write, builtin_config, from_dict, read_yaml, write_yaml
+from ..physics.experiments import (
+    CompressionConfig,
+    load_tissue_params,
+    plot_compression,
+    read_compression_csv,
+    run_compression,
+    tissue_mesh_from_config,
+    write_compression_csv,
+)
+from ..physics.grasp_experiment import (
+    GraspProtocol,
+    plot_grasp,
+    plot_sphere_grasp,
+    run_grasp,
+    run_sphere_grasp,
+    write_grasp_csv,
+    write_sphere_grasp_csv,
+)
+from ..physics.mesh import build_mesh
+from ..physics.scenario import sphere_scene, spleen_scene
+
+
+def _resolution(value: str | int | None) -> str | int | None:
+    """A mesh resolution argument: a name (coarse, ...) or a node count."""
+    if value is None:
+        return None
+    return int(value) if str(value).isdigit() else value
+
+
+def compress_cli(args: argparse.Namespace) -> int:
+    """``msdgrasp experiment compress``: sphere between plates at each rate (CSV + PNG)."""
+    cfg_path = args.config or builtin_config("tissue/sphere.yaml")
+    params = load_tissue_params(cfg_path)
+    mesh = tissue_mesh_from_config(cfg_path)
+    if args.resolution is not None or args.diameter_mm is not None:
+        mesh_cfg = dict(read_yaml(cfg_path).get("mesh", {}))
+        shape = mesh_cfg.pop("shape", "sphere")
+        res = args.resolution or mesh_cfg.pop("resolution", "coarse")
+        mesh_cfg.pop("resolution", None)
+        if args.diameter_mm is not None:
+            mesh_cfg["diameter_m"] = args.diameter_mm * 1e-3
+        mesh = build_mesh(shape, _resolution(res), **mesh_cfg)
+    cfg = from_dict(
+        CompressionConfig,
+        {
+            "rates_mm_per_min": list(args.rate or (6.0, 60.0)),
+            "deformation_fraction": args.deformation,
+            "samples": args.samples,
+        },
+        where="compress",
+    )
+    curves = run_compression(mesh, params, cfg, progress=not args.quiet)
+    out = Path(args.out)
+    csv = write_compression_csv(curves, out / "compress.csv")
+    png = plot_compression(curves, out / "compress.png", title=f"Compression of {mesh.name} ({mesh.n_nodes} nodes)")
+    summary = {
+        "csv": str(csv),
+        "png": str(png),
+        "final_force_N": {f"{c.rate_mm_per_min:g}": round(float(c.force_N[-1]), 4) for c in curves},
+        "final_deformation_mm": round(float(curves[0].deformation_mm[-1]), 3),
+    }
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def grasp_cli(args: argparse.Namespace) -> int:
+    """``msdgrasp experiment grasp``: the spleen protocol per mu (CSV each, one PNG, a summary JSON)."""
+    protocol = GraspProtocol(**({"pull_time_s": args.pull_time} if args.pull_time is not None else {}))
+    mus = args.mu or [0.4, 0.6, 0.8]
+    scene = spleen_scene(args.config, args.grasper, _resolution(args.resolution))
+    runs = run_grasp(scene, mus, protocol, progress=not args.quiet)
+    out = Path(args.out)
+    files = []
+    for r in runs:
+        files.append(str(write_grasp_csv(r, out / f"grasp_mu{r.mu:g}.csv")))
+    files.append(str(plot_grasp(runs, out / "grasp.png", protocol)))
+    summary = {"files": files, "runs": [r.summary for r in runs]}
+    atomic_write(out / "grasp_summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def grasp_sphere_cli(args: argparse.Namespace) -> int:
+    """``msdgrasp experiment grasp-sphere``: pinch force vs jaw displacement on the sphere (CSV + PNG)."""
+    scene = sphere_scene(args.config, args.grasper, _resolution(args.resolution))
+    data = run_sphere_grasp(scene)
+    out = Path(args.out)
+    csv = write_sphere_grasp_csv(data, out / "grasp_sphere.csv")
+    png = plot_sphere_grasp(data, out / "grasp_sphere.png",
+                            f"Three-jaw grasp of the test sphere ({scene.mesh.n_nodes} nodes; cf. paper Fig. 7)")
+    print(json.dumps({"csv": str(csv), "png": str(png), "final_pinch_N": float(data["pinch_force_N"][-1]),
+                      "final_displacement_mm": float(data["jaw_displacement_mm"][-1])}, indent=2))
+    return 0
+
+
+def calibrate_cli(args: argparse.Namespace) -> int:
+    """``msdgrasp calibrate --data CSV [--config YAML] [--out YAML] [--max-evals N] [--quiet]``."""
+    max_evals = args.max_evals
+    if isinstance(max_evals, bool) or not isinstance(max_evals, int) or max_evals < 10:
+        raise ConfigError(f"--max-evals must be an integer >= 10, got {max_evals!r}")
+    out = Path(args.out)
+    if out.is_dir():
+        raise ConfigError(f"--out {out} is a folder; give the path of the tissue config (YAML) to write")
+    cfg_path = Path(args.config) if args.config is not None else builtin_config("tissue/sphere.yaml")
+    mesh_section = read_yaml(cfg_path).get("mesh", {})
+    if not isinstance(mesh_section, dict):
+        raise ConfigError(f"{cfg_path}: the mesh section must be a mapping")
+    base = load_tissue_params(cfg_path)
+    mesh = tissue_mesh_from_config(cfg_path)
+
+    data_path = Path(args.data)
+    curves = read_compression_csv(data_path)
+    z = mesh.nodes[:, 2]
+    validate_curves(curves, float(z.max() - z.min()), where=str(data_path))
+
+    try:
+        result = fit_compression(curves, mesh, base, max_evals=max_evals, progress=not args.quiet)
+    except FloatingPointError as exc:
+        raise ConfigError(f"{exc}; config {cfg_path}") from None
+    doc = tissue_config_dict(result, mesh_section, data_path)
+    written = write_yaml(out, doc)
+    # the written file must load back
+    load_tissue_params(written)
+    summary = {"out": str(written), **result.summary()}
+    print(json.dumps(summary, indent=2))
+    return 0

@@ -1,0 +1,45 @@
+"""Specs of the paper-experiment commands (agents/experiment_cli.py): outputs that load, with physics in them."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+
+from msdgrasp.agents.cli import main
+
+
+def _read_csv(path) -> dict[str, np.ndarray]:
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0] if k != "phase"}
+
+
+def test_grasp_sphere_writes_a_stiffening_force_curve(tmp_path, capsys):
+    """Fig. 7: closing the jaws on the free sphere, the pinch force rises with the jaw displacement and
+    stiffens (the second half of the travel adds more force than the first)."""
+    assert main(["experiment", "grasp-sphere", "--out", str(tmp_path)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    data = _read_csv(tmp_path / "grasp_sphere.csv")
+    assert (tmp_path / "grasp_sphere.png").stat().st_size > 10_000
+    d, f = data["jaw_displacement_mm"], data["pinch_force_N"]
+    assert np.all(np.diff(d) >= 0) and d[-1] > 10.0
+    half = np.searchsorted(d, d[-1] / 2)
+    assert 0.0 < f[half] < f[-1] - f[half]
+    assert abs(summary["final_pinch_N"] - f[-1]) < 1e-4 * f[-1]
+
+
+def test_grasp_protocol_writes_one_curve_per_mu_and_more_friction_holds_longer(tmp_path, capsys):
+    """Fig. 9: the spleen protocol at two frictions; each CSV covers close, hold and pull, and the pull
+    force the grasp transmits before it is lost is larger at the higher friction."""
+    assert main(["experiment", "grasp", "--mu", "0.3", "--mu", "0.8", "--pull-time", "4", "--quiet",
+                 "--out", str(tmp_path)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert len(summary["runs"]) == 2 and (tmp_path / "grasp.png").is_file()
+    peak = {}
+    for mu in ("0.3", "0.8"):
+        data = _read_csv(tmp_path / f"grasp_mu{mu}.csv")
+        assert data["time_s"][-1] > 12.0  # 5 s close + 7 s hold, then the pull
+        peak[mu] = np.max(np.abs(data["pull_force_N"]))
+    assert peak["0.8"] > peak["0.3"] > 0.0
