@@ -55,6 +55,10 @@ class GraspLiftEnv(gym.Env):
     Values outside [-1, 1] are clipped; NaN/inf or a wrong shape raises ``ValueError``. So action 0 is a
     2.5 N grip and a 30 mm lift target, and -1 is "jaws relaxed, grasper at its start".
 
+    ``msdgrasp train`` uses ``pinch_action_exponent=2`` (action 0: a 1.25 N grip; half of the action range
+    covers 0-1.25 N) and ``pull_action="forward_speed"`` (action 0: pull at 10 mm/s): measured, PPO then
+    learns light, friction-dependent grips (docs/task-design.md). Rewards do not depend on the interface.
+
     ## Observation space: ``Box(-inf, inf, (32 x obs_history,), float32)`` (+ privileged, optional)
 
     One frame (``OBS_NAMES``); with ``obs_history = k`` the last k frames are concatenated, oldest first.
@@ -89,7 +93,7 @@ class GraspLiftEnv(gym.Env):
     | progress | +10 x increase of min(highest lift so far / target, 1) | 0 ... +10 (once) |
     | hold | +10 x change of the hold progress (potential-based: a hold that is lost is paid back) | 0 ... +10 |
     | slip | -0.1 per mm of jaw/tissue slip | ~0 (held) ... -4 (slid off) |
-    | peak_force | on success: -50 x episode peak pinch / 5 N | -2 (0.2 N) ... -50 (5 N) |
+    | peak_force | on success: -50 x episode peak pinch / 5 N (``peak_force_timing="as_made"``: the same total, charged as the peak rises, refunded without success) | -2 (0.2 N) ... -50 (5 N) |
     | success | +50 once, on success | +50 |
     | failure | -10 once, when the episode ends without success (lost grasp, damage, blow-up, time limit) | -10 |
     | damage | -5 per step with peak nodal stress above ``damage_stress_pa`` (terminates) | |
