@@ -631,10 +631,11 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 
 
 def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 0,
-                          still: str | Path | None = None) -> dict[str, Any]:
+                          still: str | Path | None = None, video: str | Path | None = None) -> dict[str, Any]:
     """Record one episode of ``policy`` (batch interface) on the single env ``env`` at friction ``mu``:
-    a rerun recording for a ``.rrd`` path, a video for ``.mp4`` / ``.gif``."""
-    from ..envs.recording import record_episode
+    a rerun recording for a ``.rrd`` path, a video for ``.mp4`` / ``.gif``. ``video`` (with an ``.rrd``
+    path): the same episode, run once, also rendered to that video (``still``: its last frame as a PNG)."""
+    from ..envs.recording import RerunRecorder, record_episode
     from ..envs.video import VIDEO_SUFFIXES, record_video
 
     options = {"mu": float(mu)}
@@ -646,8 +647,20 @@ def record_policy_episode(policy, env, path: str | Path, mu: float, seed: int = 
         return np.asarray(policy.act(np.asarray(obs)[None]), dtype=np.float64).reshape(-1, 2)[0]
 
     if Path(path).suffix.lower() in VIDEO_SUFFIXES:
+        if video is not None:
+            raise ValueError(f"video={video!r} needs an .rrd path, got {path}")
         return record_video(env, policy_fn, path, seed=int(seed), options=options, still=still)
-    return record_episode(env, policy_fn, path, seed=int(seed), options=options)
+    if video is None:
+        return record_episode(env, policy_fn, path, seed=int(seed), options=options)
+    recorder = RerunRecorder(env, path)  # logs every step of the episode the video renders
+    try:
+        summary = record_video(recorder, policy_fn, video, seed=int(seed), options=options, still=still)
+        written = recorder.finish()
+    except BaseException:
+        recorder.abort()
+        raise
+    return {**summary, "path": str(written[0]), "video": summary["path"],
+            "size_bytes": written[0].stat().st_size}
 
 
 def _record_all(names, built, mus, config, seed, folder: Path, progress: bool, suffix: str = ".rrd") -> list[str]:

@@ -133,12 +133,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
     policy = build_policy(spec, config)
     env = GraspLiftEnv(config)
     try:
-        summary = record_policy_episode(policy, env, out, args.mu, args.seed)
-        if args.video is not None:  # the same episode again (same seed), rendered
-            video = record_policy_episode(policy, env, args.video, args.mu, args.seed, still=args.still)
-            summary["video"] = video["path"]
-            if args.still is not None:
-                summary["still"] = video["still"]
+        # one episode: logged to the recording and, with --video, rendered as it runs
+        summary = record_policy_episode(policy, env, out, args.mu, args.seed, still=args.still, video=args.video)
     finally:
         env.close()
     print(json.dumps({"policy": spec, "mu": args.mu, "seed": args.seed, **summary}, indent=2))

@@ -112,3 +112,19 @@ def test_record_cli_rejects_a_bad_video_name_before_writing(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "must end in .mp4 or .gif" in err[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_recording_and_its_video_come_from_one_run_of_the_episode(tmp_path, monkeypatch):
+    """record --out ep.rrd --video ep.mp4: the episode runs once; the recording and the video show it."""
+    from msdgrasp.agents.evaluation import record_policy_episode
+
+    env = GraspLiftEnv(SHORT)
+    calls = []
+    step = env.core.step
+    monkeypatch.setattr(env.core, "step", lambda a: calls.append(1) or step(a))
+    summary = record_policy_episode(make_policy("reactive", SHORT), env, tmp_path / "ep.rrd", 0.5, seed=1,
+                                    video=tmp_path / "ep.mp4", still=tmp_path / "ep.png")
+    assert len(calls) == summary["steps"] == SHORT.max_episode_steps
+    assert read_video(tmp_path / "ep.mp4").shape[0] == summary["frames"] == summary["steps"] + 1
+    assert summary["path"] == str(tmp_path / "ep.rrd") and summary["size_bytes"] > 10_000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ep.mp4", "ep.png", "ep.rrd"]
