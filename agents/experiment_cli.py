@@ -29,7 +29,7 @@ from ..physics.grasp_experiment import (
     write_grasp_csv,
     write_sphere_grasp_csv,
 )
-from ..physics.mesh import build_mesh
+from ..physics.mesh_io import build_mesh
 from ..physics.scenario import sphere_scene, spleen_scene
 
 

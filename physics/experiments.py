@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from .config import ConfigError, atomic_write, check_range, from_dict, read_yaml, save_figure
-from .mesh import TetMesh, build_mesh
+from .mesh import TetMesh
+from .mesh_io import build_mesh
 from .simulation import Plate, Simulation
 from .tissue import TissueModel, TissueParams
 

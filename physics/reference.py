@@ -34,7 +34,7 @@ _MODELS: dict = {}
 def spleen_model(resolution: str | int):
     """The spleen anchored (rigidly) at its hilum, at ``resolution`` (cached per process)."""
     if resolution not in _MODELS:
-        from .mesh import spleen_mesh
+        from .mesh_gen import spleen_mesh
         from .tissue import TissueModel
 
         mesh = spleen_mesh(resolution)

@@ -17,7 +17,8 @@ import numpy as np
 
 from .config import ConfigError, builtin_config, from_dict, read_yaml
 from .grasper import GrasperParams, GrasperPose, reachable_radius
-from .mesh import TetMesh, build_mesh
+from .mesh import TetMesh
+from .mesh_io import build_mesh
 from .simulation import Simulation
 from .tissue import TissueModel, TissueParams
 

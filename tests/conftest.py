@@ -47,7 +47,7 @@ import pytest  # noqa: E402
 @pytest.fixture(scope="session")
 def sphere_coarse():
     """The paper's test sample: a 50 mm sphere, coarse mesh (216 nodes)."""
-    from msdgrasp.physics.mesh import sphere_mesh
+    from msdgrasp.physics.mesh_gen import sphere_mesh
 
     return sphere_mesh(0.05, "coarse")
 
@@ -55,7 +55,7 @@ def sphere_coarse():
 @pytest.fixture(scope="session")
 def spleen_coarse():
     """The built-in spleen, coarse mesh (~240 nodes, node set "hilum")."""
-    from msdgrasp.physics.mesh import spleen_mesh
+    from msdgrasp.physics.mesh_gen import spleen_mesh
 
     return spleen_mesh("coarse")
 

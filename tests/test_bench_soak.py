@@ -18,7 +18,7 @@ from msdgrasp.agents import bench, soak
 from msdgrasp.physics import reference
 from msdgrasp.agents.cli import main
 from msdgrasp.physics.config import ConfigError, replace
-from msdgrasp.physics.mesh import spleen_mesh
+from msdgrasp.physics.mesh_gen import spleen_mesh
 from msdgrasp.physics.tissue import TissueModel
 
 

@@ -35,7 +35,7 @@ from msdgrasp.physics.experiments import (
     tissue_mesh_from_config,
     write_compression_csv,
 )
-from msdgrasp.physics.mesh import sphere_mesh
+from msdgrasp.physics.mesh_gen import sphere_mesh
 from msdgrasp.physics.tissue import TissueParams
 
 TRUE = {

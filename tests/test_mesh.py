@@ -8,18 +8,9 @@ import os
 import numpy as np
 import pytest
 
-from msdgrasp.physics.mesh import (
-    RESOLUTIONS,
-    MeshError,
-    TetMesh,
-    build_mesh,
-    load_mesh,
-    save_mesh,
-    sphere_mesh,
-    spleen_mesh,
-    tet_quality,
-    validate_tets,
-)
+from msdgrasp.physics.mesh import RESOLUTIONS, MeshError, TetMesh, tet_quality, validate_tets
+from msdgrasp.physics.mesh_gen import sphere_mesh, spleen_mesh
+from msdgrasp.physics.mesh_io import build_mesh, load_mesh, save_mesh
 
 import meshio  # noqa: E402  (a dependency: a missing meshio fails, never skips)
 

@@ -16,7 +16,8 @@ import pytest
 from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, replace
 from msdgrasp.physics.experiments import CompressionConfig, load_tissue_params, run_compression
 from msdgrasp.physics.forces import accumulate_volume_forces, spring_force_array, spring_tangent, volume_energy
-from msdgrasp.physics.mesh import sphere_mesh, tet_signed_volumes
+from msdgrasp.physics.mesh import tet_signed_volumes
+from msdgrasp.physics.mesh_gen import sphere_mesh
 from msdgrasp.physics.simulation import Simulation
 from msdgrasp.physics.tissue import (
     CALIBRATION_DEFORMATION,

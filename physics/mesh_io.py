@@ -1,0 +1,124 @@
+"""Mesh files through meshio: :func:`load_mesh` (validated, with named node sets), :func:`save_mesh`
+(atomic) and :func:`build_mesh` (a built-in mesh by name, or a file).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .config import atomic_write
+from .mesh import MeshError, TetMesh
+from .mesh_gen import sphere_mesh, spleen_mesh
+
+__all__ = ["load_mesh", "save_mesh", "build_mesh"]
+
+
+
+_SET_PREFIX = "nodeset:"
+
+
+def load_mesh(path: str | os.PathLike) -> TetMesh:
+    """Load a tet mesh with meshio (.msh, .vtu, .vtk, ... anything meshio reads).
+
+    Only linear ``"tetra"`` cells are used (triangles, lines and vertices are ignored). Node
+    sets are restored from meshio point_sets and from point_data masks named
+    ``"nodeset:<name>"`` (as written by :func:`save_mesh`); landmarks are not stored in files.
+    Unused nodes are an error, not dropped. Every problem raises :class:`MeshError` naming the
+    path. The mesh is named after the file stem.
+    """
+    import meshio
+
+    p = Path(path)
+    if not p.exists():
+        raise MeshError(f"mesh file not found: {p}")
+    if not p.is_file():
+        raise MeshError(f"mesh path is not a file: {p}")
+    try:
+        m = meshio.read(p)
+    except meshio.ReadError as exc:
+        raise MeshError(f"cannot read mesh file {p} (unknown or unsupported format?): {exc}") from exc
+    except Exception as exc:  # meshio raises assorted errors on malformed files
+        raise MeshError(f"cannot read mesh file {p}: {type(exc).__name__}: {exc}") from exc
+
+    blocks = [blk.data for blk in m.cells if blk.type == "tetra"]
+    if not blocks:
+        found = ", ".join(f"{blk.type} x {len(blk.data)}" for blk in m.cells) or "no cells"
+        raise MeshError(
+            f"{p}: no 'tetra' cells (found: {found}); a linear tetrahedral volume mesh is required"
+        )
+    tets = np.concatenate(blocks).astype(np.int64)
+    pts = np.asarray(m.points, dtype=np.float64)
+    if pts.ndim == 2 and pts.shape[1] == 2:
+        raise MeshError(f"{p}: points are 2-D; a 3-D tetrahedral mesh is required")
+
+    sets: dict[str, np.ndarray] = {}
+    for key, ids in (getattr(m, "point_sets", None) or {}).items():
+        sets[str(key)] = np.asarray(ids, dtype=np.int64).ravel()
+    for key, data in m.point_data.items():
+        if key.startswith(_SET_PREFIX):
+            sets[key[len(_SET_PREFIX):]] = np.flatnonzero(np.asarray(data).ravel() > 0.5)
+    try:
+        return TetMesh(pts, tets, node_sets=sets, name=p.stem)
+    except MeshError as exc:
+        raise MeshError(f"{p}: {exc}") from exc
+
+
+def save_mesh(mesh: TetMesh, path: str | os.PathLike, file_format: str | None = None) -> None:
+    """Write ``mesh`` with meshio, atomically (temp file in the same directory, then os.replace).
+
+    The format follows the suffix unless ``file_format`` is given; ``.msh`` defaults to
+    ``"gmsh22"``. Node sets are stored as point_data masks ``"nodeset:<name>"``; landmarks are
+    not stored (meshio drops VTU field data).
+    """
+    import meshio
+
+    p = Path(path)
+    fmt = file_format
+    if fmt is None and p.suffix.lower() == ".msh":
+        fmt = "gmsh22"
+    if not p.parent.is_dir():
+        raise MeshError(f"cannot write {p}: directory {p.parent} does not exist")
+    point_data = {}
+    for key, ids in mesh.node_sets.items():
+        mask = np.zeros(mesh.n_nodes, dtype=np.float64)
+        mask[ids] = 1.0
+        point_data[_SET_PREFIX + key] = mask
+    cell_data = {}
+    if (fmt or "").startswith("gmsh"):  # explicit zero tags: meshio warns when they are missing
+        zeros = np.zeros(mesh.n_tets, dtype=np.int32)
+        cell_data = {"gmsh:physical": [zeros], "gmsh:geometrical": [zeros]}
+    m = meshio.Mesh(
+        points=np.asarray(mesh.nodes),
+        cells=[("tetra", np.asarray(mesh.tets))],
+        point_data=point_data,
+        cell_data=cell_data,
+    )
+    def write(tmp: Path) -> None:
+        try:
+            meshio.write(tmp, m, file_format=fmt)
+        except Exception as exc:
+            raise MeshError(f"cannot write mesh file {p} (format {fmt or p.suffix!r}): {exc}") from exc
+
+    atomic_write(p, write)
+
+
+def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwargs) -> TetMesh:
+    """Build a mesh from a spec: ``"sphere"``, ``"spleen"`` or a mesh file path.
+
+    ``resolution`` and ``kwargs`` go to the built-in generator; for a file path the resolution
+    is ignored and keyword options are an error.
+    """
+    key = str(spec).strip().lower() if isinstance(spec, str) else None
+    if key == "sphere":
+        return sphere_mesh(resolution=resolution, **kwargs)
+    if key == "spleen":
+        return spleen_mesh(resolution=resolution, **kwargs)
+    if kwargs:
+        raise MeshError(
+            f"options {sorted(kwargs)} only apply to the built-in meshes 'sphere' and 'spleen', "
+            f"not to the mesh file {spec!s}"
+        )
+    return load_mesh(spec)
