@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 from ..physics.calibration import fit_compression, tissue_config_dict, validate_curves
-from ..physics.config import ConfigError, atomic_write, builtin_config, from_dict, read_yaml, write_yaml
+from ..physics.config import ConfigError, atomic_write_text, builtin_config, from_dict, read_yaml, write_yaml
 from ..physics.experiments import (
     CompressionConfig,
     load_tissue_params,
@@ -88,7 +88,7 @@ def grasp_cli(args: argparse.Namespace) -> int:
         files.append(str(write_grasp_csv(r, out / f"grasp_mu{r.mu:g}.csv")))
     files.append(str(plot_grasp(runs, out / "grasp.png", protocol)))
     summary = {"files": files, "runs": [r.summary for r in runs]}
-    atomic_write(out / "grasp_summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    atomic_write_text(out / "grasp_summary.json", json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
     return 0
 

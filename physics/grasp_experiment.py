@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, atomic_write, check_range, save_figure
+from .config import ConfigError, atomic_write_text, check_range, save_figure
 from .contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
 from .scenario import GraspScene
 
@@ -183,16 +183,18 @@ def summarize_grasp(run: GraspRun, protocol: GraspProtocol, outcome: str, end_ti
     }
 
 
+def write_columns_csv(data: dict, columns: list[str] | tuple[str, ...], path: str | Path) -> Path:
+    """A CSV of equal-length columns (floats as %.6g, strings as they are), written atomically."""
+    def cell(v) -> str:
+        return v if isinstance(v, str) else (f"{v:.6g}" if isinstance(v, float) else str(v))
+
+    rows = range(len(data[columns[0]]))
+    lines = [",".join(columns)] + [",".join(cell(data[c][i]) for c in columns) for i in rows]
+    return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
 def write_grasp_csv(run: GraspRun, path: str | Path) -> Path:
-    lines = [",".join(COLUMNS)]
-    n = len(run.data["time_s"])
-    for i in range(n):
-        vals = []
-        for c in COLUMNS:
-            v = run.data[c][i]
-            vals.append(v if isinstance(v, str) else (f"{v:.6g}" if isinstance(v, float) else str(v)))
-        lines.append(",".join(vals))
-    return atomic_write(path, lambda p: p.write_text("\n".join(lines) + "\n"))
+    return write_columns_csv(run.data, COLUMNS, path)
 
 
 def plot_grasp(runs: list[GraspRun], path: str | Path, protocol: GraspProtocol) -> Path:
@@ -261,6 +263,4 @@ def plot_sphere_grasp(data: dict[str, np.ndarray], path: str | Path, title: str)
 
 
 def write_sphere_grasp_csv(data: dict[str, np.ndarray], path: str | Path) -> Path:
-    cols = list(data)
-    lines = [",".join(cols)] + [",".join(f"{data[c][i]:.6g}" for c in cols) for i in range(len(data["time_s"]))]
-    return atomic_write(path, lambda p: p.write_text("\n".join(lines) + "\n"))
+    return write_columns_csv(data, list(data), path)
