@@ -61,11 +61,11 @@ class RewardConfig:
     grasp_force_N: float = 1.0
 
     def __post_init__(self) -> None:
-        check_choice("reward.peak_force_timing", self.peak_force_timing, ("at_success", "as_made"))
-        check_range("reward.grasp_force_N", self.grasp_force_N, 0.0, None, lo_inclusive=False)
+        check_choice("peak_force_timing", self.peak_force_timing, ("at_success", "as_made"))
+        check_range("grasp_force_N", self.grasp_force_N, 0.0, None, lo_inclusive=False)
         for name in ("progress", "hold", "slip_per_mm", "peak_force", "force_per_s", "damage", "success_bonus",
                      "failure_penalty", "grasp"):
-            check_range(f"reward.{name}", getattr(self, name), 0.0, None)
+            check_range(name, getattr(self, name), 0.0, None)
 
 
 @dataclass(frozen=True)
@@ -88,13 +88,13 @@ class RandomizationConfig:
     def __post_init__(self) -> None:
         for name in ("mu_range", "stiffness_scale_range", "mass_scale_range"):
             lo, hi = getattr(self, name)
-            check_range(f"randomization.{name}[0]", lo, 0.0, None, lo_inclusive=name == "mu_range")
-            check_range(f"randomization.{name}[1]", hi, lo, None)
+            check_range(f"{name}[0]", lo, 0.0, None, lo_inclusive=name == "mu_range")
+            check_range(f"{name}[1]", hi, lo, None)
         for name in ("pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg", "sensor_noise_N"):
-            check_range(f"randomization.{name}", getattr(self, name), 0.0, None)
-        check_choice("randomization.mu_distribution", self.mu_distribution, ("uniform", "log_uniform"))
+            check_range(name, getattr(self, name), 0.0, None)
+        check_choice("mu_distribution", self.mu_distribution, ("uniform", "log_uniform"))
         if self.mu_distribution == "log_uniform":
-            check_range("randomization.mu_range[0] (log_uniform)", self.mu_range[0], 0.0, None, lo_inclusive=False)
+            check_range("mu_range[0] (log_uniform)", self.mu_range[0], 0.0, None, lo_inclusive=False)
 
 
 @dataclass(frozen=True)
