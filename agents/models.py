@@ -28,7 +28,7 @@ class TrainConfig:
     """
 
     algo: str = "ppo"
-    total_timesteps: int = 300_000
+    total_timesteps: int = 350_000
     n_envs: int = 16
     seed: int = 0
     checkpoint_every: int = 25_000
@@ -39,6 +39,11 @@ class TrainConfig:
     #: measured: with -2 seed 0 never learned low friction, with -1 it held 100% at every validation mu).
     #: Without gSDE, SB3's default 0 is a standard deviation of 1 in action units.
     log_std_init: float = -1.0
+    #: PPO with gSDE: squash the policy's actions with tanh (SB3 ``squash_output``) instead of clipping them
+    #: to [-1, 1]. A clipped Gaussian whose mean has drifted past a bound always acts at the bound, so its
+    #: return no longer depends on the mean there and nothing pulls it back (a set-point "stuck" at 5 N while
+    #: the jaws close); through tanh the mean keeps a gradient. SAC squashes always (this field is ignored).
+    squash_actions: bool = True
     #: behaviour-cloning warm start: a controller spec ('reactive', 'fixed', ...) whose actions the policy
     #: imitates before RL. None (the default): PPO learns from scratch.
     bc_teacher: str | None = None
@@ -98,6 +103,8 @@ class TrainConfig:
         object.__setattr__(self, "validation_mu", tuple(float(m) for m in mus))
         if isinstance(self.log_std_init, bool) or not isinstance(self.log_std_init, (int, float)) or not -5.0 <= self.log_std_init <= 1.0:
             raise ConfigError(f"log_std_init must be a number in [-5, 1], got {self.log_std_init!r}")
+        if not isinstance(self.squash_actions, bool):
+            raise ConfigError(f"squash_actions must be true or false, got {self.squash_actions!r}")
         if not isinstance(self.bc_value_fit, bool):
             raise ConfigError(f"bc_value_fit must be true or false, got {self.bc_value_fit!r}")
         if not isinstance(self.seed, int) or isinstance(self.seed, bool):
@@ -112,6 +119,9 @@ class TrainConfig:
             if unknown:
                 raise ConfigError(f"{name}: unknown {name.upper()} argument(s) {unknown}; allowed: "
                                   f"{sorted(_algo_parameters(name))}")
+        if self.squash_actions and self.algo == "ppo" and not self.ppo.get("use_sde", False):
+            raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
+                              "set squash_actions: false to train PPO without gSDE")
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":

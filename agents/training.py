@@ -76,6 +76,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
         policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net)}
         if config.algo == "ppo":
             policy_kwargs["log_std_init"] = float(config.log_std_init)
+            if config.squash_actions:
+                policy_kwargs["squash_output"] = True
         if config.asymmetric_critic:
             from ..envs.core import OBS_NAMES
             from .networks import AsymmetricActorCriticPolicy, actor_mask
@@ -276,6 +278,8 @@ def behaviour_clone(model, config: TrainConfig) -> dict[str, float]:
         for j, k in enumerate(range(0, n, 512)):
             idx = perm[k : k + 512]
             mean = policy.get_distribution(x[idx]).distribution.mean
+            if policy.squash_output:  # the action is tanh of the Gaussian's mean
+                mean = torch.tanh(mean)
             loss = torch.mean((mean - y[idx]) ** 2)
             if fit_value:
                 vidx = vperm[(j * 512) % len(v) :][:512]

@@ -27,7 +27,7 @@ def asymmetric_run(tmp_path_factory):
     cfg = from_dict(TrainConfig, {
         "total_timesteps": 512, "n_envs": 2, "checkpoint_every": 10**6, "validation_episodes": 0,
         "asymmetric_critic": True, "lr_schedule": "linear", "log_std_init": -1.0,
-        "ppo": {"learning_rate": 1e-3, "n_steps": 128, "batch_size": 64, "n_epochs": 2},
+        "ppo": {"learning_rate": 1e-3, "n_steps": 128, "batch_size": 64, "n_epochs": 2, "use_sde": True},
         "env": {"privileged_obs": True, "obs_history": 2}})
     train(cfg, out, progress=False)
     return load_model(out / "final_model.zip")

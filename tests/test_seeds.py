@@ -44,7 +44,7 @@ def test_a_tiny_two_seed_run_writes_per_seed_and_aggregate_results(tmp_path):
     computed from the per-seed numbers it reports (so a wrong aggregation fails here)."""
     config = from_dict(TrainConfig, {"total_timesteps": 512, "n_envs": 2, "checkpoint_every": 256,
                                      "validation_episodes": 1, "validation_mu": [0.5],
-                                     "ppo": {"n_steps": 128, "batch_size": 128, "n_epochs": 1}})
+                                     "ppo": {"n_steps": 128, "batch_size": 128, "n_epochs": 1, "use_sde": True}})
     res = run_seeds(config, [0, 1], tmp_path, workers=2, episodes=1, mus=(0.2, 0.5), progress=False)
     for name in ("seeds.json", "seeds.md", "learning_curves.png"):
         assert (tmp_path / name).stat().st_size > 0

@@ -90,7 +90,7 @@ def test_default_training_config_loads_strictly():
 SHORT = {
     "n_envs": 2, "bc_steps": 256, "bc_epochs": 2, "torch_threads": 1, "total_timesteps": 512,
     "checkpoint_every": 256, "validation_episodes": 1, "validation_mu": [0.5, 0.9],
-    "ppo": {"n_steps": 128, "batch_size": 128, "n_epochs": 1, "learning_rate": 1e-4},
+    "ppo": {"n_steps": 128, "batch_size": 128, "n_epochs": 1, "learning_rate": 1e-4, "use_sde": True},
 }
 
 
