@@ -1,7 +1,7 @@
 """The ``msdgrasp`` command line.
 
     msdgrasp experiment compress|grasp|grasp-sphere ...   the paper's experiments (CSV + PNG)
-    msdgrasp calibrate --data CSV ...                      fit K1, K2, dl_c, b0, b1 to compression curves
+    msdgrasp calibrate --data CSV ...                      fit the tissue's constants to compression curves
     msdgrasp bench [physics|grasp|env|all]                 speed benchmarks (JSON)
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
 
@@ -101,11 +101,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_out(gs, "grasp_sphere")
     gs.set_defaults(func=_cmd_grasp_sphere)
 
-    cal = sub.add_parser("calibrate", help="fit K1, K2, dl_c, b0, b1 to force-deformation curves")
+    cal = sub.add_parser("calibrate", help="fit the tissue's constants to force-deformation curves at several rates")
     cal.add_argument("--data", type=Path, required=True, help="CSV with rate_mm_per_min,deformation_mm,force_N[,time_s]")
     cal.add_argument("--config", type=Path, default=None, help="config giving the mesh (default configs/tissue/sphere.yaml)")
     cal.add_argument("--out", type=Path, default=DEFAULT_LOGS / "calibrate" / "tissue.yaml", help="tissue config to write")
     cal.add_argument("--max-evals", type=int, default=200, help="largest number of simulations of the fit")
+    cal.add_argument("--fit", choices=("viscoelastic", "paper"), default="viscoelastic",
+                     help="viscoelastic (default): K1, K2, dl_c and the springs' Maxwell branch (g, tau); "
+                          "paper: K1, K2, dl_c and the nodal damping b0, b1 (Eq. 7)")
     cal.add_argument("--quiet", action="store_true")
     cal.set_defaults(func=_cmd_calibrate)
 

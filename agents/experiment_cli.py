@@ -7,21 +7,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+import numpy as np
 
 from ..physics.calibration import fit_compression, tissue_config_dict, validate_curves
 from ..physics.config import ConfigError, atomic_write_text, builtin_config, from_dict, read_yaml, write_yaml
 from ..physics.experiments import (
     CompressionConfig,
+    compression_verdicts,
     load_tissue_params,
     plot_compression,
     read_compression_csv,
     run_compression,
-    tissue_mesh_from_config,
     write_compression_csv,
 )
 from ..physics.grasp_experiment import (
     GraspProtocol,
+    grasp_verdicts,
     plot_grasp,
     plot_sphere_grasp,
     run_grasp,
@@ -29,7 +33,7 @@ from ..physics.grasp_experiment import (
     write_grasp_csv,
     write_sphere_grasp_csv,
 )
-from ..physics.mesh_io import build_mesh
+from ..physics.mesh_io import build_mesh, mesh_from_config
 from ..physics.scenario import sphere_scene, spleen_scene
 
 
@@ -44,7 +48,7 @@ def compress_cli(args: argparse.Namespace) -> int:
     """``msdgrasp experiment compress``: sphere between plates at each rate (CSV + PNG)."""
     cfg_path = args.config or builtin_config("tissue/sphere.yaml")
     params = load_tissue_params(cfg_path)
-    mesh = tissue_mesh_from_config(cfg_path)
+    mesh = mesh_from_config(cfg_path)
     if args.resolution is not None or args.diameter_mm is not None:
         mesh_cfg = dict(read_yaml(cfg_path).get("mesh", {}))
         shape = mesh_cfg.pop("shape", "sphere")
@@ -66,14 +70,25 @@ def compress_cli(args: argparse.Namespace) -> int:
     out = Path(args.out)
     csv = write_compression_csv(curves, out / "compress.csv")
     png = plot_compression(curves, out / "compress.png", title=f"Compression of {mesh.name} ({mesh.n_nodes} nodes)")
+    height_mm = float(np.ptp(mesh.nodes[:, 2])) * 1e3
+    verdicts = compression_verdicts(curves, height_mm)
     summary = {
         "csv": str(csv),
         "png": str(png),
         "final_force_N": {f"{c.rate_mm_per_min:g}": round(float(c.force_N[-1]), 4) for c in curves},
         "final_deformation_mm": round(float(curves[0].deformation_mm[-1]), 3),
+        "min_volume_ratio": round(min(float(c.min_volume_ratio.min()) for c in curves), 4),
+        "verdicts": verdicts,
     }
+    _print_verdicts(verdicts)
     print(json.dumps(summary, indent=2))
     return 0
+
+
+def _print_verdicts(verdicts: list[dict]) -> None:
+    """One line per claim of the paper on stderr (stdout carries the JSON summary)."""
+    for v in verdicts:
+        print(f"{v['verdict']:>5}  {v['claim']}: {v['numbers']}", file=sys.stderr)
 
 
 def grasp_cli(args: argparse.Namespace) -> int:
@@ -87,7 +102,9 @@ def grasp_cli(args: argparse.Namespace) -> int:
     for r in runs:
         files.append(str(write_grasp_csv(r, out / f"grasp_mu{r.mu:g}.csv")))
     files.append(str(plot_grasp(runs, out / "grasp.png", protocol)))
-    summary = {"files": files, "runs": [r.summary for r in runs]}
+    verdicts = grasp_verdicts(runs, scene.model.params.relaxation_time_s if scene.model.params.relaxation_strength > 0 else None)
+    summary = {"files": files, "runs": [r.summary for r in runs], "verdicts": verdicts}
+    _print_verdicts(verdicts)
     atomic_write_text(out / "grasp_summary.json", json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
     return 0
@@ -107,7 +124,7 @@ def grasp_sphere_cli(args: argparse.Namespace) -> int:
 
 
 def calibrate_cli(args: argparse.Namespace) -> int:
-    """``msdgrasp calibrate --data CSV [--config YAML] [--out YAML] [--max-evals N] [--quiet]``."""
+    """``msdgrasp calibrate --data CSV [--config YAML] [--out YAML] [--max-evals N] [--fit SET] [--quiet]``."""
     max_evals = args.max_evals
     if isinstance(max_evals, bool) or not isinstance(max_evals, int) or max_evals < 10:
         raise ConfigError(f"--max-evals must be an integer >= 10, got {max_evals!r}")
@@ -119,7 +136,7 @@ def calibrate_cli(args: argparse.Namespace) -> int:
     if not isinstance(mesh_section, dict):
         raise ConfigError(f"{cfg_path}: the mesh section must be a mapping")
     base = load_tissue_params(cfg_path)
-    mesh = tissue_mesh_from_config(cfg_path)
+    mesh = mesh_from_config(cfg_path)
 
     data_path = Path(args.data)
     curves = read_compression_csv(data_path)
@@ -127,7 +144,7 @@ def calibrate_cli(args: argparse.Namespace) -> int:
     validate_curves(curves, float(z.max() - z.min()), where=str(data_path))
 
     try:
-        result = fit_compression(curves, mesh, base, max_evals=max_evals, progress=not args.quiet)
+        result = fit_compression(curves, mesh, base, max_evals=max_evals, progress=not args.quiet, fit=args.fit)
     except FloatingPointError as exc:
         raise ConfigError(f"{exc}; config {cfg_path}") from None
     doc = tissue_config_dict(result, mesh_section, data_path)

@@ -1,12 +1,21 @@
-"""Fit the paper's five uniform-mode constants to measured compression curves.
+"""Fit uniform-mode tissue constants to measured compression curves at several rates.
 
 The paper tuned K1, K2, dl_c (spring law, Eq. 4-6) and b0, b1 (nodal damping, Eq. 7), taken uniform over
 the sample, by minimising the squared error between measured and simulated force-deformation curves of
-the unconstrained compression test at two rates (MATLAB ``fmincon``). Here the same fit uses
-:func:`scipy.optimize.least_squares` (trust-region reflective, box bounds):
+the unconstrained compression test at two rates (MATLAB ``fmincon``). Its rate dependence then comes from
+the nodal damping, an absolute drag that loads only the moving plate (the sample is not quasi-static).
+Two sets of unknowns (:data:`FIT_SETS`):
 
-* the unknowns are ``log(p / p_init)`` for the five constants, so all are positive, of order one and
-  equally scaled (``x_scale = 1``); a step of ``diff_step`` in a log-parameter is a relative change;
+* ``"viscoelastic"`` (the default): K1, K2, dl_c and the Maxwell branch of every spring (relaxation
+  strength g = k_v / K1 and time constant tau, a standard linear solid); the nodal damping stays as the
+  base parameters give it (small: it only settles vibrations). The faster test is stiffer because the
+  material is, in the mean of the two plate forces;
+* ``"paper"``: the paper's five constants K1, K2, dl_c, b0, b1.
+
+The fit uses :func:`scipy.optimize.least_squares` (trust-region reflective, box bounds):
+
+* the unknowns are ``log(p / p_init)``, so all are positive, of order one and equally scaled
+  (``x_scale = 1``); a step of ``diff_step`` in a log-parameter is a relative change;
 * one residual evaluation is ONE :func:`~.experiments.run_compression` call that simulates all measured
   rates together (the rates are a batch there), to the largest measured deformation; the simulated force
   is interpolated at the measured deformations and ``simulated - measured`` of all curves is concatenated;
@@ -19,7 +28,7 @@ the unconstrained compression test at two rates (MATLAB ``fmincon``). Here the s
 
 The CLI (``msdgrasp calibrate``) reads a CSV of curves, fits, prints a JSON summary and writes a tissue
 config (``mesh:``, ``tissue:`` in uniform mode, ``calibration:``) that loads back with
-:func:`~.experiments.load_tissue_params` / :func:`~.experiments.tissue_mesh_from_config`.
+:func:`~.experiments.load_tissue_params` / :func:`~.mesh_io.mesh_from_config`.
 """
 
 from __future__ import annotations
@@ -43,8 +52,17 @@ from .experiments import (
 from .mesh import TetMesh
 from .tissue import TissueModel, TissueParams
 
-#: the fitted constants, in this order (TissueParams field names, SI units)
+#: the paper's five constants, in this order (TissueParams field names, SI units)
 PARAM_NAMES: tuple[str, ...] = ("k1_n_per_m", "k2_n_per_m3", "dl_c_m", "b0_n_s_per_m", "b1_n_s_per_m2")
+#: the Maxwell branch of every spring: k_v = g K1 and its time constant, s
+RELAXATION_NAMES: tuple[str, ...] = ("relaxation_strength", "relaxation_time_s")
+#: every constant a fit may adjust
+ALL_NAMES: tuple[str, ...] = PARAM_NAMES + RELAXATION_NAMES
+#: named sets of fitted constants
+FIT_SETS: dict[str, tuple[str, ...]] = {
+    "viscoelastic": ("k1_n_per_m", "k2_n_per_m3", "dl_c_m") + RELAXATION_NAMES,
+    "paper": PARAM_NAMES,
+}
 
 #: Default bounds: wide (several decades around any plausible value for a ~5 cm soft sample on a coarse
 #: to fine mesh) but strictly positive, since the fit runs in log space. K2 and b1 may physically be 0;
@@ -59,6 +77,8 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "dl_c_m": (1e-6, 1e-1),  # m (upper bound also capped by the mesh, see above)
     "b0_n_s_per_m": (1e-6, 1e4),  # N s/m
     "b1_n_s_per_m2": (1e-4, 1e7),  # N s/m^2
+    "relaxation_strength": (1e-3, 1e2),  # k_v / K1
+    "relaxation_time_s": (1e-2, 1e4),  # s
 }
 
 DLC_MAX_EDGE_FRACTION = 0.5
@@ -86,7 +106,7 @@ class _BudgetExhausted(Exception):
 class CalibrationResult:
     """Outcome of :func:`fit_compression`."""
 
-    #: fitted constants, keys :data:`PARAM_NAMES` (SI units)
+    #: fitted constants (the fit's names, see :data:`FIT_SETS`; SI units)
     params: dict[str, float]
     #: root-mean-square of simulated - measured force over all points, N
     rmse_N: float
@@ -174,13 +194,26 @@ def validate_curves(curves: Sequence[CompressionCurve], height_m: float | None =
                 )
 
 
-def _check_params(name: str, values: Mapping[str, float] | None) -> dict[str, float]:
+def _check_params(name: str, values: Mapping[str, float] | None, names: Sequence[str]) -> dict[str, float]:
     if values is None:
         return {}
-    unknown = sorted(set(values) - set(PARAM_NAMES))
+    unknown = sorted(set(values) - set(names))
     if unknown:
-        raise ConfigError(f"{name}: unknown key(s) {unknown}; allowed {list(PARAM_NAMES)}")
+        raise ConfigError(f"{name}: unknown key(s) {unknown}; the fitted constants are {list(names)}")
     return dict(values)
+
+
+def fit_names(fit: str | Sequence[str]) -> tuple[str, ...]:
+    """The constants a fit adjusts: a name of :data:`FIT_SETS` or a list of :data:`ALL_NAMES`."""
+    if isinstance(fit, str):
+        if fit not in FIT_SETS:
+            raise ConfigError(f"fit = {fit!r} is not allowed; choose one of {sorted(FIT_SETS)} or a list of {list(ALL_NAMES)}")
+        return FIT_SETS[fit]
+    names = tuple(fit)
+    bad = [k for k in names if k not in ALL_NAMES]
+    if bad or not names or len(set(names)) != len(names):
+        raise ConfigError(f"fit = {list(names)}: give distinct constants of {list(ALL_NAMES)}")
+    return names
 
 
 # =================================================================================================
@@ -196,8 +229,9 @@ def _uniform_params(base: TissueParams, values: Mapping[str, float]) -> TissuePa
 def equivalent_uniform(mesh: TetMesh, params: TissueParams) -> dict[str, float]:
     """Uniform constants equivalent (on average) to ``params`` on ``mesh``: the uniform-mode values as
     they are, or the means of the per-spring / per-node arrays a modulus-mode tissue builds."""
+    relax = {k: float(getattr(params, k)) for k in RELAXATION_NAMES}
     if params.stiffness_mode == "uniform":
-        return {k: float(getattr(params, k)) for k in PARAM_NAMES}
+        return {**{k: float(getattr(params, k)) for k in PARAM_NAMES}, **relax}
     model = TissueModel.from_params(mesh, params)
     return {
         "k1_n_per_m": float(model.k1.mean()),
@@ -205,6 +239,7 @@ def equivalent_uniform(mesh: TetMesh, params: TissueParams) -> dict[str, float]:
         "dl_c_m": float(model.dlc.mean()),
         "b0_n_s_per_m": float(model.b0.mean()),
         "b1_n_s_per_m2": float(model.b1.mean()),
+        **relax,
     }
 
 #: a starting value is kept at least this factor inside its bounds: trust-region reflective makes
@@ -213,7 +248,8 @@ _START_MARGIN = 1.5
 
 
 def _neutral_start(
-    start: dict[str, float], lo: np.ndarray, hi: np.ndarray, max_def_m: float, keep: set[str]
+    start: dict[str, float], lo: Mapping[str, float], hi: Mapping[str, float], max_def_m: float, keep: set[str],
+    durations_s: Sequence[float] = (1.0,),
 ) -> dict[str, float]:
     """Replace values the fit cannot move from (0 or at a bound) by neutral ones; keep inside bounds.
 
@@ -221,13 +257,19 @@ def _neutral_start(
     start the log-space fit where the parameter has no effect, so its derivative is zero and it never
     moves. Such values (unless given explicitly in ``keep``) become: K2 = 0.3 K1 / dl_c^2 (the cubic term
     30 % of the linear one at dl_c), b0 = K1 x 20 ms, b1 = b0 / largest measured deformation (the
-    displacement term equal to b0 at that displacement).
+    displacement term equal to b0 at that displacement), relaxation strength g = 0.5 with tau = the
+    geometric mean of the tests' durations (between the rates, where a Maxwell branch tells them apart).
+    Only the fitted constants (the keys of ``lo``) are changed.
     """
     out = dict(start)
-    idx = {k: i for i, k in enumerate(PARAM_NAMES)}
 
     def low(k: str) -> bool:
-        return k not in keep and out[k] <= lo[idx[k]] * _START_MARGIN
+        return k in lo and k not in keep and out[k] <= lo[k] * _START_MARGIN
+
+    if low("relaxation_strength"):
+        out["relaxation_strength"] = 0.5
+        if "relaxation_time_s" in lo and "relaxation_time_s" not in keep:
+            out["relaxation_time_s"] = float(np.exp(np.mean(np.log(durations_s))))
 
     if low("k2_n_per_m3"):
         out["k2_n_per_m3"] = 0.3 * out["k1_n_per_m"] / out["dl_c_m"] ** 2
@@ -235,9 +277,9 @@ def _neutral_start(
         out["b0_n_s_per_m"] = 0.02 * out["k1_n_per_m"]
     if low("b1_n_s_per_m2"):
         out["b1_n_s_per_m2"] = out["b0_n_s_per_m"] / max(max_def_m, 1e-6)
-    for k, i in idx.items():
-        a, b = lo[i] * _START_MARGIN, hi[i] / _START_MARGIN
-        out[k] = float(np.clip(out[k], a, b)) if a < b else float(math.sqrt(lo[i] * hi[i]))
+    for k in lo:
+        a, b = lo[k] * _START_MARGIN, hi[k] / _START_MARGIN
+        out[k] = float(np.clip(out[k], a, b)) if a < b else float(math.sqrt(lo[k] * hi[k]))
     return out
 
 
@@ -256,8 +298,10 @@ def fit_compression(
     dt_s: float = 1e-3,
     ftol: float = 1e-3,
     xtol: float = 1e-3,
+    fit: str | Sequence[str] = "viscoelastic",
 ) -> CalibrationResult:
-    """Fit K1, K2, dl_c, b0, b1 (uniform mode) to measured compression curves.
+    """Fit uniform-mode constants (``fit``: a set of :data:`FIT_SETS` or a list of :data:`ALL_NAMES`) to
+    measured compression curves.
 
     Parameters
     ----------
@@ -265,12 +309,14 @@ def fit_compression(
         zero deformation, as :func:`~.experiments.read_compression_csv` returns them.
     mesh : the sample's mesh; its z-extent is the sample height.
     base_params : every non-fitted field (density/mass, spring dashpot, ...); default ``TissueParams()``.
-    init : starting values (any subset of :data:`PARAM_NAMES`). Default: the base parameters' uniform
-        equivalent (:func:`equivalent_uniform`), then scaled to the data by one simulation: K1, K2, b0,
-        b1 all multiplied by the least-squares factor between measured and simulated forces (with dl_c
-        fixed that scales the whole force law, so the quasi-static force scales by the same factor).
-        Given keys are used as they are (no scaling). Zero K2/b0/b1 in the base parameters get neutral
-        starting values (:func:`_neutral_start`); every start is kept a factor 1.5 inside its bounds.
+        Non-fitted constants of :data:`ALL_NAMES` keep the base parameters' uniform equivalent.
+    init : starting values (any subset of the fitted constants). Default: the base parameters' uniform
+        equivalent (:func:`equivalent_uniform`), then scaled to the data by one simulation: K1, K2 (and
+        b0, b1 where fitted) multiplied by the least-squares factor between measured and simulated forces
+        (with dl_c fixed that scales the whole force law, so the quasi-static force scales by the same
+        factor). Given keys are used as they are (no scaling). Zero K2/b0/b1/g in the base parameters get
+        neutral starting values (:func:`_neutral_start`); every start is kept a factor 1.5 inside its
+        bounds.
     bounds : ``{name: (lo, hi)}`` overriding :func:`default_bounds` (:data:`DEFAULT_BOUNDS`, dl_c capped
         at half the mean edge length); must be > 0 (log space).
     max_evals : hard budget of simulations (Jacobian columns included).
@@ -289,18 +335,19 @@ def fit_compression(
     if isinstance(max_evals, bool) or not isinstance(max_evals, (int, np.integer)) or max_evals < 2:
         raise ConfigError(f"max_evals must be an integer >= 2, got {max_evals!r}")
     base = base_params or TissueParams()
-    init_given = _check_params("init", init)
-    bnd = {**default_bounds(mesh), **_check_params("bounds", bounds)}
-    lo = np.empty(len(PARAM_NAMES))
-    hi = np.empty(len(PARAM_NAMES))
-    for i, name in enumerate(PARAM_NAMES):
+    names = fit_names(fit)
+    init_given = _check_params("init", init, names)
+    bnd = {**default_bounds(mesh), **_check_params("bounds", bounds, names)}
+    lo: dict[str, float] = {}
+    hi: dict[str, float] = {}
+    for name in names:
         try:
             a, b = (float(v) for v in bnd[name])
         except (TypeError, ValueError):
             raise ConfigError(f"bounds.{name} must be a pair (lo, hi), got {bnd[name]!r}") from None
         if not (math.isfinite(a) and math.isfinite(b) and 0.0 < a < b):
             raise ConfigError(f"bounds.{name} = ({a:g}, {b:g}) must satisfy 0 < lo < hi (finite)")
-        lo[i], hi[i] = a, b
+        lo[name], hi[name] = a, b
     for name, v in init_given.items():
         if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
             raise ConfigError(f"init.{name} must be a finite number > 0, got {v!r}")
@@ -326,7 +373,8 @@ def fit_compression(
     substep_cap = [int(max_substeps)]
 
     def simulate(values: dict[str, float]) -> np.ndarray | None:
-        """Residuals for ``values`` (one run_compression call), or None if unstable / too stiff."""
+        """Residuals for ``values`` (every constant of ALL_NAMES; one run_compression call), or None if
+        unstable / too stiff."""
         nonlocal n_evals
         params = _uniform_params(base, values)
         model = compression_model(mesh, params)
@@ -348,9 +396,10 @@ def fit_compression(
         return r if np.all(np.isfinite(r)) else None
 
     # -- starting point ---------------------------------------------------------------------------
-    start = equivalent_uniform(mesh, base)
+    durations = [max_def_m / (r * 1e-3 / 60.0) for r in rates]
+    start = equivalent_uniform(mesh, base)  # every constant of ALL_NAMES; the non-fitted ones stay
     start.update(init_given)
-    start = _neutral_start(start, lo, hi, max_def_m, set(init_given))
+    start = _neutral_start(start, lo, hi, max_def_m, set(init_given), durations)
     model0 = compression_model(mesh, _uniform_params(base, start))
     n_sub0 = max(1, math.ceil(dt_s / (0.9 * model0.critical_dt())))
     substep_cap[0] = max(int(max_substeps), 4 * n_sub0)
@@ -361,23 +410,26 @@ def fit_compression(
             denom = float(f_sim @ f_sim)
             scale = float(np.clip((f_sim @ f_all) / denom, 1e-3, 1e3)) if denom > 0 else 1.0
             for k in ("k1_n_per_m", "k2_n_per_m3", "b0_n_s_per_m", "b1_n_s_per_m2"):
-                start[k] = start[k] * scale
-            start = _neutral_start(start, lo, hi, max_def_m, set())
+                if k in names:
+                    start[k] = start[k] * scale
+            start = _neutral_start(start, lo, hi, max_def_m, set(), durations)
             if progress:
                 print(f"calibrate: start scaled to the data by {scale:.4g}", file=sys.stderr)
-    ref = np.array([start[k] for k in PARAM_NAMES])
-    xlo, xhi = np.log(lo / ref), np.log(hi / ref)
-    x0 = np.zeros(len(PARAM_NAMES))  # strictly inside the box (see _neutral_start)
+    ref = np.array([start[k] for k in names])
+    xlo = np.log(np.array([lo[k] for k in names]) / ref)
+    xhi = np.log(np.array([hi[k] for k in names]) / ref)
+    x0 = np.zeros(len(names))  # strictly inside the box (see _neutral_start)
+    fixed = {k: v for k, v in start.items() if k not in names}
 
     def values_of(x: np.ndarray) -> dict[str, float]:
-        return {k: float(v) for k, v in zip(PARAM_NAMES, ref * np.exp(x))}
+        return {k: float(v) for k, v in zip(names, ref * np.exp(x))}
 
     def fun(x: np.ndarray) -> np.ndarray:
         key = np.round(np.asarray(x, dtype=np.float64), 12).tobytes()
         if key in cache:
             return cache[key]
         values = values_of(x)
-        r = simulate(values)
+        r = simulate({**fixed, **values})
         if r is None:
             r = np.full(len(f_all), penalty)
         cost = 0.5 * float(r @ r)
@@ -443,7 +495,7 @@ def fit_compression(
         per_rate[float(c.rate_mm_per_min)] = float(np.sqrt(np.mean(r**2)))
         sims.append(f + r)
         k0 += len(f)
-    init_used = {k: float(v) for k, v in zip(PARAM_NAMES, ref)}
+    init_used = {k: float(v) for k, v in zip(names, ref)}
     return CalibrationResult(
         params=dict(fitted),
         rmse_N=rmse,
@@ -452,7 +504,7 @@ def fit_compression(
         n_evals=n_evals,
         success=success,
         message=message,
-        tissue_params=_uniform_params(base, fitted),
+        tissue_params=_uniform_params(base, {**fixed, **fitted}),
         init=init_used,
         simulated_force_N=sims,
         wall_s=time.perf_counter() - t_start,
@@ -474,7 +526,7 @@ def tissue_config_dict(
         tissue["mass_kg"] = tp.mass_kg
     else:
         tissue["density_kg_m3"] = tp.density_kg_m3
-    tissue.update({k: float(getattr(tp, k)) for k in PARAM_NAMES})
+    tissue.update({k: float(getattr(tp, k)) for k in ALL_NAMES})
     tissue["spring_damping_time_s"] = tp.spring_damping_time_s
     tissue["gravity_m_per_s2"] = list(tp.gravity_m_per_s2)
     calib = {

@@ -18,7 +18,6 @@ import numpy as np
 
 from .config import ConfigError, atomic_write, check_range, from_dict, read_yaml, save_figure
 from .mesh import TetMesh
-from .mesh_io import build_mesh
 from .simulation import Plate, Simulation
 from .tissue import TissueModel, TissueParams
 
@@ -67,10 +66,17 @@ class CompressionConfig:
 
 @dataclass
 class CompressionCurve:
+    """One compression curve. ``force_N`` is the mean of the two plate forces (what a load cell under a
+    quasi-static sample reads at either plate); a simulated curve also keeps each plate's force (their
+    difference is the sample's inertia and drag) and the smallest tet volume ratio (<= 0: inverted)."""
+
     rate_mm_per_min: float
     time_s: np.ndarray
     deformation_mm: np.ndarray
     force_N: np.ndarray
+    force_top_N: np.ndarray | None = None
+    force_bottom_N: np.ndarray | None = None
+    min_volume_ratio: np.ndarray | None = None
 
 
 def compression_model(mesh: TetMesh, params: TissueParams, gravity: bool = False) -> TissueModel:
@@ -87,7 +93,8 @@ def run_compression(
     progress: bool = False,
     substeps: int | str = "auto",
 ) -> list[CompressionCurve]:
-    """Compress the sample at each rate; force = normal force of the moving (top) plate, N.
+    """Compress the sample at each rate; force = mean normal force of the two plates, N (each plate's
+    force and the smallest tet volume ratio are recorded too).
 
     Each rate is one tissue of a batch: all rates step together in one kernel call; a tissue whose
     plate reached the final deformation simply stops being recorded.
@@ -111,7 +118,8 @@ def run_compression(
     sample_every = np.maximum(1, np.round(durations / config.dt_s / config.samples).astype(int))
     chunk = int(np.min(sample_every))
     sample_every = chunk * np.maximum(1, np.round(sample_every / chunk).astype(int))
-    records: list[list[tuple[float, float, float]]] = [[(0.0, 0.0, 0.0)] for _ in range(B)]
+    # (time s, deformation mm, top force N, bottom force N, smallest tet volume ratio)
+    records: list[list[tuple[float, ...]]] = [[(0.0, 0.0, 0.0, 0.0, 1.0)] for _ in range(B)]
     bar = _progress(n_total, "compress", progress)
     steps = 0
     while steps < n_total:
@@ -125,8 +133,10 @@ def run_compression(
             if defl > final + 1e-12:
                 continue
             if steps % sample_every[b] == 0 or abs(defl - final) < 0.5 * speeds[b] * config.dt_s:
-                force = float(-sim.plate_out[b, 1, 2])  # top plate pushes the sample down (-z)
-                records[b].append((float(sim.t[b]), defl * 1e3, force))
+                top = float(-sim.plate_out[b, 1, 2])  # top plate pushes the sample down (-z)
+                bottom = float(sim.plate_out[b, 0, 2])
+                ratio = float(sim.min_volume_ratio()[b])
+                records[b].append((float(sim.t[b]), defl * 1e3, top, bottom, ratio))
         # rates already finished: stop their plates (keeps their state from mattering)
         done = -(sim.pl_point[:, 1, 2] - zmax) >= final
         sim.pl_vel[done, 1, 2] = 0.0
@@ -137,15 +147,20 @@ def run_compression(
     curves = []
     for b in range(B):
         arr = np.array(records[b])
-        curves.append(CompressionCurve(float(rates[b]), arr[:, 0], arr[:, 1], arr[:, 2]))
+        curves.append(CompressionCurve(float(rates[b]), arr[:, 0], arr[:, 1], 0.5 * (arr[:, 2] + arr[:, 3]),
+                                       arr[:, 2], arr[:, 3], arr[:, 4]))
     return curves
 
 
 def write_compression_csv(curves: Sequence[CompressionCurve], path: str | Path) -> Path:
-    lines = ["rate_mm_per_min,time_s,deformation_mm,force_N"]
+    """Columns: rate, time, deformation, ``force_N`` (mean of the plates), and for simulated curves
+    ``force_top_N``, ``force_bottom_N`` and ``min_volume_ratio``."""
+    full = all(c.force_top_N is not None for c in curves)
+    lines = ["rate_mm_per_min,time_s,deformation_mm,force_N" + (",force_top_N,force_bottom_N,min_volume_ratio" if full else "")]
     for c in curves:
-        for t, d, f in zip(c.time_s, c.deformation_mm, c.force_N):
-            lines.append(f"{c.rate_mm_per_min:g},{t:.6f},{d:.6f},{f:.6f}")
+        for k, (t, d, f) in enumerate(zip(c.time_s, c.deformation_mm, c.force_N)):
+            extra = f",{c.force_top_N[k]:.6f},{c.force_bottom_N[k]:.6f},{c.min_volume_ratio[k]:.6f}" if full else ""
+            lines.append(f"{c.rate_mm_per_min:g},{t:.6f},{d:.6f},{f:.6f}{extra}")
     return atomic_write(path, lambda p: p.write_text("\n".join(lines) + "\n"))
 
 
@@ -188,11 +203,53 @@ def plot_compression(curves: Sequence[CompressionCurve], path: str | Path, title
     for c in curves:
         ax.plot(c.deformation_mm, c.force_N, label=f"{c.rate_mm_per_min:g} mm/min")
     ax.set_xlabel("deformation (mm)")
-    ax.set_ylabel("force (N)")
+    ax.set_ylabel("force, mean of the two plates (N)")
     ax.set_title(title or "Unconstrained compression of the test sample")
     ax.grid(alpha=0.3)
     ax.legend()
     return save_figure(fig, path)
+
+
+def _verdict(claim: str, holds: bool, numbers: str) -> dict:
+    return {"claim": claim, "verdict": "holds" if holds else "FAILS", "numbers": numbers}
+
+
+def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float) -> list[dict]:
+    """The paper's compression claims checked on simulated curves (one dict per claim: claim, verdict,
+    numbers). Rates: the slowest and the fastest curve; forces: the mean of the two plates."""
+    out = []
+    slow = min(curves, key=lambda c: c.rate_mm_per_min)
+    fast = max(curves, key=lambda c: c.rate_mm_per_min)
+    reach = min(c.deformation_mm[-1] for c in curves)
+    marks = [f for f in (0.05, 0.10, 0.15, 0.20) if f * height_mm <= reach + 1e-9]
+    if fast is not slow and marks:
+        ratios = [float(np.interp(f * height_mm, fast.deformation_mm, fast.force_N)
+                        / np.interp(f * height_mm, slow.deformation_mm, slow.force_N)) for f in marks]
+        out.append(_verdict(
+            f"rate dependence (Fig. 5): {fast.rate_mm_per_min:g} mm/min stiffer than {slow.rate_mm_per_min:g}",
+            min(ratios) > 1.05,
+            "force ratio " + ", ".join(f"{r:.2f} at {f:.0%}" for f, r in zip(marks, ratios))))
+    if all(c.force_top_N is not None for c in curves):
+        worst = 0.0
+        for c in curves:
+            sel = c.deformation_mm > 0.02 * height_mm
+            if np.any(sel):
+                worst = max(worst, float(np.max(np.abs(c.force_top_N[sel] - c.force_bottom_N[sel]) / c.force_N[sel])))
+        out.append(_verdict("quasi-static: both plates carry the same force (rate effect from the material)",
+                            worst < 0.05, f"largest |top - bottom| / mean {worst:.1%} beyond 2% deformation"))
+        vmin = min(float(np.min(c.min_volume_ratio)) for c in curves)
+        out.append(_verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
+    d, f = slow.deformation_mm, slow.force_N
+    if reach >= 0.15 * height_mm:
+        secant = [float(np.interp(x * height_mm, d, f) / (x * height_mm)) for x in (0.05, 0.10, 0.15)]
+        out.append(_verdict("stiffening: the secant stiffness grows with deformation", secant[0] < secant[1] < secant[2],
+                            "secant N/mm " + ", ".join(f"{s:.3f}" for s in secant) + " at 5/10/15%"))
+    sel = (d >= 1.0) & (d <= 7.0) & (f > 0)
+    if np.count_nonzero(sel) >= 3:
+        n = float(np.polyfit(np.log(d[sel]), np.log(f[sel]), 1)[0])
+        out.append(_verdict("Hertz-like contact: force ~ deformation^1.5 at small strain (1-7 mm)",
+                            abs(n - 1.5) <= 0.15, f"exponent {n:.2f} at {slow.rate_mm_per_min:g} mm/min (Hertz 1.5 +/- 0.15)"))
+    return out
 
 
 def load_tissue_params(path: str | Path) -> TissueParams:
@@ -200,12 +257,3 @@ def load_tissue_params(path: str | Path) -> TissueParams:
     data = read_yaml(path)
     section = data.get("tissue", data)
     return from_dict(TissueParams, section, where=f"{Path(path).name}:tissue")
-
-
-def tissue_mesh_from_config(path: str | Path) -> TetMesh:
-    """The ``mesh:`` section of a tissue config: {shape: sphere|spleen|FILE, resolution, ...sizes}."""
-    data = read_yaml(path).get("mesh", {})
-    data = dict(data)
-    shape = data.pop("shape", "sphere")
-    resolution = data.pop("resolution", "coarse")
-    return build_mesh(shape, resolution, **data)

@@ -52,6 +52,7 @@ COLUMNS = (
     "anchor_force_N", "peak_stress_kPa",
     "normal_force_jaw0_N", "normal_force_jaw1_N", "normal_force_jaw2_N",
     "tangential_force_jaw0_N", "tangential_force_jaw1_N", "tangential_force_jaw2_N",
+    "min_volume_ratio",
 )
 
 
@@ -118,6 +119,7 @@ def run_grasp(
         pulled = (sim.g_tip - scene.pose.tip) @ pull_dir
         anchor = np.linalg.norm(sim.anchor_out, axis=1)
         finite = sim.finite()
+        vratio = sim.min_volume_ratio()
         for b in np.flatnonzero(active):
             if not finite[b]:
                 active[b] = False
@@ -130,7 +132,7 @@ def run_grasp(
                 float(ft_mag[b].sum()), float(pull_force[b]), int(contact[b]), int(jo[b, :, J_STICK].sum()),
                 int(jo[b, :, J_SLIP].sum()), float(slip_cum[b].mean() * 1e3), float(pulled[b] * 1e3),
                 float(sim.g_radius[b] * 1e3), float(anchor[b]), float(sim.jaw_out[b, :, 8].max() * 1e-3),
-                *[float(v) for v in jo[b, :, J_NORMAL]], *[float(v) for v in ft_mag[b]],
+                *[float(v) for v in jo[b, :, J_NORMAL]], *[float(v) for v in ft_mag[b]], float(vratio[b]),
             ])
             if phase == 2 and had_contact[b] and contact[b] == 0:
                 active[b] = False
@@ -180,7 +182,74 @@ def summarize_grasp(run: GraspRun, protocol: GraspProtocol, outcome: str, end_ti
         "pull_at_slip_onset_mm": float(d["pull_mm"][onset[0]]) if onset.size else float("nan"),
         "normal_at_slip_onset_N": float(d["normal_force_N"][onset[0]]) if onset.size else float("nan"),
         "peak_stress_kPa": float(np.max(d["peak_stress_kPa"])) if len(t) else float("nan"),
+        "min_volume_ratio": float(np.min(d["min_volume_ratio"])) if len(t) else float("nan"),
     }
+
+
+def grasp_verdicts(runs: list[GraspRun], relaxation_time_s: float | None = None) -> list[dict]:
+    """The paper's claims about the spleen protocol (Fig. 9) checked on the runs, one dict per claim
+    (claim, verdict "holds" / "FAILS", numbers). ``relaxation_time_s``: the tissue's Maxwell time constant,
+    compared with the one read off the hold."""
+    def verdict(claim: str, holds: bool, numbers: str) -> dict:
+        return {"claim": claim, "verdict": "holds" if holds else "FAILS", "numbers": numbers}
+
+    runs = sorted(runs, key=lambda r: r.mu)
+    out = []
+    taus, drops, lin = [], [], []
+    for r in runs:
+        d = r.data
+        close, hold = d["phase"] == "close", d["phase"] == "hold"
+        t_c, n_c = d["time_s"][close], d["normal_force_N"][close]
+        touch = n_c > 0.05 * max(float(n_c.max()), 1e-9) if n_c.size else n_c
+        if np.count_nonzero(touch) >= 3:
+            fit = np.polyfit(t_c[touch], n_c[touch], 1)
+            resid = n_c[touch] - np.polyval(fit, t_c[touch])
+            lin.append(1.0 - float(resid @ resid) / max(float(np.sum((n_c[touch] - n_c[touch].mean()) ** 2)), 1e-30))
+        n_h, t_h = d["normal_force_N"][hold], d["time_s"][hold]
+        if n_h.size >= 3 and n_c.size:
+            f0, f_end = float(n_c[-1]), float(n_h[-1])
+            drops.append((f0 - f_end) / f0 if f0 > 0 else 0.0)
+            # time to 63.2 % of the hold's drop (an exponential's time constant)
+            target = f0 - 0.632 * (f0 - f_end)
+            k = np.flatnonzero(n_h <= target)
+            taus.append(float(t_h[k[0]] - t_c[-1]) if k.size and f0 > f_end else float("nan"))
+    if lin:
+        out.append(verdict("normal force rises nearly linearly while the jaws close", min(lin) > 0.95,
+                           "R^2 of a line " + ", ".join(f"{v:.3f}" for v in lin)))
+    if drops:
+        tau_txt = ", ".join(f"{v:.2f}" for v in taus)
+        ok = min(drops) > 0.1
+        if relaxation_time_s is not None and all(np.isfinite(taus)):
+            ok = ok and all(abs(v / relaxation_time_s - 1.0) < 0.3 for v in taus)
+            tau_txt += f" s (Maxwell tau {relaxation_time_s:g} s)"
+        out.append(verdict("stress relaxation: the normal force drops once the jaws stop", ok,
+                           "drop over the hold " + ", ".join(f"{v:.0%}" for v in drops) + "; time constant " + tau_txt))
+    if len(runs) >= 2:
+        mus = [r.mu for r in runs]
+        normal = np.array([r.summary["normal_end_hold_N"] for r in runs])
+        spread = float(np.ptp(normal) / np.mean(normal))
+        out.append(verdict("higher mu does not change the normal force", spread < 0.05,
+                           f"normal force at the end of the hold {np.round(normal, 3).tolist()} N at mu {mus} "
+                           f"(spread {spread:.1%})"))
+        onset = np.array([r.summary["slip_onset_time_s"] for r in runs])
+        out.append(verdict("higher mu delays slip", bool(np.all(np.isfinite(onset)) and np.all(np.diff(onset) > 0)),
+                           f"slip onset {np.round(onset, 2).tolist()} s"))
+        peak = np.array([r.summary["tangential_peak_N"] for r in runs])
+        out.append(verdict("higher mu: a larger peak tangential force", bool(np.all(np.diff(peak) > 0)),
+                           f"peak pull force {np.round(peak, 3).tolist()} N"))
+    ratio = []
+    for r in runs:
+        d = r.data
+        pull = np.flatnonzero(d["phase"] == "pull")
+        if pull.size:
+            i = pull[int(np.argmax(d["tangential_force_N"][pull]))]
+            ratio.append(float(d["tangential_force_N"][i] / max(d["normal_force_N"][i], 1e-12)) / r.mu)
+    if ratio:
+        out.append(verdict("Coulomb: T / N = mu at gross slip", all(0.8 <= v <= 1.1 for v in ratio),
+                           "peak T / N / mu " + ", ".join(f"{v:.2f}" for v in ratio) + " (0.8-1.1)"))
+    vmin = min(r.summary["min_volume_ratio"] for r in runs)
+    out.append(verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
+    return out
 
 
 def write_columns_csv(data: dict, columns: list[str] | tuple[str, ...], path: str | Path) -> Path:

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import atomic_write
+from .config import atomic_write, read_yaml
 from .mesh import MeshError, TetMesh
 from .mesh_gen import sphere_mesh, spleen_mesh
 
-__all__ = ["load_mesh", "save_mesh", "build_mesh"]
+__all__ = ["load_mesh", "save_mesh", "build_mesh", "mesh_from_config"]
 
 
 
@@ -105,8 +105,31 @@ def save_mesh(mesh: TetMesh, path: str | os.PathLike, file_format: str | None = 
     atomic_write(p, write)
 
 
+#: the built-in sphere with an evenly sampled surface (shipped gmsh meshes, msdgrasp/meshes)
+SPHERE_EVEN = "sphere-even"
+
+
+def sphere_even_mesh(diameter_m: float = 0.05, resolution: str = "coarse", center=(0.0, 0.0, 0.0)) -> TetMesh:
+    """The solid sphere meshed by gmsh (:mod:`msdgrasp.meshes.generate`): a node at each pole and even rings
+    around it, so plates and jaws meet a curved surface at every resolution (the mapped box of
+    :func:`.mesh_gen.sphere_mesh` has a flat 4-node facet at each pole). Shipped at ``coarse`` (256 nodes),
+    ``medium`` (1011) and ``fine`` (3328), made at 50 mm and scaled to ``diameter_m``."""
+    from ..meshes import MESH_DIR
+    from ..meshes.generate import RADIUS_M, SIZES
+
+    if not isinstance(resolution, str) or resolution.strip().lower() not in SIZES:
+        raise MeshError(f"resolution={resolution!r} is not available for '{SPHERE_EVEN}'; allowed: {list(SIZES)} "
+                        "(shipped meshes; add a size to msdgrasp/meshes/generate.py and run it with gmsh for more)")
+    if not (isinstance(diameter_m, (int, float)) and np.isfinite(diameter_m) and diameter_m > 0):
+        raise MeshError(f"diameter_m must be a number > 0, got {diameter_m!r}")
+    base = load_mesh(MESH_DIR / f"sphere_{resolution.strip().lower()}.vtu")
+    nodes = base.nodes * (0.5 * float(diameter_m) / RADIUS_M) + np.asarray(center, dtype=np.float64)
+    return TetMesh(nodes, base.tets, name=f"{SPHERE_EVEN}-{resolution.strip().lower()}")
+
+
 def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwargs) -> TetMesh:
-    """Build a mesh from a spec: ``"sphere"``, ``"spleen"`` or a mesh file path.
+    """Build a mesh from a spec: ``"sphere"`` (mapped box), ``"sphere-even"`` (gmsh, evenly sampled
+    surface), ``"spleen"`` or a mesh file path.
 
     ``resolution`` and ``kwargs`` go to the built-in generator; for a file path the resolution
     is ignored and keyword options are an error.
@@ -114,11 +137,22 @@ def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwar
     key = str(spec).strip().lower() if isinstance(spec, str) else None
     if key == "sphere":
         return sphere_mesh(resolution=resolution, **kwargs)
+    if key == SPHERE_EVEN:
+        return sphere_even_mesh(resolution=resolution, **kwargs)
     if key == "spleen":
         return spleen_mesh(resolution=resolution, **kwargs)
     if kwargs:
         raise MeshError(
-            f"options {sorted(kwargs)} only apply to the built-in meshes 'sphere' and 'spleen', "
+            f"options {sorted(kwargs)} only apply to the built-in meshes 'sphere', '{SPHERE_EVEN}' and 'spleen', "
             f"not to the mesh file {spec!s}"
         )
     return load_mesh(spec)
+
+
+def mesh_from_config(path: str | os.PathLike, resolution: str | int | None = None) -> TetMesh:
+    """The mesh of a tissue config's ``mesh:`` section ({shape: sphere|sphere-even|spleen|FILE, resolution,
+    ...sizes}); ``resolution`` overrides the config's."""
+    data = dict(read_yaml(path).get("mesh", {}))
+    shape = data.pop("shape", "sphere")
+    res = data.pop("resolution", "coarse")
+    return build_mesh(shape, res if resolution is None else resolution, **data)

@@ -18,7 +18,7 @@ import numpy as np
 from .config import ConfigError, builtin_config, from_dict, read_yaml
 from .grasper import GrasperParams, GrasperPose, reachable_radius
 from .mesh import TetMesh
-from .mesh_io import build_mesh
+from .mesh_io import mesh_from_config
 from .simulation import Simulation
 from .tissue import TissueModel, TissueParams
 
@@ -61,13 +61,6 @@ class GraspScene:
 def load_params(path: str | Path, section: str, cls):
     data = read_yaml(path)
     return from_dict(cls, data.get(section, {}), where=f"{Path(path).name}:{section}")
-
-
-def mesh_from_config(path: str | Path, resolution: str | int | None = None) -> TetMesh:
-    data = dict(read_yaml(path).get("mesh", {}))
-    shape = data.pop("shape", "sphere")
-    res = data.pop("resolution", "coarse")
-    return build_mesh(shape, res if resolution is None else resolution, **data)
 
 
 def settle(

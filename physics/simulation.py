@@ -286,6 +286,15 @@ class Simulation:
         all_finite(self.x, self.v, self._finite)
         return self._finite.copy()
 
+    def min_volume_ratio(self) -> np.ndarray:
+        """(B,) smallest current / rest tet volume of each tissue: <= 0 means a tet has inverted
+        (the volume barrier acts below ``volume_threshold``)."""
+        tets = self.model.tets
+        p0 = self.x[:, tets[:, 0]]
+        a, b, c = (self.x[:, tets[:, k]] - p0 for k in (1, 2, 3))
+        vol = np.einsum("bti,bti->bt", a, np.cross(b, c)) / 6.0
+        return (vol / self.model.rest_volume).min(axis=1)
+
     @property
     def jaw_normal_force(self) -> np.ndarray:
         """(B,3) normal force of each jaw on the tissue, N (averaged over the last 1 ms step)."""

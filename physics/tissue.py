@@ -270,8 +270,11 @@ def plate_compression_force(
         u[free] = u_free
         r = (K @ u)[axis::3]  # force the plates exert on each node along the axis
         zn = z + u[axis::3]
-        release_top = top & (r > 0.0)
-        release_bot = bot & (r < 0.0)
+        # a node is released only when the plate would pull it by more than round-off (exactly 0 can
+        # flip sign between solves and cycle the active set)
+        ftol = 1e-9 * float(np.max(np.abs(r))) if r.size else 0.0
+        release_top = top & (r > ftol)
+        release_bot = bot & (r < -ftol)
         add_top = on_surf & ~top & (zn > top_plane + tol)
         add_bot = on_surf & ~bot & (zn < zmin - tol)
         if not (release_top.any() or release_bot.any() or add_top.any() or add_bot.any()):
@@ -293,7 +296,11 @@ def hertz_sphere_force(youngs_modulus: float, radius: float, depth: float, poiss
 def sphere_radius(mesh: TetMesh, tolerance: float = SPHERE_TOLERANCE) -> float | None:
     """Radius (m) of the sphere the mesh's surface nodes lie on (within ``tolerance``), else None."""
     p = mesh.nodes[mesh.surface_nodes]
-    r = np.linalg.norm(p - p.mean(axis=0), axis=1)
+    # least-squares sphere (|p|^2 = 2 c.p + d is linear in c, d): the surface nodes' mean is off-centre
+    # where the surface is sampled unevenly
+    A = np.hstack([2.0 * p, np.ones((len(p), 1))])
+    sol = np.linalg.lstsq(A, (p * p).sum(axis=1), rcond=None)[0]
+    r = np.linalg.norm(p - sol[:3], axis=1)
     if r.max() <= 0.0 or (r.max() - r.min()) > tolerance * r.max():
         return None
     return float(r.max())

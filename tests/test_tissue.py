@@ -266,17 +266,19 @@ def test_spleen_hanging_from_hilum_settles_and_anchors_carry_weight(spleen_coars
 # sphere compression: rate dependence, stiffening, resolution independence
 # =================================================================================================
 
-#: the resolution study runs at 600 mm/min with the nodal damping scaled by rate_equivalent / 600: the
-#: damper force b0 m v depends only on b0 x speed, and at 600 mm/min the 1.4 s run is still
-#: quasi-static (slowest mode ~300 rad/s, overdamped with a lag b0/omega^2 <= 0.2 s < 1.4 s) -- a run at
-#: 600 mm/min with b0/10 reproduces the 60 mm/min curve within 1 % on the coarse mesh (measured), at a
-#: tenth of the cost
+#: the elastic studies (resolution, stiffening, volume barrier) follow the equilibrium path of the spring
+#: network (no Maxwell branch: the slow limit of the standard linear solid) by dynamic relaxation: a run at
+#: 600 mm/min with a heavy nodal drag (2000/s, the paper-style absolute damping) that keeps the coarse
+#: mesh's polar facets from snapping through dynamically. Measured with the old drag-based sphere config:
+#: this run reproduces a 60 mm/min run within 1 %, at a tenth of the cost
 RUN_RATE = 600.0
+RELAXATION_DRAG_PER_S = 2000.0
 
 
-def _compress(mesh, rate_equivalent: float, fraction: float = 0.2, **overrides):
-    p = replace(SPHERE_PARAMS, damping_rate_per_s=SPHERE_PARAMS.damping_rate_per_s * rate_equivalent / RUN_RATE,
-                **overrides)
+def _compress(mesh, fraction: float = 0.2, **overrides):
+    """Quasi-static elastic compression: (deformation / height, mean plate force N)."""
+    p = replace(SPHERE_PARAMS, **{"relaxation_strength": 0.0, "damping_rate_per_s": RELAXATION_DRAG_PER_S,
+                                  "spring_damping_time_s": 0.0, **overrides})
     cfg = CompressionConfig(rates_mm_per_min=(RUN_RATE,), deformation_fraction=fraction, samples=100)
     curve = run_compression(mesh, p, cfg)[0]
     height_mm = float(np.ptp(mesh.nodes[:, 2])) * 1e3
@@ -290,38 +292,54 @@ def sphere_fine():
 
 @pytest.fixture(scope="module")
 def resolution_curves(sphere_coarse, sphere_fine, compiled_kernel):
-    """(deformation fraction, force) per (mesh, rate): coarse and fine, at 60 and 6 mm/min equivalent."""
-    return {
-        (name, rate): _compress(mesh, rate)
-        for name, mesh in (("coarse", sphere_coarse), ("fine", sphere_fine))
-        for rate in (60.0, 6.0)
-    }
+    """(deformation fraction, force) of the quasi-static elastic compression per mesh: coarse and fine."""
+    return {name: _compress(mesh) for name, mesh in (("coarse", sphere_coarse), ("fine", sphere_fine))}
 
 
-def test_compression_is_rate_dependent(sphere_coarse, compiled_kernel):
-    """The paper's two rates with run_compression: the 60 mm/min curve is stiffer (Fig. 5)."""
-    curves = run_compression(
-        sphere_coarse, SPHERE_PARAMS, CompressionConfig(rates_mm_per_min=(6.0, 60.0), deformation_fraction=0.15)
-    )
-    slow, fast = curves
+@pytest.fixture(scope="module")
+def paper_rate_curves(sphere_coarse, compiled_kernel):
+    """The paper's two rates (6 and 60 mm/min) to 15 % on the coarse sphere of sphere.yaml."""
+    cfg = CompressionConfig(rates_mm_per_min=(6.0, 60.0), deformation_fraction=0.15)
+    return run_compression(sphere_coarse, SPHERE_PARAMS, cfg)
+
+
+def test_compression_is_rate_dependent_in_the_mean_plate_force(paper_rate_curves, sphere_coarse):
+    """Fig. 5: the 60 mm/min curve is stiffer, and the stiffening is the material's (the Maxwell branch of a
+    standard linear solid), not a drag: both plates carry the same force (the sample is quasi-static), and
+    the fast/slow ratio stays below the SLS bound 1 + g (instantaneous over relaxed stiffness)."""
+    slow, fast = paper_rate_curves
+    g = SPHERE_PARAMS.relaxation_strength
+    assert g > 0
     height = float(np.ptp(sphere_coarse.nodes[:, 2])) * 1e3
-    model = TissueModel.from_params(sphere_coarse, SPHERE_PARAMS)
-    # the nodal damper's force on the plate, for an affine velocity field v = s z'/H (z' height above the
-    # fixed plate), is b0 s sum m (z'/H)^2 ~ 0.3 b0 M s: 0.39 N at 60 mm/min, a tenth of it at 6
-    s60, s6 = 60e-3 / 60.0, 6e-3 / 60.0
-    expected = 0.3 * SPHERE_PARAMS.damping_rate_per_s * model.total_mass * (s60 - s6)
-    for frac in (0.025, 0.05, 0.10, 0.15):
+    for c in paper_rate_curves:
+        sel = c.deformation_mm > 0.02 * height
+        # quasi-static: the plates differ by the sample's inertia and drag only (measured < 0.1 %)
+        np.testing.assert_allclose(c.force_top_N[sel], c.force_bottom_N[sel], rtol=0.02)
+        np.testing.assert_allclose(c.force_N, 0.5 * (c.force_top_N + c.force_bottom_N), rtol=1e-12)
+    for frac in (0.05, 0.10, 0.15):
         d = frac * height
         f_slow = np.interp(d, slow.deformation_mm, slow.force_N)
         f_fast = np.interp(d, fast.deformation_mm, fast.force_N)
-        # at least half the affine estimate (the real field also shears and bulges, dissipating more)
-        assert f_fast - f_slow > 0.5 * expected, (frac, f_fast, f_slow, expected)
-        assert f_fast > 1.1 * f_slow, (frac, f_fast, f_slow)
+        assert 1.1 * f_slow < f_fast < (1.0 + g) * f_slow, (frac, f_fast, f_slow)
+
+
+def test_without_the_maxwell_branch_the_rate_does_not_matter(sphere_coarse, compiled_kernel):
+    """The nodal drag is small: with g = 0, the paper's rates (6 and 60 mm/min) give the same mean plate
+    force, averaged over 2-15 % deformation, within 5 % (measured 3.6 %; the Maxwell branch makes 10-47 %;
+    the paper's absolute damping made the rate dependence a drag on the moving plate). Pointwise the
+    curves differ where the coarse mesh's polar facets snap through, at slightly different deformations."""
+    p = replace(SPHERE_PARAMS, relaxation_strength=0.0)
+    slow, fast = run_compression(sphere_coarse, p, CompressionConfig(rates_mm_per_min=(6.0, 60.0),
+                                                                      deformation_fraction=0.15))
+    height = float(np.ptp(sphere_coarse.nodes[:, 2])) * 1e3
+    d = np.linspace(0.02, 0.15, 131) * height
+    f_slow = np.interp(d, slow.deformation_mm, slow.force_N).mean()
+    assert np.interp(d, fast.deformation_mm, fast.force_N).mean() == pytest.approx(f_slow, rel=0.05)
 
 
 def test_small_strain_stiffening(resolution_curves, compiled_kernel):
     """Quasi-static force grows faster than linearly over the first 15 % (fine mesh, resolved contact)."""
-    frac, force = resolution_curves[("fine", 6.0)]
+    frac, force = resolution_curves["fine"]
     sel = (frac >= 0.02) & (frac <= 0.15)
     n = np.polyfit(np.log(frac[sel]), np.log(force[sel]), 1)[0]
     # Hertz alone gives n = 1.5 for a resolved contact; the plates first meet a small flat facet
@@ -336,8 +354,8 @@ def test_strain_stiffening_of_the_spring_law_shows_in_compression(compiled_kerne
     over linear springs: local strains of ~10-20 % under the plates add 10 x strain^2 = 10-40 % to the
     springs there, diluted by the less strained bulk: require a 4 % rise (measured ~8 %)."""
     mesh = sphere_mesh(0.05, "medium")
-    f_lin = _compress(mesh, 6.0, 0.15, stiffening=0.0)
-    f_cub = _compress(mesh, 6.0, 0.15)
+    f_lin = _compress(mesh, 0.15, stiffening=0.0)
+    f_cub = _compress(mesh, 0.15)
     assert np.interp(0.15, *f_cub) > 1.04 * np.interp(0.15, *f_lin)
 
 
@@ -376,26 +394,20 @@ def test_contact_calibration_factor(sphere_coarse, spleen_coarse):
         TissueModel.from_params(spleen_coarse, replace(SPLEEN_PARAMS, contact_calibration="hertz"))
 
 
-@pytest.mark.parametrize("rate", [60.0, 6.0])
-def test_resolution_independence(resolution_curves, rate):
-    """Global stiffness = plate force at 15 % (and, at 60 mm/min, 20 %) of the sphere's height: coarse
-    (216 nodes) and fine (4096 nodes) agree within 15 %.
-
-    Measured: 60 mm/min -1 % (15 %), +2 % (20 %); 6 mm/min -6 % (15 %). Not compared: below ~10 % the
-    coarse sphere meets the plates with one flat 4-node facet (F ~ D, +35 % at 5 %), and in the
-    quasi-static run beyond ~18 % tets under the plates of the fine mesh start to invert (a spring
-    network has no volume term), so the two diverge there (-22 % at 20 %, 6 mm/min).
-    """
-    fc, Fc = resolution_curves[("coarse", rate)]
-    ff, Ff = resolution_curves[("fine", rate)]
-    for frac in (0.15, 0.20) if rate == 60.0 else (0.15,):
+def test_resolution_independence(resolution_curves):
+    """Global stiffness = mean plate force at 15 % and 20 % of the sphere's height (quasi-static, elastic):
+    coarse (216 nodes) and fine (4096 nodes) agree within 15 %. Not compared: below ~10 % the coarse
+    sphere meets the plates with one flat 4-node facet (F ~ D)."""
+    fc, Fc = resolution_curves["coarse"]
+    ff, Ff = resolution_curves["fine"]
+    for frac in (0.15, 0.20):
         a, b = np.interp(frac, fc, Fc), np.interp(frac, ff, Ff)
-        assert abs(a / b - 1.0) < 0.15, (rate, frac, a, b)
+        assert abs(a / b - 1.0) < 0.15, (frac, a, b)
     # both curves rise monotonically over the compared range (a collapse would show as a drop); the
     # node-based contact makes steps, hence the 2 % allowance per sample
     for f, F in ((fc, Fc), (ff, Ff)):
-        sel = (f > 0.02) & (f <= 0.2 if rate == 60.0 else f <= 0.15)
-        assert np.all(np.diff(F[sel]) > -0.02 * F[sel][1:]), rate
+        sel = (f > 0.02) & (f <= 0.2)
+        assert np.all(np.diff(F[sel]) > -0.02 * F[sel][1:])
 
 
 def test_volume_barrier_carries_large_compression():
@@ -404,8 +416,8 @@ def test_volume_barrier_carries_large_compression():
     the volume barrier (configs/tissue/sphere.yaml) the force keeps rising; below ~20 % the barrier is idle.
     """
     mesh = sphere_mesh(0.05, "medium")
-    f_bar, F_bar = _compress(mesh, 60.0, fraction=0.4)
-    f_msd, F_msd = _compress(mesh, 60.0, fraction=0.4, volume_modulus_pa=0.0)
+    f_bar, F_bar = _compress(mesh, fraction=0.4)
+    f_msd, F_msd = _compress(mesh, fraction=0.4, volume_modulus_pa=0.0)
     assert SPHERE_PARAMS.volume_modulus_pa > 0
     sel = f_bar > 0.02
     assert np.all(np.diff(F_bar[sel]) > -0.02 * F_bar[sel][1:])  # monotonic up to node-contact steps

@@ -1,0 +1,100 @@
+"""Regenerate the shipped sphere meshes with gmsh: ``python -m msdgrasp.meshes.generate [--check]``.
+
+The mapped-box generator of :func:`msdgrasp.physics.mesh_gen.sphere_mesh` puts a flat 4-node facet at each
+pole of the coarse sphere, so plates meet a flat punch (force ~ travel) instead of a curved surface
+(Hertz: force ~ travel^1.5), and node-based contact converges slowly with refinement. gmsh's
+Frontal-Delaunay surface mesher samples the sphere evenly (a node at each pole, rings around it) and its
+Delaunay volume mesher, followed by Netgen's optimiser, fills it with well-shaped tets.
+
+Deterministic for a given gmsh version (single thread, fixed seed): :data:`SIZES` and :data:`GMSH_VERSION`
+are the record of how the files were made. ``--check`` regenerates in memory and compares with the shipped
+files (same tets, coordinates within 1e-12 m).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from . import MESH_DIR
+
+#: gmsh version the shipped files were made with
+GMSH_VERSION = "4.15.2"
+#: target edge length (m) per resolution for the 50 mm sphere (radius 25 mm): ~256 / ~1000 / ~4000 nodes
+SIZES: dict[str, float] = {"coarse": 0.0075, "medium": 0.0042, "fine": 0.0027}
+RADIUS_M = 0.025
+
+
+def sphere_points_and_tets(size_m: float, radius_m: float = RADIUS_M) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes (N, 3) m, tets (T, 4)) of a gmsh-meshed solid sphere centred at the origin."""
+    import gmsh
+
+    gmsh.initialize(readConfigFiles=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.option.setNumber("Mesh.RandomSeed", 1)
+        gmsh.model.add("sphere")
+        gmsh.model.occ.addSphere(0.0, 0.0, 0.0, radius_m)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", size_m)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size_m)
+        gmsh.option.setNumber("Mesh.Algorithm", 6)  # Frontal-Delaunay surfaces
+        gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay volume
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.optimize("Netgen")
+        tags, xyz, _ = gmsh.model.mesh.getNodes()
+        _, _, enodes = gmsh.model.mesh.getElements(3)
+    finally:
+        gmsh.finalize()
+    index = {int(t): i for i, t in enumerate(tags)}
+    nodes = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    tets = np.array([index[int(t)] for t in enodes[0]], dtype=np.int64).reshape(-1, 4)
+    used = np.unique(tets)  # drop geometry-only nodes (none expected) and renumber densely
+    remap = np.full(len(nodes), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return nodes[used], remap[tets]
+
+
+def _orient(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Tets with positive signed volume (swap two vertices of the others)."""
+    p0 = nodes[tets[:, 0]]
+    vol = np.einsum("ij,ij->i", nodes[tets[:, 1]] - p0, np.cross(nodes[tets[:, 2]] - p0, nodes[tets[:, 3]] - p0))
+    out = tets.copy()
+    out[vol < 0] = out[vol < 0][:, [0, 2, 1, 3]]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    import gmsh
+    import meshio
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="compare with the shipped files instead of writing")
+    args = ap.parse_args(argv)
+    if gmsh.__version__ != GMSH_VERSION:
+        print(f"warning: gmsh {gmsh.__version__}, the shipped files were made with {GMSH_VERSION}", file=sys.stderr)
+    bad = 0
+    for name, size in SIZES.items():
+        nodes, tets = sphere_points_and_tets(size)
+        tets = _orient(nodes, tets)
+        path = MESH_DIR / f"sphere_{name}.vtu"
+        if args.check:
+            ref = meshio.read(path)
+            ref_tets = np.concatenate([c.data for c in ref.cells if c.type == "tetra"])
+            same = ref.points.shape == nodes.shape and np.array_equal(ref_tets, tets) \
+                and np.allclose(ref.points, nodes, rtol=0.0, atol=1e-12)
+            bad += not same
+            print(f"{path.name}: {'same' if same else 'DIFFERS'} ({len(nodes)} nodes, {len(tets)} tets)")
+        else:
+            tmp = path.with_name(f".{path.name}.tmp")
+            meshio.write(tmp, meshio.Mesh(nodes, [("tetra", tets)]), file_format="vtu")
+            tmp.replace(path)  # atomic
+            print(f"wrote {path} ({len(nodes)} nodes, {len(tets)} tets)")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
