@@ -232,11 +232,13 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float) -
     if all(c.force_top_N is not None for c in curves):
         worst = 0.0
         for c in curves:
-            sel = c.deformation_mm > 0.02 * height_mm
+            # relative to the force once it is a few per cent of the curve's largest (the first contact
+            # of a node can bounce: a relative error of a near-zero force means nothing)
+            sel = c.force_N > 0.05 * c.force_N.max()
             if np.any(sel):
                 worst = max(worst, float(np.max(np.abs(c.force_top_N[sel] - c.force_bottom_N[sel]) / c.force_N[sel])))
         out.append(_verdict("quasi-static: both plates carry the same force (rate effect from the material)",
-                            worst < 0.05, f"largest |top - bottom| / mean {worst:.1%} beyond 2% deformation"))
+                            worst < 0.05, f"largest |top - bottom| / mean {worst:.1%} (forces above 5% of the largest)"))
         vmin = min(float(np.min(c.min_volume_ratio)) for c in curves)
         out.append(_verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
     d, f = slow.deformation_mm, slow.force_N
