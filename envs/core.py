@@ -502,9 +502,6 @@ class GraspLiftCore:
             "lift_slip_m": self.lift_slip.copy(),
             "damaged": damaged,
             "numerical_failure": failed,
-            # smallest current / rest tet volume (<= 0: a tet has inverted). Logged, not yet a failure: under a
-            # 5 N pinch the coarse spleen reaches -0.16 (0.12 at 3.5 N; issue 12)
-            "min_volume_ratio": sim.min_volume_ratio(),
             "reward_terms": terms,
         }
         return self.obs.astype(np.float32), reward.astype(np.float64), terminated, truncated, infos

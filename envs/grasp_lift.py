@@ -123,7 +123,7 @@ class GraspLiftEnv(gym.Env):
     is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,
-    peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure, min_volume_ratio, reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
+    peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure, reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
     randomisation for evaluation.
     """
 

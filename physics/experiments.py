@@ -128,6 +128,7 @@ def run_compression(
         steps += todo
         if bar is not None:
             bar.update(todo)
+        ratios = sim.min_volume_ratio()  # once per chunk, for every rate
         for b in range(B):
             defl = -(sim.pl_point[b, 1, 2] - zmax)
             if defl > final + 1e-12:
@@ -135,8 +136,7 @@ def run_compression(
             if steps % sample_every[b] == 0 or abs(defl - final) < 0.5 * speeds[b] * config.dt_s:
                 top = float(-sim.plate_out[b, 1, 2])  # top plate pushes the sample down (-z)
                 bottom = float(sim.plate_out[b, 0, 2])
-                ratio = float(sim.min_volume_ratio()[b])
-                records[b].append((float(sim.t[b]), defl * 1e3, top, bottom, ratio))
+                records[b].append((float(sim.t[b]), defl * 1e3, top, bottom, float(ratios[b])))
         # rates already finished: stop their plates (keeps their state from mattering)
         done = -(sim.pl_point[:, 1, 2] - zmax) >= final
         sim.pl_vel[done, 1, 2] = 0.0
