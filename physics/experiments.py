@@ -210,7 +210,8 @@ def plot_compression(curves: Sequence[CompressionCurve], path: str | Path, title
     return save_figure(fig, path)
 
 
-def _verdict(claim: str, holds: bool, numbers: str) -> dict:
+def verdict(claim: str, holds: bool, numbers: str) -> dict:
+    """One checked claim of the paper: {claim, verdict "holds" / "FAILS", numbers}."""
     return {"claim": claim, "verdict": "holds" if holds else "FAILS", "numbers": numbers}
 
 
@@ -225,7 +226,7 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float) -
     if fast is not slow and marks:
         ratios = [float(np.interp(f * height_mm, fast.deformation_mm, fast.force_N)
                         / np.interp(f * height_mm, slow.deformation_mm, slow.force_N)) for f in marks]
-        out.append(_verdict(
+        out.append(verdict(
             f"rate dependence (Fig. 5): {fast.rate_mm_per_min:g} mm/min stiffer than {slow.rate_mm_per_min:g}",
             min(ratios) > 1.05,
             "force ratio " + ", ".join(f"{r:.2f} at {f:.0%}" for f, r in zip(marks, ratios))))
@@ -237,19 +238,19 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float) -
             sel = c.force_N > 0.05 * c.force_N.max()
             if np.any(sel):
                 worst = max(worst, float(np.max(np.abs(c.force_top_N[sel] - c.force_bottom_N[sel]) / c.force_N[sel])))
-        out.append(_verdict("quasi-static: both plates carry the same force (rate effect from the material)",
+        out.append(verdict("quasi-static: both plates carry the same force (rate effect from the material)",
                             worst < 0.05, f"largest |top - bottom| / mean {worst:.1%} (forces above 5% of the largest)"))
         vmin = min(float(np.min(c.min_volume_ratio)) for c in curves)
-        out.append(_verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
+        out.append(verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
     d, f = slow.deformation_mm, slow.force_N
     if reach >= 0.15 * height_mm:
         secant = [float(np.interp(x * height_mm, d, f) / (x * height_mm)) for x in (0.05, 0.10, 0.15)]
-        out.append(_verdict("stiffening: the secant stiffness grows with deformation", secant[0] < secant[1] < secant[2],
+        out.append(verdict("stiffening: the secant stiffness grows with deformation", secant[0] < secant[1] < secant[2],
                             "secant N/mm " + ", ".join(f"{s:.3f}" for s in secant) + " at 5/10/15%"))
     sel = (d >= 1.0) & (d <= 7.0) & (f > 0)
     if np.count_nonzero(sel) >= 3:
         n = float(np.polyfit(np.log(d[sel]), np.log(f[sel]), 1)[0])
-        out.append(_verdict("Hertz-like contact: force ~ deformation^1.5 at small strain (1-7 mm)",
+        out.append(verdict("Hertz-like contact: force ~ deformation^1.5 at small strain (1-7 mm)",
                             abs(n - 1.5) <= 0.15, f"exponent {n:.2f} at {slow.rate_mm_per_min:g} mm/min (Hertz 1.5 +/- 0.15)"))
     return out
 

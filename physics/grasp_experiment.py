@@ -15,6 +15,7 @@ import numpy as np
 
 from .config import ConfigError, atomic_write_text, check_range, save_figure
 from .contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
+from .experiments import verdict
 from .scenario import GraspScene
 
 PHASES = ("close", "hold", "pull")
@@ -190,9 +191,6 @@ def grasp_verdicts(runs: list[GraspRun], relaxation_time_s: float | None = None)
     """The paper's claims about the spleen protocol (Fig. 9) checked on the runs, one dict per claim
     (claim, verdict "holds" / "FAILS", numbers). ``relaxation_time_s``: the tissue's Maxwell time constant,
     compared with the one read off the hold."""
-    def verdict(claim: str, holds: bool, numbers: str) -> dict:
-        return {"claim": claim, "verdict": "holds" if holds else "FAILS", "numbers": numbers}
-
     runs = sorted(runs, key=lambda r: r.mu)
     out = []
     taus, drops, lin = [], [], []
