@@ -47,6 +47,12 @@ class RewardConfig:
     #: (each rise of the episode's peak pinch is charged in the step that makes it, and the sum is refunded
     #: when the episode ends without success: the same total for every episode, paid where the force is set)
     peak_force_timing: str = "at_success"
+    #: if set, the peak-force charge per N is scaled by mu / peak_force_mu_ref (equal to the plain charge at
+    #: mu = peak_force_mu_ref). The minimal slip-free force is roughly proportional to 1 / mu (Coulomb; the
+    #: oracle's bisection gives F_min x mu = 0.39-0.53 N over mu 0.2-0.9), so the charge then measures the
+    #: peak pinch relative to what the friction needs: an excess of 0.5 N costs 3x more at mu 0.9 than at
+    #: mu 0.3, as the evaluation's ratio to the oracle counts it. None: the same charge per N at every mu.
+    peak_force_mu_ref: float | None = None
     #: per second of pinch force equal to the reference force (scales linearly with force; every step)
     force_per_s: float = 0.0
     #: per step in which the peak nodal stress exceeds the damage threshold
@@ -63,6 +69,8 @@ class RewardConfig:
     def __post_init__(self) -> None:
         check_choice("peak_force_timing", self.peak_force_timing, ("at_success", "as_made"))
         check_range("grasp_force_N", self.grasp_force_N, 0.0, None, lo_inclusive=False)
+        if self.peak_force_mu_ref is not None:
+            check_range("peak_force_mu_ref", self.peak_force_mu_ref, 0.0, None, lo_inclusive=False)
         for name in ("progress", "hold", "slip_per_mm", "peak_force", "force_per_s", "damage", "success_bonus",
                      "failure_penalty", "grasp"):
             check_range(name, getattr(self, name), 0.0, None)
@@ -460,6 +468,8 @@ class GraspLiftCore:
             peak_charge = np.where(success, self.peak_pinch, 0.0)
         else:  # charged as made, refunded without success
             peak_charge = peak_rise - np.where(unsuccessful, self.peak_pinch, 0.0)
+        if w.peak_force_mu_ref is not None:
+            peak_charge = peak_charge * (self.mu / w.peak_force_mu_ref)
         terms = {
             "progress": w.progress * progress,
             "hold": w.hold * hold_gain,

@@ -93,7 +93,7 @@ class GraspLiftEnv(gym.Env):
     | progress | +10 x increase of min(highest lift so far / target, 1) | 0 ... +10 (once) |
     | hold | +10 x change of the hold progress (potential-based: a hold that is lost is paid back) | 0 ... +10 |
     | slip | -0.1 per mm of jaw/tissue slip | ~0 (held) ... -4 (slid off) |
-    | peak_force | on success: -50 x episode peak pinch / 5 N (``peak_force_timing="as_made"``: the same total, charged as the peak rises, refunded without success) | -2 (0.2 N) ... -50 (5 N) |
+    | peak_force | on success: -50 x episode peak pinch / 5 N (``peak_force_timing="as_made"``: the same total, charged as the peak rises, refunded without success; ``peak_force_mu_ref``: times mu / mu_ref, so the charge follows the ratio to the minimal slip-free force ~ 1 / mu) | -2 (0.2 N) ... -50 (5 N) |
     | success | +50 once, on success | +50 |
     | failure | -10 once, when the episode ends without success (lost grasp, damage, blow-up, time limit) | -10 |
     | damage | -5 per step with peak nodal stress above ``damage_stress_pa`` (terminates) | |

@@ -31,11 +31,13 @@ def _episodes(env: GraspLiftVectorEnv, policy, mus, seed: int = 0) -> dict[str, 
     done = np.zeros(B, dtype=bool)
     success = np.zeros(B, dtype=bool)
     peak = np.zeros(B)
+    peak_charge = np.zeros(B)  # the summed peak_force reward term
     pinch, travel, target = [], [], []
     for _ in range(env.config.max_episode_steps):
         act = policy.act(obs) if hasattr(policy, "act") else policy(obs)
         obs, r, term, trunc, info = core.step(act)
         ret += np.where(done, 0.0, r)
+        peak_charge += np.where(done, 0.0, info["reward_terms"]["peak_force"])
         pinch.append(info["pinch_force_N"].copy())
         travel.append(info["travel_m"].copy())
         target.append(core.travel_target.copy())
@@ -45,7 +47,7 @@ def _episodes(env: GraspLiftVectorEnv, policy, mus, seed: int = 0) -> dict[str, 
         done |= term | trunc
         if done.all():
             break
-    return {"return": ret, "success": success, "peak": peak, "pinch": np.array(pinch), "travel": np.array(travel),
+    return {"return": ret, "success": success, "peak": peak, "peak_force": peak_charge, "pinch": np.array(pinch), "travel": np.array(travel),
             "target": np.array(target)}
 
 
@@ -180,6 +182,24 @@ def test_reward_scale_success_dominates_and_no_touch_is_no_haven():
     # success dominates: a success at the cautious 2.5 N still nets more than the best possible failure
     # (full progress and hold shaping, then the failure penalty)
     assert w.success_bonus - w.peak_force * 2.5 / env.config.reference_force_N > w.progress + w.hold - w.failure_penalty
+
+
+def test_peak_force_scaled_by_mu_charges_the_same_grip_more_where_friction_needs_less():
+    """reward.peak_force_mu_ref: the charge per N is w / reference force x mu / mu_ref, so the same
+    1.5 N grip costs 2.25x as much at mu 0.9 as at mu 0.4, and at mu = mu_ref what the plain charge costs."""
+    scaled = GraspLiftConfig(reward=RewardConfig(peak_force_mu_ref=0.4))
+    mus = [0.4, 0.9]
+    runs = _episodes(GraspLiftVectorEnv(2, scaled), FixedForcePolicy(scaled, 1.5), mus)
+    plain = _episodes(GraspLiftVectorEnv(2), FixedForcePolicy(GraspLiftConfig(), 1.5), mus)
+    assert list(runs["success"]) == list(plain["success"]) == [True, True]
+    w = scaled.reward
+    for k, mu in enumerate(mus):
+        expected = w.peak_force * runs["peak"][k] / scaled.reference_force_N * mu / 0.4
+        assert -runs["peak_force"][k] == pytest.approx(expected, rel=1e-9)
+    assert runs["peak_force"][0] == pytest.approx(plain["peak_force"][0], rel=1e-6)  # mu = mu_ref
+    assert runs["peak_force"][1] / runs["peak_force"][0] == pytest.approx(0.9 / 0.4 * runs["peak"][1] / runs["peak"][0])
+    with pytest.raises(ConfigError, match="peak_force_mu_ref"):
+        RewardConfig(peak_force_mu_ref=0.0)
 
 
 def test_peak_force_charged_as_made_has_the_same_returns_and_pays_when_the_force_rises():
