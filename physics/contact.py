@@ -158,13 +158,14 @@ def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarr
 @njit(cache=True, error_model="numpy")
 def plate_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
-    fixed, surface_nodes,
-    pl_point, pl_normal, pl_vel, pl_mu,  # (B,P,3) in/out, (P,3), (B,P,3), (P,)
+    model, state, out,  # SimModel, SimState (plate points advanced), SimReadout (plate_out, contacts filled)
     dt, avg, last_sub,  # substep, s; weight of this substep in the readouts; fill the last-substep readouts
-    plate_out, contact_state, contact_force,  # (B,P,3), (B,N), (B,N,3) out
     res,  # (6,) scratch
 ) -> None:
     """Advance tissue b's plates by one substep and resolve every surface node behind one."""
+    fixed, surface_nodes, pl_normal, pl_mu = model.fixed, model.surface_nodes, model.pl_normal, model.pl_mu
+    pl_point, pl_vel = state.pl_point, state.pl_vel
+    plate_out, contact_state, contact_force = out.plate_out, out.contact_state, out.contact_force
     for p in range(pl_normal.shape[0]):
         pnx, pny, pnz = pl_normal[p, 0], pl_normal[p, 1], pl_normal[p, 2]
         pvx, pvy, pvz = pl_vel[b, p, 0], pl_vel[b, p, 1], pl_vel[b, p, 2]
@@ -193,17 +194,18 @@ def plate_contacts(
 @njit(cache=True, error_model="numpy")
 def jaw_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
-    fixed, surface_nodes, node_area,  # (N,) bool, (Ns,) int, (N,) m^2
-    g_tip, g_axis, g_e1, g_radius,  # (B,3) in/out, (B,3), (B,3), (B,) in/out
-    g_vradius, g_vpull, g_rmin, g_rmax,  # (B,) m/s, (B,3) m/s, (B,), (B,)
-    jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,  # m, m, m, (B,), (B,)
+    model, state, out,  # SimModel, SimState (grasper advanced, pinch accumulated), SimReadout (filled)
     u, tj,  # (3,3) jaw outward and lateral directions of tissue b (:func:`jaw_directions`)
-    dt, avg, last_sub,
-    jaw_out, contact_state, contact_force,  # (B,3,N_JAW_COLS), (B,N), (B,N,3) out
+    dt, avg, last_sub,  # substep, s; weight of this substep in the readouts; fill the last-substep readouts
     res,  # (6,) scratch
-    g_force, inv_sub,  # (B,G_COLS) force loop (pinch of this outer step accumulated into G_PINCH), 1 / n_sub
+    inv_sub,  # 1 / n_sub: the pinch of this outer step is accumulated into state.g_force[b, G_PINCH]
 ) -> None:
     """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection)."""
+    fixed, surface_nodes, node_area = model.fixed, model.surface_nodes, model.node_area
+    jaw_length, jaw_half_width, jaw_depth = model.jaw_length, model.jaw_half_width, model.jaw_depth
+    g_tip, g_axis, g_e1, g_radius, g_vradius = state.g_tip, state.g_axis, state.g_e1, state.g_radius, state.g_vradius
+    g_vpull, g_rmin, g_rmax, mu_s, mu_k, g_force = state.g_vpull, state.g_rmin, state.g_rmax, state.mu_s, state.mu_k, state.g_force
+    jaw_out, contact_state, contact_force = out.jaw_out, out.contact_state, out.contact_force
     ax, ay, az = g_axis[b, 0], g_axis[b, 1], g_axis[b, 2]
     e1x, e1y, e1z = g_e1[b, 0], g_e1[b, 1], g_e1[b, 2]
     e2x = ay * e1z - az * e1y

@@ -36,6 +36,7 @@ from numba import njit
 
 from .contact import G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, jaw_contacts, jaw_directions, plate_contacts
 from .forces import accumulate_volume_forces, accumulate_volume_forces_lanes, spring_loop, spring_loop_lanes
+from .records import SimModel, SimReadout, SimState
 
 
 #: batches of at least this many tissues compute springs and tets across tissues (SIMD lanes); smaller
@@ -48,38 +49,16 @@ LANE_BLOCK = 64
 
 
 @njit(cache=True, error_model="numpy")
-def simulate(
-    # state (modified in place)
-    x, v, t,  # (B,N,3), (B,N,3), (B,)
-    # tissue (shared by the batch)
-    x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot,
-    use_sls, kv, tau, fv, dl_prev,  # Maxwell branch: bool, (E,), s, (B,E) state, (B,E) state
-    tets, rest_volume, kvol, vol_threshold,  # volume barrier: (T,4), (T,) m^3, (T,) Pa (empty: off), J_c
-    mass, b0, b1, fixed, anchor_k, anchor_offset, gravity,  # (N,)x3, (N,) bool, (N,) N/m, (3,) m, (3,)
-    surface_nodes, node_area,  # (Ns,) int, (N,) m^2 (midpoint-polygon area of surface nodes)
-    kscale, mscale, f_ext,  # (B,), (B,), (B,N,3)
-    # grasper (jaw_active False disables it)
-    jaw_active, g_tip, g_axis, g_e1, g_radius,  # (B,3) in/out, (B,3), (B,3), (B,) in/out
-    g_vradius, g_vpull, g_rmin, g_rmax,  # (B,) m/s, (B,3) m/s, (B,), (B,)
-    jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,  # floats, floats, float, (B,), (B,)
-    # plates: infinite planes, normal pointing into the tissue side
-    pl_point, pl_normal, pl_vel, pl_mu,  # (B,P,3) in/out, (P,3), (B,P,3), (P,)
-    # time stepping
-    dt_outer, n_sub, n_steps,
-    # outputs
-    jaw_out,  # (B,3,N_JAW_COLS)
-    plate_out,  # (B,P,3) force on the tissue by each plate, N
-    anchor_out,  # (B,3) force on the tissue by the anchors, N
-    contact_state,  # (B,N) int8: 0 free, 1 stick, 2 slip (last substep)
-    contact_force,  # (B,N,3) force on the tissue at contact nodes, N (last substep)
-    g_force,  # (B,G_COLS) jaw force loop: set-point, gain, speed limit (in), last outer step's pinch (out)
-):
-    """Advance every tissue of the batch by ``n_steps`` outer steps. Tissues are independent.
+def simulate(model: SimModel, state: SimState, out: SimReadout, n_steps: int) -> None:
+    """Advance every tissue of the batch by ``n_steps`` outer steps of ``model.dt_outer`` (``model.n_sub``
+    substeps each). ``state`` is advanced in place, ``out`` holds the readouts of the last outer step.
+    Tissues are independent.
 
     Internally the batch runs in blocks of up to LANE_BLOCK tissues stored tissue-innermost (lane
     layout, x[i, c, lane]): copied in at the start of the call and back at the end, so the per-substep
     loops over springs, tets and nodes run across tissues with SIMD. A batch of one is a view.
     """
+    x, v, fv, dl_prev = state.x, state.v, state.fv, state.dl_prev
     nb = x.shape[0]
     n = x.shape[1]
     ne = fv.shape[1]
@@ -100,18 +79,7 @@ def simulate(
             fvl = np.empty((ne, nl))
             dll = np.empty((ne, nl))
             _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, True)
-        _advance_block(
-            lane0, xl, vl, fvl, dll, t,
-            x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot, use_sls, kv, tau,
-            tets, rest_volume, kvol, vol_threshold,
-            mass, b0, b1, fixed, anchor_k, anchor_offset, gravity, surface_nodes, node_area,
-            kscale, mscale, f_ext,
-            jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
-            jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
-            pl_point, pl_normal, pl_vel, pl_mu,
-            dt_outer, n_sub, n_steps,
-            jaw_out, plate_out, anchor_out, contact_state, contact_force, g_force,
-        )
+        _advance_block(lane0, xl, vl, fvl, dll, model, state, out, n_steps)
         if nl > 1:
             _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, False)
 
@@ -141,24 +109,21 @@ def _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, forward):
 
 
 @njit(cache=True, error_model="numpy")
-def _advance_block(
-    lane0, x, v, fv, dl_prev, t,  # x, v (N,3,L); fv, dl_prev (E,L): lane l is tissue lane0 + l
-    x_rest, edges, rest_length, k1, k2, dlc, cdash, use_dashpot, use_sls, kv, tau,
-    tets, rest_volume, kvol, vol_threshold,
-    mass, b0, b1, fixed, anchor_k, anchor_offset, gravity, surface_nodes, node_area,
-    kscale, mscale, f_ext,
-    jaw_active, g_tip, g_axis, g_e1, g_radius, g_vradius, g_vpull, g_rmin, g_rmax,
-    jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
-    pl_point, pl_normal, pl_vel, pl_mu,
-    dt_outer, n_sub, n_steps,
-    jaw_out, plate_out, anchor_out, contact_state, contact_force, g_force,
-):
-    """:func:`simulate` for the L tissues of one lane block (arguments as there; x, v, fv, dl_prev in lanes)."""
+def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
+    """:func:`simulate` for the L tissues of one lane block: x, v (N,3,L) and fv, dl_prev (E,L) are the
+    block's state in lanes (lane l is tissue lane0 + l); the rest of the state is read from ``state``."""
+    m = model
+    mass, b0, b1, fixed, x_rest = m.mass, m.b0, m.b1, m.fixed, m.x_rest
+    edges, rest_length, k1, k2, dlc, cdash, kv = m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash, m.kv
+    tets, rest_volume, kvol, surface_nodes = m.tets, m.rest_volume, m.kvol, m.surface_nodes
+    t, jaw_out, plate_out, anchor_out = state.t, out.jaw_out, out.plate_out, out.anchor_out
+    contact_state, contact_force, g_force, g_vradius = out.contact_state, out.contact_force, state.g_force, state.g_vradius
+    n_sub = m.n_sub
     n = x.shape[0]
     nl = x.shape[2]
     ne = fv.shape[0]
     lanes = nl > 1
-    dt = dt_outer / n_sub
+    dt = m.dt_outer / n_sub
     f = np.empty((n, 3, nl))
     # one tissue: plain C-contiguous (N,3) views, the layout the one-tissue kernels are fastest on (in a lane
     # block they are unused; the reshape there only gives numba one type for both branches)
@@ -172,12 +137,12 @@ def _advance_block(
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
     spring_scratch = np.empty((9, 0 if lanes else ne))
-    ks = np.ascontiguousarray(kscale[lane0 : lane0 + nl])
-    ms = np.ascontiguousarray(mscale[lane0 : lane0 + nl])
+    ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
+    ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
     res = np.empty(6)
     ns = surface_nodes.shape[0]
-    decay = math.exp(-dt / tau)
-    gain = tau / dt * (1.0 - decay)
+    decay = math.exp(-dt / m.tau)
+    gain = m.tau / dt * (1.0 - decay)
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
     _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv)
@@ -188,17 +153,17 @@ def _advance_block(
         b = lane0 + lane
         for i in range(n):
             for c in range(3):
-                f0[i, c, lane] = mass[i] * ms[lane] * gravity[c] + f_ext[b, i, c]
+                f0[i, c, lane] = mass[i] * ms[lane] * m.gravity[c] + state.f_ext[b, i, c]
     for lane in range(nl):
         b = lane0 + lane
         jaw_out[b, :, :] = 0.0
         plate_out[b, :, :] = 0.0
         anchor_out[b, :] = 0.0
-        jaw_directions(g_axis[b], g_e1[b], u[lane], tj[lane])
+        jaw_directions(state.g_axis[b], state.g_e1[b], u[lane], tj[lane])
     inv_sub = 1.0 / n_sub
     for step in range(n_steps):
         last_step = step == n_steps - 1
-        if jaw_active:
+        if m.jaw_active:
             for lane in range(nl):
                 b = lane0 + lane
                 _force_loop(g_force, g_vradius, b)
@@ -209,23 +174,23 @@ def _advance_block(
             for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
                 f_flat[k] = f0_flat[k]
             if lanes:
-                spring_loop_lanes(x, v, edges, rest_length, k1, k2, dlc, cdash, ks, use_dashpot, use_sls, kv, decay,
+                spring_loop_lanes(x, v, edges, rest_length, k1, k2, dlc, cdash, ks, m.use_dashpot, m.use_sls, kv, decay,
                                   gain, fv, dl_prev, f, tmp)
             else:
-                spring_loop(x_one, v_one, edges, rest_length, k1, k2, dlc, cdash, ks[0], use_dashpot, use_sls, kv, decay,
-                            gain, fv.reshape(ne), dl_prev.reshape(ne), f_one, spring_scratch)
+                spring_loop(x_one, v_one, edges, rest_length, k1, k2, dlc, cdash, ks[0], m.use_dashpot, m.use_sls, kv,
+                            decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one, spring_scratch)
             if kvol.shape[0] > 0:
                 if lanes:
-                    accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, vol_threshold, ks, f, tmp[0])
+                    accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, m.vol_threshold, ks, f, tmp[0])
                 else:
-                    accumulate_volume_forces(x_one, tets, rest_volume, kvol, vol_threshold, ks[0], f_one)
+                    accumulate_volume_forces(x_one, tets, rest_volume, kvol, m.vol_threshold, ks[0], f_one)
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
             if lanes:
                 _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, nl, lane0, last_sub, dt, mass, b0, b1, fixed,
-                              anchor_k, anchor_offset, x_rest, anchor_out)
+                              m.anchor_k, m.anchor_offset, x_rest, anchor_out)
             else:  # literal bounds: once LLVM inlines the call, the lane loops vanish for one tissue
                 _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed,
-                              anchor_k, anchor_offset, x_rest, anchor_out)
+                              m.anchor_k, m.anchor_offset, x_rest, anchor_out)
             # ---- 4. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
@@ -241,13 +206,9 @@ def _advance_block(
                 xb = x[:, :, lane]
                 vb = v[:, :, lane]
                 mb = meff[:, lane]
-                plate_contacts(b, xb, vb, mb, fixed, surface_nodes, pl_point, pl_normal, pl_vel, pl_mu, dt, avg,
-                               last_sub, plate_out, contact_state, contact_force, res)
-                if jaw_active:
-                    jaw_contacts(b, xb, vb, mb, fixed, surface_nodes, node_area, g_tip, g_axis, g_e1, g_radius,
-                                 g_vradius, g_vpull, g_rmin, g_rmax, jaw_length, jaw_half_width, jaw_depth, mu_s, mu_k,
-                                 u[lane], tj[lane], dt, avg, last_sub, jaw_out, contact_state, contact_force, res,
-                                 g_force, inv_sub)
+                plate_contacts(b, xb, vb, mb, m, state, out, dt, avg, last_sub, res)
+                if m.jaw_active:
+                    jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], dt, avg, last_sub, res, inv_sub)
 
 
 @njit(cache=True, error_model="numpy")

@@ -32,6 +32,7 @@ from .contact import (
 )
 from .grasper import GrasperParams, GrasperPose
 from .integrator import all_finite, simulate
+from .records import SimModel, SimReadout, SimState
 from .tissue import TissueModel, check_dt
 from .viscoelastic import elongations
 
@@ -257,28 +258,43 @@ class Simulation:
             raise ConfigError(f"max closing speed must be > 0 m/s, got {vmax}")
         self.g_force[idx, G_VMAX] = vmax
 
+    def kernel_model(self) -> SimModel:
+        """The constant half of a kernel call: mesh, material, grasper geometry, plates, time stepping."""
+        tm, gp = self.model, self.grasper
+        return SimModel(
+            x_rest=tm.rest_positions, edges=tm.edges, rest_length=tm.rest_length, k1=tm.k1, k2=tm.k2, dlc=tm.dlc,
+            cdash=tm.cdash, use_dashpot=self.use_dashpot, use_sls=self.use_sls, kv=tm.kv,
+            tau=float(tm.params.relaxation_time_s),
+            tets=tm.tets, rest_volume=tm.rest_volume, kvol=tm.kvol, vol_threshold=float(tm.volume_threshold),
+            mass=tm.mass, b0=tm.b0, b1=tm.b1, fixed=tm.fixed, anchor_k=tm.anchor_k, anchor_offset=tm.anchor_offset,
+            gravity=tm.gravity, surface_nodes=self.surface_nodes, node_area=self.node_area,
+            jaw_active=gp is not None,
+            jaw_length=float(gp.jaw_length_m) if gp else 0.0,
+            jaw_half_width=0.5 * float(gp.jaw_width_m) if gp else 0.0,
+            jaw_depth=float(gp.jaw_depth_m) if gp else 0.0,
+            pl_normal=self.pl_normal, pl_mu=self.pl_mu, dt_outer=self.dt, n_sub=self.n_sub,
+        )
+
+    def kernel_state(self) -> SimState:
+        """The batch's state arrays (the kernel advances them in place)."""
+        return SimState(
+            x=self.x, v=self.v, t=self.t, fv=self.fv, dl_prev=self.dl_prev,
+            kscale=self.kscale, mscale=self.mscale, f_ext=self.f_ext, mu_s=self.mu_s, mu_k=self.mu_k,
+            g_tip=self.g_tip, g_axis=self.g_axis, g_e1=self.g_e1, g_radius=self.g_radius, g_vradius=self.g_vradius,
+            g_vpull=self.g_vpull, g_rmin=self.g_rmin, g_rmax=self.g_rmax, g_force=self.g_force,
+            pl_point=self.pl_point, pl_vel=self.pl_vel,
+        )
+
+    def kernel_readout(self) -> SimReadout:
+        """The readout arrays the kernel fills."""
+        return SimReadout(jaw_out=self.jaw_out, plate_out=self.plate_out, anchor_out=self.anchor_out,
+                          contact_state=self.contact_state, contact_force=self.contact_force)
+
     def step(self, n_steps: int = 1) -> None:
         """Advance all tissues by ``n_steps`` outer steps (n_steps x n_sub substeps) in one kernel call."""
-        simulate(
-            self.x, self.v, self.t,
-            self.model.rest_positions, self.model.edges, self.model.rest_length,
-            self.model.k1, self.model.k2, self.model.dlc, self.model.cdash, self.use_dashpot,
-            self.use_sls, self.model.kv, self.model.params.relaxation_time_s, self.fv, self.dl_prev,
-            self.model.tets, self.model.rest_volume, self.model.kvol, self.model.volume_threshold,
-            self.model.mass, self.model.b0, self.model.b1, self.model.fixed, self.model.anchor_k,
-            self.model.anchor_offset, self.model.gravity,
-            self.surface_nodes, self.node_area,
-            self.kscale, self.mscale, self.f_ext,
-            self.grasper is not None, self.g_tip, self.g_axis, self.g_e1, self.g_radius,
-            self.g_vradius, self.g_vpull, self.g_rmin, self.g_rmax,
-            float(gp.jaw_length_m) if (gp := self.grasper) else 0.0,
-            0.5 * gp.jaw_width_m if gp else 0.0,
-            gp.jaw_depth_m if gp else 0.0,
-            self.mu_s, self.mu_k,
-            self.pl_point, self.pl_normal, self.pl_vel, self.pl_mu,
-            self.dt, self.n_sub, int(n_steps),
-            self.jaw_out, self.plate_out, self.anchor_out, self.contact_state, self.contact_force, self.g_force,
-        )
+        # records are rebuilt each call (a few microseconds): they alias the current arrays, whatever
+        # a caller has assigned to the attributes since
+        simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps))
 
     # -- readouts ---------------------------------------------------------------------------------
     def finite(self) -> np.ndarray:
