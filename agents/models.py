@@ -3,7 +3,7 @@
 :class:`TrainConfig` is one training run's full description (``configs/train/ppo.yaml`` spells out its
 defaults); :func:`load_model` loads a saved SB3 model with the algorithm named in the config saved next to
 it. Controllers and evaluation need these to run a model; training needs them to make one. Keeping them
-here keeps ``agents/`` acyclic: models <- controllers <- evaluation <- training <- seeds <- rl_cli.
+here keeps ``agents/`` acyclic: models <- controllers <- evaluation <- training <- seeds (<- cli.rl).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """The package's import graph: one-way layers and no cycles, counting imports inside functions too.
 
-configs, meshes (data) -> physics -> envs -> agents (-> the command line in agents/cli.py, agents/rl_cli.py). An import
-inside a function hides a cycle from Python at import time but not from a reader; this test reads them all.
+configs, meshes (data) -> physics -> experiments (the paper's) -> envs -> agents -> benchmarks -> cli (the command
+line). An import inside a function hides a cycle from Python at import time but not from a reader; this test reads
+them all.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-LAYERS = ("configs", "meshes", "physics", "envs", "agents")  # a module may import only its own layer and lower ones
+LAYERS = ("configs", "meshes", "physics", "experiments", "envs", "agents", "benchmarks", "cli")  # a module may import only its own layer and lower ones
 
 
 def _modules() -> dict[str, Path]:
@@ -103,6 +104,6 @@ def test_layers_import_only_downward():
 
 def test_the_graph_sees_imports_inside_functions():
     graph = import_graph()
-    # agents.rl_cli imports its handlers' modules lazily (inside functions) to keep --help fast
-    assert "msdgrasp.agents.training" in graph["msdgrasp.agents.rl_cli"]
+    # cli.rl imports its handlers' modules lazily (inside functions) to keep --help fast
+    assert "msdgrasp.agents.training" in graph["msdgrasp.cli.rl"]
     assert "msdgrasp.physics.integrator" in graph["msdgrasp.physics.simulation"]

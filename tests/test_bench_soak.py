@@ -1,4 +1,4 @@
-"""Smoke tests of ``msdgrasp bench`` and the soak test (agents/bench.py, agents/soak.py).
+"""Smoke tests of ``msdgrasp bench`` and the soak test (benchmarks/bench.py, benchmarks/soak.py).
 
 Speed targets are *not* asserted (machines are noisy); the bench must produce valid JSON with the
 documented keys and positive numbers, the NumPy reference must agree with the numba kernel, and a short
@@ -14,9 +14,9 @@ import math
 import numpy as np
 import pytest
 
-from msdgrasp.agents import bench, soak
+from msdgrasp.benchmarks import bench, soak
 from msdgrasp.physics import reference
-from msdgrasp.agents.cli import main
+from msdgrasp.cli.main import main
 from msdgrasp.physics.config import ConfigError, replace
 from msdgrasp.physics.mesh_gen import spleen_mesh
 from msdgrasp.physics.tissue import TissueModel

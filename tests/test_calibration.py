@@ -1,4 +1,4 @@
-"""Tests for msdgrasp.physics.calibration: fitting uniform-mode constants to compression curves, either
+"""Tests for msdgrasp.experiments.calibration: fitting uniform-mode constants to compression curves, either
 the paper's five (K1, K2, dl_c, b0, b1: rate dependence from nodal drag) or the viscoelastic set (K1, K2,
 dl_c and the springs' Maxwell branch g, tau: rate dependence from the material).
 
@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import yaml
 
-from msdgrasp.agents.cli import main
-from msdgrasp.physics.calibration import (
+from msdgrasp.cli.main import main
+from msdgrasp.experiments.calibration import (
     ALL_NAMES,
     FIT_SETS,
     PARAM_NAMES,
@@ -31,7 +31,7 @@ from msdgrasp.physics.calibration import (
     validate_curves,
 )
 from msdgrasp.physics.config import ConfigError
-from msdgrasp.physics.experiments import (
+from msdgrasp.experiments.compression import (
     CompressionConfig,
     CompressionCurve,
     load_tissue_params,

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msdgrasp.agents.cli import build_parser, main
+from msdgrasp.cli.main import build_parser, main
 from msdgrasp.agents.controllers import FixedForcePolicy, OraclePolicy, minimal_force
 from msdgrasp.agents.evaluation import CSV_COLUMNS, evaluate_policy, parse_mu_grid
 from msdgrasp.envs.core import GraspLiftConfig

@@ -1,4 +1,4 @@
-"""Specs of the paper-experiment commands (agents/experiment_cli.py): outputs that load, with physics in them."""
+"""Specs of the paper-experiment commands (cli/experiments.py): outputs that load, with physics in them."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from msdgrasp.agents.cli import main
+from msdgrasp.cli.main import main
 
 
 def _read_csv(path) -> dict[str, np.ndarray]:

@@ -9,7 +9,7 @@ import pytest
 
 from msdgrasp.physics.config import ConfigError, write_yaml
 from msdgrasp.physics.contact import J_CONTACT, J_SLIP
-from msdgrasp.physics.grasp_experiment import GraspProtocol, run_grasp, run_sphere_grasp
+from msdgrasp.experiments.grasp import GraspProtocol, run_grasp, run_sphere_grasp
 from msdgrasp.physics.grasper import GrasperParams, GrasperPose, reachable_radius
 from msdgrasp.physics.scenario import sphere_scene, spleen_scene
 

@@ -232,8 +232,8 @@ def test_unclosed_recorder_leaves_no_temp_file(env, tmp_path):
 def test_replay_cli(recorded, tmp_path, capsys):
     import argparse
 
-    from msdgrasp.agents.cli import UsageError
-    from msdgrasp.agents.replay import add_replay_arguments, replay_cli
+    from msdgrasp.cli.main import UsageError
+    from msdgrasp.cli.replay import add_replay_arguments, replay_cli
 
     parser = add_replay_arguments(argparse.ArgumentParser())
     with pytest.raises(UsageError, match="recording not found: .*missing.rrd"):
@@ -246,9 +246,9 @@ def test_replay_cli(recorded, tmp_path, capsys):
     assert Path(out[0]).name == "rerun" and "--web-viewer" in out and out[-1] == str(recorded[0])
 
 
-@pytest.mark.parametrize("launcher", [["-m", "msdgrasp.agents.cli"], ["-c", "import sys; from msdgrasp.agents.cli import main; sys.exit(main())"]])
+@pytest.mark.parametrize("launcher", [["-m", "msdgrasp.cli.main"], ["-c", "import sys; from msdgrasp.cli.main import main; sys.exit(main())"]])
 def test_a_missing_recording_is_one_line_and_exit_2_however_the_cli_is_started(launcher, tmp_path):
-    """``python -m msdgrasp.agents.cli`` runs cli.py as __main__; the error class must still be caught."""
+    """``python -m msdgrasp.cli.main`` runs cli.py as __main__; the error class must still be caught."""
     import subprocess
     import sys
 

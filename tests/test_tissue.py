@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, replace
-from msdgrasp.physics.experiments import CompressionConfig, load_tissue_params, run_compression
+from msdgrasp.experiments.compression import CompressionConfig, load_tissue_params, run_compression
 from msdgrasp.physics.forces import accumulate_volume_forces, spring_force_array, spring_tangent, volume_energy
 from msdgrasp.physics.mesh import tet_signed_volumes
 from msdgrasp.physics.mesh_gen import sphere_mesh

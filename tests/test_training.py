@@ -173,7 +173,7 @@ def test_bad_training_config_is_a_clear_error(over, needle):
 def test_cli_typo_in_the_ppo_block_fails_before_any_output(tmp_path):
     import yaml
 
-    from msdgrasp.agents.cli import main
+    from msdgrasp.cli.main import main
 
     cfg = tmp_path / "typo.yaml"
     cfg.write_text(yaml.safe_dump({**SHORT, "ppo": {"n_step": 64}}))

@@ -105,7 +105,7 @@ def test_frame_has_a_colour_bar_and_stick_slip_markers_at_the_contact_nodes():
 
 
 def test_record_cli_rejects_a_bad_video_name_before_writing(tmp_path, capsys):
-    from msdgrasp.agents.cli import main
+    from msdgrasp.cli.main import main
 
     rc = main(["record", "--policy", "fixed", "--out", str(tmp_path / "ep.rrd"), "--video", str(tmp_path / "ep.avi")])
     assert rc == 2

@@ -1,5 +1,5 @@
 """The benchmark report of ``msdgrasp bench``: the issue's speed targets, pass/fail flags, the machine, a
-markdown table and the log-log scaling plot (agents/bench.py measures; this module only reads reports).
+markdown table and the log-log scaling plot (benchmarks/bench.py measures; this module only reads reports).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The command line's input error: one line on stderr, exit status 2 (``msdgrasp`` and ``python -m``).
 
 It lives in a leaf module so that every command module raises the same class object: defined inside
-``cli.py``, ``python -m msdgrasp.agents.cli`` runs that file as ``__main__``, whose UsageError is a
+``cli/main.py``, ``python -m msdgrasp.cli.main`` runs that file as ``__main__``, whose UsageError is a
 different class than the one the command modules import, and a bad path printed a traceback (exit 1).
 """
 

@@ -41,11 +41,11 @@ def _missing_module(command: str, exc: ImportError) -> Exception:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from ..physics.config import builtin_config, from_dict, read_yaml, to_dict
-    from .models import TrainConfig
+    from ..agents.models import TrainConfig
 
     try:
-        from .seeds import parse_seeds, run_seeds
-        from .training import train
+        from ..agents.seeds import parse_seeds, run_seeds
+        from ..agents.training import train
     except ImportError as exc:
         raise _missing_module("train", exc) from None
     if args.resume is not None:
@@ -85,9 +85,9 @@ def _default_policies() -> list[str]:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluation import UNSEEN_CONDITIONS, evaluate, format_table, format_unseen, parse_mu_grid
+    from ..agents.evaluation import UNSEEN_CONDITIONS, evaluate, format_table, format_unseen, parse_mu_grid
 
-    from .evaluation import DEFAULT_MU_GRID
+    from ..agents.evaluation import DEFAULT_MU_GRID
 
     mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
     if args.episodes < 1:
@@ -110,7 +110,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from ..envs.grasp_lift import GraspLiftEnv
-    from .evaluation import build_policy, check_policy_spec, record_policy_episode, task_of
+    from ..agents.evaluation import build_policy, check_policy_spec, record_policy_episode, task_of
 
     if not (math.isfinite(args.mu) and 0.0 <= args.mu <= 10.0):
         raise _usage(f"--mu must be in [0, 10], got {args.mu}")
@@ -149,7 +149,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _cmd_soak(args: argparse.Namespace) -> int:
     try:
-        from .soak import soak_cli
+        from ..benchmarks.soak import soak_cli
     except ImportError as exc:
         raise _missing_module("soak", exc) from None
     return soak_cli(args)

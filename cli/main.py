@@ -31,31 +31,31 @@ def _add_out(p: argparse.ArgumentParser, default: str) -> None:
 
 
 def _cmd_compress(args: argparse.Namespace) -> int:
-    from .experiment_cli import compress_cli
+    from .experiments import compress_cli
 
     return compress_cli(args)
 
 
 def _cmd_grasp(args: argparse.Namespace) -> int:
-    from .experiment_cli import grasp_cli
+    from .experiments import grasp_cli
 
     return grasp_cli(args)
 
 
 def _cmd_grasp_sphere(args: argparse.Namespace) -> int:
-    from .experiment_cli import grasp_sphere_cli
+    from .experiments import grasp_sphere_cli
 
     return grasp_sphere_cli(args)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from .experiment_cli import calibrate_cli
+    from .experiments import calibrate_cli
 
     return calibrate_cli(args)
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import bench_cli
+    from ..benchmarks.bench import bench_cli
 
     return bench_cli(args)
 
@@ -123,8 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_rl_commands(sub) -> None:
-    """train/evaluate/record/replay/soak live in agents/ modules that import torch lazily."""
-    from .rl_cli import add_rl_commands
+    """train/evaluate/record/replay/soak live in modules (agents/, benchmarks/) that import torch lazily."""
+    from .rl import add_rl_commands
 
     add_rl_commands(sub)
 

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, atomic_write, check_range, from_dict, read_yaml, save_figure
-from .mesh import TetMesh
-from .simulation import Plate, Simulation
-from .tissue import TissueModel, TissueParams
+from ..physics.config import ConfigError, atomic_write, check_range, from_dict, read_yaml, save_figure
+from ..physics.mesh import TetMesh
+from ..physics.simulation import Plate, Simulation
+from ..physics.tissue import TissueModel, TissueParams
 
 ProgressFactory = Callable[[int, str], object] | None
 

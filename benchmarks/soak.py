@@ -79,7 +79,7 @@ class MixedPolicy:
     """
 
     def __init__(self, config, n_envs: int, rng: np.random.Generator) -> None:
-        from .controllers import FixedForcePolicy, SlipReactivePolicy
+        from ..agents.controllers import FixedForcePolicy, SlipReactivePolicy
 
         self.n = n_envs
         self.rng = rng

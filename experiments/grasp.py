@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, atomic_write_text, check_range, save_figure
-from .contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
-from .experiments import verdict
-from .scenario import GraspScene
+from ..physics.config import ConfigError, atomic_write_text, check_range, save_figure
+from ..physics.contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
+from .compression import verdict
+from ..physics.scenario import GraspScene
 
 PHASES = ("close", "hold", "pull")
 

@@ -42,15 +42,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, from_dict, to_dict
-from .experiments import (
+from ..physics.config import ConfigError, from_dict, to_dict
+from .compression import (
     CompressionConfig,
     CompressionCurve,
     compression_model,
     run_compression,
 )
-from .mesh import TetMesh
-from .tissue import TissueModel, TissueParams
+from ..physics.mesh import TetMesh
+from ..physics.tissue import TissueModel, TissueParams
 
 #: the paper's five constants, in this order (TissueParams field names, SI units)
 PARAM_NAMES: tuple[str, ...] = ("k1_n_per_m", "k2_n_per_m3", "dl_c_m", "b0_n_s_per_m", "b1_n_s_per_m2")

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..physics.reference import DT_OUTER, NumpyMSD, cross_check, spleen_model
-from .bench_report import BATCH, ENV_SIZES, _out_paths, _r, evaluate_targets, machine_info, markdown, plot_scaling
+from .report import BATCH, ENV_SIZES, _out_paths, _r, evaluate_targets, machine_info, markdown, plot_scaling
 
 # ------------------------------------------------------------------------------------------------
 # timing helpers

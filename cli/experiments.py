@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..physics.calibration import fit_compression, tissue_config_dict, validate_curves
+from ..experiments.calibration import fit_compression, tissue_config_dict, validate_curves
 from ..physics.config import ConfigError, atomic_write_text, builtin_config, from_dict, read_yaml, write_yaml
-from ..physics.experiments import (
+from ..experiments.compression import (
     CompressionConfig,
     compression_verdicts,
     load_tissue_params,
@@ -23,7 +23,7 @@ from ..physics.experiments import (
     run_compression,
     write_compression_csv,
 )
-from ..physics.grasp_experiment import (
+from ..experiments.grasp import (
     GraspProtocol,
     grasp_verdicts,
     plot_grasp,

@@ -1,0 +1,7 @@
+"""``python -m msdgrasp.cli``: the ``msdgrasp`` command."""
+
+import sys
+
+from .main import main
+
+sys.exit(main())
