@@ -2,7 +2,8 @@
 
 Recordings are written by :class:`msdgrasp.envs.recording.RerunRecorder` (``msdgrasp record``,
 ``msdgrasp evaluate --record``). The native viewer needs a display; ``--web`` serves the web viewer
-instead (``http://localhost:9090`` by default). Equivalent to ``rerun FILE`` / ``rerun --web-viewer FILE``.
+instead (``http://localhost:9090`` by default; tests/test_replay_web.py opens it in headless Chromium).
+Equivalent to ``rerun FILE`` / ``rerun --web-viewer FILE``.
 """
 
 from __future__ import annotations
@@ -58,13 +59,32 @@ def check_recording(path: str | os.PathLike) -> Path:
     return p
 
 
-def viewer_command(path: str | os.PathLike, web: bool = False, port: int | None = None) -> list[str]:
+def _check_port(name: str, port: int | None) -> None:
+    if port is not None and not (isinstance(port, int) and 1 <= port <= 65535):
+        raise _usage_error(f"{name} must be a TCP port in 1-65535, got {port!r}")
+
+
+def viewer_command(path: str | os.PathLike, web: bool = False, port: int | None = None,
+                   grpc_port: int | None = None) -> list[str]:
+    """The ``rerun`` command line. With ``web``: the web viewer over HTTP on ``port`` (rerun's default
+    9090) and the gRPC server it streams the recording from on ``grpc_port`` (rerun's default 9876)."""
+    _check_port("--port", port)
+    _check_port("--grpc-port", grpc_port)
+    if not web and (port is not None or grpc_port is not None):
+        raise _usage_error("--port and --grpc-port need --web (the native viewer serves nothing)")
     cmd = [rerun_executable()]
     if web:
         cmd.append("--web-viewer")
         if port is not None:
             cmd += ["--web-viewer-port", str(int(port))]
+        if grpc_port is not None:
+            cmd += ["--port", str(int(grpc_port))]
     return [*cmd, str(path)]
+
+
+def web_viewer_url(port: int | None = None, grpc_port: int | None = None, host: str = "127.0.0.1") -> str:
+    """The address to open in a browser for ``replay --web`` (the viewer page, told where the data is)."""
+    return (f"http://{host}:{port or 9090}/?url=rerun%2Bhttp%3A%2F%2F{host}%3A{grpc_port or 9876}%2Fproxy")
 
 
 def add_replay_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -72,6 +92,8 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("file", type=Path, help="recording (.rrd) written by `msdgrasp record` or `evaluate --record`")
     p.add_argument("--web", action="store_true", help="serve the web viewer instead of opening the native one")
     p.add_argument("--port", type=int, default=None, help="web viewer port (with --web; default 9090)")
+    p.add_argument("--grpc-port", type=int, default=None,
+                   help="port of the gRPC server the web viewer loads the recording from (with --web; default 9876)")
     p.add_argument("--print-command", action="store_true", help="print the viewer command and exit")
     return p
 
@@ -84,10 +106,13 @@ def replay_cli(args: argparse.Namespace) -> int:
     """
     path = check_recording(getattr(args, "file"))
     web = bool(getattr(args, "web", False))
-    cmd = viewer_command(path, web=web, port=getattr(args, "port", None))
+    port, grpc_port = getattr(args, "port", None), getattr(args, "grpc_port", None)
+    cmd = viewer_command(path, web=web, port=port, grpc_port=grpc_port)
     if getattr(args, "print_command", False):
         print(" ".join(cmd))
         return 0
+    if web:
+        print(f"msdgrasp replay: open {web_viewer_url(port, grpc_port)} in a browser", file=sys.stderr, flush=True)
     if (not web and sys.platform.startswith("linux")
             and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))):
         raise _usage_error(

@@ -246,6 +246,22 @@ def test_replay_cli(recorded, tmp_path, capsys):
     assert Path(out[0]).name == "rerun" and "--web-viewer" in out and out[-1] == str(recorded[0])
 
 
+def test_replay_web_ports_are_passed_to_rerun_and_checked_before_anything_starts():
+    from msdgrasp.cli.main import UsageError
+    from msdgrasp.cli.replay import viewer_command, web_viewer_url
+
+    cmd = viewer_command("ep.rrd", web=True, port=8123, grpc_port=9123)
+    # rerun: --web-viewer-port is the page, --port the gRPC server the page streams the recording from
+    assert cmd[cmd.index("--web-viewer-port") + 1] == "8123" and cmd[cmd.index("--port") + 1] == "9123"
+    assert web_viewer_url(8123, 9123) == "http://127.0.0.1:8123/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A9123%2Fproxy"
+    with pytest.raises(UsageError, match=r"^--grpc-port must be a TCP port in 1-65535, got 70000$"):
+        viewer_command("ep.rrd", web=True, grpc_port=70000)
+    with pytest.raises(UsageError, match=r"^--port must be a TCP port in 1-65535, got 0$"):
+        viewer_command("ep.rrd", web=True, port=0)
+    with pytest.raises(UsageError, match="need --web"):
+        viewer_command("ep.rrd", port=8123)
+
+
 @pytest.mark.parametrize("launcher", [["-m", "msdgrasp.cli.main"], ["-c", "import sys; from msdgrasp.cli.main import main; sys.exit(main())"]])
 def test_a_missing_recording_is_one_line_and_exit_2_however_the_cli_is_started(launcher, tmp_path):
     """``python -m msdgrasp.cli.main`` runs cli.py as __main__; the error class must still be caught."""
