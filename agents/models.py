@@ -12,7 +12,7 @@ import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..envs.core import GraspLiftConfig, RandomizationConfig
+from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig
 from ..physics.config import ConfigError, check_choice, from_dict, read_yaml
 
 ALGOS = ("ppo", "sac")
@@ -28,8 +28,9 @@ class TrainConfig:
     """
 
     algo: str = "ppo"
-    total_timesteps: int = 350_000
-    n_envs: int = 16
+    total_timesteps: int = 600_000
+    #: 32 batched envs: the physics runs 1.6x more agent steps/s per core than at 16 (SIMD across tissues)
+    n_envs: int = 32
     seed: int = 0
     checkpoint_every: int = 25_000
     torch_threads: int = 1
@@ -66,7 +67,7 @@ class TrainConfig:
     #: scales, node displacements); the actor does not (agents/networks.py). Needs env.privileged_obs.
     asymmetric_critic: bool = True
     ppo: dict = field(default_factory=lambda: {
-        "learning_rate": 1e-3, "n_steps": 256, "batch_size": 1024, "n_epochs": 10, "gamma": 0.999,
+        "learning_rate": 1e-3, "n_steps": 128, "batch_size": 1024, "n_epochs": 10, "gamma": 0.999,
         "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
         "use_sde": True, "sde_sample_freq": 4,
     })
@@ -77,9 +78,11 @@ class TrainConfig:
     #: the training task: the default GraspLift task, with the privileged entries the critic needs,
     #: friction drawn log-uniformly (the low-friction end, where grasps fail, comes up twice as often), a
     #: pinch action that spends more of its range on light grips (action 0: 1.25 N) and a pull-speed action
-    #: (action 0: 10 mm/s) instead of a travel set-point (docs/task-design.md, session 3)
+    #: (action 0: 10 mm/s) instead of a travel set-point (docs/task-design.md, session 3), and a peak-pinch
+    #: charge scaled by mu / 0.4, which follows the ratio to the minimal slip-free force (session 6)
     env: GraspLiftConfig = field(default_factory=lambda: GraspLiftConfig(
         privileged_obs=True, pinch_action_exponent=2.0, pull_action="forward_speed",
+        reward=RewardConfig(peak_force_mu_ref=0.4),
         randomization=RandomizationConfig(mu_distribution="log_uniform")))
 
     def __post_init__(self) -> None:

@@ -168,8 +168,11 @@ class BestModel:
 
     PPO is not monotonic (a run's validation success can dip between checkpoints while it trades force
     against slip), so the last model is not necessarily the one to ship. The key is the success rate,
-    then the lower mean peak pinch. The history goes to ``validation.json`` (atomic), which a resumed run
-    reads back, and is the learning curve of ``msdgrasp train --seeds``.
+    then the lower force cost: the mean over the validation mu of the peak pinch weighted as the reward
+    charges it (by mu / ``env.reward.peak_force_mu_ref`` when that is set, else the plain mean peak
+    pinch), so selection and training agree on what "less force" means. The history goes to
+    ``validation.json`` (atomic), which a resumed run reads back, and is the learning curve of
+    ``msdgrasp train --seeds``.
     """
 
     def __init__(self, config: TrainConfig, out: Path, resume: bool = False) -> None:
@@ -188,7 +191,14 @@ class BestModel:
 
     @staticmethod
     def _key(rec: dict[str, Any]) -> tuple[float, float]:
-        return (rec["success_rate"], -rec["mean_peak_pinch_N"])
+        # records of runs made before force_cost_N existed carry only the plain mean
+        return (rec["success_rate"], -rec.get("force_cost_N", rec["mean_peak_pinch_N"]))
+
+    def force_cost(self, rows: list[dict[str, Any]]) -> float:
+        """Mean peak pinch (N) over the validation rows, weighted per mu as the reward charges it."""
+        mu_ref = self.config.env.reward.peak_force_mu_ref
+        return float(np.mean([r["mean_peak_pinch_N"] * (r["mu"] / mu_ref if mu_ref is not None else 1.0)
+                              for r in rows]))
 
     def consider(self, model, path: Path) -> dict[str, Any] | None:
         """Validate ``model`` (saved at ``path``); copy it to best_model.zip if it beats the best so far."""
@@ -203,7 +213,9 @@ class BestModel:
             "model": str(path),
             "success_rate": round(float(np.mean([r["success_rate"] for r in rows])), 4),
             "mean_peak_pinch_N": round(float(np.mean([r["mean_peak_pinch_N"] for r in rows])), 4),
+            "force_cost_N": round(self.force_cost(rows), 4),
             "success_by_mu": {f"{r['mu']:g}": r["success_rate"] for r in rows},
+            "peak_pinch_by_mu": {f"{r['mu']:g}": round(r["mean_peak_pinch_N"], 4) for r in rows},
         }
         self.history.append(rec)
         if self.best is None or self._key(rec) > self._key(self.best):
