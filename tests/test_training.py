@@ -126,13 +126,18 @@ def test_short_run_saves_models_that_load_and_act(short_run):
     for path in (out / "final_model.zip", out / "best_model.zip"):
         act = ModelPolicy(path).act(obs)
         assert act.shape == (3, 2) and np.all(np.isfinite(act))
-    # the best model is the validation history's best: highest success, then lowest peak pinch
+    # the best model is the validation history's best: highest success, then lowest force cost, which
+    # weighs each mu's peak pinch as the default reward charges it (mu / peak_force_mu_ref = mu / 0.4)
     val = json.loads((out / "validation.json").read_text())
     hist = val["history"]
     assert len(hist) >= 2 and val["episodes_per_mu"] == 1 and val["validation_mu"] == [0.5, 0.9]
-    best = max(hist, key=lambda r: (r["success_rate"], -r["mean_peak_pinch_N"]))
-    assert (val["best"]["success_rate"], val["best"]["mean_peak_pinch_N"]) == (
-        best["success_rate"], best["mean_peak_pinch_N"])
+    assert task.reward.peak_force_mu_ref == 0.4
+    for rec in hist:
+        by_mu = rec["peak_pinch_by_mu"]
+        assert rec["mean_peak_pinch_N"] == pytest.approx((by_mu["0.5"] + by_mu["0.9"]) / 2, abs=1e-3)
+        assert rec["force_cost_N"] == pytest.approx((by_mu["0.5"] * 0.5 + by_mu["0.9"] * 0.9) / 2 / 0.4, abs=1e-3)
+    best = max(hist, key=lambda r: (r["success_rate"], -r["force_cost_N"]))
+    assert (val["best"]["success_rate"], val["best"]["force_cost_N"]) == (best["success_rate"], best["force_cost_N"])
     assert summary["best_validation"] == val["best"]
 
 
