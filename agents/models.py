@@ -28,7 +28,7 @@ class TrainConfig:
     """
 
     algo: str = "ppo"
-    total_timesteps: int = 600_000
+    total_timesteps: int = 900_000
     #: 32 batched envs: the physics runs 1.6x more agent steps/s per core than at 16 (SIMD across tissues)
     n_envs: int = 32
     seed: int = 0
