@@ -75,13 +75,20 @@ def run_scenarios() -> dict[str, np.ndarray]:
 
 
 def test_trajectories_match_the_recording_made_before_the_records():
-    """Bitwise on the machine that recorded it; across CPUs the same IEEE operations in the same order
-    give the same bits too (numba compiles without fast-math), so the tolerance is only round-off."""
+    """Bitwise on the machine that recorded it. On another CPU LLVM may pick other vector widths and fused
+    multiply-adds for the same source, so the last bits differ (measured on a second machine: at most
+    3e-12 of an array's largest value, in the velocities after 250 ms; every contact state identical).
+    A wrong or swapped argument changes a trajectory at the percent level, so each array must agree to
+    1e-9 of its largest value, and the discrete contact states exactly."""
     want = np.load(GOLDEN)
     got = run_scenarios()
     assert sorted(got) == sorted(want.files)
     for name in want.files:
-        np.testing.assert_allclose(got[name], want[name], rtol=1e-12, atol=1e-15, err_msg=name)
+        if name.endswith("contact_state"):
+            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+            continue
+        scale = float(np.abs(want[name]).max()) if want[name].size else 0.0
+        np.testing.assert_allclose(got[name], want[name], rtol=0.0, atol=1e-9 * scale + 1e-300, err_msg=name)
     assert np.abs(want["spleen.jaw_out"][:, :, 0]).sum() > 0.5, "the spleen scenario must grip"
     assert np.abs(want["plates.plate_out"]).max() > 0.1, "the plates must press"
 
