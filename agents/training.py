@@ -196,9 +196,8 @@ class BestModel:
 
     def force_cost(self, rows: list[dict[str, Any]]) -> float:
         """Mean peak pinch (N) over the validation rows, weighted per mu as the reward charges it."""
-        mu_ref = self.config.env.reward.peak_force_mu_ref
-        return float(np.mean([r["mean_peak_pinch_N"] * (r["mu"] / mu_ref if mu_ref is not None else 1.0)
-                              for r in rows]))
+        weight = self.config.env.reward.peak_force_weight
+        return float(np.mean([r["mean_peak_pinch_N"] * weight(r["mu"]) for r in rows]))
 
     def consider(self, model, path: Path) -> dict[str, Any] | None:
         """Validate ``model`` (saved at ``path``); copy it to best_model.zip if it beats the best so far."""

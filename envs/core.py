@@ -75,6 +75,10 @@ class RewardConfig:
                      "failure_penalty", "grasp"):
             check_range(name, getattr(self, name), 0.0, None)
 
+    def peak_force_weight(self, mu: np.ndarray | float) -> np.ndarray | float:
+        """Factor on the peak-force charge at friction ``mu``: mu / peak_force_mu_ref, or 1 when unset."""
+        return mu / self.peak_force_mu_ref if self.peak_force_mu_ref is not None else 1.0
+
 
 @dataclass(frozen=True)
 class RandomizationConfig:
@@ -468,8 +472,7 @@ class GraspLiftCore:
             peak_charge = np.where(success, self.peak_pinch, 0.0)
         else:  # charged as made, refunded without success
             peak_charge = peak_rise - np.where(unsuccessful, self.peak_pinch, 0.0)
-        if w.peak_force_mu_ref is not None:
-            peak_charge = peak_charge * (self.mu / w.peak_force_mu_ref)
+        peak_charge = peak_charge * w.peak_force_weight(self.mu)
         terms = {
             "progress": w.progress * progress,
             "hold": w.hold * hold_gain,
