@@ -119,11 +119,13 @@ class GraspLiftEnv(gym.Env):
     slipped less than ``hold_slip_tolerance_m``; a hold spoilt by slip starts over; and only if the tissue
     has slipped less than ``lift_slip_tolerance_m`` (2 mm) since lifting began: beyond that the lift is not
     slip-free and the episode can no longer succeed, ``info["slipped"]``), on a lost grasp after lifting
-    began, on tissue damage, or on a numerical failure (``info["error"]`` says so; the observation
+    began, on tissue damage, or on a numerical failure (a non-finite state or an inverted tet, min_volume_ratio
+    <= 0; ``info["error"]`` says so; the observation
     is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,
-    peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure, reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
+    peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure (non-finite state or an
+    inverted tet), min_volume_ratio (smallest tet volume / rest volume), reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
     randomisation for evaluation.
     """
 
@@ -161,7 +163,8 @@ class GraspLiftEnv(gym.Env):
         info = {k: (v[0] if not isinstance(v, dict) else {kk: float(vv[0]) for kk, vv in v.items()}) for k, v in infos.items()}
         info = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in info.items()}
         if info["numerical_failure"]:
-            info["error"] = "numerical failure: the tissue state became non-finite (blow-up); episode terminated"
+            info["error"] = ("numerical failure: the tissue state became non-finite (blow-up) or a tet inverted "
+                             f"(min volume ratio {info['min_volume_ratio']:.3g}); episode terminated")
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
 
     def render(self):
@@ -227,7 +230,7 @@ class GraspLiftVectorEnv(VectorEnv):
         info.update({f"reward_{k}": v for k, v in infos["reward_terms"].items()})
         done = terminated | truncated
         if np.any(infos["numerical_failure"]):
-            info["error"] = np.where(infos["numerical_failure"], "numerical failure: non-finite tissue state", "")
+            info["error"] = np.where(infos["numerical_failure"], "numerical failure: non-finite tissue state or an inverted tet", "")
         if np.any(done):
             info["final_obs"] = np.where(done[:, None], obs, 0.0).astype(np.float32)
             info["final_info"] = {k: np.array(v, copy=True) for k, v in info.items() if k not in ("final_obs",)}

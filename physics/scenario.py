@@ -64,10 +64,14 @@ def load_params(path: str | Path, section: str, cls):
 
 
 def settle(
-    model: TissueModel, x0: np.ndarray | None = None, time_s: float = 6.0, dt: float = 1e-3
+    model: TissueModel, x0: np.ndarray | None = None, time_s: float = 6.0, dt: float = 1e-3, safety: float = 0.95
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(positions m, Maxwell forces N) after ``time_s`` of damped motion under gravity from ``x0`` (rest)."""
-    sim = Simulation(model, 1, dt=dt)
+    """(positions m, Maxwell forces N) after ``time_s`` of damped motion under gravity from ``x0`` (rest).
+
+    A damped relaxation to equilibrium, which does not depend on the step: the settled spleen differs by
+    <= 3.4e-8 m (Maxwell forces by 4e-7 N) between ``safety`` 0.95 and 0.6 (measured). 0.95 keeps the scenes' start states those of every
+    recorded result and trained policy."""
+    sim = Simulation(model, 1, dt=dt, safety=safety)
     if x0 is not None:
         sim.set_state(x0)
     sim.step(int(round(time_s / dt)))

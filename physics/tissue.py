@@ -75,7 +75,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .config import ConfigError, check_choice, check_range, check_vector
-from .forces import accumulate_spring_forces, spring_energy
+from .forces import accumulate_spring_forces, spring_energy, volume_energy
 from .mesh import TetMesh
 
 
@@ -538,9 +538,13 @@ class TissueModel:
         return f
 
     def elastic_energy(self, x: np.ndarray, stiffness_scale: float = 1.0) -> float:
-        return stiffness_scale * spring_energy(
-            np.ascontiguousarray(x), self.edges, self.rest_length, self.k1, self.k2, self.dlc
-        )
+        """Potential energy (J) of the springs and of the volume barrier at positions ``x`` (N,3): the
+        potential of :meth:`internal_forces` plus the barrier's forces (the Maxwell branch is not elastic)."""
+        xc = np.ascontiguousarray(x)
+        energy = spring_energy(xc, self.edges, self.rest_length, self.k1, self.k2, self.dlc)
+        if self.kvol.size:
+            energy += volume_energy(xc, self.tets, self.rest_volume, self.kvol, self.volume_threshold)
+        return stiffness_scale * energy
 
     def kinetic_energy(self, v: np.ndarray, mass_scale: float = 1.0) -> float:
         return 0.5 * mass_scale * float(np.sum(self.mass[:, None] * v * v))

@@ -251,6 +251,31 @@ def test_numerical_failure_terminates_with_error_and_finite_obs(how):
     assert np.all(np.isfinite(obs)) and "error" not in info and not terminated
 
 
+def test_an_inverted_tet_is_a_numerical_failure(tmp_path):
+    """A tet turned inside out (here by hand, on a tissue without the volume barrier that would undo it)
+    ends the episode as a numerical failure: its springs and barrier would push the wrong way."""
+    from msdgrasp.physics.config import builtin_config, read_yaml, write_yaml
+
+    cfg = read_yaml(builtin_config("tissue/spleen.yaml"))
+    cfg["tissue"]["volume_modulus_pa"] = 0.0
+    write_yaml(tmp_path / "spleen_no_barrier.yaml", cfg)
+    env = GraspLiftEnv(config=GraspLiftConfig(tissue_config=str(tmp_path / "spleen_no_barrier.yaml")))
+    env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(np.zeros(2))
+    assert not terminated and 0.0 < info["min_volume_ratio"] <= 1.0
+    sim = env.unwrapped.core.sim
+    a, b, c, d = sim.model.tets[0]
+    p = sim.x[0]
+    n = np.cross(p[c] - p[b], p[d] - p[b])
+    n /= np.linalg.norm(n)
+    p[a] -= 2.0 * ((p[a] - p[b]) @ n) * n  # node a mirrored through the opposite face: volume ratio -1
+    obs, reward, terminated, truncated, info = env.step(np.zeros(2))
+    assert info["min_volume_ratio"] <= 0.0
+    assert terminated is True and info["numerical_failure"] is True
+    assert "inverted" in info["error"]
+    assert np.all(np.isfinite(obs)) and reward < 0
+
+
 def test_vector_env_numerical_failure_is_isolated():
     venv = GraspLiftVectorEnv(3)
     venv.reset(seed=0)
