@@ -18,6 +18,7 @@ import numpy as np
 from ..physics.config import ConfigError, check_choice, check_range, from_dict, read_yaml, to_dict
 from ..physics.contact import J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TZ
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
+from ..physics.simulation import RECORDED_SUBSTEP_SAFETY
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
 
@@ -123,13 +124,13 @@ class GraspLiftConfig:
     grasp_depth_m: float | None = 0.035
     #: physics steps (1 ms) per agent step: 33 -> 30.3 Hz agent rate
     physics_steps_per_action: int = 33
-    #: fraction of the stability limit a physics substep uses (see physics.simulation.SUBSTEP_SAFETY, 0.6,
-    #: the library default). The task keeps 0.95 (2 substeps on the stiffest tissue drawn) because every
+    #: fraction (0-1] of the stability limit a physics substep uses (physics.simulation.SUBSTEP_SAFETY, 0.6,
+    #: is the library default). The task keeps the recorded 0.95 (2 substeps on the stiffest tissue drawn) because every
     #: trained policy and published result was made on it; it is NOT converged: against 15 substeps, the pull
     #: force under a 2.5 N pinch is off by up to 0.05 N of 0.24 N and the slip by up to 0.95 mm, while 0.6
     #: (3 substeps) is within 0.01 N and 0.003 mm (measured in session 7, physics/simulation.py). Moving the task
     #: to 0.6 costs ~1.5x physics time and a new training run.
-    substep_safety: float = 0.95
+    substep_safety: float = RECORDED_SUBSTEP_SAFETY
     #: what action[0] commands: "force" = a pinch-force set-point in [0, max_pinch_force_N] that the jaw
     #: motor's 1 kHz force loop tracks (a torque-controlled jaw); "speed" = the jaw closing speed
     jaw_action: str = "force"

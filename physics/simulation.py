@@ -69,6 +69,9 @@ def _batch(value, batch: int, name: str, shape: tuple[int, ...] = ()) -> np.ndar
 #: within 0.01 N and 0.003 mm of 15 substeps) and not at 0.95 (2 substeps: pull force off by 0.05 N of
 #: 0.24, slip by 0.95 mm).
 SUBSTEP_SAFETY = 0.6
+#: the rule before session 7: the trained policies, the env (GraspLiftConfig.substep_safety) and the settled
+#: scene start states (scenario.settle) were made with it and keep it until the task is retrained
+RECORDED_SUBSTEP_SAFETY = 0.95
 
 
 class Simulation:

@@ -31,7 +31,7 @@ def run_scenarios() -> dict[str, np.ndarray]:
     """{"<scenario>.<array>": final value} of the three scenarios (one tissue each)."""
     from msdgrasp.physics import reference
     from msdgrasp.physics.scenario import sphere_scene, spleen_scene
-    from msdgrasp.physics.simulation import Plate, Simulation
+    from msdgrasp.physics.simulation import RECORDED_SUBSTEP_SAFETY, Plate, Simulation
     from msdgrasp.physics.tissue import TissueModel
 
     out: dict[str, np.ndarray] = {}
@@ -40,9 +40,9 @@ def run_scenarios() -> dict[str, np.ndarray]:
         for n in NAMES:
             out[f"{tag}.{n}"] = getattr(s, n).copy()
 
-    # safety 0.95: the substep rule when the recording was made (SUBSTEP_SAFETY is 0.6 since)
+    # the substep rule when the recording was made (SUBSTEP_SAFETY is 0.6 since)
     scene = spleen_scene(resolution="coarse")
-    s = scene.simulation(1, max_stiffness_scale=1.3, min_mass_scale=0.85, safety=0.95)
+    s = scene.simulation(1, max_stiffness_scale=1.3, min_mass_scale=0.85, safety=RECORDED_SUBSTEP_SAFETY)
     s.set_scales(stiffness=1.17, mass=0.93)
     s.set_friction(0.45, 0.4)
     s.command_pinch_force(1.6, 0.02, 0.03)
@@ -56,7 +56,7 @@ def run_scenarios() -> dict[str, np.ndarray]:
     z = sp.x_start[:, 2]
     plates = [Plate((0.0, 0.0, z.min()), (0.0, 0.0, 1.0), mu=0.3),
               Plate((0.0, 0.0, z.max()), (0.0, 0.0, -1.0), (0.0, 0.0, -0.02), mu=0.3)]
-    s = Simulation(sp.model, 1, plates=plates, max_stiffness_scale=1.2, safety=0.95)
+    s = Simulation(sp.model, 1, plates=plates, max_stiffness_scale=1.2, safety=RECORDED_SUBSTEP_SAFETY)
     s.set_state(sp.x_start)
     s.set_scales(stiffness=1.1)
     s.step(200)
@@ -66,7 +66,7 @@ def run_scenarios() -> dict[str, np.ndarray]:
     params = replace(reference.spleen_params(), spring_damping_time_s=0.002, damping_disp_rate_per_m_s=500.0)
     model = TissueModel.from_params(model.mesh, params, fixed_nodes=model.mesh.node_sets["hilum"],
                                     anchor_stiffness_n_per_m=8.0)
-    s = Simulation(model, 1, max_stiffness_scale=1.2, min_mass_scale=0.8, safety=0.95)
+    s = Simulation(model, 1, max_stiffness_scale=1.2, min_mass_scale=0.8, safety=RECORDED_SUBSTEP_SAFETY)
     s.set_scales(stiffness=0.9, mass=1.1)
     s.f_ext[:, 11, :] = (0.03, 0.05, -0.04)
     s.step(80)

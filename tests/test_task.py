@@ -116,6 +116,7 @@ def test_forward_speed_pull_maps_the_action_to_zero_to_top_speed():
     ("max_pinch_force_N", 0.0, "max_pinch_force_N"), ("max_travel_m", 0.5, "max_travel_m"),
     ("obs_history", 0, "obs_history"), ("force_loop_gain_m_s_per_N", -1.0, "force_loop_gain"),
     ("max_pull_speed_m_s", 0.0, "max_pull_speed_m_s"), ("max_pull_speed_m_s", 0.5, "max_pull_speed_m_s"),
+    ("substep_safety", 0.0, r"substep_safety.*\(0(\.0)?, 1(\.0)?\]"), ("substep_safety", 1.5, "substep_safety"),
 ])
 def test_bad_control_config_names_the_field(field, value, match):
     with pytest.raises(ConfigError, match=match):
