@@ -131,6 +131,11 @@ class GraspLiftConfig:
     #: (3 substeps) is within 0.01 N and 0.003 mm (measured in session 7, physics/simulation.py). Moving the task
     #: to 0.6 costs ~1.5x physics time and a new training run.
     substep_safety: float = RECORDED_SUBSTEP_SAFETY
+    #: end an episode as a numerical failure when a tet inverts (info["min_volume_ratio"] <= 0; it is reported
+    #: either way). Off by default for the same reason as substep_safety: with it on, the default training no
+    #: longer reproduces the recorded run (its exploration pinches soft tissues hard enough to invert a tet on
+    #: the coarse spleen: first validation force cost 3.73 vs 4.39 N). To be switched on with the retraining.
+    inverted_tet_is_failure: bool = False
     #: what action[0] commands: "force" = a pinch-force set-point in [0, max_pinch_force_N] that the jaw
     #: motor's 1 kHz force loop tracks (a torque-controlled jaw); "speed" = the jaw closing speed
     jaw_action: str = "force"
@@ -431,9 +436,9 @@ class GraspLiftCore:
         sim.step(cfg.physics_steps_per_action)
         self.steps += 1
         finite = sim.finite()
-        # an inverted tet is a numerical failure too: its springs and barrier push the wrong way
         volume_ratio = sim.min_volume_ratio()
-        finite &= volume_ratio > 0.0
+        if cfg.inverted_tet_is_failure:  # an inverted tet's springs and barrier push the wrong way
+            finite &= volume_ratio > 0.0
         jo = sim.jaw_out
         slip = jo[:, :, J_SLIP_DIST].mean(axis=1)  # mean over jaws of the grasped-surface slip this step, m
         pinch = jo[:, :, J_NORMAL].sum(axis=1)

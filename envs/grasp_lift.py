@@ -119,8 +119,8 @@ class GraspLiftEnv(gym.Env):
     slipped less than ``hold_slip_tolerance_m``; a hold spoilt by slip starts over; and only if the tissue
     has slipped less than ``lift_slip_tolerance_m`` (2 mm) since lifting began: beyond that the lift is not
     slip-free and the episode can no longer succeed, ``info["slipped"]``), on a lost grasp after lifting
-    began, on tissue damage, or on a numerical failure (a non-finite state or an inverted tet, min_volume_ratio
-    <= 0; ``info["error"]`` says so; the observation
+    began, on tissue damage, or on a numerical failure (a non-finite state, or with ``inverted_tet_is_failure``
+    an inverted tet, min_volume_ratio <= 0; ``info["error"]`` says so; the observation
     is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,

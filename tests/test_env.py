@@ -259,7 +259,8 @@ def test_an_inverted_tet_is_a_numerical_failure(tmp_path):
     cfg = read_yaml(builtin_config("tissue/spleen.yaml"))
     cfg["tissue"]["volume_modulus_pa"] = 0.0
     write_yaml(tmp_path / "spleen_no_barrier.yaml", cfg)
-    env = GraspLiftEnv(config=GraspLiftConfig(tissue_config=str(tmp_path / "spleen_no_barrier.yaml")))
+    config = GraspLiftConfig(tissue_config=str(tmp_path / "spleen_no_barrier.yaml"), inverted_tet_is_failure=True)
+    env = GraspLiftEnv(config=config)
     env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step(np.zeros(2))
     assert not terminated and 0.0 < info["min_volume_ratio"] <= 1.0
