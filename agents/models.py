@@ -9,16 +9,76 @@ here keeps ``agents/`` acyclic: models <- controllers <- evaluation <- training 
 from __future__ import annotations
 
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
+from typing import Annotated, Literal
+
+from annotated_types import Ge, Gt, Le, MinLen
+from pydantic import with_config
+from typing_extensions import TypedDict
 
 from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig
-from ..physics.config import ConfigError, check_choice, from_dict, read_yaml
+from ..physics.config import (
+    RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, config_dataclass, from_dict, read_yaml,
+)
 
 ALGOS = ("ppo", "sac")
 
+PositiveInt = Annotated[Int, Ge(1)]
+Unit = Annotated[Real, Ge(0), Le(1)]
 
-@dataclass(frozen=True)
+
+@with_config(RECORD_CONFIG)
+class PPOKwargs(TypedDict, total=False):
+    """Keyword arguments of SB3's PPO that a training config may set (only the keys given are passed;
+    SB3's defaults fill the rest). A test checks that every key is an argument of ``PPO.__init__``."""
+
+    learning_rate: Positive
+    n_steps: PositiveInt
+    batch_size: PositiveInt
+    n_epochs: PositiveInt
+    gamma: Unit
+    gae_lambda: Unit
+    clip_range: Positive
+    clip_range_vf: Positive | None
+    normalize_advantage: Bool
+    ent_coef: NonNegative
+    vf_coef: NonNegative
+    max_grad_norm: Positive
+    use_sde: Bool
+    #: -1: sample the gSDE noise matrix once per rollout
+    sde_sample_freq: Annotated[Int, Ge(-1)]
+    target_kl: Positive | None
+    stats_window_size: PositiveInt
+
+
+@with_config(RECORD_CONFIG)
+class SACKwargs(TypedDict, total=False):
+    """Keyword arguments of SB3's SAC that a training config may set (see :class:`PPOKwargs`)."""
+
+    learning_rate: Positive
+    buffer_size: PositiveInt
+    learning_starts: Annotated[Int, Ge(0)]
+    batch_size: PositiveInt
+    tau: Annotated[Real, Gt(0), Le(1)]
+    gamma: Unit
+    #: updates every n steps, or [n, "step" | "episode"]
+    train_freq: PositiveInt | tuple[PositiveInt, Literal["step", "episode"]]
+    #: -1: as many gradient steps as environment steps in the rollout
+    gradient_steps: Annotated[Int, Ge(-1)]
+    optimize_memory_usage: Bool
+    n_steps: PositiveInt
+    #: a number, "auto" or "auto_<initial value>"
+    ent_coef: Positive | Str
+    target_update_interval: PositiveInt
+    target_entropy: Real | Str
+    use_sde: Bool
+    sde_sample_freq: Annotated[Int, Ge(-1)]
+    use_sde_at_warmup: Bool
+    stats_window_size: PositiveInt
+
+
+@config_dataclass
 class TrainConfig:
     """A training run (hyper-parameters are passed to the SB3 algorithm as given).
 
@@ -27,54 +87,54 @@ class TrainConfig:
     trains the same thing.
     """
 
-    algo: str = "ppo"
-    total_timesteps: int = 900_000
+    algo: Literal["ppo", "sac"] = "ppo"
+    total_timesteps: PositiveInt = 900_000
     #: 32 batched envs: the physics runs 1.6x more agent steps/s per core than at 16 (SIMD across tissues)
-    n_envs: int = 32
-    seed: int = 0
-    checkpoint_every: int = 25_000
-    torch_threads: int = 1
-    policy_net: tuple[int, ...] = (64, 64)
+    n_envs: PositiveInt = 32
+    seed: Int = 0
+    checkpoint_every: PositiveInt = 25_000
+    torch_threads: PositiveInt = 1
+    policy_net: Annotated[tuple[PositiveInt, ...], MinLen(1)] = (64, 64)
     #: PPO only: initial log standard deviation of the action noise. With gSDE (ppo.use_sde, the default)
     #: the noise is exp(log_std) times the policy's latent features (-2 is the SB3 zoo's gSDE setting; -1
     #: measured: with -2 seed 0 never learned low friction, with -1 it held 100% at every validation mu).
     #: Without gSDE, SB3's default 0 is a standard deviation of 1 in action units.
-    log_std_init: float = -1.0
+    log_std_init: Annotated[Real, Ge(-5), Le(1)] = -1.0
     #: PPO with gSDE: squash the policy's actions with tanh (SB3 ``squash_output``) instead of clipping them
     #: to [-1, 1]. A clipped Gaussian whose mean has drifted past a bound always acts at the bound, so its
     #: return no longer depends on the mean there and nothing pulls it back (a set-point "stuck" at 5 N while
     #: the jaws close); through tanh the mean keeps a gradient. SAC squashes always (this field is ignored).
-    squash_actions: bool = True
+    squash_actions: Bool = True
     #: behaviour-cloning warm start: a controller spec ('reactive', 'fixed', ...) whose actions the policy
     #: imitates before RL. None (the default): PPO learns from scratch.
-    bc_teacher: str | None = None
+    bc_teacher: Str | None = None
     #: environment steps of teacher demonstrations
-    bc_steps: int = 32_768
-    bc_epochs: int = 40
+    bc_steps: PositiveInt = 32_768
+    bc_epochs: Annotated[Int, Ge(0)] = 40
     #: log standard deviation of the policy's action noise after cloning (exploration around the teacher)
-    bc_log_std: float = -1.2
+    bc_log_std: Real = -1.2
     #: also fit the critic to the teacher's discounted returns during cloning (see :func:`behaviour_clone`)
-    bc_value_fit: bool = False
+    bc_value_fit: Bool = False
     #: model selection: at every checkpoint and at the end the policy runs ``validation_episodes`` episodes
     #: at each friction in ``validation_mu`` (seeds disjoint from ``msdgrasp evaluate``'s); the best (highest
     #: success rate, then lowest mean peak pinch) is kept as ``best_model.zip``. 0 disables it.
-    validation_episodes: int = 6
-    validation_mu: tuple[float, ...] = (0.2, 0.3, 0.5, 0.7, 0.9)
+    validation_episodes: Annotated[Int, Ge(0)] = 6
+    validation_mu: Annotated[tuple[Annotated[Real, Ge(0), Le(2)], ...], MinLen(1)] = (0.2, 0.3, 0.5, 0.7, 0.9)
     #: learning-rate schedule: "constant", or "linear" (from the algorithm's learning_rate down to 0 at
     #: total_timesteps; a resumed run anneals over the steps that remain)
-    lr_schedule: str = "linear"
+    lr_schedule: Literal["constant", "linear"] = "linear"
     #: PPO only: the critic also sees the privileged entries of the observation (mu, stiffness and mass
     #: scales, node displacements); the actor does not (agents/networks.py). Needs env.privileged_obs.
-    asymmetric_critic: bool = True
-    ppo: dict = field(default_factory=lambda: {
-        "learning_rate": 1e-3, "n_steps": 128, "batch_size": 1024, "n_epochs": 10, "gamma": 0.999,
-        "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
-        "use_sde": True, "sde_sample_freq": 4,
-    })
-    sac: dict = field(default_factory=lambda: {
-        "learning_rate": 3e-4, "buffer_size": 200_000, "batch_size": 256, "gamma": 0.99, "tau": 0.005,
-        "learning_starts": 2000, "train_freq": 1, "gradient_steps": 1,
-    })
+    asymmetric_critic: Bool = True
+    #: the PPO block replaces SB3's defaults key by key (a key left out gets SB3's default, not this one's)
+    ppo: PPOKwargs = field(default_factory=lambda: PPOKwargs(
+        learning_rate=1e-3, n_steps=128, batch_size=1024, n_epochs=10, gamma=0.999, gae_lambda=0.95,
+        clip_range=0.2, ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5, use_sde=True, sde_sample_freq=4,
+    ))
+    sac: SACKwargs = field(default_factory=lambda: SACKwargs(
+        learning_rate=3e-4, buffer_size=200_000, batch_size=256, gamma=0.99, tau=0.005, learning_starts=2000,
+        train_freq=1, gradient_steps=1,
+    ))
     #: the training task: the default GraspLift task, with the privileged entries the critic needs,
     #: friction drawn log-uniformly (the low-friction end, where grasps fail, comes up twice as often), a
     #: pinch action that spends more of its range on light grips (action 0: 1.25 N) and a pull-speed action
@@ -86,42 +146,10 @@ class TrainConfig:
         randomization=RandomizationConfig(mu_distribution="log_uniform")))
 
     def __post_init__(self) -> None:
-        check_choice("algo", self.algo, ALGOS)
-        check_choice("lr_schedule", self.lr_schedule, ("constant", "linear"))
-        if not isinstance(self.asymmetric_critic, bool):
-            raise ConfigError(f"asymmetric_critic must be true or false, got {self.asymmetric_critic!r}")
         if self.asymmetric_critic and self.algo != "ppo":
             raise ConfigError(f"asymmetric_critic is implemented for algo 'ppo' only, got algo {self.algo!r}")
         if self.asymmetric_critic and not self.env.privileged_obs:
             raise ConfigError("asymmetric_critic: true needs env.privileged_obs: true (the critic's extra inputs)")
-        for name, lo in (("total_timesteps", 1), ("n_envs", 1), ("checkpoint_every", 1), ("torch_threads", 1),
-                         ("bc_steps", 1), ("bc_epochs", 0), ("validation_episodes", 0)):
-            val = getattr(self, name)
-            if isinstance(val, bool) or not isinstance(val, int) or val < lo:
-                raise ConfigError(f"{name} must be an integer >= {lo}, got {val!r}")
-        mus = self.validation_mu
-        if (not isinstance(mus, (tuple, list)) or not mus
-                or any(isinstance(m, bool) or not isinstance(m, (int, float)) or not 0.0 <= m <= 2.0 for m in mus)):
-            raise ConfigError(f"validation_mu must be a non-empty list of friction coefficients in [0, 2], got {mus!r}")
-        object.__setattr__(self, "validation_mu", tuple(float(m) for m in mus))
-        if isinstance(self.log_std_init, bool) or not isinstance(self.log_std_init, (int, float)) or not -5.0 <= self.log_std_init <= 1.0:
-            raise ConfigError(f"log_std_init must be a number in [-5, 1], got {self.log_std_init!r}")
-        if not isinstance(self.squash_actions, bool):
-            raise ConfigError(f"squash_actions must be true or false, got {self.squash_actions!r}")
-        if not isinstance(self.bc_value_fit, bool):
-            raise ConfigError(f"bc_value_fit must be true or false, got {self.bc_value_fit!r}")
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
-            raise ConfigError(f"seed must be an integer, got {self.seed!r}")
-        if not self.policy_net or any((not isinstance(h, int)) or h < 1 for h in self.policy_net):
-            raise ConfigError(f"policy_net must be a list of positive layer widths, got {self.policy_net!r}")
-        for name in ALGOS:  # a typo in a hyper-parameter block fails here, before a run folder is made
-            block = getattr(self, name)
-            if not isinstance(block, dict):
-                raise ConfigError(f"{name} must be a mapping of {name.upper()} keyword arguments, got {block!r}")
-            unknown = sorted(set(block) - _algo_parameters(name))
-            if unknown:
-                raise ConfigError(f"{name}: unknown {name.upper()} argument(s) {unknown}; allowed: "
-                                  f"{sorted(_algo_parameters(name))}")
         if self.squash_actions and self.algo == "ppo" and not self.ppo.get("use_sde", False):
             raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
                               "set squash_actions: false to train PPO without gSDE")
@@ -129,16 +157,6 @@ class TrainConfig:
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
         return from_dict(cls, read_yaml(path), where=Path(path).name)
-
-
-#: arguments of the algorithms' constructors that the training run sets itself (not configurable)
-_RESERVED = {"self", "policy", "env", "seed", "device", "verbose", "tensorboard_log", "policy_kwargs", "_init_setup_model"}
-
-
-def _algo_parameters(name: str) -> set[str]:
-    import inspect
-
-    return set(inspect.signature(_algo_class(name).__init__).parameters) - _RESERVED
 
 
 def _algo_class(name: str):

@@ -13,10 +13,14 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge, Gt, Le, MinLen
 
-from ..physics.config import ConfigError, atomic_write, check_range, from_dict, read_yaml, save_figure
+from ..physics.config import (
+    Bool, ConfigError, Int, NonNegative, Real, atomic_write, config_dataclass, from_dict, read_yaml, save_figure,
+)
 from ..physics.mesh import TetMesh
 from ..physics.simulation import Plate, Simulation
 from ..physics.tissue import TissueModel, TissueParams
@@ -37,31 +41,20 @@ def _progress(total: int, desc: str, enabled: bool):
 # =================================================================================================
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class CompressionConfig:
     """Unconstrained compression of the sphere between two rigid plates (bottom fixed, top moving down)."""
 
-    rates_mm_per_min: tuple[float, ...] = (6.0, 60.0)
+    rates_mm_per_min: Annotated[tuple[Annotated[Real, Gt(0), Le(6000)], ...], MinLen(1)] = (6.0, 60.0)
     #: final plate travel as a fraction of the sphere diameter
-    deformation_fraction: float = 0.30
+    deformation_fraction: Annotated[Real, Gt(0), Le(0.6)] = 0.30
     #: force samples recorded per curve
-    samples: int = 150
+    samples: Annotated[Int, Ge(2)] = 150
     #: plate/sample friction (0 = lubricated plates, the usual unconstrained test)
-    plate_mu: float = 0.0
+    plate_mu: NonNegative = 0.0
     #: include gravity (the sample's weight is negligible against the test forces)
-    gravity: bool = False
-    dt_s: float = 1e-3
-
-    def __post_init__(self) -> None:
-        if len(self.rates_mm_per_min) == 0:
-            raise ConfigError("rates_mm_per_min must list at least one rate")
-        for k, r in enumerate(self.rates_mm_per_min):
-            check_range(f"rates_mm_per_min[{k}]", r, 0.0, 6000.0, lo_inclusive=False)
-        check_range("deformation_fraction", self.deformation_fraction, 0.0, 0.6, lo_inclusive=False)
-        if not isinstance(self.samples, int) or self.samples < 2:
-            raise ConfigError(f"samples must be an integer >= 2, got {self.samples!r}")
-        check_range("plate_mu", self.plate_mu, 0.0, None)
-        check_range("dt_s", self.dt_s, 0.0, 0.01, lo_inclusive=False)
+    gravity: Bool = False
+    dt_s: Annotated[Real, Gt(0), Le(0.01)] = 1e-3
 
 
 @dataclass

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge
 
-from ..physics.config import ConfigError, atomic_write_text, check_range, save_figure
+from ..physics.config import ConfigError, Int, NonNegative, Positive, atomic_write_text, check_range, config_dataclass, save_figure
 from ..physics.contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
 from .compression import verdict
 from ..physics.scenario import GraspScene
@@ -21,30 +23,22 @@ from ..physics.scenario import GraspScene
 PHASES = ("close", "hold", "pull")
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class GraspProtocol:
-    close_time_s: float = 5.0
-    hold_time_s: float = 7.0
+    close_time_s: Positive = 5.0
+    hold_time_s: NonNegative = 7.0
     #: time limit of the pull phase, s
-    pull_time_s: float = 20.0
+    pull_time_s: Positive = 20.0
     #: jaw radius rate while closing, m/s
-    closing_speed_m_s: float = 0.002
+    closing_speed_m_s: Positive = 0.002
     #: grasper speed while pulling, m/s
-    pull_speed_m_s: float = 0.004
+    pull_speed_m_s: Positive = 0.004
     #: a sample every this many 1 ms physics steps
-    record_every: int = 10
+    record_every: Annotated[Int, Ge(1)] = 10
     #: anchor reaction (N) beyond which the tissue counts as torn from its anchors
-    tear_force_N: float = 10.0
+    tear_force_N: Positive = 10.0
     #: cumulative slip (m, mean over the jaws) that marks the onset of sliding
-    slip_onset_m: float = 0.5e-3
-
-    def __post_init__(self) -> None:
-        for name in ("close_time_s", "pull_time_s", "closing_speed_m_s", "pull_speed_m_s", "tear_force_N",
-                     "slip_onset_m"):
-            check_range(name, getattr(self, name), 0.0, None, lo_inclusive=False)
-        check_range("hold_time_s", self.hold_time_s, 0.0, None)
-        if not isinstance(self.record_every, int) or self.record_every < 1:
-            raise ConfigError(f"record_every must be an integer >= 1, got {self.record_every!r}")
+    slip_onset_m: Positive = 0.5e-3
 
 
 COLUMNS = (

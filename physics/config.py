@@ -1,14 +1,17 @@
-"""Strict configuration loading and atomic file writes, shared by every layer.
+"""Strict configuration records, loading and atomic file writes, shared by every layer.
 
-Configs are YAML files mapping onto dataclasses. Loading is strict: an unknown key, a wrong type or an
-out-of-range value raises :class:`ConfigError` naming the field (dotted path) and what is allowed.
-Results are written atomically (temp file in the same folder + ``os.replace``) so an interrupted or
-failed write never leaves a half-written file behind.
+Configs are YAML files mapping onto dataclasses validated by pydantic (:func:`config_dataclass`): every
+field's type and allowed range is declared on the field itself (``Annotated[Real, Gt(0), Le(1)]``), and
+loading is strict: an unknown key, a wrong type (a bool for a number, a string for a bool) or an
+out-of-range value raises :class:`ConfigError`, one line naming the field (dotted path) and what is
+allowed. Results are written atomically (temp file in the same folder + ``os.replace``) so an
+interrupted or failed write never leaves a half-written file behind.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import tempfile
@@ -16,11 +19,22 @@ import types
 import typing
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
+import annotated_types as at
+import pydantic
+import pydantic.dataclasses
+import typing_extensions
 import yaml
+from pydantic import Strict, StrictBool, StrictInt, StrictStr
 
 T = TypeVar("T")
+
+__all__ = [
+    "RECORD_CONFIG", "Bool", "ConfigError", "Int", "NonNegative", "Positive", "Real", "Str", "atomic_write", "atomic_write_text", "builtin_config",
+    "check_choice", "check_range", "config_dataclass", "from_dict", "load_config", "read_yaml", "replace",
+    "save_figure", "to_dict", "write_yaml",
+]
 
 
 class ConfigError(ValueError):
@@ -28,7 +42,161 @@ class ConfigError(ValueError):
 
 
 # ----------------------------------------------------------------------------------------------
-# validation helpers (used in dataclass __post_init__)
+# field types of config records: strict scalars (YAML's `true` is not a number, "1.5" not a float)
+# ----------------------------------------------------------------------------------------------
+
+#: a finite number (an integer is accepted; a bool or a string is not)
+Real = Annotated[float, Strict()]
+Int = StrictInt
+Bool = StrictBool
+Str = StrictStr
+Positive = Annotated[Real, at.Gt(0)]
+NonNegative = Annotated[Real, at.Ge(0)]
+
+#: pydantic settings of every config record: unknown keys are errors, numbers must be finite
+RECORD_CONFIG = pydantic.ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def config_dataclass(cls: type[T]) -> type[T]:
+    """Make ``cls`` a frozen config record validated by pydantic, whose errors are :class:`ConfigError`.
+
+    Fields are checked on construction (``TissueParams(youngs_modulus_pa=-1)`` raises), by
+    :func:`from_dict` (nested mappings become nested records) and by :func:`replace`. Checks that involve
+    several fields stay in ``__post_init__`` (raise :class:`ConfigError` there).
+    """
+    cls = pydantic.dataclasses.dataclass(frozen=True, config=RECORD_CONFIG)(cls)
+    init = cls.__init__
+
+    @functools.wraps(init)
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        try:
+            init(self, *args, **kwargs)
+        except pydantic.ValidationError as exc:
+            raise ConfigError(describe_validation_error(exc, cls, cls.__name__)) from None
+
+    cls.__init__ = __init__
+    return cls
+
+
+# ----------------------------------------------------------------------------------------------
+# one-line error messages
+# ----------------------------------------------------------------------------------------------
+
+
+def interval_text(lo: float | None, hi: float | None, lo_inclusive: bool = True, hi_inclusive: bool = True) -> str:
+    """``[0, 1)``-style text of an interval (None: unbounded)."""
+    left = "(-inf" if lo is None else ("[" if lo_inclusive else "(") + f"{lo:g}"
+    right = "inf)" if hi is None else f"{hi:g}" + ("]" if hi_inclusive else ")")
+    return f"{left}, {right}"
+
+
+def _bounds(annotation: Any, found: dict[str, float]) -> None:
+    """Collect the Gt/Ge/Lt/Le bounds declared in ``annotation`` (through Annotated, unions, FieldInfo)."""
+    if isinstance(annotation, pydantic.fields.FieldInfo):
+        for meta in annotation.metadata:
+            _bounds(meta, found)
+        _bounds(annotation.annotation, found)
+        return
+    for kind in ("gt", "ge", "lt", "le"):
+        bound = getattr(annotation, kind, None)
+        if isinstance(annotation, (at.Gt, at.Ge, at.Lt, at.Le, at.Interval)) and bound is not None:
+            found.setdefault(kind, bound)
+    if typing.get_origin(annotation) is Annotated:
+        for meta in annotation.__metadata__:
+            _bounds(meta, found)
+        _bounds(typing.get_args(annotation)[0], found)
+    elif typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        for arg in typing.get_args(annotation):
+            _bounds(arg, found)
+
+
+def _strip(annotation: Any) -> Any:
+    """The type inside Annotated / Optional (the first non-None member of a union)."""
+    while True:
+        origin = typing.get_origin(annotation)
+        if origin is Annotated:
+            annotation = typing.get_args(annotation)[0]
+        elif origin in (typing.Union, types.UnionType):
+            annotation = next(a for a in typing.get_args(annotation) if a is not type(None))
+        else:
+            return annotation
+
+
+def _field_at(cls: Any, loc: tuple) -> Any:
+    """The annotation (or pydantic FieldInfo) of the field at ``loc`` inside record ``cls`` (None: unknown)."""
+    node: Any = cls
+    for part in loc:
+        tp = _strip(node.annotation if isinstance(node, pydantic.fields.FieldInfo) else node)
+        if isinstance(part, int):
+            args = typing.get_args(tp)
+            if not args:
+                return None
+            node = args[0] if (len(args) == 2 and args[1] is Ellipsis) or part >= len(args) else args[part]
+        elif hasattr(tp, "__pydantic_fields__") and part in tp.__pydantic_fields__:
+            node = tp.__pydantic_fields__[part]
+        elif typing_extensions.is_typeddict(tp) and part in typing.get_type_hints(tp, include_extras=True):
+            node = typing.get_type_hints(tp, include_extras=True)[part]
+        else:
+            return None
+    return node
+
+
+def _allowed_keys(cls: Any, loc: tuple) -> list[str]:
+    node = _field_at(cls, loc) if loc else cls
+    tp = _strip(node.annotation if isinstance(node, pydantic.fields.FieldInfo) else node)
+    if hasattr(tp, "__pydantic_fields__"):
+        return sorted(tp.__pydantic_fields__)
+    if typing_extensions.is_typeddict(tp):
+        return sorted(typing.get_type_hints(tp))
+    return []
+
+
+def describe_validation_error(exc: pydantic.ValidationError, cls: Any, where: str) -> str:
+    """One line for a pydantic error: the dotted field path, the value and what is allowed."""
+    err = exc.errors()[0]  # the first: later ones are often its consequences
+    loc = tuple(p for p in err["loc"])
+    path = where + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
+    kind, value, ctx = err["type"], err.get("input"), err.get("ctx") or {}
+    if kind in ("extra_forbidden", "unexpected_keyword_argument"):
+        parent = path.rsplit(".", 1)[0]
+        allowed = _allowed_keys(cls, loc[:-1])
+        text = f"{parent}: unknown key {loc[-1]!r}" + (f"; allowed keys: {', '.join(allowed)}" if allowed else "")
+    elif kind in ("missing", "missing_argument", "missing_keyword_only_argument"):
+        text = f"{path} is required" + (" (too few entries)" if loc and isinstance(loc[-1], int) else "")
+    elif kind == "finite_number":
+        text = f"{path} must be a finite number, got {value!r}"
+    elif kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+        bounds: dict[str, float] = {}
+        field = _field_at(cls, loc)
+        if field is not None:
+            _bounds(field, bounds)
+        lo = bounds.get("gt", bounds.get("ge"))
+        hi = bounds.get("lt", bounds.get("le"))
+        text = (f"{path} = {value!r} is out of range; allowed "
+                f"{interval_text(lo, hi, 'gt' not in bounds, 'lt' not in bounds)}")
+    elif kind == "too_short":
+        text = f"{path} must have at least {ctx['min_length']} entr{'y' if ctx['min_length'] == 1 else 'ies'}, got {value!r}"
+    elif kind == "too_long":
+        text = f"{path} must have at most {ctx['max_length']} entries, got {value!r}"
+    elif kind == "literal_error":
+        text = f"{path} = {value!r} is not allowed; choose {ctx.get('expected', '')}"
+    elif kind in ("dict_type", "dataclass_type", "dataclass_args_type", "model_type"):
+        text = f"{path} must be a mapping, got {value!r}"
+    elif kind == "bool_type":
+        text = f"{path} must be true or false, got {value!r}"
+    elif kind in ("int_type", "int_from_float"):
+        text = f"{path} must be an integer, got {value!r}"
+    elif kind == "float_type":
+        text = f"{path} must be a number, got {value!r}"
+    elif kind == "value_error":
+        text = f"{path}: {ctx.get('error', err['msg'])}" if loc else f"{where}: {ctx.get('error', err['msg'])}"
+    else:
+        text = f"{path} = {value!r}: {err['msg']}"
+    return text
+
+
+# ----------------------------------------------------------------------------------------------
+# checks of run-time values (reset options, solver arguments: not config records)
 # ----------------------------------------------------------------------------------------------
 
 
@@ -47,9 +215,7 @@ def check_range(
     lo_ok = lo is None or (value >= lo if lo_inclusive else value > lo)
     hi_ok = hi is None or (value <= hi if hi_inclusive else value < hi)
     if not (lo_ok and hi_ok):
-        left = "(-inf" if lo is None else ("[" if lo_inclusive else "(") + f"{lo:g}"
-        right = "inf)" if hi is None else f"{hi:g}" + ("]" if hi_inclusive else ")")
-        raise ConfigError(f"{name} = {value!r} is out of range; allowed {left}, {right}")
+        raise ConfigError(f"{name} = {value!r} is out of range; allowed {interval_text(lo, hi, lo_inclusive, hi_inclusive)}")
 
 
 def check_choice(name: str, value: Any, choices: typing.Iterable[Any]) -> None:
@@ -58,98 +224,28 @@ def check_choice(name: str, value: Any, choices: typing.Iterable[Any]) -> None:
         raise ConfigError(f"{name} = {value!r} is not allowed; choose one of {', '.join(map(repr, choices))}")
 
 
-def check_vector(name: str, value: Any, length: int = 3) -> tuple[float, ...]:
-    try:
-        vec = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name} must be a list of {length} numbers, got {value!r}") from None
-    if len(vec) != length or not all(math.isfinite(v) for v in vec):
-        raise ConfigError(f"{name} must be a list of {length} finite numbers, got {value!r}")
-    return vec
-
-
 # ----------------------------------------------------------------------------------------------
-# dataclass <-> dict
+# record <-> dict
 # ----------------------------------------------------------------------------------------------
 
 
-def _coerce(value: Any, tp: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if tp is Any:
-        return value
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _coerce(value, arg, where)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{where}: {value!r} matches none of {tp}")
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where} must be a mapping, got {type(value).__name__}")
-        return from_dict(tp, value, where)
-    if origin is typing.Literal:
-        check_choice(where, value, args)
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where} must be true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where} must be an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where} must be a number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where} must be a string, got {value!r}")
-        return value
-    if origin in (tuple, list):
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where} must be a list, got {value!r}")
-        if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
-            items = [_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value)]
-        elif origin is tuple and args:
-            if len(value) != len(args):
-                raise ConfigError(f"{where} must have {len(args)} entries, got {len(value)}")
-            items = [_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args))]
-        else:
-            inner = args[0] if args else Any
-            items = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
-        return tuple(items) if origin is tuple else items
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where} must be a mapping, got {value!r}")
-        return dict(value)
-    return value
+@functools.lru_cache(maxsize=None)
+def _adapter(cls: type) -> pydantic.TypeAdapter:
+    return pydantic.TypeAdapter(cls)
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str | None = None) -> T:
-    """Build dataclass ``cls`` from a mapping, strictly (unknown keys and wrong types raise)."""
+    """Build config record ``cls`` from a mapping, strictly (unknown keys, wrong types and values out of
+    range raise :class:`ConfigError` naming ``where`` and the field)."""
     where = where or cls.__name__
-    data = dict(data or {})
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ConfigError(
-            f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; allowed keys: {', '.join(sorted(fields))}"
-        )
-    hints = typing.get_type_hints(cls)
-    kwargs = {name: _coerce(val, hints[name], f"{where}.{name}") for name, val in data.items()}
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{where} must be a mapping, got {type(data).__name__}")
     try:
-        return cls(**kwargs)
-    except ConfigError as exc:
-        msg = str(exc)
-        raise ConfigError(msg if msg.startswith(where) else f"{where}.{msg}") from None
+        return _adapter(cls).validate_python(dict(data or {}))
+    except pydantic.ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc, cls, where)) from None
+    except ConfigError as exc:  # raised by a __post_init__ of a record built without pydantic's wrapping
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def to_dict(obj: Any) -> Any:
@@ -166,8 +262,8 @@ def to_dict(obj: Any) -> Any:
 
 
 def replace(obj: T, **changes: Any) -> T:
-    """``dataclasses.replace`` that re-runs validation and reports ConfigError with the class name."""
-    return from_dict(type(obj), {**to_dict(obj), **changes})
+    """``dataclasses.replace`` of a config record: the changed record is validated again."""
+    return dataclasses.replace(obj, **changes)
 
 
 def read_yaml(path: str | os.PathLike) -> dict[str, Any]:

@@ -21,37 +21,33 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import ConfigError, check_range
+from .config import ConfigError, NonNegative, Positive, config_dataclass
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class GrasperParams:
     """Jaw geometry, limits and tool-tissue friction (SI units)."""
 
-    jaw_length_m: float = 0.030
-    jaw_width_m: float = 0.010
+    jaw_length_m: Positive = 0.030
+    jaw_width_m: Positive = 0.010
     #: how far behind its face plane a node is still caught by a jaw (its thickness), m
-    jaw_depth_m: float = 0.004
+    jaw_depth_m: Positive = 0.004
     #: radius of the fully open jaws, m
-    open_radius_m: float = 0.035
+    open_radius_m: Positive = 0.035
     #: radius of the fully closed jaws, m
-    min_radius_m: float = 0.004
+    min_radius_m: Positive = 0.004
     #: static friction coefficient jaw/tissue
-    mu: float = 0.6
+    mu: NonNegative = 0.6
     #: kinetic friction coefficient (None: equal to ``mu``); must not exceed ``mu``
-    mu_kinetic: float | None = None
+    mu_kinetic: NonNegative | None = None
     #: largest closing speed the actuator can command, m/s (radius rate)
-    max_closing_speed_m_s: float = 0.004
+    max_closing_speed_m_s: Positive = 0.004
     #: largest pull speed of the whole grasper, m/s
-    max_pull_speed_m_s: float = 0.02
+    max_pull_speed_m_s: Positive = 0.02
 
     def __post_init__(self) -> None:
-        for name in ("jaw_length_m", "jaw_width_m", "jaw_depth_m", "open_radius_m", "min_radius_m",
-                     "max_closing_speed_m_s", "max_pull_speed_m_s"):
-            check_range(name, getattr(self, name), 0.0, None, lo_inclusive=False)
-        check_range("mu", self.mu, 0.0, None)
-        if self.mu_kinetic is not None:
-            check_range("mu_kinetic", self.mu_kinetic, 0.0, self.mu)
+        if self.mu_kinetic is not None and self.mu_kinetic > self.mu:
+            raise ConfigError(f"mu_kinetic = {self.mu_kinetic} is out of range; allowed [0, mu = {self.mu}]")
         if self.min_radius_m >= self.open_radius_m:
             raise ConfigError(
                 f"min_radius_m = {self.min_radius_m} must be smaller than open_radius_m = {self.open_radius_m}"

@@ -68,82 +68,59 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from annotated_types import Gt, Le
 
-from .config import ConfigError, check_choice, check_range, check_vector
+from .config import ConfigError, NonNegative, Positive, Real, check_range, config_dataclass
 from .forces import accumulate_spring_forces, spring_energy, volume_energy
 from .mesh import TetMesh
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class TissueParams:
     """Material parameters of the MSD tissue (SI units)."""
 
     stiffness_mode: Literal["modulus", "uniform"] = "modulus"
-    density_kg_m3: float = 1054.0
+    density_kg_m3: Positive = 1054.0
     #: if set, the density is derived so that the total mass equals this (kg); overrides density_kg_m3
-    mass_kg: float | None = None
+    mass_kg: Positive | None = None
     # -- "modulus" mode ------------------------------------------------------------------------
-    youngs_modulus_pa: float = 12.0e3
+    youngs_modulus_pa: Positive = 12.0e3
     stiffness_rule: Literal["van_gelder", "lloyd"] = "van_gelder"
     #: "hertz": scale the modulus-derived springs so that the (sphere-shaped) mesh reproduces the Hertz
     #: plate-compression force at 15 % deformation (see the module docstring); "none": van Gelder/Lloyd as is
     contact_calibration: Literal["none", "hertz"] = "none"
     #: dimensionless cubic stiffening: K2 = stiffening * K1 / L0^2
-    stiffening: float = 10.0
+    stiffening: NonNegative = 10.0
     #: strain beyond which the spring law turns linear: dl_c = critical_strain * L0
-    critical_strain: float = 0.2
+    critical_strain: Positive = 0.2
     #: nodal damping per unit mass, 1/s: b0_i = damping_rate_per_s * m_i
-    damping_rate_per_s: float = 200.0
+    damping_rate_per_s: NonNegative = 200.0
     #: displacement-dependent nodal damping per unit mass, 1/(m s): b1_i = rate * m_i
-    damping_disp_rate_per_m_s: float = 2.0e4
+    damping_disp_rate_per_m_s: NonNegative = 2.0e4
     # -- "uniform" mode (the paper's constants) ---------------------------------------------------
-    k1_n_per_m: float = 50.0
-    k2_n_per_m3: float = 5.0e5
-    dl_c_m: float = 2.0e-3
-    b0_n_s_per_m: float = 0.05
-    b1_n_s_per_m2: float = 5.0
+    k1_n_per_m: Positive = 50.0
+    k2_n_per_m3: NonNegative = 5.0e5
+    dl_c_m: Positive = 2.0e-3
+    b0_n_s_per_m: NonNegative = 0.05
+    b1_n_s_per_m2: NonNegative = 5.0
     # -- both modes -----------------------------------------------------------------------------
     #: Maxwell branch per spring (stress relaxation, see physics/viscoelastic.py): k_v = g * K1
-    relaxation_strength: float = 0.0
+    relaxation_strength: NonNegative = 0.0
     #: relaxation time constant tau of the Maxwell branch, s
-    relaxation_time_s: float = 1.0
+    relaxation_time_s: Positive = 1.0
     #: linear dashpot along each spring, c = tau * K1 (s); 0 disables it
-    spring_damping_time_s: float = 0.0
+    spring_damping_time_s: NonNegative = 0.0
     #: volume barrier against tet collapse and inversion (physics/forces.py): bulk stiffness k (Pa) acting
     #: on tets compressed below ``volume_threshold`` x their rest volume; 0 disables it (the pure MSD)
-    volume_modulus_pa: float = 0.0
+    volume_modulus_pa: NonNegative = 0.0
     #: J_c in (0, 1]: the barrier acts where V / V0 < J_c
-    volume_threshold: float = 0.5
-    gravity_m_per_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
-
-    def __post_init__(self) -> None:
-        check_choice("stiffness_mode", self.stiffness_mode, ("modulus", "uniform"))
-        check_choice("stiffness_rule", self.stiffness_rule, ("van_gelder", "lloyd"))
-        check_choice("contact_calibration", self.contact_calibration, ("none", "hertz"))
-        check_range("density_kg_m3", self.density_kg_m3, 0.0, None, lo_inclusive=False)
-        if self.mass_kg is not None:
-            check_range("mass_kg", self.mass_kg, 0.0, None, lo_inclusive=False)
-        check_range("youngs_modulus_pa", self.youngs_modulus_pa, 0.0, None, lo_inclusive=False)
-        check_range("stiffening", self.stiffening, 0.0, None)
-        check_range("critical_strain", self.critical_strain, 0.0, None, lo_inclusive=False)
-        check_range("damping_rate_per_s", self.damping_rate_per_s, 0.0, None)
-        check_range("damping_disp_rate_per_m_s", self.damping_disp_rate_per_m_s, 0.0, None)
-        check_range("k1_n_per_m", self.k1_n_per_m, 0.0, None, lo_inclusive=False)
-        check_range("k2_n_per_m3", self.k2_n_per_m3, 0.0, None)
-        check_range("dl_c_m", self.dl_c_m, 0.0, None, lo_inclusive=False)
-        check_range("b0_n_s_per_m", self.b0_n_s_per_m, 0.0, None)
-        check_range("b1_n_s_per_m2", self.b1_n_s_per_m2, 0.0, None)
-        check_range("spring_damping_time_s", self.spring_damping_time_s, 0.0, None)
-        check_range("relaxation_strength", self.relaxation_strength, 0.0, None)
-        check_range("relaxation_time_s", self.relaxation_time_s, 0.0, None, lo_inclusive=False)
-        check_range("volume_modulus_pa", self.volume_modulus_pa, 0.0, None)
-        check_range("volume_threshold", self.volume_threshold, 0.0, 1.0, lo_inclusive=False)
-        object.__setattr__(self, "gravity_m_per_s2", check_vector("gravity_m_per_s2", self.gravity_m_per_s2))
+    volume_threshold: Annotated[Real, Gt(0), Le(1)] = 0.5
+    gravity_m_per_s2: tuple[Real, Real, Real] = (0.0, 0.0, -9.81)
 
 
 def _edge_index(edges: np.ndarray, n_nodes: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -167,10 +167,15 @@ def test_resume_continues_the_step_count(short_run, tmp_path):
     ({"validation_mu": [0.3, 5.0]}, "validation_mu"),
     ({"validation_episodes": -1}, "validation_episodes"),
     ({"learning_rat": 0.1}, "learning_rat"),
-    ({"ppo": {"learning_rat": 0.1}}, "ppo: unknown PPO argument.*learning_rat"),  # a typo inside the block
+    ({"ppo": {"learning_rat": 0.1}}, "ppo: unknown key 'learning_rat'; allowed keys: batch_size"),  # a typo inside
     ({"ppo": [1, 2]}, "ppo must be a mapping"),
+    ({"ppo": {"learning_rate": "fast"}}, r"ppo\.learning_rate must be a number, got 'fast'"),  # values are typed
+    ({"ppo": {"gamma": 1.5}}, r"ppo\.gamma = 1\.5 is out of range; allowed \[0, 1\]"),
+    ({"sac": {"train_freq": [4, "epoch"]}}, r"sac\.train_freq"),
+    ({"env": {"substep_safety": 1.5}}, r"^TrainConfig\.env\.substep_safety = 1\.5 is out of range; allowed \(0, 1\]$"),
 ])
 def test_bad_training_config_is_a_clear_error(over, needle):
+    """Every field, the algorithm's hyper-parameter blocks included, is checked before a run folder is made."""
     with pytest.raises(ConfigError, match=needle):
         from_dict(TrainConfig, {**SHORT, **over})
 
@@ -218,3 +223,18 @@ def test_every_shipped_training_config_loads_strictly():
     for path in paths:
         config = TrainConfig.load(path)
         assert config.algo in ("ppo", "sac"), path
+
+
+def test_the_algorithm_blocks_only_offer_arguments_of_the_sb3_constructors():
+    """The typed PPO/SAC blocks may not drift from SB3: each key is an argument of the algorithm's __init__."""
+    import inspect
+
+    from stable_baselines3 import PPO, SAC
+    from typing_extensions import get_type_hints
+
+    from msdgrasp.agents.models import PPOKwargs, SACKwargs
+
+    for block, algo in ((PPOKwargs, PPO), (SACKwargs, SAC)):
+        keys = set(get_type_hints(block))
+        assert keys <= set(inspect.signature(algo.__init__).parameters), keys - set(inspect.signature(algo.__init__).parameters)
+        assert {"learning_rate", "batch_size", "gamma"} <= keys
