@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import ConfigError, check_range
+from .config import ConfigError, check_choice, check_range
 from .contact import (
     G_COLS,
     G_GAIN,
@@ -69,6 +69,8 @@ def _batch(value, batch: int, name: str, shape: tuple[int, ...] = ()) -> np.ndar
 #: within 0.01 N and 0.003 mm of 15 substeps) and not at 0.95 (2 substeps: pull force off by 0.05 N of
 #: 0.24, slip by 0.95 mm).
 SUBSTEP_SAFETY = 0.6
+#: where the kernel runs (Simulation(backend=...))
+BACKENDS = ("cpu", "cuda")
 #: the rule before session 7: the trained policies, the env (GraspLiftConfig.substep_safety) and the settled
 #: scene start states (scenario.settle) were made with it and keep it until the task is retrained
 RECORDED_SUBSTEP_SAFETY = 0.95
@@ -93,6 +95,11 @@ class Simulation:
         Enables the three jaws (pose set with :meth:`set_grasper_pose`).
     plates : sequence of Plate
         Rigid planes (compression tests).
+    backend : "cpu" | "cuda"
+        Where :meth:`step` runs the kernel: numba on the CPU, or numba's CUDA target
+        (:mod:`.cuda_step`: one thread block per tissue, same records; the state is copied to the GPU and
+        back around each call, so everything else is unchanged). ``NUMBA_ENABLE_CUDASIM=1`` runs the CUDA
+        kernel in numba's simulator on the CPU.
     """
 
     def __init__(
@@ -107,6 +114,7 @@ class Simulation:
         max_stiffness_scale: float = 1.0,
         min_mass_scale: float = 1.0,
         safety: float = SUBSTEP_SAFETY,
+        backend: str = "cpu",
     ) -> None:
         if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
             raise ConfigError(f"batch_size must be an integer >= 1, got {batch_size!r}")
@@ -114,6 +122,9 @@ class Simulation:
         check_range("max_stiffness_scale", max_stiffness_scale, 0.0, None, lo_inclusive=False)
         check_range("min_mass_scale", min_mass_scale, 0.0, None, lo_inclusive=False)
         check_range("safety", safety, 0.0, None, lo_inclusive=False)
+        check_choice("backend", backend, BACKENDS)
+        self.backend = backend
+        self._cuda = None  # physics.cuda_step.CudaStepper, made at the first step
         self.model = model
         self.batch_size = B = int(batch_size)
         self.dt = float(dt)
@@ -313,6 +324,13 @@ class Simulation:
         """Advance all tissues by ``n_steps`` outer steps (n_steps x n_sub substeps) in one kernel call."""
         # records are rebuilt each call (a few microseconds): they alias the current arrays, whatever
         # a caller has assigned to the attributes since
+        if self.backend == "cuda":
+            if self._cuda is None:
+                from .cuda_step import CudaStepper  # imports numba.cuda only when asked for
+
+                self._cuda = CudaStepper(self.kernel_model(), self.batch_size)
+            self._cuda.step(self.kernel_state(), self.kernel_readout(), int(n_steps))
+            return
         simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps))
 
     # -- readouts ---------------------------------------------------------------------------------

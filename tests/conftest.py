@@ -6,6 +6,7 @@ The environment is set at import time, i.e. before any test module imports rerun
   triggers (rerun, matplotlib, torch, tensorboard caches or telemetry state) reads or writes the real
   user's home; removed at exit;
 * MPLBACKEND=Agg (no display needed);
+* NUMBA_ENABLE_CUDASIM=1 unless set: the CUDA kernels run in numba's simulator (CI has no GPU);
 * NUMBA_CACHE_DIR (unless already set) is ``physics/__pycache__/numba-tests`` (kept between sessions, so
   the second run is fast) or, when the package folder is not writable, the session's temporary folder.
   Stale kernels are no concern: ``msdgrasp.physics.numba_cache`` keys every physics kernel on all physics
@@ -27,6 +28,9 @@ for _var, _sub in (("XDG_CONFIG_HOME", ".config"), ("XDG_DATA_HOME", ".local/sha
     os.environ[_var] = str(_SESSION_HOME / _sub)
 os.environ["HOME"] = str(_SESSION_HOME)
 os.environ["MPLBACKEND"] = "Agg"
+# the CUDA backend's tests (tests/test_cuda*.py) run in numba's CUDA simulator unless told otherwise
+# (NUMBA_ENABLE_CUDASIM=0 on a machine with a GPU); numba reads it when first imported
+os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
 os.environ.setdefault("MPLCONFIGDIR", str(_SESSION_HOME / ".config" / "matplotlib"))
 
 _PHYSICS_DIR = Path(__file__).resolve().parent.parent / "physics"

@@ -1,0 +1,413 @@
+"""The physics step on a CUDA GPU (numba's CUDA target): the same model, state and readout records as
+:func:`.integrator.simulate`, one thread block per tissue.
+
+Layout (after the measured prototype in the issue: one block per tissue, per-node gather in edge order):
+
+* springs, one thread per spring: each spring's force vector (and its Maxwell state) goes to a scratch
+  array; tets likewise, one thread per tet;
+* nodes, one thread per node: the node *gathers* its springs' forces in edge order and then its tets'
+  in tet order, the order in which the CPU kernel scatters them, so each node's force is the same sum,
+  term by term (no atomics, no order-dependent rounding); then symplectic Euler with implicit damping;
+* contacts, thread 0 of the block: the surface nodes in the CPU's order (few nodes, branchy, and the
+  jaw readouts are sums in node order).
+
+The per-spring, per-tet and per-node arithmetic is the CPU kernel's own code: the leaf functions of
+:mod:`.forces` and :mod:`.contact` are compiled for the GPU from their Python source (``py_func``), so a
+change there changes both backends. What runs on the GPU is limited to the grasper (no plates yet).
+
+Under ``NUMBA_ENABLE_CUDASIM=1`` the kernel runs on the CPU in numba's CUDA simulator (slow: tests only);
+there the arithmetic is the CPU's bit for bit. On a GPU, fused multiply-adds round differently
+(~1e-16 relative per operation).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import cuda
+
+from . import contact as _contact
+from . import forces as _forces
+from . import integrator as _integrator
+from .contact import (
+    G_PINCH,
+    J_CONTACT,
+    J_NORMAL,
+    J_PEAK_PRESSURE,
+    J_SLIP,
+    J_SLIP_DIST,
+    J_STICK,
+    J_TX,
+    J_TY,
+    J_TZ,
+)
+from .records import SimModel, SimReadout, SimState
+
+#: threads per block (one block per tissue); the loops stride over springs, tets and nodes
+THREADS_PER_BLOCK = 128
+
+# the CPU kernel's leaf functions, compiled for the GPU from the same source
+_spring_force = cuda.jit(device=True)(_forces.spring_force.py_func)
+_volume6 = cuda.jit(device=True)(_forces._volume6.py_func)
+_volume_gradients = cuda.jit(device=True)(_forces._volume_gradients.py_func)
+_resolve_node_contact = cuda.jit(device=True)(_contact.resolve_node_contact.py_func)
+_jaw_candidate = cuda.jit(device=True)(_contact.jaw_candidate.py_func)
+_jaw_directions = cuda.jit(device=True)(_contact.jaw_directions.py_func)
+_force_loop = cuda.jit(device=True)(_integrator._force_loop.py_func)
+
+
+class CudaScratch(NamedTuple):
+    """Per-tissue work arrays of the kernel and the mesh's node incidence (CSR, in edge / tet order)."""
+
+    f: np.ndarray  # (B,N,3) N nodal forces of the substep
+    fe: np.ndarray  # (B,E,3) N force of each spring on its first node
+    ft: np.ndarray  # (B,T,12) N volume-barrier force of each tet on nodes b, c, d and minus on node a
+    tet_on: np.ndarray  # (B,T) int8: the barrier acts on the tet this substep
+    meff: np.ndarray  # (B,N) kg effective mass m + dt b (contacts)
+    fa: np.ndarray  # (B,N,3) N anchor force on each node (last substep: the anchor readout)
+    edge_ptr: np.ndarray  # (N+1,) int: node i's springs are edge_idx[edge_ptr[i]:edge_ptr[i+1]]
+    edge_idx: np.ndarray  # int, ascending per node
+    edge_sign: np.ndarray  # float: +1 where i is the spring's first node, -1 where it is the second
+    tet_ptr: np.ndarray  # (N+1,) int
+    tet_idx: np.ndarray  # int, ascending per node
+    tet_slot: np.ndarray  # int: 0..3, the node's place in the tet
+    u: np.ndarray  # (B,3,3) jaw outward directions
+    tj: np.ndarray  # (B,3,3) jaw lateral directions
+
+
+def incidence(n_nodes: int, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CSR of which rows of ``pairs`` (E,k) hold node i, in ascending row order, and the node's column."""
+    rows = np.repeat(np.arange(pairs.shape[0]), pairs.shape[1])
+    cols = np.tile(np.arange(pairs.shape[1]), pairs.shape[0])
+    nodes = pairs.reshape(-1).astype(np.int64)
+    order = np.lexsort((rows, nodes))  # by node, then by row: the CPU's scatter order
+    ptr = np.zeros(n_nodes + 1, dtype=np.int64)
+    np.add.at(ptr, nodes + 1, 1)
+    return np.cumsum(ptr), rows[order].astype(np.int64), cols[order].astype(np.int64)
+
+
+def make_scratch(model: SimModel, batch: int) -> CudaScratch:
+    """Host arrays of the kernel's scratch for ``batch`` tissues of ``model``."""
+    n, ne, nt = model.x_rest.shape[0], model.edges.shape[0], model.tets.shape[0]
+    eptr, eidx, ecol = incidence(n, np.asarray(model.edges))
+    tptr, tidx, tcol = incidence(n, np.asarray(model.tets))
+    return CudaScratch(
+        f=np.zeros((batch, n, 3)), fe=np.zeros((batch, ne, 3)), ft=np.zeros((batch, max(nt, 1), 12)),
+        tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
+        edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0), tet_ptr=tptr, tet_idx=tidx,
+        tet_slot=tcol, u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
+    )
+
+
+@cuda.jit
+def _simulate_kernel(m, s, out, w, n_steps):
+    """Advance tissue blockIdx.x by ``n_steps`` outer steps (see the module docstring)."""
+    b = cuda.blockIdx.x
+    if b >= s.x.shape[0]:
+        return
+    tid = cuda.threadIdx.x
+    nth = cuda.blockDim.x
+    x, v = s.x, s.v
+    n = x.shape[1]
+    ne = m.edges.shape[0]
+    nt = m.tets.shape[0] if m.kvol.shape[0] > 0 else 0
+    n_sub = m.n_sub
+    dt = m.dt_outer / n_sub
+    inv_sub = 1.0 / n_sub
+    decay = math.exp(-dt / m.tau)
+    gain = m.tau / dt * (1.0 - decay)
+    ks = s.kscale[b]
+    ms = s.mscale[b]
+    res = cuda.local.array(6, np.float64)
+    if tid == 0:
+        for k in range(3):
+            for c in range(9):
+                out.jaw_out[b, k, c] = 0.0
+            out.anchor_out[b, k] = 0.0
+        _jaw_directions(s.g_axis[b], s.g_e1[b], w.u[b], w.tj[b])
+    cuda.syncthreads()
+    for step in range(n_steps):
+        last_step = step == n_steps - 1
+        if tid == 0 and m.jaw_active:
+            _force_loop(s.g_force, s.g_vradius, b)
+        for sub in range(n_sub):
+            last_sub = last_step and sub == n_sub - 1
+            avg = 1.0 / n_sub if last_step else 0.0
+            # ---- 1a. springs: force on the first node (and the Maxwell state), as spring_loop computes it
+            for e in range(tid, ne, nth):
+                i = m.edges[e, 0]
+                j = m.edges[e, 1]
+                dx = x[b, j, 0] - x[b, i, 0]
+                dy = x[b, j, 1] - x[b, i, 1]
+                dz = x[b, j, 2] - x[b, i, 2]
+                length = math.sqrt(dx * dx + dy * dy + dz * dz)
+                ok = length >= 1e-15
+                inv = 1.0 / length
+                ux = dx * inv
+                uy = dy * inv
+                uz = dz * inv
+                dl = length - m.rest_length[e]
+                fs = ks * _spring_force(dl, m.k1[e], m.k2[e], m.dlc[e])
+                if m.use_sls:
+                    fve = s.fv[b, e] * decay + ks * m.kv[e] * (dl - s.dl_prev[b, e]) * gain
+                    if ok:
+                        s.fv[b, e] = fve
+                        s.dl_prev[b, e] = dl
+                    fs += fve
+                if m.use_dashpot:
+                    rel = (v[b, j, 0] - v[b, i, 0]) * ux + (v[b, j, 1] - v[b, i, 1]) * uy + (v[b, j, 2] - v[b, i, 2]) * uz
+                    fs += ks * m.cdash[e] * rel
+                w.fe[b, e, 0] = fs * ux if ok else 0.0
+                w.fe[b, e, 1] = fs * uy if ok else 0.0
+                w.fe[b, e, 2] = fs * uz if ok else 0.0
+            # ---- 1b. volume barrier: the force of each compressed tet, as accumulate_volume_forces computes it
+            for t in range(tid, nt, nth):
+                a, bb, c, d = m.tets[t, 0], m.tets[t, 1], m.tets[t, 2], m.tets[t, 3]
+                e1x, e1y, e1z = x[b, bb, 0] - x[b, a, 0], x[b, bb, 1] - x[b, a, 1], x[b, bb, 2] - x[b, a, 2]
+                e2x, e2y, e2z = x[b, c, 0] - x[b, a, 0], x[b, c, 1] - x[b, a, 1], x[b, c, 2] - x[b, a, 2]
+                e3x, e3y, e3z = x[b, d, 0] - x[b, a, 0], x[b, d, 1] - x[b, a, 1], x[b, d, 2] - x[b, a, 2]
+                vol = _volume6(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z) / 6.0
+                if vol >= m.vol_threshold * m.rest_volume[t]:
+                    w.tet_on[b, t] = 0
+                    continue
+                w.tet_on[b, t] = 1
+                jac = vol / m.rest_volume[t]
+                gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
+                sc = -ks * m.kvol[t] * (jac - m.vol_threshold)
+                w.ft[b, t, 0] = sc * gbx
+                w.ft[b, t, 1] = sc * gby
+                w.ft[b, t, 2] = sc * gbz
+                w.ft[b, t, 3] = sc * gcx
+                w.ft[b, t, 4] = sc * gcy
+                w.ft[b, t, 5] = sc * gcz
+                w.ft[b, t, 6] = sc * gdx
+                w.ft[b, t, 7] = sc * gdy
+                w.ft[b, t, 8] = sc * gdz
+                w.ft[b, t, 9] = sc * (gbx + gcx + gdx)
+                w.ft[b, t, 10] = sc * (gby + gcy + gdy)
+                w.ft[b, t, 11] = sc * (gbz + gcz + gdz)
+            cuda.syncthreads()
+            # ---- 2-3. nodes: gather in the CPU's order, then symplectic Euler with implicit damping, anchors
+            for i in range(tid, n, nth):
+                mi = m.mass[i] * ms
+                f0 = m.mass[i] * ms * m.gravity[0] + s.f_ext[b, i, 0]
+                f1 = m.mass[i] * ms * m.gravity[1] + s.f_ext[b, i, 1]
+                f2 = m.mass[i] * ms * m.gravity[2] + s.f_ext[b, i, 2]
+                for p in range(w.edge_ptr[i], w.edge_ptr[i + 1]):
+                    e = w.edge_idx[p]
+                    if w.edge_sign[p] > 0.0:
+                        f0 += w.fe[b, e, 0]
+                        f1 += w.fe[b, e, 1]
+                        f2 += w.fe[b, e, 2]
+                    else:
+                        f0 -= w.fe[b, e, 0]
+                        f1 -= w.fe[b, e, 1]
+                        f2 -= w.fe[b, e, 2]
+                if nt > 0:
+                    for p in range(w.tet_ptr[i], w.tet_ptr[i + 1]):
+                        t = w.tet_idx[p]
+                        if w.tet_on[b, t] == 0:
+                            continue
+                        slot = w.tet_slot[p]
+                        if slot == 0:
+                            f0 -= w.ft[b, t, 9]
+                            f1 -= w.ft[b, t, 10]
+                            f2 -= w.ft[b, t, 11]
+                        else:
+                            f0 += w.ft[b, t, 3 * slot - 3]
+                            f1 += w.ft[b, t, 3 * slot - 2]
+                            f2 += w.ft[b, t, 3 * slot - 1]
+                if m.fixed[i]:
+                    w.fa[b, i, 0] = -f0  # the anchor holds the node against its whole force
+                    w.fa[b, i, 1] = -f1
+                    w.fa[b, i, 2] = -f2
+                    v[b, i, 0] = 0.0
+                    v[b, i, 1] = 0.0
+                    v[b, i, 2] = 0.0
+                    continue
+                ka = m.anchor_k[i]
+                if ka > 0.0:
+                    a0 = -ka * (x[b, i, 0] - m.x_rest[i, 0] - ms * m.anchor_offset[0])
+                    a1 = -ka * (x[b, i, 1] - m.x_rest[i, 1] - ms * m.anchor_offset[1])
+                    a2 = -ka * (x[b, i, 2] - m.x_rest[i, 2] - ms * m.anchor_offset[2])
+                    f0 += a0
+                    f1 += a1
+                    f2 += a2
+                    w.fa[b, i, 0] = a0
+                    w.fa[b, i, 1] = a1
+                    w.fa[b, i, 2] = a2
+                damp = m.b0[i]
+                if m.b1[i] != 0.0:
+                    dx = x[b, i, 0] - m.x_rest[i, 0]
+                    dy = x[b, i, 1] - m.x_rest[i, 1]
+                    dz = x[b, i, 2] - m.x_rest[i, 2]
+                    damp = m.b0[i] + m.b1[i] * math.sqrt(dx * dx + dy * dy + dz * dz)
+                dinv = 1.0 / (1.0 + dt * damp / mi)
+                w.meff[b, i] = mi + dt * damp
+                v0 = (v[b, i, 0] + dt * f0 / mi) * dinv
+                v1 = (v[b, i, 1] + dt * f1 / mi) * dinv
+                v2 = (v[b, i, 2] + dt * f2 / mi) * dinv
+                v[b, i, 0] = v0
+                v[b, i, 1] = v1
+                v[b, i, 2] = v2
+                x[b, i, 0] += dt * v0
+                x[b, i, 1] += dt * v1
+                x[b, i, 2] += dt * v2
+            cuda.syncthreads()
+            # ---- 4. anchor readout and contacts: thread 0, nodes in the CPU's order
+            if tid == 0:
+                if last_sub:
+                    for i in range(n):
+                        if m.fixed[i] or m.anchor_k[i] > 0.0:
+                            out.anchor_out[b, 0] += w.fa[b, i, 0]
+                            out.anchor_out[b, 1] += w.fa[b, i, 1]
+                            out.anchor_out[b, 2] += w.fa[b, i, 2]
+                s.t[b] += dt
+                if last_sub:
+                    for q in range(m.surface_nodes.shape[0]):
+                        i = m.surface_nodes[q]
+                        out.contact_state[b, i] = 0
+                        out.contact_force[b, i, 0] = 0.0
+                        out.contact_force[b, i, 1] = 0.0
+                        out.contact_force[b, i, 2] = 0.0
+                if m.jaw_active:
+                    _jaw_contacts(b, m, s, out, w, dt, avg, last_sub, res, inv_sub)
+            cuda.syncthreads()
+
+
+@cuda.jit(device=True)
+def _jaw_contacts(b, m, s, out, w, dt, avg, last_sub, res, inv_sub):
+    """:func:`.contact.jaw_contacts` of tissue b (same order, same arithmetic)."""
+    x, v, u, tj, jaw_out = s.x, s.v, w.u, w.tj, out.jaw_out
+    ax, ay, az = s.g_axis[b, 0], s.g_axis[b, 1], s.g_axis[b, 2]
+    e1x, e1y, e1z = s.g_e1[b, 0], s.g_e1[b, 1], s.g_e1[b, 2]
+    e2x = ay * e1z - az * e1y
+    e2y = az * e1x - ax * e1z
+    e2z = ax * e1y - ay * e1x
+    r_old = s.g_radius[b]
+    r_new = min(max(r_old + dt * s.g_vradius[b], s.g_rmin[b]), s.g_rmax[b])
+    vr = (r_new - r_old) / dt
+    s.g_radius[b] = r_new
+    for c in range(3):
+        s.g_tip[b, c] += dt * s.g_vpull[b, c]
+    cx, cy, cz = s.g_tip[b, 0], s.g_tip[b, 1], s.g_tip[b, 2]
+    n_con0 = 0.0
+    n_con1 = 0.0
+    n_con2 = 0.0
+    slip0 = 0.0
+    slip1 = 0.0
+    slip2 = 0.0
+    for q in range(m.surface_nodes.shape[0]):
+        i = m.surface_nodes[q]
+        if m.fixed[i]:
+            continue
+        rx = x[b, i, 0] - cx
+        ry = x[b, i, 1] - cy
+        rz = x[b, i, 2] - cz
+        k = _jaw_candidate(rx, ry, rz, ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z, r_new, m.jaw_length)
+        if k < 0:
+            continue
+        d = rx * u[b, k, 0] + ry * u[b, k, 1] + rz * u[b, k, 2] - r_new
+        if d <= 0.0 or d > m.jaw_depth:
+            continue
+        lat = rx * tj[b, k, 0] + ry * tj[b, k, 1] + rz * tj[b, k, 2]
+        pen_side = m.jaw_half_width - abs(lat)
+        if pen_side <= 0.0:
+            continue
+        s_ax = rx * ax + ry * ay + rz * az
+        nx, ny, nz, pen = -u[b, k, 0], -u[b, k, 1], -u[b, k, 2], d
+        face = True
+        if pen_side < pen:
+            sg = 1.0 if lat > 0.0 else -1.0
+            nx, ny, nz, pen = sg * tj[b, k, 0], sg * tj[b, k, 1], sg * tj[b, k, 2], pen_side
+            face = False
+        if -s_ax < pen:
+            nx, ny, nz, pen = ax, ay, az, -s_ax
+            face = False
+        if s_ax + m.jaw_length < pen:
+            nx, ny, nz, pen = -ax, -ay, -az, s_ax + m.jaw_length
+            face = False
+        _resolve_node_contact(
+            x[b], v[b], i, w.meff[b, i], nx, ny, nz, pen,
+            s.g_vpull[b, 0] + vr * u[b, k, 0], s.g_vpull[b, 1] + vr * u[b, k, 1], s.g_vpull[b, 2] + vr * u[b, k, 2],
+            s.mu_s[b], s.mu_k[b], dt, res,
+        )
+        fx = res[0] * nx + res[1]
+        fy = res[0] * ny + res[2]
+        fz = res[0] * nz + res[3]
+        fn = -(fx * u[b, k, 0] + fy * u[b, k, 1] + fz * u[b, k, 2])
+        if face and m.node_area[i] > 0.0:
+            pressure = res[0] / m.node_area[i]
+            if pressure > jaw_out[b, k, J_PEAK_PRESSURE]:
+                jaw_out[b, k, J_PEAK_PRESSURE] = pressure
+        jaw_out[b, k, J_NORMAL] += avg * fn
+        s.g_force[b, G_PINCH] += inv_sub * fn
+        jaw_out[b, k, J_TX] += avg * (fx + fn * u[b, k, 0])
+        jaw_out[b, k, J_TY] += avg * (fy + fn * u[b, k, 1])
+        jaw_out[b, k, J_TZ] += avg * (fz + fn * u[b, k, 2])
+        if last_sub:
+            jaw_out[b, k, J_CONTACT] += 1.0
+            if res[4] == 1.0:
+                jaw_out[b, k, J_STICK] += 1.0
+            else:
+                jaw_out[b, k, J_SLIP] += 1.0
+            out.contact_state[b, i] = np.int8(res[4])
+            out.contact_force[b, i, 0] += fx
+            out.contact_force[b, i, 1] += fy
+            out.contact_force[b, i, 2] += fz
+        if k == 0:
+            n_con0 += 1.0
+            slip0 += res[5] * dt
+        elif k == 1:
+            n_con1 += 1.0
+            slip1 += res[5] * dt
+        else:
+            n_con2 += 1.0
+            slip2 += res[5] * dt
+    if n_con0 > 0.0:
+        jaw_out[b, 0, J_SLIP_DIST] += slip0 / n_con0
+    if n_con1 > 0.0:
+        jaw_out[b, 1, J_SLIP_DIST] += slip1 / n_con1
+    if n_con2 > 0.0:
+        jaw_out[b, 2, J_SLIP_DIST] += slip2 / n_con2
+
+
+def cuda_simulate(model: SimModel, state: SimState, out: SimReadout, scratch: CudaScratch, n_steps: int,
+                  threads: int = THREADS_PER_BLOCK) -> None:
+    """:func:`.integrator.simulate` on the GPU: records of device arrays (or host arrays: numba copies them
+    in and out around the launch). One block of ``threads`` threads per tissue."""
+    if model.pl_normal.shape[0] > 0:
+        raise ValueError("the CUDA backend has no plates yet (compression experiments run on the CPU)")
+    nb = state.x.shape[0]
+    _simulate_kernel[nb, threads](model, state, out, scratch, n_steps)
+
+
+def to_device(record: NamedTuple) -> NamedTuple:
+    """The record with each array copied to the GPU (scalars as they are)."""
+    return type(record)(*[cuda.to_device(np.ascontiguousarray(a)) if isinstance(a, np.ndarray) else a for a in record])
+
+
+def copy_back(device_record: NamedTuple, host_record: NamedTuple) -> None:
+    """Copy each array of a device record into the host record's array of the same field."""
+    for dev, host in zip(device_record, host_record):
+        if isinstance(host, np.ndarray):
+            dev.copy_to_host(host)
+
+
+class CudaStepper:
+    """Steps host state records on the GPU: the model and scratch stay on the device, the state and the
+    readouts are copied in and out around each call (what :class:`.simulation.Simulation` with
+    ``backend="cuda"`` does, so that every host-side API and test works unchanged)."""
+
+    def __init__(self, model: SimModel, batch: int, threads: int = THREADS_PER_BLOCK) -> None:
+        self.model = to_device(model)
+        self.scratch = to_device(make_scratch(model, batch))
+        self.threads = int(threads)
+
+    def step(self, state: SimState, out: SimReadout, n_steps: int) -> None:
+        d_state, d_out = to_device(state), to_device(out)
+        cuda_simulate(self.model, d_state, d_out, self.scratch, n_steps, self.threads)
+        copy_back(d_state, state)
+        copy_back(d_out, out)
