@@ -11,9 +11,9 @@ Layout (after the measured prototype in the issue: one block per tissue, per-nod
 * contacts, thread 0 of the block: the surface nodes in the CPU's order (few nodes, branchy, and the
   jaw readouts are sums in node order).
 
-The per-spring, per-tet and per-node arithmetic is the CPU kernel's own code: the leaf functions of
-:mod:`.forces` and :mod:`.contact` are compiled for the GPU from their Python source (``py_func``), so a
-change there changes both backends. What runs on the GPU is limited to the grasper (no plates yet).
+The contact pass and the leaf functions (spring law, tet volume, per-node Coulomb contact, force loop)
+are the CPU kernel's own functions compiled for the GPU from their Python source (:func:`device_twin`),
+so a change there changes both backends; the spring and tet passes repeat the CPU loops' arithmetic. What runs on the GPU is limited to the grasper (no plates yet).
 
 Under ``NUMBA_ENABLE_CUDASIM=1`` the kernel runs on the CPU in numba's CUDA simulator (slow: tests only);
 there the arithmetic is the CPU's bit for bit. On a GPU, fused multiply-adds round differently
@@ -23,6 +23,7 @@ there the arithmetic is the CPU's bit for bit. On a GPU, fused multiply-adds rou
 from __future__ import annotations
 
 import math
+import types
 from typing import NamedTuple
 
 import numpy as np
@@ -31,31 +32,32 @@ from numba import cuda
 from . import contact as _contact
 from . import forces as _forces
 from . import integrator as _integrator
-from .contact import (
-    G_PINCH,
-    J_CONTACT,
-    J_NORMAL,
-    J_PEAK_PRESSURE,
-    J_SLIP,
-    J_SLIP_DIST,
-    J_STICK,
-    J_TX,
-    J_TY,
-    J_TZ,
-)
 from .records import SimModel, SimReadout, SimState
 
 #: threads per block (one block per tissue); the loops stride over springs, tets and nodes
 THREADS_PER_BLOCK = 128
 
-# the CPU kernel's leaf functions, compiled for the GPU from the same source
-_spring_force = cuda.jit(device=True)(_forces.spring_force.py_func)
-_volume6 = cuda.jit(device=True)(_forces._volume6.py_func)
-_volume_gradients = cuda.jit(device=True)(_forces._volume_gradients.py_func)
-_resolve_node_contact = cuda.jit(device=True)(_contact.resolve_node_contact.py_func)
-_jaw_candidate = cuda.jit(device=True)(_contact.jaw_candidate.py_func)
-_jaw_directions = cuda.jit(device=True)(_contact.jaw_directions.py_func)
-_force_loop = cuda.jit(device=True)(_integrator._force_loop.py_func)
+
+
+def device_twin(cpu_function, **callees):
+    """The GPU twin of a CPU kernel function: its Python source compiled by numba's CUDA target, with the
+    CPU functions it calls bound to their GPU twins (``callees``). One source, two targets: an edit of the
+    CPU function changes both."""
+    py = cpu_function.py_func
+    bound = types.FunctionType(py.__code__, {**py.__globals__, **callees}, py.__name__, py.__defaults__, py.__closure__)
+    return cuda.jit(device=True)(bound)
+
+
+_spring_force = device_twin(_forces.spring_force)
+_volume6 = device_twin(_forces._volume6)
+_volume_gradients = device_twin(_forces._volume_gradients)
+_jaw_directions = device_twin(_contact.jaw_directions)
+_force_loop = device_twin(_integrator._force_loop)
+_jaw_contacts = device_twin(
+    _contact.jaw_contacts,
+    jaw_candidate=device_twin(_contact.jaw_candidate),
+    resolve_node_contact=device_twin(_contact.resolve_node_contact),
+)
 
 
 class CudaScratch(NamedTuple):
@@ -273,105 +275,8 @@ def _simulate_kernel(m, s, out, w, n_steps):
                         out.contact_force[b, i, 1] = 0.0
                         out.contact_force[b, i, 2] = 0.0
                 if m.jaw_active:
-                    _jaw_contacts(b, m, s, out, w, dt, avg, last_sub, res, inv_sub)
+                    _jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, w.u[b], w.tj[b], dt, avg, last_sub, res, inv_sub)
             cuda.syncthreads()
-
-
-@cuda.jit(device=True)
-def _jaw_contacts(b, m, s, out, w, dt, avg, last_sub, res, inv_sub):
-    """:func:`.contact.jaw_contacts` of tissue b (same order, same arithmetic)."""
-    x, v, u, tj, jaw_out = s.x, s.v, w.u, w.tj, out.jaw_out
-    ax, ay, az = s.g_axis[b, 0], s.g_axis[b, 1], s.g_axis[b, 2]
-    e1x, e1y, e1z = s.g_e1[b, 0], s.g_e1[b, 1], s.g_e1[b, 2]
-    e2x = ay * e1z - az * e1y
-    e2y = az * e1x - ax * e1z
-    e2z = ax * e1y - ay * e1x
-    r_old = s.g_radius[b]
-    r_new = min(max(r_old + dt * s.g_vradius[b], s.g_rmin[b]), s.g_rmax[b])
-    vr = (r_new - r_old) / dt
-    s.g_radius[b] = r_new
-    for c in range(3):
-        s.g_tip[b, c] += dt * s.g_vpull[b, c]
-    cx, cy, cz = s.g_tip[b, 0], s.g_tip[b, 1], s.g_tip[b, 2]
-    n_con0 = 0.0
-    n_con1 = 0.0
-    n_con2 = 0.0
-    slip0 = 0.0
-    slip1 = 0.0
-    slip2 = 0.0
-    for q in range(m.surface_nodes.shape[0]):
-        i = m.surface_nodes[q]
-        if m.fixed[i]:
-            continue
-        rx = x[b, i, 0] - cx
-        ry = x[b, i, 1] - cy
-        rz = x[b, i, 2] - cz
-        k = _jaw_candidate(rx, ry, rz, ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z, r_new, m.jaw_length)
-        if k < 0:
-            continue
-        d = rx * u[b, k, 0] + ry * u[b, k, 1] + rz * u[b, k, 2] - r_new
-        if d <= 0.0 or d > m.jaw_depth:
-            continue
-        lat = rx * tj[b, k, 0] + ry * tj[b, k, 1] + rz * tj[b, k, 2]
-        pen_side = m.jaw_half_width - abs(lat)
-        if pen_side <= 0.0:
-            continue
-        s_ax = rx * ax + ry * ay + rz * az
-        nx, ny, nz, pen = -u[b, k, 0], -u[b, k, 1], -u[b, k, 2], d
-        face = True
-        if pen_side < pen:
-            sg = 1.0 if lat > 0.0 else -1.0
-            nx, ny, nz, pen = sg * tj[b, k, 0], sg * tj[b, k, 1], sg * tj[b, k, 2], pen_side
-            face = False
-        if -s_ax < pen:
-            nx, ny, nz, pen = ax, ay, az, -s_ax
-            face = False
-        if s_ax + m.jaw_length < pen:
-            nx, ny, nz, pen = -ax, -ay, -az, s_ax + m.jaw_length
-            face = False
-        _resolve_node_contact(
-            x[b], v[b], i, w.meff[b, i], nx, ny, nz, pen,
-            s.g_vpull[b, 0] + vr * u[b, k, 0], s.g_vpull[b, 1] + vr * u[b, k, 1], s.g_vpull[b, 2] + vr * u[b, k, 2],
-            s.mu_s[b], s.mu_k[b], dt, res,
-        )
-        fx = res[0] * nx + res[1]
-        fy = res[0] * ny + res[2]
-        fz = res[0] * nz + res[3]
-        fn = -(fx * u[b, k, 0] + fy * u[b, k, 1] + fz * u[b, k, 2])
-        if face and m.node_area[i] > 0.0:
-            pressure = res[0] / m.node_area[i]
-            if pressure > jaw_out[b, k, J_PEAK_PRESSURE]:
-                jaw_out[b, k, J_PEAK_PRESSURE] = pressure
-        jaw_out[b, k, J_NORMAL] += avg * fn
-        s.g_force[b, G_PINCH] += inv_sub * fn
-        jaw_out[b, k, J_TX] += avg * (fx + fn * u[b, k, 0])
-        jaw_out[b, k, J_TY] += avg * (fy + fn * u[b, k, 1])
-        jaw_out[b, k, J_TZ] += avg * (fz + fn * u[b, k, 2])
-        if last_sub:
-            jaw_out[b, k, J_CONTACT] += 1.0
-            if res[4] == 1.0:
-                jaw_out[b, k, J_STICK] += 1.0
-            else:
-                jaw_out[b, k, J_SLIP] += 1.0
-            out.contact_state[b, i] = np.int8(res[4])
-            out.contact_force[b, i, 0] += fx
-            out.contact_force[b, i, 1] += fy
-            out.contact_force[b, i, 2] += fz
-        if k == 0:
-            n_con0 += 1.0
-            slip0 += res[5] * dt
-        elif k == 1:
-            n_con1 += 1.0
-            slip1 += res[5] * dt
-        else:
-            n_con2 += 1.0
-            slip2 += res[5] * dt
-    if n_con0 > 0.0:
-        jaw_out[b, 0, J_SLIP_DIST] += slip0 / n_con0
-    if n_con1 > 0.0:
-        jaw_out[b, 1, J_SLIP_DIST] += slip1 / n_con1
-    if n_con2 > 0.0:
-        jaw_out[b, 2, J_SLIP_DIST] += slip2 / n_con2
 
 
 def cuda_simulate(model: SimModel, state: SimState, out: SimReadout, scratch: CudaScratch, n_steps: int,
