@@ -31,8 +31,8 @@ from pydantic import Strict, StrictBool, StrictInt, StrictStr
 T = TypeVar("T")
 
 __all__ = [
-    "RECORD_CONFIG", "Bool", "ConfigError", "Int", "NonNegative", "Positive", "Real", "Str", "atomic_write", "atomic_write_text", "builtin_config",
-    "check_choice", "check_range", "config_dataclass", "from_dict", "load_config", "read_yaml", "replace",
+    "RECORD_CONFIG", "Bool", "ConfigError", "Int", "NonNegative", "Positive", "Real", "Str", "atomic_write",
+    "atomic_write_text", "builtin_config", "check_choice", "check_range", "config_dataclass", "from_dict", "load_config", "read_yaml", "replace",
     "save_figure", "to_dict", "write_yaml",
 ]
 
@@ -154,7 +154,7 @@ def _allowed_keys(cls: Any, loc: tuple) -> list[str]:
 def describe_validation_error(exc: pydantic.ValidationError, cls: Any, where: str) -> str:
     """One line for a pydantic error: the dotted field path, the value and what is allowed."""
     err = exc.errors()[0]  # the first: later ones are often its consequences
-    loc = tuple(p for p in err["loc"])
+    loc = tuple(err["loc"])
     path = where + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
     kind, value, ctx = err["type"], err.get("input"), err.get("ctx") or {}
     if kind in ("extra_forbidden", "unexpected_keyword_argument"):
@@ -244,8 +244,6 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str | None = Non
         return _adapter(cls).validate_python(dict(data or {}))
     except pydantic.ValidationError as exc:
         raise ConfigError(describe_validation_error(exc, cls, where)) from None
-    except ConfigError as exc:  # raised by a __post_init__ of a record built without pydantic's wrapping
-        raise ConfigError(f"{where}: {exc}") from None
 
 
 def to_dict(obj: Any) -> Any:

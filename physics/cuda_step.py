@@ -13,7 +13,8 @@ Layout (after the measured prototype in the issue: one block per tissue, per-nod
 
 The contact pass and the leaf functions (spring law, tet volume, per-node Coulomb contact, force loop)
 are the CPU kernel's own functions compiled for the GPU from their Python source (:func:`device_twin`),
-so a change there changes both backends; the spring and tet passes repeat the CPU loops' arithmetic. What runs on the GPU is limited to the grasper (no plates yet).
+so a change there changes both backends; the spring and tet passes repeat the CPU loops' arithmetic.
+What runs on the GPU is limited to the grasper (no plates yet).
 
 Under ``NUMBA_ENABLE_CUDASIM=1`` the kernel runs on the CPU in numba's CUDA simulator (slow: tests only);
 there the arithmetic is the CPU's bit for bit. On a GPU, fused multiply-adds round differently
@@ -36,7 +37,6 @@ from .records import SimModel, SimReadout, SimState
 
 #: threads per block (one block per tissue); the loops stride over springs, tets and nodes
 THREADS_PER_BLOCK = 128
-
 
 
 def device_twin(cpu_function, **callees):
@@ -63,7 +63,6 @@ _jaw_contacts = device_twin(
 class CudaScratch(NamedTuple):
     """Per-tissue work arrays of the kernel and the mesh's node incidence (CSR, in edge / tet order)."""
 
-    f: np.ndarray  # (B,N,3) N nodal forces of the substep
     fe: np.ndarray  # (B,E,3) N force of each spring on its first node
     ft: np.ndarray  # (B,T,12) N volume-barrier force of each tet on nodes b, c, d and minus on node a
     tet_on: np.ndarray  # (B,T) int8: the barrier acts on the tet this substep
@@ -96,7 +95,7 @@ def make_scratch(model: SimModel, batch: int) -> CudaScratch:
     eptr, eidx, ecol = incidence(n, np.asarray(model.edges))
     tptr, tidx, tcol = incidence(n, np.asarray(model.tets))
     return CudaScratch(
-        f=np.zeros((batch, n, 3)), fe=np.zeros((batch, ne, 3)), ft=np.zeros((batch, max(nt, 1), 12)),
+        fe=np.zeros((batch, ne, 3)), ft=np.zeros((batch, max(nt, 1), 12)),
         tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
         edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0), tet_ptr=tptr, tet_idx=tidx,
         tet_slot=tcol, u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
@@ -194,9 +193,9 @@ def _simulate_kernel(m, s, out, w, n_steps):
             # ---- 2-3. nodes: gather in the CPU's order, then symplectic Euler with implicit damping, anchors
             for i in range(tid, n, nth):
                 mi = m.mass[i] * ms
-                f0 = m.mass[i] * ms * m.gravity[0] + s.f_ext[b, i, 0]
-                f1 = m.mass[i] * ms * m.gravity[1] + s.f_ext[b, i, 1]
-                f2 = m.mass[i] * ms * m.gravity[2] + s.f_ext[b, i, 2]
+                f0 = mi * m.gravity[0] + s.f_ext[b, i, 0]  # (mass x scale) x g, as the CPU groups it
+                f1 = mi * m.gravity[1] + s.f_ext[b, i, 1]
+                f2 = mi * m.gravity[2] + s.f_ext[b, i, 2]
                 for p in range(w.edge_ptr[i], w.edge_ptr[i + 1]):
                     e = w.edge_idx[p]
                     if w.edge_sign[p] > 0.0:
