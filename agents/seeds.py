@@ -1,8 +1,9 @@
 """Seeds are the unit of a result: train several seeds in parallel processes, evaluate each, aggregate.
 
 ``msdgrasp train --seeds 0-4`` runs :func:`run_seeds`: every seed trains with the same config (only the
-seed differs) into ``<out>/seed_<k>/`` (see :mod:`.training`), in its own process (``--workers``, default:
-one per CPU core, each with one torch thread); then every seed's ``best_model.zip`` runs
+seed differs) into ``<out>/seed_<k>/`` (see :mod:`.training`), as its own job (``--workers`` local
+processes, default one per CPU core, each with one torch thread; or Ray tasks with ``--ray`` / ``--address``,
+:mod:`.parallel`); then every seed's ``best_model.zip`` runs
 ``episodes`` evaluation episodes at every mu of ``mu_grid`` (the seeds of ``msdgrasp evaluate``, disjoint
 from the validation seeds), beside the slip-reactive controller and the oracle. Written into ``<out>``:
 
@@ -24,9 +25,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +36,7 @@ from ..physics.config import ConfigError, atomic_write_text, from_dict, save_fig
 from .controllers import ModelPolicy, make_policy
 from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve
 from .models import TrainConfig
+from .parallel import Job, Runner, land, run_in_folder
 from .stats import bootstrap_ci, iqm  # noqa: F401  (re-exported)
 from .training import train
 
@@ -84,14 +84,14 @@ def aggregate(values: Sequence[float]) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------
-# one seed (runs in a worker process)
+# one seed (runs in a worker process or a Ray task)
 # ------------------------------------------------------------------------------------------------
 
 
-def _train_and_evaluate(config_dict: dict[str, Any], seed: int, out: str, episodes: int,
+def _train_and_evaluate(run_dir: str, config_dict: dict[str, Any], seed: int, episodes: int,
                         mus: Sequence[float]) -> dict[str, Any]:
     config = from_dict(TrainConfig, {**config_dict, "seed": seed}, where="seeds")
-    run = Path(out) / f"seed_{seed}"
+    run = Path(run_dir)
     t0 = time.perf_counter()
     summary = train(config, run, progress=False)
     wall = time.perf_counter() - t0
@@ -128,70 +128,118 @@ def _row_metrics(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dic
     }
 
 
-def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int | None = None,
-              episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True) -> dict[str, Any]:
-    """Train and evaluate every seed (parallel processes) and write seeds.json / seeds.md / learning_curves.png."""
-    out = Path(out_dir)
+#: the per-seed metrics every multi-seed result aggregates
+AGGREGATED = ("success_ref", "success_mu0.2", "peak_pinch_ref_N", "peak_pinch_over_oracle_min", "train_wall_s")
+
+
+def check_run_args(out: Path, seeds: Sequence[int], episodes: int) -> None:
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output folder {out} exists and is not a folder")
-    seeds = list(seeds)
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-        raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
-    workers = workers or min(len(seeds), os.cpu_count() or 1)
+    if not seeds:
+        raise ConfigError("give at least one seed")
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
-    config = replace(config, torch_threads=1)  # one core per process: processes are the parallelism
-    cfg_dict = to_dict(config)
+
+
+def train_points(configs: Sequence[TrainConfig], folders: Sequence[Path], seeds: Sequence[int], runner: Runner,
+                 *, episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True) -> list[dict[str, Any]]:
+    """Train and evaluate every seed of every config (one job each, on ``runner``) into
+    ``folders[p]/seed_<k>``, beside the baselines of each distinct task. One result per config: the
+    per-seed records, their aggregate, the baselines and the oracle's minimal-force curve."""
+    mus = [float(m) for m in mus]
+    cfg_dicts = [to_dict(replace(c, torch_threads=1)) for c in configs]  # one core per job: jobs are the parallelism
+    tasks: list[str] = []  # distinct env configs (a sweep over training settings shares one baseline)
+    task_of_point = []
+    for c in cfg_dicts:
+        key = json.dumps(c["env"], sort_keys=True)
+        if key not in tasks:
+            tasks.append(key)
+        task_of_point.append(tasks.index(key))
+    # the baselines first: they take the first slots, then the seeds
+    jobs: list[Job] = [(_baselines, (json.loads(t), episodes, mus)) for t in tasks]
+    where = []
+    for p, (cfg, folder) in enumerate(zip(cfg_dicts, folders)):
+        for s in seeds:
+            run_dir = Path(folder) / f"seed_{s}"
+            jobs.append((run_in_folder, (_train_and_evaluate, str(run_dir), runner.driver_node, cfg, s, episodes, mus)))
+            where.append((p, run_dir))
+
+    def done(k: int, res: Any) -> None:
+        if progress and k >= len(tasks):
+            m = _row_metrics(res["rows"], {round(x, 6): 1.0 for x in mus})
+            label = f"config {where[k - len(tasks)][0]} " if len(configs) > 1 else ""
+            print(f"{label}seed {res['seed']}: success {m['success_ref']:.3f} over mu 0.3-0.9, "
+                  f"{m['success_mu0.2']:.2f} at mu 0.2, mean peak pinch {m['peak_pinch_ref_N']:.2f} N "
+                  f"({res['train_wall_s']:.0f} s training)", file=sys.stderr)
+
+    results = runner.run(jobs, on_done=done)
+    bases, seed_results = results[: len(tasks)], results[len(tasks):]
+    per_point: list[list[dict[str, Any]]] = [[] for _ in configs]
+    for (p, run_dir), res in zip(where, seed_results):
+        per_point[p].append(land(res, run_dir))
+    out = []
+    for p, recs in enumerate(per_point):
+        base = bases[task_of_point[p]]
+        minimal = {round(m, 6): f for m, f in zip(base["oracle_minimal_force"]["mu"],
+                                                  base["oracle_minimal_force"]["minimal_force_N"])}
+        seed_recs = []
+        for res in sorted(recs, key=lambda r: r["seed"]):
+            tr = res["train"]
+            seed_recs.append({"seed": res["seed"], "run": res["run"], "model": res["model"],
+                              "train_wall_s": res["train_wall_s"], "timesteps": tr["timesteps"],
+                              "steps_per_s": tr["steps_per_s"], **_row_metrics(res["rows"], minimal),
+                              "rows": res["rows"], "validation": res["validation"]})
+        out.append({
+            "per_seed": seed_recs,
+            "aggregate": {k: aggregate([r[k] for r in seed_recs]) for k in AGGREGATED},
+            "baselines": {name: _row_metrics(base[name], minimal) | {"rows": base[name]}
+                          for name in ("reactive", "oracle")},
+            "oracle_minimal_force": base["oracle_minimal_force"],
+        })
+    return out
+
+
+def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int | None = None,
+              episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True,
+              runner: Runner | None = None) -> dict[str, Any]:
+    """Train and evaluate every seed (parallel jobs) and write seeds.json / seeds.md / learning_curves.png.
+
+    ``runner`` says where the jobs run (default: ``workers`` local processes, one per core; see
+    :mod:`.parallel` for Ray)."""
+    out = Path(out_dir)
+    seeds = list(seeds)
+    check_run_args(out, seeds, episodes)
+    if runner is None:
+        runner = Runner.processes(workers if workers is not None else min(len(seeds), os.cpu_count() or 1))
     t0 = time.perf_counter()
-    ctx = get_context("spawn")  # fork would copy torch/numba thread pools into the workers
-    # the baselines take the first slot, then the seeds: never more than `workers` processes at a time
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        base_future = pool.submit(_baselines, to_dict(config.env), episodes, list(mus))
-        futures = {s: pool.submit(_train_and_evaluate, cfg_dict, s, str(out), episodes, list(mus)) for s in seeds}
-        per_seed = []
-        for s, fut in futures.items():
-            res = fut.result()
-            per_seed.append(res)
-            if progress:
-                m = _row_metrics(res["rows"], {round(x, 6): 1.0 for x in mus})
-                print(f"seed {s}: success {m['success_ref']:.3f} over mu 0.3-0.9, {m['success_mu0.2']:.2f} at mu 0.2, "
-                      f"mean peak pinch {m['peak_pinch_ref_N']:.2f} N ({res['train_wall_s']:.0f} s training)",
-                      file=sys.stderr)
-        base = base_future.result()
-    minimal = {round(m, 6): f for m, f in zip(base["oracle_minimal_force"]["mu"],
-                                              base["oracle_minimal_force"]["minimal_force_N"])}
-    seed_recs = []
-    for res in sorted(per_seed, key=lambda r: r["seed"]):
-        tr = res["train"]
-        seed_recs.append({"seed": res["seed"], "run": res["run"], "model": res["model"],
-                          "train_wall_s": res["train_wall_s"], "timesteps": tr["timesteps"],
-                          "steps_per_s": tr["steps_per_s"], **_row_metrics(res["rows"], minimal),
-                          "rows": res["rows"], "validation": res["validation"]})
-    baselines = {name: _row_metrics(base[name], minimal) | {"rows": base[name]} for name in ("reactive", "oracle")}
-    keys = ("success_ref", "success_mu0.2", "peak_pinch_ref_N", "peak_pinch_over_oracle_min", "train_wall_s")
-    agg = {k: aggregate([r[k] for r in seed_recs]) for k in keys}
+    with runner:
+        res = train_points([config], [out], seeds, runner, episodes=episodes, mus=mus, progress=progress)[0]
+        capacity = runner.capacity()
     result = {
-        "config": cfg_dict,
+        "config": to_dict(replace(config, torch_threads=1)),
         "seeds": seeds,
         "episodes_per_mu": episodes,
         "mu_grid": [float(m) for m in mus],
         "reference_mu": list(REFERENCE_MU),
-        "workers": workers,
+        "workers": capacity,
+        "runner": runner.kind if runner.address is None else f"ray ({runner.address})",
         "wall_s": round(time.perf_counter() - t0, 1),
-        "oracle_minimal_force": base["oracle_minimal_force"],
-        "per_seed": seed_recs,
-        "aggregate": agg,
-        "baselines": baselines,
+        **res,
     }
-    files = {"json": out / "seeds.json", "md": out / "seeds.md", "png": out / "learning_curves.png"}
-    atomic_write_text(files["json"], json.dumps(nan_to_none(result), indent=2) + "\n")
-    atomic_write_text(files["md"], format_markdown(result))
-    plot_learning_curves(seed_recs, files["png"])
-    result["files"] = {k: str(v) for k, v in files.items()}
+    result["files"] = write_seed_report(result, out)
     return result
 
 
-def _fmt(x: float, digits: int = 3) -> str:
+def write_seed_report(result: dict[str, Any], out: Path) -> dict[str, str]:
+    """seeds.json, seeds.md and learning_curves.png of a multi-seed result (atomically); their paths."""
+    files = {"json": out / "seeds.json", "md": out / "seeds.md", "png": out / "learning_curves.png"}
+    atomic_write_text(files["json"], json.dumps(nan_to_none(result), indent=2) + "\n")
+    atomic_write_text(files["md"], format_markdown(result))
+    plot_learning_curves(result["per_seed"], files["png"])
+    return {k: str(v) for k, v in files.items()}
+
+
+def fmt_value(x: float, digits: int = 3) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
@@ -208,8 +256,8 @@ def format_markdown(result: dict[str, Any]) -> str:
 
     def row(name: str, rec: dict[str, Any]) -> str:
         cells = [f"{rec['success_by_mu'][f'{m:g}']:.1f} / {rec['peak_pinch_by_mu'][f'{m:g}']:.2f}" for m in mus]
-        return (f"| {name} | " + " | ".join(cells) + f" | {_fmt(rec['success_ref'])} | "
-                f"{_fmt(rec['peak_pinch_ref_N'], 2)} | {_fmt(rec['peak_pinch_over_oracle_min'], 2)} |")
+        return (f"| {name} | " + " | ".join(cells) + f" | {fmt_value(rec['success_ref'])} | "
+                f"{fmt_value(rec['peak_pinch_ref_N'], 2)} | {fmt_value(rec['peak_pinch_over_oracle_min'], 2)} |")
 
     for rec in result["per_seed"]:
         lines.append(row(f"PPO (seed {rec['seed']})", rec))
@@ -222,9 +270,9 @@ def format_markdown(result: dict[str, Any]) -> str:
               "## Aggregate over seeds", "",
               "| metric | mean | IQM | min | max | bootstrap 95% CI of the mean |", "|---|---|---|---|---|---|"]
     for key, agg in result["aggregate"].items():
-        lines.append(f"| {key} | {_fmt(agg['mean'])} | {_fmt(agg['iqm'])} | {_fmt(agg['min'])} | {_fmt(agg['max'])} "
-                     f"| [{_fmt(agg['ci95'][0])}, {_fmt(agg['ci95'][1])}] |")
-    lines += ["", f"Wall time {result['wall_s']:.0f} s with {result['workers']} worker processes."]
+        lines.append(f"| {key} | {fmt_value(agg['mean'])} | {fmt_value(agg['iqm'])} | {fmt_value(agg['min'])} | {fmt_value(agg['max'])} "
+                     f"| [{fmt_value(agg['ci95'][0])}, {fmt_value(agg['ci95'][1])}] |")
+    lines += ["", f"Wall time {result['wall_s']:.0f} s, {result['workers']} jobs at a time ({result['runner']})."]
     return "\n".join(lines) + "\n"
 
 

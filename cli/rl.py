@@ -1,4 +1,4 @@
-"""The RL subcommands of ``msdgrasp``: train, evaluate, record, replay, soak.
+"""The RL subcommands of ``msdgrasp``: train, sweep, evaluate, record, replay, soak.
 
 Only argparse wiring lives here; every handler imports its (torch-, rerun- or numba-heavy) module lazily,
 so ``msdgrasp --help`` stays fast and an unavailable optional module only breaks its own subcommand.
@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 from pathlib import Path
 
 DEFAULT_MODEL = Path("logs") / "train" / "best_model.zip"
@@ -34,6 +35,31 @@ def _missing_module(command: str, exc: ImportError) -> Exception:
     return _usage(f"the {command} command is unavailable: {exc}")
 
 
+def _add_runner_args(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--ray", action="store_true",
+                   help=f"run {what} as Ray tasks on a local Ray instance (pip install 'msdgrasp[ray]')")
+    p.add_argument("--address", default=None, metavar="ADDR",
+                   help=f"run {what} on this Ray cluster ('auto', host:port or ray://host:10001; implies --ray)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="jobs at a time on this machine (default: one per CPU core); with --address the "
+                        "cluster's CPUs decide")
+
+
+def _runner(args: argparse.Namespace, default_workers: int | None = None):
+    """The job runner the arguments ask for (agents.parallel.Runner); validated before anything runs."""
+    from ..agents.parallel import Runner
+
+    if args.workers is not None and args.workers < 1:
+        raise _usage(f"--workers must be >= 1, got {args.workers}")
+    if args.address is not None:
+        if args.workers is not None:
+            raise _usage("--workers sizes a local run; with --address the cluster's CPUs decide")
+        return Runner.ray(address=args.address)
+    if args.ray:
+        return Runner.ray(workers=args.workers)
+    return Runner.processes(args.workers if args.workers is not None else default_workers)
+
+
 # ------------------------------------------------------------------------------------------------
 # handlers
 # ------------------------------------------------------------------------------------------------
@@ -48,6 +74,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         from ..agents.training import train
     except ImportError as exc:
         raise _missing_module("train", exc) from None
+    if args.seeds is None and (args.ray or args.address is not None or args.workers is not None):
+        raise _usage("--ray, --address and --workers run the seeds of --seeds; give --seeds")
     if args.resume is not None:
         if args.seeds is not None:
             raise _usage("--resume continues one run; it cannot be combined with --seeds")
@@ -71,12 +99,31 @@ def _cmd_train(args: argparse.Namespace) -> int:
         if args.seeds is not None:
             if args.seed is not None:
                 raise _usage("give either --seed or --seeds, not both")
-            result = run_seeds(config, parse_seeds(args.seeds), args.out, workers=args.workers,
+            seeds = parse_seeds(args.seeds)
+            result = run_seeds(config, seeds, args.out, runner=_runner(args, min(len(seeds), os.cpu_count() or 1)),
                                progress=not args.quiet)
             print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
             return 0
         summary = train(config, args.out, progress=not args.quiet)
     print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    try:
+        from ..agents.sweep import SweepConfig, run_sweep, sweep_points
+    except ImportError as exc:
+        raise _missing_module("sweep", exc) from None
+    sweep = SweepConfig.load(args.config)
+    runner = _runner(args)
+    if args.dry_run:  # every point built and validated, nothing run or written
+        points = sweep_points(sweep, Path(args.config).name)
+        print(json.dumps({"points": [p for p, _ in points], "seeds": sweep.seeds}, indent=2))
+        return 0
+    result = run_sweep(sweep, args.out, runner, progress=not args.quiet, where=Path(args.config).name)
+    best = result["points"][result["ranking"][0]]
+    print(json.dumps({"files": result["files"], "best": {"point": best["point"], "params": best["params"],
+                                                         "aggregate": best["aggregate"]}}, indent=2))
     return 0
 
 
@@ -172,12 +219,19 @@ def add_rl_commands(sub) -> None:
     t.add_argument("--seeds", default=None, metavar="RANGE",
                    help="train several seeds in parallel processes and evaluate each, e.g. 0-4 or 0,3,7: "
                         "writes seed_<k>/ runs and seeds.json, seeds.md, learning_curves.png (aggregate over seeds)")
-    t.add_argument("--workers", type=int, default=None,
-                   help="processes for --seeds (default: one per CPU core, at most one per seed)")
+    _add_runner_args(t, "the seeds of --seeds")
     t.add_argument("--out", type=Path, default=Path("logs") / "train", help="output folder (default logs/train)")
     t.add_argument("--resume", type=Path, default=None, help="continue the run saved in this folder")
     t.add_argument("--quiet", action="store_true", help="no progress output")
     t.set_defaults(func=_cmd_train)
+
+    sw = sub.add_parser("sweep", help="hyper-parameter sweep: a grid of training configs, each over several seeds")
+    sw.add_argument("config", type=Path, help="sweep file (base, set, grid, seeds, episodes; see agents/sweep.py)")
+    sw.add_argument("--out", type=Path, default=Path("logs") / "sweep", help="output folder (default logs/sweep)")
+    sw.add_argument("--dry-run", action="store_true", help="validate and list the points, run nothing")
+    _add_runner_args(sw, "the points' seeds")
+    sw.add_argument("--quiet", action="store_true", help="no progress output")
+    sw.set_defaults(func=_cmd_sweep)
 
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",

@@ -1,0 +1,222 @@
+"""Where independent jobs run: local worker processes (the default) or Ray (``--ray`` / ``--address``).
+
+Multi-seed training, hyper-parameter sweeps and evaluation sweeps are bags of independent jobs (one seed's
+training, one (policy, mu) cell). :class:`Runner` runs such a bag and hands back each job's result as it
+finishes; what differs between a laptop and a cluster is only the runner:
+
+* ``Runner.processes(workers)``: a spawn-context process pool on this machine (no extra dependency);
+* ``Runner.ray(address=None, workers=None)``: Ray tasks of one CPU each. Without an address Ray starts a
+  local instance with ``workers`` CPUs (default: all cores); with one (``auto``, ``ray://head:10001`` or
+  ``head:6379``) the jobs go to that cluster, whose nodes need msdgrasp installed (same version).
+
+Results land in one place, the driver's output folder, on a cluster too: a job that writes files gets its
+folder through :func:`run_in_folder`; on the driver's node it writes there directly, on another node it
+writes into a temporary folder that travels back as a tar archive, and the driver unpacks it into place
+(paths in the job's result that point into the temporary folder are rewritten to the final one).
+
+Ray's usage-statistics upload is switched off unless ``RAY_USAGE_STATS_ENABLED`` is set.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tarfile
+import tempfile
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from ..physics.config import ConfigError
+
+#: a job: a module-level function (picklable by reference) and its positional arguments
+Job = tuple[Callable[..., Any], tuple]
+
+_ARCHIVE_KEY = "__folder_archive__"
+
+
+def _check_workers(workers: int | None) -> None:
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
+
+
+class Runner:
+    """Runs independent jobs in parallel; see the module docstring. Use as a context manager."""
+
+    def __init__(self, kind: str, workers: int | None = None, address: str | None = None) -> None:
+        if kind not in ("processes", "ray"):
+            raise ConfigError(f"runner kind must be 'processes' or 'ray', got {kind!r}")
+        _check_workers(workers)
+        if address is not None and kind != "ray":
+            raise ConfigError("--address names a Ray cluster; it needs the Ray runner")
+        if address is not None and not str(address).strip():
+            raise ConfigError("--address is empty; give 'auto', host:port or ray://host:port")
+        self.kind, self.workers, self.address = kind, workers, address
+        self._pool: ProcessPoolExecutor | None = None
+        self._started_ray = False
+        self.driver_node: str | None = None
+
+    @classmethod
+    def processes(cls, workers: int | None = None) -> "Runner":
+        return cls("processes", workers)
+
+    @classmethod
+    def ray(cls, address: str | None = None, workers: int | None = None) -> "Runner":
+        return cls("ray", workers, address)
+
+    @property
+    def is_ray(self) -> bool:
+        return self.kind == "ray"
+
+    def __enter__(self) -> "Runner":
+        if self.is_ray:
+            self._start_ray()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _start_ray(self) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise ConfigError("--ray / --address need Ray: pip install 'msdgrasp[ray]'") from None
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+        if not ray.is_initialized():
+            kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True,
+                                      "configure_logging": False}
+            if self.address is None:
+                kwargs["num_cpus"] = self.workers or os.cpu_count() or 1
+            else:
+                kwargs["address"] = self.address
+            try:
+                ray.init(**kwargs)
+            except (ConnectionError, ValueError, RuntimeError) as exc:
+                where = f"--address {self.address}" if self.address else "a local Ray instance"
+                raise ConfigError(f"{where}: Ray could not start or connect ({str(exc).splitlines()[0]})") from None
+            self._started_ray = True
+        self.driver_node = ray.get_runtime_context().get_node_id()
+
+    def capacity(self) -> int:
+        """How many one-CPU jobs run at once."""
+        if self.is_ray:
+            import ray
+
+            return max(1, int(ray.cluster_resources().get("CPU", 1)))
+        return self.workers or os.cpu_count() or 1
+
+    def run(self, jobs: Sequence[Job], on_done: Callable[[int, Any], None] | None = None) -> list[Any]:
+        """Run every job; return their results in job order. ``on_done(index, result)`` is called as each
+        finishes (in completion order). A job's exception is raised here (the others are cancelled)."""
+        results: list[Any] = [None] * len(jobs)
+        for k, res in self._completed(jobs):
+            results[k] = res
+            if on_done is not None:
+                on_done(k, res)
+        return results
+
+    def _completed(self, jobs: Sequence[Job]) -> Iterator[tuple[int, Any]]:
+        if not jobs:
+            return
+        if self.is_ray:
+            import ray
+
+            if self.driver_node is None:
+                self._start_ray()
+            remote = {}
+            refs = {}
+            for k, (fn, args) in enumerate(jobs):
+                if fn not in remote:
+                    remote[fn] = ray.remote(num_cpus=1, max_retries=0)(fn)
+                refs[remote[fn].remote(*args)] = k
+            pending = list(refs)
+            try:
+                while pending:
+                    done, pending = ray.wait(pending, num_returns=1)
+                    yield refs[done[0]], ray.get(done[0])
+            finally:
+                for ref in pending:
+                    ray.cancel(ref, force=True)
+            return
+        if self._pool is None:
+            # spawn: fork would copy torch/numba thread pools into the workers
+            self._pool = ProcessPoolExecutor(max_workers=self.capacity(), mp_context=get_context("spawn"))
+        futures = {self._pool.submit(fn, *args): k for k, (fn, args) in enumerate(jobs)}
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    yield futures[fut], fut.result()
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+        if self._started_ray:
+            import ray
+
+            ray.shutdown()
+            self._started_ray = False
+        self.driver_node = None
+
+
+# ------------------------------------------------------------------------------------------------
+# jobs that write a folder
+# ------------------------------------------------------------------------------------------------
+
+
+def _current_node() -> str | None:
+    """The Ray node this code runs on, or None outside a Ray worker."""
+    try:
+        import ray
+    except ImportError:
+        return None
+    if not ray.is_initialized():
+        return None
+    return ray.get_runtime_context().get_node_id()
+
+
+def _rewrite_paths(value: Any, old: str, new: str) -> Any:
+    if isinstance(value, str):
+        return new + value[len(old):] if value == old or value.startswith(old + os.sep) else value
+    if isinstance(value, dict):
+        return {k: _rewrite_paths(v, old, new) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_rewrite_paths(v, old, new) for v in value)
+    return value
+
+
+def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None, *args: Any) -> dict[str, Any]:
+    """Run ``fn(folder, *args)`` (a job body that writes into ``folder`` and returns a dict).
+
+    On the driver's node (or outside Ray) it writes ``folder`` directly. On another node it writes a
+    temporary folder, packs it as a tar archive into the result and rewrites the result's paths to
+    ``folder``; :func:`land` unpacks it on the driver."""
+    node = _current_node()
+    if driver_node is None or node is None or node == driver_node:
+        return fn(folder, *args)
+    with tempfile.TemporaryDirectory(prefix="msdgrasp-job-") as tmp:
+        result = fn(tmp, *args)
+        buf = io.BytesIO()
+        with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+            tar.add(tmp, arcname=".")
+        result = _rewrite_paths(result, tmp, folder)
+    return {**result, _ARCHIVE_KEY: buf.getvalue()}
+
+
+def land(result: dict[str, Any], folder: str | Path) -> dict[str, Any]:
+    """Unpack a job's folder archive (if it came from another node) into ``folder``; the result without it."""
+    archive = result.get(_ARCHIVE_KEY)
+    if archive is None:
+        return result
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with tarfile.open(fileobj=io.BytesIO(archive), mode="r:gz") as tar:
+        tar.extractall(folder, filter="data")  # "data": no absolute paths, links or devices from the archive
+    return {k: v for k, v in result.items() if k != _ARCHIVE_KEY}

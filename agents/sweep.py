@@ -1,0 +1,196 @@
+"""Hyper-parameter sweeps: a grid of training configs, every point trained over several seeds.
+
+``msdgrasp sweep SWEEP.yaml`` (``--ray`` / ``--address`` to run the jobs on Ray, :mod:`.parallel`) reads a
+:class:`SweepConfig`::
+
+    base: train/ppo.yaml            # a built-in training config, or a path to one
+    set: {total_timesteps: 300000}  # dotted keys applied to every point
+    grid:                           # dotted keys -> values; every combination is one point
+      ppo.learning_rate: [1.0e-4, 3.0e-4]
+      log_std_init: [-1.0, -2.0]
+    seeds: 0-4                      # every point trains these seeds (>= 5 for a result)
+    episodes: 10                    # evaluation episodes per mu and seed
+
+Every point's config is built (and so validated) before any job starts: a bad key or value is a one-line
+error naming the point. All points x seeds are independent jobs, run together; each point's seeds land in
+``<out>/point_<k>/`` with the same report as ``msdgrasp train --seeds`` (seeds.json, seeds.md,
+learning_curves.png), and the sweep's own ``sweep.json`` / ``sweep.md`` rank the points by the mean over
+seeds of success over mu 0.3-0.9, then by peak pinch relative to the oracle's minimal force.
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import json
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+from annotated_types import Ge, Le, MinLen
+from pydantic import Field
+
+from ..physics.config import (ConfigError, Int, Real, Str, atomic_write_text, builtin_config, config_dataclass,
+                              from_dict, read_yaml, to_dict)
+from .evaluation import nan_to_none
+from .models import TrainConfig
+from .parallel import Runner
+from .seeds import EVAL_MU, MAX_SEEDS, REFERENCE_MU, check_run_args, fmt_value, parse_seeds, train_points, write_seed_report
+
+#: most grid points of one sweep (each trains every seed)
+MAX_POINTS = 256
+
+
+@config_dataclass
+class SweepConfig:
+    """A hyper-parameter sweep (see the module docstring)."""
+
+    #: the training config every point starts from: a built-in one ("train/ppo.yaml") or a file path
+    base: Str = "train/ppo.yaml"
+    #: dotted keys set on every point (e.g. total_timesteps, env.reward.slip_per_mm)
+    set: dict[Str, Any] = Field(default_factory=dict)
+    #: dotted key -> list of values; the points are all combinations (in the order given)
+    grid: Annotated[dict[Str, Annotated[list[Any], MinLen(1)]], MinLen(1)] = Field(default_factory=dict)
+    #: the seeds every point trains: a range "0-4" or a list "0,3,7"
+    seeds: Str = "0-4"
+    #: evaluation episodes per mu and seed
+    episodes: Annotated[Int, Ge(1)] = 10
+    #: friction values of the evaluation (the headline averages mu 0.3-0.9 among them)
+    mu_grid: Annotated[tuple[Annotated[Real, Ge(0), Le(10)], ...], MinLen(1)] = EVAL_MU
+
+    def __post_init__(self) -> None:
+        for key in (*self.set, *self.grid):
+            if key == "seed" or key.startswith("seed."):
+                raise ConfigError(f"sweep key {key!r}: seeds come from the sweep's 'seeds' field, not from a key")
+            if not key or any(not part for part in key.split(".")):
+                raise ConfigError(f"sweep key {key!r}: expected a dotted key such as 'ppo.learning_rate'")
+        both = set(self.set) & set(self.grid)
+        if both:
+            raise ConfigError(f"sweep keys {sorted(both)} are both in 'set' and in 'grid'; give each once")
+        n = 1
+        for values in self.grid.values():
+            n *= len(values)
+        if n > MAX_POINTS:
+            raise ConfigError(f"the grid has {n} points; allowed 1 ... {MAX_POINTS}")
+        parse_seeds(self.seeds)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SweepConfig":
+        return from_dict(cls, read_yaml(path), where=Path(path).name)
+
+
+def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    *parents, leaf = key.split(".")
+    node = data
+    for i, part in enumerate(parents):
+        child = node.get(part)
+        if child is None:
+            child = node[part] = {}
+        elif not isinstance(child, dict):
+            raise ConfigError(f"sweep key {key!r}: {'.'.join(parents[: i + 1])} is a value, not a section")
+        node = child
+    node[leaf] = value
+
+
+def _base_path(base: str) -> Path:
+    path = Path(base)
+    return path if path.is_file() else builtin_config(base)
+
+
+def sweep_points(sweep: SweepConfig, where: str = "sweep") -> list[tuple[dict[str, Any], TrainConfig]]:
+    """Every grid point: (its values by dotted key, its validated TrainConfig)."""
+    base = read_yaml(_base_path(sweep.base))
+    for key, value in sweep.set.items():
+        _set_dotted(base, key, value)
+    keys = list(sweep.grid)
+    points = []
+    for k, combo in enumerate(itertools.product(*(sweep.grid[key] for key in keys))):
+        params = dict(zip(keys, combo))
+        data = copy.deepcopy(base)
+        for key, value in params.items():
+            _set_dotted(data, key, value)
+        label = ", ".join(f"{key}={value}" for key, value in params.items())
+        points.append((params, from_dict(TrainConfig, data, where=f"{where} point {k} ({label})")))
+    return points
+
+
+def run_sweep(sweep: SweepConfig, out_dir: str | Path, runner: Runner | None = None, *, progress: bool = True,
+              where: str = "sweep") -> dict[str, Any]:
+    """Train and evaluate every seed of every point; write the per-point reports and sweep.json / sweep.md."""
+    out = Path(out_dir)
+    seeds = parse_seeds(sweep.seeds)
+    points = sweep_points(sweep, where)  # every point validated before anything runs or is written
+    check_run_args(out, seeds, sweep.episodes)
+    if len(points) * len(seeds) > MAX_POINTS * MAX_SEEDS:
+        raise ConfigError(f"{len(points)} points x {len(seeds)} seeds is too many jobs")
+    runner = runner or Runner.processes()
+    folders = [out / f"point_{k}" for k in range(len(points))]
+    t0 = time.perf_counter()
+    with runner:
+        results = train_points([cfg for _, cfg in points], folders, seeds, runner, episodes=sweep.episodes,
+                               mus=sweep.mu_grid, progress=progress)
+        capacity = runner.capacity()
+    wall = round(time.perf_counter() - t0, 1)
+    runner_name = runner.kind if runner.address is None else f"ray ({runner.address})"
+    records = []
+    for k, ((params, cfg), res, folder) in enumerate(zip(points, results, folders)):
+        report = {"config": to_dict(cfg), "seeds": seeds, "episodes_per_mu": sweep.episodes,
+                  "mu_grid": [float(m) for m in sweep.mu_grid], "reference_mu": list(REFERENCE_MU),
+                  "workers": capacity, "runner": runner_name, "wall_s": wall, **res}
+        files = write_seed_report(report, folder)
+        records.append({"point": k, "params": params, "folder": str(folder), "files": files,
+                        "aggregate": res["aggregate"], "baselines": res["baselines"],
+                        "per_seed": [{key: val for key, val in r.items() if key not in ("rows", "validation")}
+                                     for r in res["per_seed"]]})
+    ranking = sorted(range(len(records)), key=lambda k: _rank_key(records[k]))
+    result = {"sweep": to_dict(sweep), "seeds": seeds, "workers": capacity, "runner": runner_name, "wall_s": wall,
+              "ranking": ranking, "points": records}
+    files = {"json": out / "sweep.json", "md": out / "sweep.md"}
+    atomic_write_text(files["json"], json.dumps(nan_to_none(result), indent=2) + "\n")
+    atomic_write_text(files["md"], format_sweep_markdown(result))
+    result["files"] = {k: str(v) for k, v in files.items()}
+    return result
+
+
+def _rank_key(record: dict[str, Any]) -> tuple[float, float]:
+    """Higher mean success over mu 0.3-0.9 first, then lower peak pinch relative to the oracle minimum."""
+    agg = record["aggregate"]
+    success = agg["success_ref"]["mean"]
+    ratio = agg["peak_pinch_over_oracle_min"]["mean"]
+    nan_last = float("inf")
+    return (-success if success == success else nan_last, ratio if ratio == ratio else nan_last)
+
+
+def format_sweep_markdown(result: dict[str, Any]) -> str:
+    """One row per point (best first): its values and the aggregate over seeds, with the baselines below."""
+    points = result["points"]
+    keys = list(points[0]["params"]) if points else []
+    seeds = result["seeds"]
+    lines = [f"# Sweep: {len(points)} points x {len(seeds)} seeds (seeds {', '.join(map(str, seeds))})", "",
+             "Mean over seeds [bootstrap 95% CI]; success over mu 0.3-0.9; ratio = mean peak pinch / the oracle's "
+             "minimal slip-free force. Ranked by success, then ratio. Per-seed tables: point_<k>/seeds.md.", "",
+             "| rank | point | " + " | ".join(keys) + " | success 0.3-0.9 | worst seed | success mu 0.2 "
+             "| peak pinch (N) | ratio to oracle min |",
+             "|---" * (len(keys) + 7) + "|"]
+    for rank, k in enumerate(result["ranking"], 1):
+        rec = points[k]
+        agg = rec["aggregate"]
+
+        def cell(name: str, digits: int = 3) -> str:
+            a = agg[name]
+            return f"{fmt_value(a['mean'], digits)} [{fmt_value(a['ci95'][0], digits)}, {fmt_value(a['ci95'][1], digits)}]"
+
+        lines.append(f"| {rank} | {k} | " + " | ".join(str(rec["params"][key]) for key in keys)
+                     + f" | {cell('success_ref')} | {fmt_value(agg['success_ref']['min'])} | {cell('success_mu0.2')} "
+                       f"| {cell('peak_pinch_ref_N', 2)} | {cell('peak_pinch_over_oracle_min', 2)} |")
+    if points:
+        base = points[0]["baselines"]
+        lines += ["", "Baselines on the task (point 0's; points that change the task have their own in point_<k>/seeds.md):",
+                  "", "| policy | success 0.3-0.9 | peak pinch (N) | ratio to oracle min |", "|---|---|---|---|"]
+        for name in ("reactive", "oracle"):
+            b = base[name]
+            lines.append(f"| {name} | {fmt_value(b['success_ref'])} | {fmt_value(b['peak_pinch_ref_N'], 2)} "
+                         f"| {fmt_value(b['peak_pinch_over_oracle_min'], 2)} |")
+    lines += ["", f"Wall time {result['wall_s']:.0f} s, {result['workers']} jobs at a time ({result['runner']})."]
+    return "\n".join(lines) + "\n"
+
