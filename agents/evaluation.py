@@ -40,9 +40,10 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..physics.config import ConfigError, atomic_write_text, save_figure, to_dict
+from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .models import model_config_path, model_train_config
+from .parallel import Runner
 from .stats import bootstrap_ci, wilson_interval
 
 #: the training range (0.3-0.9) and beyond it on both sides (0.15, 0.2, 1.0, 1.2: unseen in training)
@@ -475,19 +476,29 @@ def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
                    results, "95% bootstrap intervals; x: failed episodes", path)
 
 
+def _minimal_force_job(config: GraspLiftConfig | dict[str, Any], mu: float) -> float:
+    if isinstance(config, dict):
+        config = from_dict(GraspLiftConfig, config, where="env")
+    ref = OraclePolicy(config)
+    # the same rounding, pull and tolerance as OraclePolicy.reset: shares its cache
+    return float(minimal_force(config, round(float(mu), 3), ref.pull, ref.tolerance))
+
+
 def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool = False) -> dict[str, Any]:
     """The oracle's minimal slip-free fixed force at each mu (bisection in simulation, cached per mu)."""
-
-    ref = OraclePolicy(config)
     forces = []
     for mu in mus:
         t0 = time.perf_counter()
-        # the same rounding, pull and tolerance as OraclePolicy.reset: shares its cache
-        forces.append(float(minimal_force(config, round(float(mu), 3), ref.pull, ref.tolerance)))
+        forces.append(_minimal_force_job(config, float(mu)))
         if progress:
             print(f"  minimal force: mu={float(mu):g} -> {forces[-1]:.3f} N ({time.perf_counter() - t0:.1f} s)",
                   file=sys.stderr)
-    return {"mu": [float(m) for m in mus], "minimal_force_N": forces, "oracle_margin": ref.margin,
+    return _curve_record(config, mus, forces)
+
+
+def _curve_record(config: GraspLiftConfig, mus: Sequence[float], forces: Sequence[float]) -> dict[str, Any]:
+    ref = OraclePolicy(config)
+    return {"mu": [float(m) for m in mus], "minimal_force_N": [float(f) for f in forces], "oracle_margin": ref.margin,
             "pull": ref.pull, "tolerance_N": ref.tolerance,
             # the bisection's upper end: a minimal force equal to it means no force up to it holds
             "search_limit_N": 2.0 * config.reference_force_N}
@@ -518,13 +529,16 @@ def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[Gr
 def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
              config: GraspLiftConfig | None = None, seed: int = 0, record: bool = False,
              progress: bool = True, n_envs: int | None = None, video: bool = False,
-             conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS) -> dict[str, Any]:
+             conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS, runner: Runner | None = None) -> dict[str, Any]:
     """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
 
     Every spec is validated (and every model loaded) before any episode runs or anything is written.
     The slip-reactive and oracle baselines are always added. Without ``config`` the task is the one the
     model(s) were trained on (their saved config), else the default. Each policy also runs at
     ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass outside the training ranges).
+    With ``runner`` (:mod:`.parallel`: local processes or Ray) every (policy, mu) cell, unseen condition and
+    minimal-force bisection is its own job, models travel to the jobs as bytes (no shared disk needed), and
+    the numbers are the same as without (same episodes, same seeds); recordings are made here.
     Returns ``{"results": [...], "oracle_minimal_force": {...}, "files": {...}, "recordings": [...]}``.
     """
     out_dir = Path(out_dir)
@@ -558,24 +572,21 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 
     t_start = time.perf_counter()
     envs: dict = {}
-    results = []
-    for spec, name, pol in zip(policies, names, built):
+    if runner is not None:
+        results, curve, unseen = _evaluate_on(runner, policies, names, mus, episodes, config, seed, n_envs,
+                                              conditions, progress)
+    else:
+        results = []
+        for spec, name, pol in zip(policies, names, built):
+            if progress:
+                print(f"evaluating {name} ({spec}) on {len(mus)} mu x {episodes} episodes", file=sys.stderr)
+            t0 = time.perf_counter()
+            rows = evaluate_policy(pol, mus, episodes, config, seed, n_envs, _envs=envs, progress=progress)
+            results.append({"spec": spec, "name": name, "rows": rows, "seconds": round(time.perf_counter() - t0, 2)})
         if progress:
-            print(f"evaluating {name} ({spec}) on {len(mus)} mu x {episodes} episodes", file=sys.stderr)
-        t0 = time.perf_counter()
-        rows = evaluate_policy(pol, mus, episodes, config, seed, n_envs, _envs=envs, progress=progress)
-        results.append({"spec": spec, "name": name, "rows": rows, "seconds": round(time.perf_counter() - t0, 2)})
-
-    if progress:
-        print("oracle minimal-force curve", file=sys.stderr)
-    curve = oracle_curve(config, mus, progress=progress)
-    minimal = dict(zip(curve["mu"], curve["minimal_force_N"]))
-    for pol in results:
-        for r in pol["rows"]:
-            r["peak_pinch_over_oracle_min"] = r["mean_peak_pinch_N"] / minimal[r["mu"]]
-
-    unseen = []
-    if conditions:
+            print("oracle minimal-force curve", file=sys.stderr)
+        curve = oracle_curve(config, mus, progress=progress)
+        unseen = []
         for spec, name, pol in zip(policies, names, built):
             for opts in conditions:
                 row = evaluate_policy(pol, [UNSEEN_MU], episodes, config, seed, n_envs, _envs=envs, options=opts)[0]
@@ -583,6 +594,10 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
                 if progress:
                     print(f"  {name}: {opts} at mu={UNSEEN_MU:g}: success={row['success_rate']:.2f} "
                           f"peak pinch={row['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
+    minimal = dict(zip(curve["mu"], curve["minimal_force_N"]))
+    for pol in results:
+        for r in pol["rows"]:
+            r["peak_pinch_over_oracle_min"] = r["mean_peak_pinch_N"] / minimal[r["mu"]]
 
     recordings: list[str] = []
     if record:
@@ -599,6 +614,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
             "seeds": [int(seed) + i for i in range(int(episodes))],
             "reset_options": "{'mu': mu}; other randomisation as configured",
             "n_envs": n_envs,
+            "runner": "this process" if runner is None else runner.kind + (f" ({runner.address})" if runner.address else ""),
             "policies": policies,
             "training_mu_range": list(config.randomization.mu_range),
             "training_config_from": trained_on,
@@ -623,6 +639,81 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     _plot_pinch(results, curve, files["pinch_png"])
     return {"results": results, "oracle_minimal_force": curve, "files": {k: str(v) for k, v in files.items()},
             "recordings": recordings, "unseen_conditions": unseen, "config": config}
+
+
+# ------------------------------------------------------------------------------------------------
+# the evaluation as independent jobs (a Runner: local processes or Ray)
+# ------------------------------------------------------------------------------------------------
+
+
+PolicyPayload = tuple[str, str, bytes | None, str | None]  # spec or file name, display name, model bytes, its config
+
+
+def _payload(spec: str, name: str) -> PolicyPayload:
+    """What a job needs to rebuild a policy on any machine: a built-in spec, or the model's bytes and config."""
+    if spec in _NAMED or spec.startswith("fixed:"):
+        return spec, name, None, None
+    cfg = model_config_path(spec)
+    return Path(spec).name, name, Path(spec).read_bytes(), cfg.read_text() if cfg is not None else None
+
+
+def _policy_of(payload: PolicyPayload, config: GraspLiftConfig):
+    spec, name, data, cfg_text = payload
+    if data is None:
+        return make_policy(spec, config)
+    import tempfile
+
+    from .controllers import ModelPolicy
+
+    with tempfile.TemporaryDirectory(prefix="msdgrasp-model-") as tmp:
+        path = Path(tmp) / spec
+        path.write_bytes(data)
+        if cfg_text is not None:  # load_model reads the algorithm from the config saved beside the model
+            path.with_suffix(".yaml").write_text(cfg_text)
+        return ModelPolicy(path, name)  # loaded into memory: the folder may go
+
+
+def _cell_job(payload: PolicyPayload, config_dict: dict[str, Any], mu: float, episodes: int, seed: int,
+              n_envs: int | None, options: dict[str, float] | None) -> dict[str, Any]:
+    config = from_dict(GraspLiftConfig, config_dict, where="env")
+    return evaluate_policy(_policy_of(payload, config), [mu], episodes, config, seed, n_envs, options=options)[0]
+
+
+def _evaluate_on(runner: Runner, policies, names, mus, episodes, config, seed, n_envs, conditions, progress):
+    """(results, oracle curve, unseen rows) of :func:`evaluate`, every cell a job on ``runner``."""
+    cfg = to_dict(config)
+    payloads = [_payload(spec, name) for spec, name in zip(policies, names)]
+    jobs: list = []
+    where: list[tuple[str, int, Any]] = []
+    for p, payload in enumerate(payloads):
+        for mu in mus:
+            jobs.append((_cell_job, (payload, cfg, float(mu), int(episodes), int(seed), n_envs, None)))
+            where.append(("cell", p, mu))
+        for opts in conditions:
+            jobs.append((_cell_job, (payload, cfg, UNSEEN_MU, int(episodes), int(seed), n_envs, dict(opts))))
+            where.append(("unseen", p, opts))
+    for mu in mus:
+        jobs.append((_minimal_force_job, (cfg, float(mu))))
+        where.append(("oracle", -1, mu))
+
+    def done(k: int, res: Any) -> None:
+        kind, p, what = where[k]
+        if progress and kind != "oracle":
+            label = f"mu={what:g}" if kind == "cell" else f"{what} at mu={UNSEEN_MU:g}"
+            print(f"  {names[p]}: {label} success={res['success_rate']:.2f} "
+                  f"peak pinch={res['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
+
+    t0 = time.perf_counter()
+    with runner:
+        out = runner.run(jobs, on_done=done)
+    seconds = round(time.perf_counter() - t0, 2)
+    results = [{"spec": spec, "name": name, "seconds": seconds,
+                "rows": [r for (kind, p, _), r in zip(where, out) if kind == "cell" and p == k]}
+               for k, (spec, name) in enumerate(zip(policies, names))]
+    unseen = [{"policy": names[p], "conditions": {"mu": UNSEEN_MU, **opts}, **r}
+              for (kind, p, opts), r in zip(where, out) if kind == "unseen"]
+    forces = [r for (kind, _, _), r in zip(where, out) if kind == "oracle"]
+    return results, _curve_record(config, mus, forces), unseen
 
 
 # ------------------------------------------------------------------------------------------------

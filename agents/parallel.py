@@ -37,6 +37,10 @@ Job = tuple[Callable[..., Any], tuple]
 _ARCHIVE_KEY = "__folder_archive__"
 
 
+def _call(fn: Callable[..., Any], *args: Any) -> Any:
+    return fn(*args)
+
+
 def _check_workers(workers: int | None) -> None:
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise ConfigError(f"--workers must be an integer >= 1, got {workers!r}")
@@ -125,12 +129,10 @@ class Runner:
 
             if self.driver_node is None:
                 self._start_ray()
-            remote = {}
-            refs = {}
-            for k, (fn, args) in enumerate(jobs):
-                if fn not in remote:
-                    remote[fn] = ray.remote(num_cpus=1, max_retries=0)(fn)
-                refs[remote[fn].remote(*args)] = k
+            # one remote function for every job: any picklable callable runs (builtins too); one CPU each, and
+            # a failed job is not retried (the error is the answer)
+            call = ray.remote(num_cpus=1, max_retries=0)(_call)
+            refs = {call.remote(fn, *args): k for k, (fn, args) in enumerate(jobs)}
             pending = list(refs)
             try:
                 while pending:

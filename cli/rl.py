@@ -142,9 +142,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.n_envs is not None and args.n_envs < 1:
         raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
+    # without --ray / --address / --workers the evaluation runs in this process, as it always did
+    runner = _runner(args) if (args.ray or args.address is not None or args.workers is not None) else None
     result = evaluate(policies, mus, args.episodes, args.out, seed=args.seed, record=args.record,
                       progress=not args.quiet, n_envs=args.n_envs, video=args.video,
-                      conditions=() if args.no_unseen else UNSEEN_CONDITIONS)
+                      conditions=() if args.no_unseen else UNSEEN_CONDITIONS, runner=runner)
     print(format_table(result["results"]))
     if result["unseen_conditions"]:
         print(format_unseen(result["unseen_conditions"]))
@@ -249,6 +251,7 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--out", type=Path, default=Path("logs") / "evaluate", help="output folder (default logs/evaluate)")
     e.add_argument("--record", action="store_true", help="also record one episode per policy and mu (.rrd)")
     e.add_argument("--video", action="store_true", help="also write one video per policy and mu (videos/*.mp4)")
+    _add_runner_args(e, "every (policy, mu) cell as its own job")
     e.add_argument("--quiet", action="store_true", help="no progress output")
     e.set_defaults(func=_cmd_evaluate)
 
