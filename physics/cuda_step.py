@@ -315,3 +315,59 @@ class CudaStepper:
         cuda_simulate(self.model, d_state, d_out, self.scratch, n_steps, self.threads)
         copy_back(d_state, state)
         copy_back(d_out, out)
+
+
+class CudaBatch:
+    """A batch of tissues resident on the GPU: state and readouts stay on the device between calls.
+
+    Made from host records once; :meth:`step` only launches the kernel. Only what a caller asks for crosses
+    to the host (:meth:`download`, by field: e.g. ``jaw_out`` for the sensors, 108 bytes per tissue), and
+    host-side changes go up the same way (:meth:`upload`: commands, resets). :meth:`arrays` hands the device
+    arrays to a GPU consumer without a copy: each has ``__cuda_array_interface__``, so
+    ``torch.as_tensor(batch.arrays()["x"], device="cuda")`` is a view of the positions.
+    """
+
+    def __init__(self, model: SimModel, state: SimState, out: SimReadout, threads: int = THREADS_PER_BLOCK) -> None:
+        self.model = to_device(model)
+        self.state = to_device(state)
+        self.out = to_device(out)
+        self.scratch = to_device(make_scratch(model, state.x.shape[0]))
+        self.threads = int(threads)
+
+    def step(self, n_steps: int) -> None:
+        cuda_simulate(self.model, self.state, self.out, self.scratch, int(n_steps), self.threads)
+
+    def _pairs(self, host_state: SimState | None, host_out: SimReadout | None, fields):
+        recs = [(d, h) for d, h in ((self.state, host_state), (self.out, host_out)) if h is not None]
+        for dev, host in recs:
+            for name in dev._fields:
+                if (fields is None or name in fields) and isinstance(getattr(host, name), np.ndarray):
+                    yield name, getattr(dev, name), getattr(host, name)
+
+    def download(self, state: SimState | None = None, out: SimReadout | None = None,
+                 fields: tuple[str, ...] | None = None) -> None:
+        """Copy the device arrays of ``fields`` (default all) into the given host records, in place."""
+        self._check(fields)
+        for _, dev, host in self._pairs(state, out, fields):
+            dev.copy_to_host(host)
+
+    def upload(self, state: SimState | None = None, out: SimReadout | None = None,
+               fields: tuple[str, ...] | None = None) -> None:
+        """Copy host arrays of ``fields`` (default all) into the device arrays (no reallocation)."""
+        self._check(fields)
+        for _, dev, host in self._pairs(state, out, fields):
+            dev.copy_to_device(np.ascontiguousarray(host))
+
+    def arrays(self) -> dict[str, object]:
+        """The device arrays of the state and the readouts, by field name (no copy)."""
+        return {name: getattr(rec, name) for rec in (self.state, self.out) for name in rec._fields
+                if hasattr(getattr(rec, name), "copy_to_host")}
+
+    def _check(self, fields) -> None:
+        if fields is None:
+            return
+        known = set(self.state._fields) | set(self.out._fields)
+        for name in fields:
+            if name not in known:
+                raise ValueError(f"field {name!r} is not in the state or readout records; allowed: {sorted(known)}")
+

@@ -74,3 +74,36 @@ def test_cuda_backend_is_refused_with_plates_and_unknown_backends_name_the_choic
     sim = Simulation(scene.model, 1, backend="cuda", plates=[Plate((0, 0, 0), (0, 0, 1))])
     with pytest.raises(ValueError, match="no plates"):
         sim.step(1)
+
+
+def test_a_device_resident_batch_steps_without_host_round_trips_and_matches_the_cpu():
+    """State and readouts stay on the device: only the pull command goes up and only the jaw sensors come
+    down per call, and the state downloaded at the end is the CPU kernel's."""
+    from msdgrasp.physics.cuda_step import CudaBatch
+
+    scene, (cpu, host) = _pair(threads=0)
+    batch = CudaBatch(host.kernel_model(), host.kernel_state(), host.kernel_readout(), threads=4)
+    sensors = np.zeros_like(cpu.jaw_out)
+    for k in range(10):
+        if k == 5:
+            for sim in (cpu, host):
+                sim.command(pull_velocity=np.tile(0.03 * scene.pull_direction, (2, 1)))
+            batch.upload(host.kernel_state(), fields=("g_vpull",))
+        cpu.step(8)
+        batch.step(8)
+        batch.download(out=host.kernel_readout()._replace(jaw_out=sensors), fields=("jaw_out",))
+        np.testing.assert_array_equal(sensors, cpu.jaw_out)
+    assert cpu.pinch_force.min() > 0.2 and np.abs(host.x - cpu.x).max() > 1e-3  # host copy untouched: stale
+    batch.download(host.kernel_state(), host.kernel_readout())
+    assert np.abs(host.x - cpu.x).max() <= POSITION_TOL_M
+    np.testing.assert_array_equal(host.contact_state, cpu.contact_state)
+    arrays = batch.arrays()
+    assert {"x", "v", "jaw_out", "contact_state"} <= set(arrays)
+    from numba import config as numba_config
+
+    if not numba_config.ENABLE_CUDASIM:  # on a GPU: the arrays go to torch / CuPy without a copy
+        assert all(hasattr(a, "__cuda_array_interface__") for a in arrays.values())
+    else:  # the simulator's arrays are host arrays in disguise: no interface to check
+        assert all(hasattr(a, "copy_to_host") for a in arrays.values())
+    with pytest.raises(ValueError, match="field 'xx' is not in the state or readout records"):
+        batch.download(host.kernel_state(), fields=("xx",))
