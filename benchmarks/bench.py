@@ -418,11 +418,85 @@ def bench_env(quick: bool, seed: int = 0, progress: Callable[[str], None] = lamb
             "vector": vec}
 
 
+# ------------------------------------------------------------------------------------------------
+# GPU (issue 15): agent steps/s of a device-resident batch vs batch size, with and without contact
+# ------------------------------------------------------------------------------------------------
+
+#: batch sizes of the GPU rows (quick: the first two)
+GPU_BATCHES = (1, 64, 1024, 4096, 16384)
+STEPS_PER_AGENT_STEP = 33  # 1 ms physics steps per 30 Hz agent step
+
+
+def gpu_unavailable_reason() -> str | None:
+    """Why GPU rows cannot be measured here (None: they can)."""
+    from numba import config as numba_config
+
+    if numba_config.ENABLE_CUDASIM:
+        return "NUMBA_ENABLE_CUDASIM=1: numba's CUDA simulator runs on the CPU, its timings mean nothing"
+    try:
+        from numba import cuda
+
+        if not cuda.is_available():
+            return "no CUDA GPU or driver found (numba.cuda.is_available() is False)"
+    except ImportError as exc:  # pragma: no cover - numba without its CUDA target
+        return f"numba's CUDA target is unavailable ({exc})"
+    return None
+
+
+def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_BATCHES, settle_s: float = 2.0,
+              close_s: float = 1.5, steps: int = STEPS_PER_AGENT_STEP, min_time: float | None = None,
+              force: bool = False) -> dict:
+    """Agent steps/s (``steps`` physics ms each) of a :class:`~..physics.cuda_step.CudaBatch` per batch size,
+    jaws closed on the tissue (contact) and open (none), float64. Without a GPU: the reason, no numbers
+    (``force=True`` runs the harness anyway, e.g. in the simulator for tests; its numbers are not timings)."""
+    reason = gpu_unavailable_reason()
+    if reason is not None and not force:
+        return {"available": False, "reason": reason, "rows": []}
+    from numba import cuda
+
+    from ..physics.cuda_step import CudaBatch
+    from ..physics.scenario import spleen_scene
+    from ..physics.simulation import Simulation
+
+    batches = tuple(batches[:2]) if quick else tuple(batches)
+    min_time = min_time if min_time is not None else (0.5 if quick else 2.0)
+    scene = spleen_scene(resolution=resolution, settle_s=settle_s)
+    sim1 = scene.simulation(1, dt=DT_OUTER)
+    sim1.command(closing_speed=scene.grasper.max_closing_speed_m_s)
+    sim1.step(int(round(close_s / DT_OUTER)))
+    sim1.command(closing_speed=0.0)
+    sim1.step(10)
+    rows = []
+    for contact in (True, False):
+        for batch in batches:
+            sim = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
+            if contact:
+                _clone(sim1, sim)  # every tissue grasped: the contact pass runs on every step
+            else:
+                scene.reset(sim)  # settled tissue, jaws open at the start radius: no contact
+            dev = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout())
+
+            def run(n: int) -> None:
+                for _ in range(n):
+                    dev.step(steps)
+                cuda.synchronize()
+
+            run(1)  # compile / load
+            timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
+            dev.download(out=sim.kernel_readout(), fields=("jaw_out",))
+            rows.append({"batch": batch, "contact": contact, "dtype": "float64", "n_sub": sim.n_sub,
+                         "agent_steps_per_s": _r(batch / timing["median_s"]),
+                         "ms_per_agent_step": _r(timing["median_s"] * 1e3),
+                         "contact_nodes_mean": _r(float(sim.jaw_out[:, :, 4].sum(axis=1).mean()))})
+    return {"available": reason is None, "reason": reason, "resolution": resolution,
+            "nodes": scene.model.n_nodes, "steps_per_agent_step": steps, "rows": rows}
+
+
 def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[str], None] = lambda s: None) -> dict:
-    if what not in ("physics", "grasp", "env", "all"):
+    if what not in ("physics", "grasp", "env", "gpu", "all"):
         from ..physics.config import ConfigError
 
-        raise ConfigError(f"bench: what must be physics, grasp, env or all, got {what!r}")
+        raise ConfigError(f"bench: what must be physics, grasp, env, gpu or all, got {what!r}")
     t0 = time.perf_counter()
     report: dict[str, Any] = {"what": what, "quick": bool(quick), "machine": machine_info()}
     if what in ("physics", "all"):
@@ -431,6 +505,9 @@ def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[st
         report["physics"] = bench_physics(quick, include_no_contact=False, progress=progress)
     if what in ("env", "all"):
         report["env"] = bench_env(quick, progress=progress)
+    if what in ("gpu", "all"):
+        progress("gpu: device-resident batches, with and without contact")
+        report["gpu"] = bench_gpu(quick)
     report["targets"] = evaluate_targets(report)
     flags = [v["pass"] for v in report["targets"].values() if v["pass"] is not None]
     report["all_targets_pass"] = bool(all(flags)) if flags else None

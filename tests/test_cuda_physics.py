@@ -107,3 +107,23 @@ def test_a_device_resident_batch_steps_without_host_round_trips_and_matches_the_
         assert all(hasattr(a, "copy_to_host") for a in arrays.values())
     with pytest.raises(ValueError, match="field 'xx' is not in the state or readout records"):
         batch.download(host.kernel_state(), fields=("xx",))
+
+
+def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_simulator():
+    """Timings need a GPU: without one (or in the simulator) the bench says why and reports no numbers; the
+    harness itself runs here on a tiny case (its numbers are not timings)."""
+    from msdgrasp.benchmarks import bench
+    from msdgrasp.benchmarks.report import markdown
+    from numba import config as numba_config
+
+    if not numba_config.ENABLE_CUDASIM:
+        pytest.skip("on a GPU the bench measures; `msdgrasp bench gpu` is the timing")
+    report = bench.run_bench("gpu", quick=True)
+    assert report["gpu"] == {"available": False, "reason": bench.gpu_unavailable_reason(), "rows": []}
+    assert "simulator" in report["gpu"]["reason"] and "gpu_ge_200k_agent_steps_per_s" not in report["targets"]
+    assert "Not measured: NUMBA_ENABLE_CUDASIM=1" in markdown(report)
+    res = bench.bench_gpu(True, resolution=60, batches=(1, 2), settle_s=0.2, close_s=0.3, steps=1,
+                          min_time=0.01, force=True)
+    assert [(r["batch"], r["contact"]) for r in res["rows"]] == [(1, True), (2, True), (1, False), (2, False)]
+    grasped = [r["contact_nodes_mean"] for r in res["rows"] if r["contact"]]
+    assert min(grasped) > 0 and all(r["contact_nodes_mean"] == 0 for r in res["rows"] if not r["contact"])
