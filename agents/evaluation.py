@@ -614,7 +614,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
             "seeds": [int(seed) + i for i in range(int(episodes))],
             "reset_options": "{'mu': mu}; other randomisation as configured",
             "n_envs": n_envs,
-            "runner": "this process" if runner is None else runner.kind + (f" ({runner.address})" if runner.address else ""),
+            "runner": "this process" if runner is None else runner.label,
             "policies": policies,
             "training_mu_range": list(config.randomization.mu_range),
             "training_config_from": trained_on,

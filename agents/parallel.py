@@ -74,6 +74,11 @@ class Runner:
     def is_ray(self) -> bool:
         return self.kind == "ray"
 
+    @property
+    def label(self) -> str:
+        """Where the jobs run, for reports: 'processes', 'ray' or 'ray (<address>)'."""
+        return self.kind if self.address is None else f"{self.kind} ({self.address})"
+
     def __enter__(self) -> "Runner":
         if self.is_ray:
             self._start_ray()

@@ -222,7 +222,7 @@ def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int
         "mu_grid": [float(m) for m in mus],
         "reference_mu": list(REFERENCE_MU),
         "workers": capacity,
-        "runner": runner.kind if runner.address is None else f"ray ({runner.address})",
+        "runner": runner.label,
         "wall_s": round(time.perf_counter() - t0, 1),
         **res,
     }

@@ -35,7 +35,7 @@ from ..physics.config import (ConfigError, Int, Real, Str, atomic_write_text, bu
 from .evaluation import nan_to_none
 from .models import TrainConfig
 from .parallel import Runner
-from .seeds import EVAL_MU, MAX_SEEDS, REFERENCE_MU, check_run_args, fmt_value, parse_seeds, train_points, write_seed_report
+from .seeds import EVAL_MU, REFERENCE_MU, check_run_args, fmt_value, parse_seeds, train_points, write_seed_report
 
 #: most grid points of one sweep (each trains every seed)
 MAX_POINTS = 256
@@ -121,8 +121,6 @@ def run_sweep(sweep: SweepConfig, out_dir: str | Path, runner: Runner | None = N
     seeds = parse_seeds(sweep.seeds)
     points = sweep_points(sweep, where)  # every point validated before anything runs or is written
     check_run_args(out, seeds, sweep.episodes)
-    if len(points) * len(seeds) > MAX_POINTS * MAX_SEEDS:
-        raise ConfigError(f"{len(points)} points x {len(seeds)} seeds is too many jobs")
     runner = runner or Runner.processes()
     folders = [out / f"point_{k}" for k in range(len(points))]
     t0 = time.perf_counter()
@@ -131,19 +129,18 @@ def run_sweep(sweep: SweepConfig, out_dir: str | Path, runner: Runner | None = N
                                mus=sweep.mu_grid, progress=progress)
         capacity = runner.capacity()
     wall = round(time.perf_counter() - t0, 1)
-    runner_name = runner.kind if runner.address is None else f"ray ({runner.address})"
     records = []
     for k, ((params, cfg), res, folder) in enumerate(zip(points, results, folders)):
         report = {"config": to_dict(cfg), "seeds": seeds, "episodes_per_mu": sweep.episodes,
                   "mu_grid": [float(m) for m in sweep.mu_grid], "reference_mu": list(REFERENCE_MU),
-                  "workers": capacity, "runner": runner_name, "wall_s": wall, **res}
+                  "workers": capacity, "runner": runner.label, "wall_s": wall, **res}
         files = write_seed_report(report, folder)
         records.append({"point": k, "params": params, "folder": str(folder), "files": files,
                         "aggregate": res["aggregate"], "baselines": res["baselines"],
                         "per_seed": [{key: val for key, val in r.items() if key not in ("rows", "validation")}
                                      for r in res["per_seed"]]})
     ranking = sorted(range(len(records)), key=lambda k: _rank_key(records[k]))
-    result = {"sweep": to_dict(sweep), "seeds": seeds, "workers": capacity, "runner": runner_name, "wall_s": wall,
+    result = {"sweep": to_dict(sweep), "seeds": seeds, "workers": capacity, "runner": runner.label, "wall_s": wall,
               "ranking": ranking, "points": records}
     files = {"json": out / "sweep.json", "md": out / "sweep.md"}
     atomic_write_text(files["json"], json.dumps(nan_to_none(result), indent=2) + "\n")

@@ -136,18 +136,26 @@ def bench_no_contact(resolution, min_time: float, repeats: int, batch: int = BAT
     }
 
 
+def _grasped(resolution, settle_s: float, close_s: float):
+    """(scene, one-tissue Simulation) of the settled spleen with the jaws closed for ``close_s`` and then
+    holding: contact stays active while the caller times it."""
+    from ..physics.scenario import spleen_scene
+
+    scene = spleen_scene(resolution=resolution, settle_s=settle_s)
+    sim = scene.simulation(1, dt=DT_OUTER)
+    sim.command(closing_speed=scene.grasper.max_closing_speed_m_s)
+    sim.step(int(round(close_s / DT_OUTER)))
+    sim.command(closing_speed=0.0)
+    sim.step(10)
+    return scene, sim
+
+
 def bench_contact(resolution, min_time: float, repeats: int, settle_s: float, close_s: float,
                   batch: int = BATCH) -> dict:
-    from ..physics.scenario import spleen_scene
     from ..physics.simulation import Simulation
 
     t0 = time.perf_counter()
-    scene = spleen_scene(resolution=resolution, settle_s=settle_s)
-    sim1 = scene.simulation(1, dt=DT_OUTER)
-    sim1.command(closing_speed=scene.grasper.max_closing_speed_m_s)
-    sim1.step(int(round(close_s / DT_OUTER)))
-    sim1.command(closing_speed=0.0)  # hold the grasp: contact stays active while timing
-    sim1.step(10)
+    scene, sim1 = _grasped(resolution, settle_s, close_s)
     setup = time.perf_counter() - t0
     contacts_before = int(sim1.jaw_contact_counts[0, :, 0].sum())
     single = _sim_time(sim1, min_time, repeats)
@@ -455,17 +463,11 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
     from numba import cuda
 
     from ..physics.cuda_step import CudaBatch
-    from ..physics.scenario import spleen_scene
     from ..physics.simulation import Simulation
 
     batches = tuple(batches[:2]) if quick else tuple(batches)
     min_time = min_time if min_time is not None else (0.5 if quick else 2.0)
-    scene = spleen_scene(resolution=resolution, settle_s=settle_s)
-    sim1 = scene.simulation(1, dt=DT_OUTER)
-    sim1.command(closing_speed=scene.grasper.max_closing_speed_m_s)
-    sim1.step(int(round(close_s / DT_OUTER)))
-    sim1.command(closing_speed=0.0)
-    sim1.step(10)
+    scene, sim1 = _grasped(resolution, settle_s, close_s)
     rows = []
     for contact in (True, False):
         for batch in batches:

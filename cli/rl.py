@@ -45,6 +45,11 @@ def _add_runner_args(p: argparse.ArgumentParser, what: str) -> None:
                         "cluster's CPUs decide")
 
 
+def _runner_asked(args: argparse.Namespace) -> bool:
+    """Whether the command line names a runner (--ray, --address or --workers)."""
+    return args.ray or args.address is not None or args.workers is not None
+
+
 def _runner(args: argparse.Namespace, default_workers: int | None = None):
     """The job runner the arguments ask for (agents.parallel.Runner); validated before anything runs."""
     from ..agents.parallel import Runner
@@ -74,7 +79,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         from ..agents.training import train
     except ImportError as exc:
         raise _missing_module("train", exc) from None
-    if args.seeds is None and (args.ray or args.address is not None or args.workers is not None):
+    if args.seeds is None and _runner_asked(args):
         raise _usage("--ray, --address and --workers run the seeds of --seeds; give --seeds")
     if args.resume is not None:
         if args.seeds is not None:
@@ -143,7 +148,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
     # without --ray / --address / --workers the evaluation runs in this process, as it always did
-    runner = _runner(args) if (args.ray or args.address is not None or args.workers is not None) else None
+    runner = _runner(args) if _runner_asked(args) else None
     result = evaluate(policies, mus, args.episodes, args.out, seed=args.seed, record=args.record,
                       progress=not args.quiet, n_envs=args.n_envs, video=args.video,
                       conditions=() if args.no_unseen else UNSEEN_CONDITIONS, runner=runner)

@@ -300,27 +300,12 @@ def copy_back(device_record: NamedTuple, host_record: NamedTuple) -> None:
             dev.copy_to_host(host)
 
 
-class CudaStepper:
-    """Steps host state records on the GPU: the model and scratch stay on the device, the state and the
-    readouts are copied in and out around each call (what :class:`.simulation.Simulation` with
-    ``backend="cuda"`` does, so that every host-side API and test works unchanged)."""
-
-    def __init__(self, model: SimModel, batch: int, threads: int = THREADS_PER_BLOCK) -> None:
-        self.model = to_device(model)
-        self.scratch = to_device(make_scratch(model, batch))
-        self.threads = int(threads)
-
-    def step(self, state: SimState, out: SimReadout, n_steps: int) -> None:
-        d_state, d_out = to_device(state), to_device(out)
-        cuda_simulate(self.model, d_state, d_out, self.scratch, n_steps, self.threads)
-        copy_back(d_state, state)
-        copy_back(d_out, out)
-
-
 class CudaBatch:
     """A batch of tissues resident on the GPU: state and readouts stay on the device between calls.
 
-    Made from host records once; :meth:`step` only launches the kernel. Only what a caller asks for crosses
+    Made from host records once; :meth:`step` only launches the kernel. (:class:`.simulation.Simulation`
+    with ``backend="cuda"`` uploads and downloads everything around each step, so that every host-side API
+    works unchanged.) Only what a caller asks for crosses
     to the host (:meth:`download`, by field: e.g. ``jaw_out`` for the sensors, 108 bytes per tissue), and
     host-side changes go up the same way (:meth:`upload`: commands, resets). :meth:`arrays` hands the device
     arrays to a GPU consumer without a copy: each has ``__cuda_array_interface__``, so

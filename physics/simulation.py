@@ -124,7 +124,7 @@ class Simulation:
         check_range("safety", safety, 0.0, None, lo_inclusive=False)
         check_choice("backend", backend, BACKENDS)
         self.backend = backend
-        self._cuda = None  # physics.cuda_step.CudaStepper, made at the first step
+        self._cuda = None  # physics.cuda_step.CudaBatch, made at the first step
         self.model = model
         self.batch_size = B = int(batch_size)
         self.dt = float(dt)
@@ -325,11 +325,15 @@ class Simulation:
         # records are rebuilt each call (a few microseconds): they alias the current arrays, whatever
         # a caller has assigned to the attributes since
         if self.backend == "cuda":
+            state, out = self.kernel_state(), self.kernel_readout()
             if self._cuda is None:
-                from .cuda_step import CudaStepper  # imports numba.cuda only when asked for
+                from .cuda_step import CudaBatch  # imports numba.cuda only when asked for
 
-                self._cuda = CudaStepper(self.kernel_model(), self.batch_size)
-            self._cuda.step(self.kernel_state(), self.kernel_readout(), int(n_steps))
+                self._cuda = CudaBatch(self.kernel_model(), state, out)
+            else:  # the host arrays are the truth between calls: whatever a caller changed goes up
+                self._cuda.upload(state, out)
+            self._cuda.step(int(n_steps))
+            self._cuda.download(state, out)
             return
         simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps))
 

@@ -34,9 +34,10 @@ def _pair(threads: int):
         sim.command_pinch_force([5.0, 5.0], 0.02, 0.02)
         sims.append(sim)
     if threads:
-        from msdgrasp.physics.cuda_step import CudaStepper
+        from msdgrasp.physics.cuda_step import CudaBatch
 
-        sims[1]._cuda = CudaStepper(sims[1].kernel_model(), sims[1].batch_size, threads=threads)
+        sims[1]._cuda = CudaBatch(sims[1].kernel_model(), sims[1].kernel_state(), sims[1].kernel_readout(),
+                                  threads=threads)
     return scene, sims
 
 
