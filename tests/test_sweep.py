@@ -82,9 +82,12 @@ def test_a_job_on_another_node_lands_its_folder_in_the_drivers_output(tmp_path, 
 
 
 def _sweep(**extra) -> SweepConfig:
-    data = {"set": TINY, "grid": {"ppo.learning_rate": [1.0e-4, 1.0e-3]}, "seeds": "0-1", "episodes": 1,
-            "mu_grid": [0.2, 0.5]}
-    return SweepConfig(**{**data, **extra})
+    """The shipped smoke sweep (2 learning rates x 2 seeds of TINY runs), with ``extra`` fields changed."""
+    from msdgrasp.physics.config import builtin_config, replace
+
+    sweep = SweepConfig.load(builtin_config("sweep/smoke.yaml"))
+    assert sweep.set == TINY
+    return replace(sweep, **extra)
 
 
 def test_a_sweep_on_ray_writes_ranked_per_point_multi_seed_reports_equal_to_local_processes(tmp_path, local_ray):
