@@ -161,6 +161,7 @@ def plate_contacts(
     model, state, out,  # SimModel, SimState (plate points advanced), SimReadout (plate_out, contacts filled)
     dt, avg, last_sub,  # substep, s; weight of this substep in the readouts; fill the last-substep readouts
     res,  # (6,) scratch
+    held,  # (N,) int8 out: -(p + 1) for the nodes plate p holds this substep (the volume floor reads it)
 ) -> None:
     """Advance tissue b's plates by one substep and resolve every surface node behind one."""
     fixed, surface_nodes, pl_normal, pl_mu = model.fixed, model.surface_nodes, model.pl_normal, model.pl_mu
@@ -181,6 +182,7 @@ def plate_contacts(
             if d <= 0.0:
                 continue
             resolve_node_contact(xb, vb, i, meff[i], pnx, pny, pnz, d, pvx, pvy, pvz, pl_mu[p], pl_mu[p], dt, res)
+            held[i] = -(p + 1)
             plate_out[b, p, 0] += avg * (res[0] * pnx + res[1])
             plate_out[b, p, 1] += avg * (res[0] * pny + res[2])
             plate_out[b, p, 2] += avg * (res[0] * pnz + res[3])
@@ -199,6 +201,7 @@ def jaw_contacts(
     dt, avg, last_sub,  # substep, s; weight of this substep in the readouts; fill the last-substep readouts
     res,  # (6,) scratch
     inv_sub,  # 1 / n_sub: the pinch of this outer step is accumulated into state.g_force[b, G_PINCH]
+    held,  # (N,) int8 out: k + 1 for the nodes jaw k holds this substep (the volume floor reads it)
 ) -> None:
     """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection)."""
     fixed, surface_nodes, node_area = model.fixed, model.surface_nodes, model.node_area
@@ -261,6 +264,7 @@ def jaw_contacts(
             g_vpull[b, 0] + vr * u[k, 0], g_vpull[b, 1] + vr * u[k, 1], g_vpull[b, 2] + vr * u[k, 2],
             mu_s[b], mu_k[b], dt, res,
         )
+        held[i] = k + 1
         # contact force on the tissue, split into the jaw face's normal and tangential parts
         fx = res[0] * nx + res[1]
         fy = res[0] * ny + res[2]
@@ -303,3 +307,47 @@ def jaw_contacts(
         jaw_out[b, 1, J_SLIP_DIST] += slip1 / n_con1
     if n_con2 > 0.0:
         jaw_out[b, 2, J_SLIP_DIST] += slip2 / n_con2
+
+
+@njit(cache=True, error_model="numpy")
+def floor_reactions(
+    b, held, react,  # tissue index; (N,) int8 holder of each node (:func:`jaw_contacts`, :func:`plate_contacts`);
+    #                  (N,3) N force the volume floor needed at held and anchored nodes (cleared here)
+    fixed, u, out, state,  # (N,) anchored nodes; (3,3) jaw outward directions; SimReadout, SimState
+    avg, inv_sub, last_sub,  # as in :func:`jaw_contacts`
+) -> None:
+    """Count the volume floor's reactions in the sensors: a node held by a jaw, a plate or an anchor does
+    not move in the floor's correction (:func:`.forces.project_volume_floor`), so the force that moves the
+    rest of its tet comes through it from the holder, and the holder's readout must include it."""
+    jaw_out, plate_out, anchor_out, contact_force = out.jaw_out, out.plate_out, out.anchor_out, out.contact_force
+    for i in range(held.shape[0]):
+        fx, fy, fz = react[i, 0], react[i, 1], react[i, 2]
+        if fx == 0.0 and fy == 0.0 and fz == 0.0:
+            continue
+        react[i, 0] = 0.0
+        react[i, 1] = 0.0
+        react[i, 2] = 0.0
+        h = held[i]
+        if fixed[i]:
+            if last_sub:
+                anchor_out[b, 0] += fx
+                anchor_out[b, 1] += fy
+                anchor_out[b, 2] += fz
+            continue
+        if h > 0:
+            k = h - 1
+            fn = -(fx * u[k, 0] + fy * u[k, 1] + fz * u[k, 2])
+            jaw_out[b, k, J_NORMAL] += avg * fn
+            state.g_force[b, G_PINCH] += inv_sub * fn
+            jaw_out[b, k, J_TX] += avg * (fx + fn * u[k, 0])
+            jaw_out[b, k, J_TY] += avg * (fy + fn * u[k, 1])
+            jaw_out[b, k, J_TZ] += avg * (fz + fn * u[k, 2])
+        elif h < 0:
+            p = -h - 1
+            plate_out[b, p, 0] += avg * fx
+            plate_out[b, p, 1] += avg * fy
+            plate_out[b, p, 2] += avg * fz
+        if last_sub:
+            contact_force[b, i, 0] += fx
+            contact_force[b, i, 1] += fy
+            contact_force[b, i, 2] += fz

@@ -51,6 +51,15 @@ def device_twin(cpu_function, **callees):
 _spring_force = device_twin(_forces.spring_force)
 _volume6 = device_twin(_forces._volume6)
 _volume_gradients = device_twin(_forces._volume_gradients)
+_tet_edges = device_twin(_forces._tet_edges, _volume6=_volume6)
+_below_volume_floor = device_twin(_forces.below_volume_floor, _tet_edges=_tet_edges)
+_project_volume_floor = device_twin(
+    _forces.project_volume_floor,
+    _tet_edges=_tet_edges,
+    _volume_gradients=_volume_gradients,
+    _floor_move=device_twin(_forces._floor_move),
+)
+_floor_reactions = device_twin(_contact.floor_reactions)
 _jaw_directions = device_twin(_contact.jaw_directions)
 _force_loop = device_twin(_integrator._force_loop)
 _jaw_contacts = device_twin(
@@ -66,6 +75,9 @@ class CudaScratch(NamedTuple):
     fe: np.ndarray  # (B,E,3) N force of each spring on its first node
     ft: np.ndarray  # (B,T,12) N volume-barrier force of each tet on nodes b, c, d and minus on node a
     tet_on: np.ndarray  # (B,T) int8: the barrier acts on the tet this substep
+    floor_on: np.ndarray  # (B,T) int8: the tet is below the volume floor after the contacts
+    held: np.ndarray  # (B,N) int8: the jaw (k + 1) or plate (-(p + 1)) holding each node this substep
+    react: np.ndarray  # (B,N,3) N the volume floor's force through held and anchored nodes
     meff: np.ndarray  # (B,N) kg effective mass m + dt b (contacts)
     fa: np.ndarray  # (B,N,3) N anchor force on each node (last substep: the anchor readout)
     edge_ptr: np.ndarray  # (N+1,) int: node i's springs are edge_idx[edge_ptr[i]:edge_ptr[i+1]]
@@ -96,7 +108,9 @@ def make_scratch(model: SimModel, batch: int) -> CudaScratch:
     tptr, tidx, tcol = incidence(n, np.asarray(model.tets))
     return CudaScratch(
         fe=np.zeros((batch, ne, 3)), ft=np.zeros((batch, max(nt, 1), 12)),
-        tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
+        tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8), floor_on=np.zeros((batch, max(nt, 1)), dtype=np.int8),
+        held=np.zeros((batch, n), dtype=np.int8), react=np.zeros((batch, n, 3)), meff=np.zeros((batch, n)),
+        fa=np.zeros((batch, n, 3)),
         edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0), tet_ptr=tptr, tet_idx=tidx,
         tet_slot=tcol, u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
     )
@@ -266,6 +280,8 @@ def _simulate_kernel(m, s, out, w, n_steps):
                             out.anchor_out[b, 1] += w.fa[b, i, 1]
                             out.anchor_out[b, 2] += w.fa[b, i, 2]
                 s.t[b] += dt
+                for q in range(m.surface_nodes.shape[0]):
+                    w.held[b, m.surface_nodes[q]] = 0
                 if last_sub:
                     for q in range(m.surface_nodes.shape[0]):
                         i = m.surface_nodes[q]
@@ -274,8 +290,25 @@ def _simulate_kernel(m, s, out, w, n_steps):
                         out.contact_force[b, i, 1] = 0.0
                         out.contact_force[b, i, 2] = 0.0
                 if m.jaw_active:
-                    _jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, w.u[b], w.tj[b], dt, avg, last_sub, res, inv_sub)
+                    _jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, w.u[b], w.tj[b], dt, avg, last_sub, res, inv_sub,
+                                  w.held[b])
             cuda.syncthreads()
+            # ---- 5. volume floor: tets flagged in parallel, restored by thread 0 in the CPU's (tet) order
+            if m.vol_floor > 0.0:
+                for t in range(tid, m.tets.shape[0], nth):
+                    w.floor_on[b, t] = 1 if _below_volume_floor(x[b], m.tets, m.rest_volume, m.vol_floor, t) else 0
+                cuda.syncthreads()
+                if tid == 0:
+                    acted = False
+                    for t in range(m.tets.shape[0]):
+                        if w.floor_on[b, t] != 0:
+                            acted = True
+                            break
+                    if acted:
+                        _project_volume_floor(x[b], v[b], w.meff[b], m.fixed, w.held[b], m.tets, m.rest_volume,
+                                              m.vol_floor, dt, w.floor_on[b], w.react[b])
+                        _floor_reactions(b, w.held[b], w.react[b], m.fixed, w.u[b], out, s, avg, inv_sub, last_sub)
+                cuda.syncthreads()
 
 
 def cuda_simulate(model: SimModel, state: SimState, out: SimReadout, scratch: CudaScratch, n_steps: int,

@@ -21,6 +21,8 @@ damp rigid motion.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -398,3 +400,122 @@ def min_volume_ratios(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, 
             if r < lo:
                 lo = r
         out[b] = lo
+
+
+# -------------------------------------------------------------------------------------------------
+# Volume floor (TissueParams.volume_floor): an inelastic limit on compression, enforced as a constraint
+# like the contacts (a position correction with the matching velocity change), not as a force. The barrier
+# above is a force of bounded stiffness (the explicit step's stability limit counts it), so a pinch that
+# pushes one surface node past its neighbours can still crush and invert a tet; a stiffer barrier costs
+# substeps and stores the crushing energy, which a slip-off releases as a wave that inverts tets anyway.
+# The floor stores no energy and costs no substeps: at the end of every substep, every tet with J = V / V0
+# below J_f is restored to J_f by moving its nodes along dV/dx, weighted by their inverse effective masses
+# (momentum exact), with x and v changed together (x_new = x_old + dt v_new, as a contact does). The tets are corrected one after the
+# other (Gauss-Seidel: a later tet sees an earlier one's correction), in tet order, for FLOOR_PASSES passes.
+# It runs after the contacts, and the nodes a jaw or plate holds in this substep (and anchored nodes) do not
+# move in it: the rest of the tet moves, and the force that moves it comes through the held node from its
+# holder, which counts it in its readout (:func:`.contact.floor_reactions`).
+# Measured alternatives (5 N force-loop pinch in the env, 9 stiffness x mu cases; issue 12 note, session 10):
+# * before the contacts with every node free: the contact undoes the held node's share, so tets under a
+#   jaw end substeps below J_f (J_f = 0.2: fine mesh down to -0.04; J_f = 0.3 keeps every resolution > 0.04,
+#   but the spleen protocol's T / N at gross slip rises to 1.7 mu);
+# * after the contacts with every node free: the correction's sideways kick on sticking nodes breaks stick
+#   and the grasp is lost at mu = 0.9;
+# * held nodes moving when the free ones can hardly change the volume: the same slips.
+# Open: where one free node sits across a sliver face from three held ones, the floor cannot restore the
+# tet within FLOOR_MAX_MOVE; on the medium and fine spleens some tets still invert.
+
+#: Gauss-Seidel passes of the volume floor per substep (tets that share nodes correct each other)
+FLOOR_PASSES = 2
+#: largest move of a node in one correction, in edge lengths of the tet's rest shape (a larger deficit takes
+#: more substeps; a substep crushes a tet by far less)
+FLOOR_MAX_MOVE = 0.05
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def below_volume_floor(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_floor: float, t: int) -> bool:
+    """Is tet t of one tissue x (N,3) compressed below ``j_floor`` x its rest volume?"""
+    return _tet_edges(x, tets, t)[9] < j_floor * rest_volume[t]
+
+
+@njit(cache=True, error_model="numpy")
+def enforce_volume_floor(x, v, meff, fixed, held, tets, rest_volume, j_floor, dt, flagged, react) -> bool:
+    """The volume floor of one tissue for one substep (CPU): flag the tets below it, then restore them.
+    True when it acted (``react`` then holds the reactions at held and anchored nodes)."""
+    n_flagged = 0
+    for t in range(tets.shape[0]):
+        flagged[t] = 1 if below_volume_floor(x, tets, rest_volume, j_floor, t) else 0
+        n_flagged += flagged[t]
+    if n_flagged > 0:
+        project_volume_floor(x, v, meff, fixed, held, tets, rest_volume, j_floor, dt, flagged, react)
+    return n_flagged > 0
+
+
+@njit(cache=True, error_model="numpy")
+def project_volume_floor(
+    x: np.ndarray,  # (N,3) positions of one tissue, m (modified)
+    v: np.ndarray,  # (N,3) velocities, m/s (modified)
+    meff: np.ndarray,  # (N,) effective masses m + dt b, kg (as the contacts use them)
+    fixed: np.ndarray,  # (N,) bool: anchored nodes do not move
+    held: np.ndarray,  # (N,) int8: != 0 for nodes a jaw or plate holds this substep; they do not move either
+    tets: np.ndarray,  # (T,4) int
+    rest_volume: np.ndarray,  # (T,) m^3
+    j_floor: float,  # J_f: the smallest volume ratio a tet may keep
+    dt: float,  # substep, s
+    flagged: np.ndarray,  # (T,) int8: 1 for the tets found below the floor (:func:`below_volume_floor`)
+    react: np.ndarray,  # (N,3) N: the force through each held or anchored node is ADDED here
+) -> None:
+    """Restore every flagged tet to ``j_floor`` x its rest volume (see the comment above)."""
+    inv_dt = 1.0 / dt
+    for _ in range(FLOOR_PASSES):
+        for t in range(tets.shape[0]):
+            if flagged[t] == 0:
+                continue
+            e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
+            deficit = j_floor * rest_volume[t] - vol
+            if deficit <= 0.0:
+                continue
+            gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
+            gax, gay, gaz = -(gbx + gcx + gdx), -(gby + gcy + gdy), -(gbz + gcz + gdz)
+            a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+            ga2, gb2 = gax * gax + gay * gay + gaz * gaz, gbx * gbx + gby * gby + gbz * gbz
+            gc2, gd2 = gcx * gcx + gcy * gcy + gcz * gcz, gdx * gdx + gdy * gdy + gdz * gdz
+            wa = 0.0 if fixed[a] or held[a] != 0 else 1.0 / meff[a]
+            wb = 0.0 if fixed[b] or held[b] != 0 else 1.0 / meff[b]
+            wc = 0.0 if fixed[c] or held[c] != 0 else 1.0 / meff[c]
+            wd = 0.0 if fixed[d] or held[d] != 0 else 1.0 / meff[d]
+            denom = wa * ga2 + wb * gb2 + wc * gc2 + wd * gd2
+            if denom <= 0.0:  # a degenerate tet (all gradients zero) or four held nodes
+                continue
+            lam = deficit / denom  # linearised: V(x + lam W g) = V + lam g.W g
+            # no node moves more than FLOOR_MAX_MOVE edge lengths per pass: with held nodes, the free one may sit
+            # across a sliver face (tiny g), where the linearised step would throw it far (and blow up)
+            move2 = max(wa * wa * ga2, wb * wb * gb2, wc * wc * gc2, wd * wd * gd2)
+            cap = FLOOR_MAX_MOVE * 2.04 * rest_volume[t] ** (1.0 / 3.0)  # a regular tet's edge is 2.04 V^(1/3)
+            if lam * lam * move2 > cap * cap:
+                lam = cap / math.sqrt(move2)
+            # each moving node gains momentum lam g_i / dt (the four g_i sum to zero), so over the substep a held
+            # node passes the force -lam g / dt^2 from its holder
+            f = -lam * inv_dt * inv_dt
+            _floor_move(x, v, react, a, wa, lam, f, gax, gay, gaz, inv_dt)
+            _floor_move(x, v, react, b, wb, lam, f, gbx, gby, gbz, inv_dt)
+            _floor_move(x, v, react, c, wc, lam, f, gcx, gcy, gcz, inv_dt)
+            _floor_move(x, v, react, d, wd, lam, f, gdx, gdy, gdz, inv_dt)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _floor_move(x, v, react, i, w, lam, f, gx, gy, gz, inv_dt):
+    """Move node i by lam w g and change its velocity by the same displacement over the substep; a held node
+    (w = 0) stays and records the force f g its holder supplies."""
+    if w == 0.0:
+        react[i, 0] += f * gx
+        react[i, 1] += f * gy
+        react[i, 2] += f * gz
+        return
+    s = lam * w
+    x[i, 0] += s * gx
+    x[i, 1] += s * gy
+    x[i, 2] += s * gz
+    v[i, 0] += s * gx * inv_dt
+    v[i, 1] += s * gy * inv_dt
+    v[i, 2] += s * gz * inv_dt

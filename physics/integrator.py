@@ -8,7 +8,8 @@ Scheme (per substep of length dt, for each tissue b of the batch, all on the sam
    stable): v <- (v + dt f/m) / (1 + dt (b0 + b1 |r - r0|)/m);  x <- x + dt v;
 3. anchors (fixed nodes) are held at their rest positions;
 4. the jaws (and plates) advance; surface nodes that penetrate a face become contact nodes and are
-   resolved with Coulomb stick/slip (:mod:`.contact`).
+   resolved with Coulomb stick/slip (:mod:`.contact`);
+5. the volume floor restores tets crushed below it (a constraint, :func:`.forces.project_volume_floor`).
 
 The outer physics step is ``dt_outer`` (1 ms by default, the 1 kHz of the haptics literature); it is
 split into ``n_sub`` equal substeps chosen from the tissue's stability limit (see
@@ -34,8 +35,14 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, jaw_contacts, jaw_directions, plate_contacts
-from .forces import accumulate_volume_forces, accumulate_volume_forces_lanes, spring_loop, spring_loop_lanes
+from .contact import G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, floor_reactions, jaw_contacts, jaw_directions, plate_contacts
+from .forces import (
+    accumulate_volume_forces,
+    accumulate_volume_forces_lanes,
+    enforce_volume_floor,
+    spring_loop,
+    spring_loop_lanes,
+)
 from .records import SimModel, SimReadout, SimState
 
 
@@ -143,6 +150,9 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     ns = surface_nodes.shape[0]
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
+    floor_flags = np.empty(tets.shape[0], dtype=np.int8)  # tets below the volume floor (one tissue)
+    held = np.zeros((nl, n), dtype=np.int8)  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
+    react = np.zeros((nl, n, 3))  # per tissue: the volume floor's force through held and anchored nodes
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
     _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv)
@@ -191,7 +201,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             else:  # literal bounds: once LLVM inlines the call, the lane loops vanish for one tissue
                 _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed,
                               m.anchor_k, m.anchor_offset, x_rest, anchor_out)
-            # ---- 4. contacts, one tissue at a time (branchy, few nodes)
+            # ---- 4-5. contacts and the volume floor, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
                 t[b] += dt
@@ -206,9 +216,16 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 xb = x[:, :, lane]
                 vb = v[:, :, lane]
                 mb = meff[:, lane]
-                plate_contacts(b, xb, vb, mb, m, state, out, dt, avg, last_sub, res)
+                hb = held[lane]
+                for q in range(ns):
+                    hb[surface_nodes[q]] = 0
+                plate_contacts(b, xb, vb, mb, m, state, out, dt, avg, last_sub, res, hb)
                 if m.jaw_active:
-                    jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], dt, avg, last_sub, res, inv_sub)
+                    jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], dt, avg, last_sub, res, inv_sub, hb)
+                # the volume floor after the contacts: held nodes stay, their holders count its reactions
+                if m.vol_floor > 0.0 and enforce_volume_floor(xb, vb, mb, fixed, hb, tets, rest_volume, m.vol_floor, dt,
+                                                              floor_flags, react[lane]):
+                    floor_reactions(b, hb, react[lane], fixed, u[lane], out, state, avg, inv_sub, last_sub)
 
 
 @njit(cache=True, error_model="numpy")

@@ -39,6 +39,7 @@ class SimModel(NamedTuple):
     rest_volume: np.ndarray  # (T,) m^3
     kvol: np.ndarray  # (T,) Pa
     vol_threshold: float  # volume ratio below which the barrier acts
+    vol_floor: float  # smallest volume ratio a tet may keep (a constraint after the contacts; 0: off)
     # nodes
     mass: np.ndarray  # (N,) kg
     b0: np.ndarray  # (N,) N s/m nodal damping

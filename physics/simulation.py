@@ -296,6 +296,7 @@ class Simulation:
             cdash=tm.cdash, use_dashpot=self.use_dashpot, use_sls=self.use_sls, kv=tm.kv,
             tau=float(tm.params.relaxation_time_s),
             tets=tm.tets, rest_volume=tm.rest_volume, kvol=tm.kvol, vol_threshold=float(tm.volume_threshold),
+            vol_floor=float(tm.params.volume_floor),
             mass=tm.mass, b0=tm.b0, b1=tm.b1, fixed=tm.fixed, anchor_k=tm.anchor_k, anchor_offset=tm.anchor_offset,
             gravity=tm.gravity, surface_nodes=self.surface_nodes, node_area=self.node_area,
             jaw_active=gp is not None,

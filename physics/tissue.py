@@ -61,7 +61,11 @@ earlier, since they resolve the larger local strains), and the force curve drops
 stiffness to tets that lost more than half their volume: with k = E the same grasp keeps J >= 0.28, the
 medium sphere's force rises monotonically to 40 % compression, and below the threshold (everything up
 to ~20 % global compression) the model is the paper's pure MSD. The stability bound counts the barrier
-as if every tet were active.
+as if every tet were active. A 5 N pinch still crushes surface tets under the jaws through zero (J down to
+-0.25 coarse, -0.70 medium); a stiffer barrier costs substeps and releases its stored energy violently on
+a slip-off. The volume floor (``volume_floor``, off by default; :func:`.forces.project_volume_floor`) is an
+inelastic constraint instead: no substeps, no stored energy. It is not enough yet on the finer meshes (see
+physics/forces.py for what was measured).
 """
 
 from __future__ import annotations
@@ -73,7 +77,7 @@ from typing import Annotated, Literal
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from annotated_types import Gt, Le
+from annotated_types import Ge, Gt, Le, Lt
 
 from .config import ConfigError, NonNegative, Positive, Real, check_range, config_dataclass
 from .forces import accumulate_spring_forces, spring_energy, volume_energy
@@ -120,6 +124,10 @@ class TissueParams:
     volume_modulus_pa: NonNegative = 0.0
     #: J_c in (0, 1]: the barrier acts where V / V0 < J_c
     volume_threshold: Annotated[Real, Gt(0), Le(1)] = 0.5
+    #: volume floor J_f in [0, 1): no tet is crushed below this fraction of its rest volume; enforced in every
+    #: substep as an inelastic constraint before the contacts (physics/forces.py), so it stores no energy and
+    #: costs no substeps; 0 disables it (the pure MSD)
+    volume_floor: Annotated[Real, Ge(0), Lt(1)] = 0.0
     gravity_m_per_s2: tuple[Real, Real, Real] = (0.0, 0.0, -9.81)
 
 

@@ -22,9 +22,10 @@ POSITION_TOL_M = 1e-12
 
 def _pair(threads: int):
     scene = spleen_scene(resolution=60, anchor_stiffness_n_per_m=8.0, settle_s=0.5)
-    # the volume barrier from any volume loss (threshold 1): its kernel path runs on every squeezed tet
+    # the volume barrier from any volume loss (threshold 1): its kernel path runs on every squeezed tet; the
+    # volume floor at 0.95: its constraint, with nodes held by the jaws, runs on every tet squeezed by 5 %
     scene = dataclasses.replace(scene, model=dataclasses.replace(
-        scene.model, params=replace(scene.model.params, volume_threshold=1.0)))
+        scene.model, params=replace(scene.model.params, volume_threshold=1.0, volume_floor=0.95)))
     sims = []
     for backend in ("cpu", "cuda"):
         sim = scene.simulation(2, backend=backend, max_stiffness_scale=1.2, min_mass_scale=0.9)
@@ -45,6 +46,7 @@ def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
     scene, (cpu, gpu) = _pair(threads=4)  # 4 threads: the strided loops and barriers of a real block
     seen_stick = seen_slip = 0
     worst = 0.0
+    lowest = 1.0
     for k in range(12):  # 12 calls of 8 ms: close, pinch, then pull
         if k == 6:
             for sim in (cpu, gpu):
@@ -52,6 +54,7 @@ def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
         cpu.step(8)
         gpu.step(8)
         worst = max(worst, float(np.abs(cpu.x - gpu.x).max()))
+        lowest = min(lowest, float(cpu.min_volume_ratio().min()))
         np.testing.assert_array_equal(gpu.contact_state, cpu.contact_state)  # identical stick/slip decisions
         seen_stick += int((cpu.contact_state == 1).sum())
         seen_slip += int((cpu.contact_state == 2).sum())
@@ -59,6 +62,7 @@ def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
     assert worst <= POSITION_TOL_M
     assert cpu.pinch_force.min() > 0.2  # the jaws held the tissue
     assert cpu.min_volume_ratio().min() < 1.0 and cpu.model.kvol.max() > 0  # the barrier acted
+    assert 0.94 < lowest < 0.951, lowest  # the floor acted: tets were squeezed to 0.95 and held there
     for name in ("v", "fv", "dl_prev", "g_radius", "g_tip", "t"):
         np.testing.assert_allclose(getattr(gpu, name), getattr(cpu, name), rtol=0, atol=1e-9 * max(1.0, np.abs(getattr(cpu, name)).max()))
     for name in ("jaw_out", "anchor_out", "contact_force", "g_force"):  # the sensors read the same
