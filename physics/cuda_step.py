@@ -280,8 +280,9 @@ def _simulate_kernel(m, s, out, w, n_steps):
                             out.anchor_out[b, 1] += w.fa[b, i, 1]
                             out.anchor_out[b, 2] += w.fa[b, i, 2]
                 s.t[b] += dt
-                for q in range(m.surface_nodes.shape[0]):
-                    w.held[b, m.surface_nodes[q]] = 0
+                if m.vol_floor > 0.0:  # only the floor reads the holders
+                    for q in range(m.surface_nodes.shape[0]):
+                        w.held[b, m.surface_nodes[q]] = 0
                 if last_sub:
                     for q in range(m.surface_nodes.shape[0]):
                         i = m.surface_nodes[q]
@@ -298,16 +299,10 @@ def _simulate_kernel(m, s, out, w, n_steps):
                 for t in range(tid, m.tets.shape[0], nth):
                     w.floor_on[b, t] = 1 if _below_volume_floor(x[b], m.tets, m.rest_volume, m.vol_floor, t) else 0
                 cuda.syncthreads()
-                if tid == 0:
-                    acted = False
-                    for t in range(m.tets.shape[0]):
-                        if w.floor_on[b, t] != 0:
-                            acted = True
-                            break
-                    if acted:
-                        _project_volume_floor(x[b], v[b], w.meff[b], m.fixed, w.held[b], m.tets, m.rest_volume,
-                                              m.vol_floor, dt, w.floor_on[b], w.react[b])
-                        _floor_reactions(b, w.held[b], w.react[b], m.fixed, w.u[b], out, s, avg, inv_sub, last_sub)
+                if tid == 0:  # both skip what they need not touch (unflagged tets, nodes without a reaction)
+                    _project_volume_floor(x[b], v[b], w.meff[b], m.fixed, w.held[b], m.tets, m.rest_volume,
+                                          m.vol_floor, dt, w.floor_on[b], w.react[b])
+                    _floor_reactions(b, w.held[b], w.react[b], m.fixed, w.u[b], out, s, avg, inv_sub, last_sub)
                 cuda.syncthreads()
 
 

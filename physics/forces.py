@@ -410,8 +410,9 @@ def min_volume_ratios(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, 
 # substeps and stores the crushing energy, which a slip-off releases as a wave that inverts tets anyway.
 # The floor stores no energy and costs no substeps: at the end of every substep, every tet with J = V / V0
 # below J_f is restored to J_f by moving its nodes along dV/dx, weighted by their inverse effective masses
-# (momentum exact), with x and v changed together (x_new = x_old + dt v_new, as a contact does). The tets are corrected one after the
-# other (Gauss-Seidel: a later tet sees an earlier one's correction), in tet order, for FLOOR_PASSES passes.
+# (momentum exact), with x and v changed together (x_new = x_old + dt v_new, as a contact does). The tets
+# are corrected one after the other (Gauss-Seidel: a later tet sees an earlier one's correction), in tet
+# order, for FLOOR_PASSES passes.
 # It runs after the contacts, and the nodes a jaw or plate holds in this substep (and anchored nodes) do not
 # move in it: the rest of the tet moves, and the force that moves it comes through the held node from its
 # holder, which counts it in its readout (:func:`.contact.floor_reactions`).

@@ -217,8 +217,9 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 vb = v[:, :, lane]
                 mb = meff[:, lane]
                 hb = held[lane]
-                for q in range(ns):
-                    hb[surface_nodes[q]] = 0
+                if m.vol_floor > 0.0:  # only the floor reads the holders
+                    for q in range(ns):
+                        hb[surface_nodes[q]] = 0
                 plate_contacts(b, xb, vb, mb, m, state, out, dt, avg, last_sub, res, hb)
                 if m.jaw_active:
                     jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], dt, avg, last_sub, res, inv_sub, hb)

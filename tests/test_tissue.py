@@ -600,6 +600,8 @@ def test_forced_step_beyond_critical_dt_is_refused(sphere_coarse, compiled_kerne
         ("contact_calibration", "maybe"),
         ("stiffening", -1.0),
         ("damping_rate_per_s", float("nan")),
+        ("volume_floor", 1.0),
+        ("volume_floor", -0.1),
     ],
 )
 def test_bad_parameter_is_refused_naming_the_field(field, value):
