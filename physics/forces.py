@@ -454,6 +454,22 @@ def enforce_volume_floor(x, v, meff, fixed, held, tets, rest_volume, j_floor, dt
 
 
 @njit(cache=True, error_model="numpy")
+def flag_volume_floor_lanes(x, tets, rest_volume, j_floor, flagged, n_flagged) -> None:
+    """:func:`enforce_volume_floor`'s flag pass for L tissues at once (lane layout x (N,3,L)): flagged (T,L)
+    int8 and n_flagged (L,) int64 out. One pass over the tets across lanes (SIMD, as the barrier's), where a
+    pass per lane on the strided (N,3) view cost 0.75x the whole batched step (session 11)."""
+    nl = x.shape[2]
+    n_flagged[:] = 0
+    for t in range(tets.shape[0]):
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        vmin = j_floor * rest_volume[t]
+        for lane in range(nl):
+            below = _tet_edges_lane(x, a, b, c, d, lane)[9] < vmin
+            flagged[t, lane] = 1 if below else 0
+            n_flagged[lane] += 1 if below else 0
+
+
+@njit(cache=True, error_model="numpy")
 def project_volume_floor(
     x: np.ndarray,  # (N,3) positions of one tissue, m (modified)
     v: np.ndarray,  # (N,3) velocities, m/s (modified)

@@ -40,6 +40,8 @@ from .forces import (
     accumulate_volume_forces,
     accumulate_volume_forces_lanes,
     enforce_volume_floor,
+    flag_volume_floor_lanes,
+    project_volume_floor,
     spring_loop,
     spring_loop_lanes,
 )
@@ -150,7 +152,8 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     ns = surface_nodes.shape[0]
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
-    floor_flags = np.empty(tets.shape[0], dtype=np.int8)  # tets below the volume floor (one tissue)
+    floor_flags = np.empty((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the volume floor
+    n_floor = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the volume floor
     held = np.zeros((nl, n), dtype=np.int8)  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     react = np.zeros((nl, n, 3))  # per tissue: the volume floor's force through held and anchored nodes
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
@@ -224,9 +227,17 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 if m.jaw_active:
                     jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], dt, avg, last_sub, res, inv_sub, hb)
                 # the volume floor after the contacts: held nodes stay, their holders count its reactions
-                if m.vol_floor > 0.0 and enforce_volume_floor(xb, vb, mb, fixed, hb, tets, rest_volume, m.vol_floor, dt,
-                                                              floor_flags, react[lane]):
+                if m.vol_floor > 0.0 and not lanes and enforce_volume_floor(
+                        xb, vb, mb, fixed, hb, tets, rest_volume, m.vol_floor, dt, floor_flags[:, 0], react[lane]):
                     floor_reactions(b, hb, react[lane], fixed, u[lane], out, state, avg, inv_sub, last_sub)
+            if m.vol_floor > 0.0 and lanes:  # the same per tissue, with the flag pass across lanes
+                flag_volume_floor_lanes(x, tets, rest_volume, m.vol_floor, floor_flags, n_floor)
+                for lane in range(nl):
+                    if n_floor[lane] > 0:
+                        b = lane0 + lane
+                        project_volume_floor(x[:, :, lane], v[:, :, lane], meff[:, lane], fixed, held[lane], tets,
+                                             rest_volume, m.vol_floor, dt, floor_flags[:, lane], react[lane])
+                        floor_reactions(b, held[lane], react[lane], fixed, u[lane], out, state, avg, inv_sub, last_sub)
 
 
 @njit(cache=True, error_model="numpy")

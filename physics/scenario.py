@@ -19,7 +19,7 @@ from .config import ConfigError, builtin_config, from_dict, read_yaml
 from .grasper import GrasperParams, GrasperPose, reachable_radius
 from .mesh import TetMesh
 from .mesh_io import mesh_from_config
-from .simulation import RECORDED_SUBSTEP_SAFETY, Simulation
+from .simulation import SUBSTEP_SAFETY, Simulation
 from .tissue import TissueModel, TissueParams
 
 
@@ -65,13 +65,12 @@ def load_params(path: str | Path, section: str, cls):
 
 def settle(
     model: TissueModel, x0: np.ndarray | None = None, time_s: float = 6.0, dt: float = 1e-3,
-    safety: float = RECORDED_SUBSTEP_SAFETY,
+    safety: float = SUBSTEP_SAFETY,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(positions m, Maxwell forces N) after ``time_s`` of damped motion under gravity from ``x0`` (rest).
 
     A damped relaxation to equilibrium, which does not depend on the step: the settled spleen differs by
-    <= 3.4e-8 m (Maxwell forces by 4e-7 N) between ``safety`` 0.95 and 0.6 (measured). The recorded rule
-    keeps the scenes' start states those of every recorded result and trained policy."""
+    <= 3.4e-8 m (Maxwell forces by 4e-7 N) between ``safety`` 0.95 and 0.6 (measured)."""
     sim = Simulation(model, 1, dt=dt, safety=safety)
     if x0 is not None:
         sim.set_state(x0)

@@ -71,8 +71,8 @@ def _batch(value, batch: int, name: str, shape: tuple[int, ...] = ()) -> np.ndar
 SUBSTEP_SAFETY = 0.6
 #: where the kernel runs (Simulation(backend=...))
 BACKENDS = ("cpu", "cuda")
-#: the rule before session 7: the trained policies, the env (GraspLiftConfig.substep_safety) and the settled
-#: scene start states (scenario.settle) were made with it and keep it until the task is retrained
+#: the rule before session 7, which the env kept until its retraining in session 11; the kernel's golden records
+#: (tests/data/kernel_golden.npz) were made with it
 RECORDED_SUBSTEP_SAFETY = 0.95
 
 
