@@ -39,7 +39,6 @@ from .contact import G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, floor_reactions, jaw_c
 from .forces import (
     accumulate_volume_forces,
     accumulate_volume_forces_lanes,
-    enforce_volume_floor,
     flag_volume_floor_lanes,
     project_volume_floor,
     spring_loop,
@@ -154,6 +153,8 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     gain = m.tau / dt * (1.0 - decay)
     floor_flags = np.empty((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the volume floor
     n_floor = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the volume floor
+    vols = np.empty((tets.shape[0], nl))  # per tet and tissue: volume at the end of the last substep, m^3
+    vols_known = False  # vols holds the volumes at the current positions
     held = np.zeros((nl, n), dtype=np.int8)  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     react = np.zeros((nl, n, 3))  # per tissue: the volume floor's force through held and anchored nodes
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
@@ -192,9 +193,13 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             else:
                 spring_loop(x_one, v_one, edges, rest_length, k1, k2, dlc, cdash, ks[0], m.use_dashpot, m.use_sls, kv,
                             decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one, spring_scratch)
-            if kvol.shape[0] > 0:
-                if lanes:
+            if kvol.shape[0] > 0:  # (with the volumes of the floor's pass at the end of the last substep if known)
+                if lanes and vols_known:
+                    accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, m.vol_threshold, ks, f, tmp[0], vols)
+                elif lanes:
                     accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, m.vol_threshold, ks, f, tmp[0])
+                elif vols_known:
+                    accumulate_volume_forces(x_one, tets, rest_volume, kvol, m.vol_threshold, ks[0], f_one, vols[:, 0])
                 else:
                     accumulate_volume_forces(x_one, tets, rest_volume, kvol, m.vol_threshold, ks[0], f_one)
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
@@ -204,7 +209,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             else:  # literal bounds: once LLVM inlines the call, the lane loops vanish for one tissue
                 _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed,
                               m.anchor_k, m.anchor_offset, x_rest, anchor_out)
-            # ---- 4-5. contacts and the volume floor, one tissue at a time (branchy, few nodes)
+            # ---- 4. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
                 t[b] += dt
@@ -226,18 +231,17 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 plate_contacts(b, xb, vb, mb, m, state, out, dt, avg, last_sub, res, hb)
                 if m.jaw_active:
                     jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], dt, avg, last_sub, res, inv_sub, hb)
-                # the volume floor after the contacts: held nodes stay, their holders count its reactions
-                if m.vol_floor > 0.0 and not lanes and enforce_volume_floor(
-                        xb, vb, mb, fixed, hb, tets, rest_volume, m.vol_floor, dt, floor_flags[:, 0], react[lane]):
-                    floor_reactions(b, hb, react[lane], fixed, u[lane], out, state, avg, inv_sub, last_sub)
-            if m.vol_floor > 0.0 and lanes:  # the same per tissue, with the flag pass across lanes
-                flag_volume_floor_lanes(x, tets, rest_volume, m.vol_floor, floor_flags, n_floor)
+            # ---- 5. the volume floor after the contacts: held nodes stay, their holders count its reactions
+            if m.vol_floor > 0.0:
+                flag_volume_floor_lanes(x, tets, rest_volume, m.vol_floor, floor_flags, n_floor, vols)
+                vols_known = True
                 for lane in range(nl):
                     if n_floor[lane] > 0:
                         b = lane0 + lane
                         project_volume_floor(x[:, :, lane], v[:, :, lane], meff[:, lane], fixed, held[lane], tets,
                                              rest_volume, m.vol_floor, dt, floor_flags[:, lane], react[lane])
                         floor_reactions(b, held[lane], react[lane], fixed, u[lane], out, state, avg, inv_sub, last_sub)
+                        vols_known = False  # it moved nodes
 
 
 @njit(cache=True, error_model="numpy")
