@@ -8,13 +8,13 @@ Layout (after the measured prototype in the issue: one block per tissue, per-nod
 * nodes, one thread per node: the node *gathers* its springs' forces in edge order and then its tets'
   in tet order, the order in which the CPU kernel scatters them, so each node's force is the same sum,
   term by term (no atomics, no order-dependent rounding); then symplectic Euler with implicit damping;
-* contacts, thread 0 of the block: the surface nodes in the CPU's order (few nodes, branchy, and the
-  jaw readouts are sums in node order).
+* contacts (plates, then jaws), thread 0 of the block: the surface nodes in the CPU's order (few nodes,
+  branchy, and the jaw and plate readouts are sums in node order).
 
 The contact pass and the leaf functions (spring law, tet volume, per-node Coulomb contact, force loop)
 are the CPU kernel's own functions compiled for the GPU from their Python source (:func:`device_twin`),
 so a change there changes both backends; the spring and tet passes repeat the CPU loops' arithmetic.
-What runs on the GPU is limited to the grasper (no plates yet).
+The grasper and the plates (the compression experiments) run on the GPU alike.
 
 Under ``NUMBA_ENABLE_CUDASIM=1`` the kernel runs on the CPU in numba's CUDA simulator (slow: tests only);
 there the arithmetic is the CPU's bit for bit. On a GPU, fused multiply-adds round differently
@@ -62,11 +62,13 @@ _project_volume_floor = device_twin(
 _floor_reactions = device_twin(_contact.floor_reactions)
 _jaw_directions = device_twin(_contact.jaw_directions)
 _force_loop = device_twin(_integrator._force_loop)
+_resolve_node_contact = device_twin(_contact.resolve_node_contact)
 _jaw_contacts = device_twin(
     _contact.jaw_contacts,
     jaw_candidate=device_twin(_contact.jaw_candidate),
-    resolve_node_contact=device_twin(_contact.resolve_node_contact),
+    resolve_node_contact=_resolve_node_contact,
 )
+_plate_contacts = device_twin(_contact.plate_contacts, resolve_node_contact=_resolve_node_contact)
 
 
 class CudaScratch(NamedTuple):
@@ -141,6 +143,9 @@ def _simulate_kernel(m, s, out, w, n_steps):
             for c in range(9):
                 out.jaw_out[b, k, c] = 0.0
             out.anchor_out[b, k] = 0.0
+        for p in range(m.pl_normal.shape[0]):
+            for c in range(3):
+                out.plate_out[b, p, c] = 0.0
         _jaw_directions(s.g_axis[b], s.g_e1[b], w.u[b], w.tj[b])
     cuda.syncthreads()
     for step in range(n_steps):
@@ -290,6 +295,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
                         out.contact_force[b, i, 0] = 0.0
                         out.contact_force[b, i, 1] = 0.0
                         out.contact_force[b, i, 2] = 0.0
+                _plate_contacts(b, x[b], v[b], w.meff[b], m, s, out, dt, avg, last_sub, res, w.held[b])
                 if m.jaw_active:
                     _jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, w.u[b], w.tj[b], dt, avg, last_sub, res, inv_sub,
                                   w.held[b])
@@ -310,8 +316,6 @@ def cuda_simulate(model: SimModel, state: SimState, out: SimReadout, scratch: Cu
                   threads: int = THREADS_PER_BLOCK) -> None:
     """:func:`.integrator.simulate` on the GPU: records of device arrays (or host arrays: numba copies them
     in and out around the launch). One block of ``threads`` threads per tissue."""
-    if model.pl_normal.shape[0] > 0:
-        raise ValueError("the CUDA backend has no plates yet (compression experiments run on the CPU)")
     nb = state.x.shape[0]
     _simulate_kernel[nb, threads](model, state, out, scratch, n_steps)
 
