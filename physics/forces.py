@@ -432,10 +432,9 @@ def min_volume_ratios(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, 
 # * after the contacts with every node free: the correction's sideways kick on sticking nodes breaks stick
 #   and the grasp is lost at mu = 0.9;
 # * held nodes moving when the free ones can hardly change the volume: the same slips.
-# This version, J_f = 0.2 (at the env's former 2 substeps): smallest ratio over the 9 cases 0.178 coarse, 0.129 medium,
-# 0.071 fine (the fine
-# mesh's tets end substeps below J_f where one free node sits across a sliver face from held ones and
-# FLOOR_MAX_MOVE limits the correction, but none inverts).
+# This version, J_f = 0.2 (at the env's former 2 substeps): smallest ratio over the 9 cases 0.178 coarse,
+# 0.129 medium, 0.071 fine (the fine mesh's tets end substeps below J_f where one free node sits across a
+# sliver face from held ones and FLOOR_MAX_MOVE limits the correction, but none inverts).
 
 #: Gauss-Seidel passes of the volume floor per substep (tets that share nodes correct each other)
 FLOOR_PASSES = 2
