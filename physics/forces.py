@@ -476,6 +476,27 @@ def flag_volume_floor(x, tets, rest_volume, j_floor, flagged, vols) -> int:
 
 
 @njit(cache=True, error_model="numpy")
+def refresh_floor_volumes(x, tets, flagged, mark, vols) -> None:
+    """After :func:`project_volume_floor` moved nodes of the flagged tets of one tissue x (N,3): recompute
+    ``vols`` (T,) m^3 for every tet that shares a node with a flagged tet (only those nodes can have moved), so
+    that the next barrier pass can still reuse them. ``mark`` (N,) int8 scratch, zero on entry and on exit.
+    On the fine spleen the floor acts at the rigid anchors in every substep, and recomputing all volumes
+    there cost the barrier's whole pass (session 11)."""
+    nt = tets.shape[0]
+    for t in range(nt):
+        if flagged[t]:
+            for k in range(4):
+                mark[tets[t, k]] = 1
+    for t in range(nt):
+        if mark[tets[t, 0]] | mark[tets[t, 1]] | mark[tets[t, 2]] | mark[tets[t, 3]]:
+            vols[t] = _tet_edges(x, tets, t)[9]
+    for t in range(nt):
+        if flagged[t]:
+            for k in range(4):
+                mark[tets[t, k]] = 0
+
+
+@njit(cache=True, error_model="numpy")
 def flag_volume_floor_lanes(x, tets, rest_volume, j_floor, flagged, n_flagged, vols) -> None:
     """:func:`flag_volume_floor` for L tissues at once (lane layout x (N,3,L)): flagged (T,L) int8, n_flagged
     (L,) int64 and the volumes vols (T,L) m^3 out. One pass over the tets across lanes (SIMD, as the

@@ -42,6 +42,7 @@ from .forces import (
     flag_volume_floor,
     flag_volume_floor_lanes,
     project_volume_floor,
+    refresh_floor_volumes,
     spring_loop,
     spring_loop_lanes,
 )
@@ -159,6 +160,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     vols_one = vols.reshape(tets.shape[0] * nl)
     flags_one = floor_flags.reshape(tets.shape[0] * nl)
     vols_known = False  # vols holds the volumes at the current positions
+    mark = np.zeros(n, dtype=np.int8)  # scratch of refresh_floor_volumes
     held = np.zeros((nl, n), dtype=np.int8)  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     react = np.zeros((nl, n, 3))  # per tissue: the volume floor's force through held and anchored nodes
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
@@ -248,11 +250,13 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                         if lanes:
                             project_volume_floor(x[:, :, lane], v[:, :, lane], meff[:, lane], fixed, held[lane], tets,
                                                  rest_volume, m.vol_floor, dt, floor_flags[:, lane], react[lane])
+                            vols_known = False  # recomputed by the next barrier pass, across lanes (per lane and
+                            # strided, refresh_floor_volumes was slower than that when every lane needed it)
                         else:
                             project_volume_floor(x_one, v_one, meff[:, 0], fixed, held[0], tets, rest_volume,
                                                  m.vol_floor, dt, flags_one, react[0])
+                            refresh_floor_volumes(x_one, tets, flags_one, mark, vols_one)
                         floor_reactions(b, held[lane], react[lane], fixed, u[lane], out, state, avg, inv_sub, last_sub)
-                        vols_known = False  # it moved nodes
 
 
 @njit(cache=True, error_model="numpy")
