@@ -387,4 +387,3 @@ class CudaBatch:
         for name in fields:
             if name not in known:
                 raise ValueError(f"field {name!r} is not in the state or readout records; allowed: {sorted(known)}")
-

@@ -525,7 +525,7 @@ def project_volume_floor(
     rest_volume: np.ndarray,  # (T,) m^3
     j_floor: float,  # J_f: the smallest volume ratio a tet may keep
     dt: float,  # substep, s
-    flagged: np.ndarray,  # (T,) int8: 1 for the tets found below the floor (:func:`below_volume_floor`)
+    flagged: np.ndarray,  # (T,) int8: 1 for the tets found below the floor (:func:`flag_volume_floor`)
     react: np.ndarray,  # (N,3) N: the force through each held or anchored node is ADDED here
 ) -> None:
     """Restore every flagged tet to ``j_floor`` x its rest volume (see the comment above)."""

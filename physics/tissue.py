@@ -63,9 +63,9 @@ medium sphere's force rises monotonically to 40 % compression, and below the thr
 to ~20 % global compression) the model is the paper's pure MSD. The stability bound counts the barrier
 as if every tet were active. A 5 N pinch still crushes surface tets under the jaws through zero (J down to
 -0.25 coarse, -0.70 medium); a stiffer barrier costs substeps and releases its stored energy violently on
-a slip-off. The volume floor (``volume_floor``, off by default; :func:`.forces.project_volume_floor`) is an
-inelastic constraint instead: no substeps, no stored energy; at 0.2 the same pinch keeps J >= 0.07 on every
-spleen mesh (physics/forces.py has the numbers).
+a slip-off. The volume floor (``volume_floor``, 0.2 for the spleen; :func:`.forces.project_volume_floor`)
+is an inelastic constraint instead: no substeps, no stored energy; at 0.2 the same pinch keeps J >= 0.07
+on every spleen mesh (physics/forces.py has the numbers).
 """
 
 from __future__ import annotations
@@ -125,8 +125,8 @@ class TissueParams:
     #: J_c in (0, 1]: the barrier acts where V / V0 < J_c
     volume_threshold: Annotated[Real, Gt(0), Le(1)] = 0.5
     #: volume floor J_f in [0, 1): no tet is crushed below this fraction of its rest volume; enforced in every
-    #: substep as an inelastic constraint before the contacts (physics/forces.py), so it stores no energy and
-    #: costs no substeps; 0 disables it (the pure MSD)
+    #: substep as an inelastic constraint after the contacts (physics/forces.py), so it stores no energy and
+    #: costs no substeps; 0 disables it (the pure MSD; configs/tissue/spleen.yaml sets 0.2)
     volume_floor: Annotated[Real, Ge(0), Lt(1)] = 0.0
     gravity_m_per_s2: tuple[Real, Real, Real] = (0.0, 0.0, -9.81)
 
