@@ -20,6 +20,7 @@ from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml, to_dict,
 )
 from ..physics.contact import J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TZ
+from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.simulation import SUBSTEP_SAFETY
 
@@ -214,6 +215,26 @@ def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     return v * math.cos(angle) + np.cross(axis, v) * math.sin(angle) + axis * (axis @ v) * (1 - math.cos(angle))
 
 
+def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, tilt_deg: float,
+                   azimuth_deg: float) -> GrasperPose:
+    """The grasp pose of one episode: ``pose`` moved by the episode's random draws (``offset_dir`` and
+    ``tilt_axis``: 3 standard normals each; ``offset_r`` in [0, 1]; ``tilt`` and ``azimuth`` in [-1, 1]).
+    The tip moves up to ``offset_m`` normal to the axis (uniform in a disc's ball), the axis tilts up to
+    ``tilt_deg`` about a random normal, and the jaws turn up to ``azimuth_deg`` about the new axis."""
+    a = pose.axis
+    # offset: uniform in a ball of radius `offset_m`, normal to the axis
+    d = draws["offset_dir"] - a * (draws["offset_dir"] @ a)
+    d = d / (np.linalg.norm(d) + 1e-12)
+    tip = pose.tip + offset_m * draws["offset_r"] * d
+    t_axis = np.cross(a, draws["tilt_axis"])
+    t_axis = t_axis / (np.linalg.norm(t_axis) + 1e-12)
+    ang = math.radians(tilt_deg) * draws["tilt"]
+    axis = _rotate(a, t_axis, ang)
+    e1 = _rotate(pose.e1, t_axis, ang)
+    e1 = _rotate(e1, axis, math.radians(azimuth_deg) * draws["azimuth"])
+    return GrasperPose(tip, axis, e1)
+
+
 class GraspLiftCore:
     """Batched GraspLift dynamics, observations and rewards. Arrays in, arrays out."""
 
@@ -327,22 +348,10 @@ class GraspLiftCore:
         azi = float(options.get("pose_azimuth_deg", rnd.pose_azimuth_deg))
         check_range("options['pose_azimuth_deg']", azi, 0.0, 60.0)
 
-        pose = self.scene.pose
-        a = pose.axis
-        # offset: uniform in a ball of radius `off`, normal to the axis
-        d = draws["offset_dir"] - a * (draws["offset_dir"] @ a)
-        d = d / (np.linalg.norm(d) + 1e-12)
-        tip = pose.tip + off * draws["offset_r"] * d
-        t_axis = np.cross(a, draws["tilt_axis"])
-        t_axis = t_axis / (np.linalg.norm(t_axis) + 1e-12)
-        ang = math.radians(tilt) * draws["tilt"]
-        axis = _rotate(a, t_axis, ang)
-        e1 = _rotate(pose.e1, t_axis, ang)
-        e1 = _rotate(e1, axis, math.radians(azi) * draws["azimuth"])
-        from ..physics.grasper import GrasperPose
-
+        pose = perturbed_pose(self.scene.pose, draws, off, tilt, azi)
         self.scene.reset(self.sim, index)
-        self.sim.set_grasper_pose(GrasperPose(tip, axis, e1), index)
+        self.sim.set_grasper_pose(pose, index)
+        tip = pose.tip
         self.sim.g_radius[index] = self.start_radius
         self.sim.set_friction(mu, mu_k, index)
         self.sim.set_scales(ks, ms, index)
