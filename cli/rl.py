@@ -70,9 +70,73 @@ def _runner(args: argparse.Namespace, default_workers: int | None = None):
 # ------------------------------------------------------------------------------------------------
 
 
+def _cmd_train_torch(args: argparse.Namespace) -> int:
+    """``train --learner rsl`` (the default of ``--backend cuda``): rsl-rl's PPO on the batched core."""
+    from ..physics.config import builtin_config, from_dict, read_yaml
+
+    for flag, given in (("--algo", args.algo), ("--total-timesteps", args.total_timesteps), ("--resume", args.resume)):
+        if given is not None:
+            raise _usage(f"{flag} is an option of the SB3 learner; the torch PPO's run length is 'iterations' in its "
+                         "config (configs/train/rsl_ppo.yaml)")
+    if _runner_asked(args):
+        raise _usage("--ray, --address and --workers run SB3 seeds in parallel; the torch PPO runs its seeds one "
+                     "after the other on the one GPU")
+    if args.seed is not None and args.seeds is not None:
+        raise _usage("give either --seed or --seeds, not both")
+    if args.n_envs is not None and args.n_envs < 1:
+        raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
+    try:
+        from ..agents.torch_ppo import TorchPPOConfig, _rsl, train_torch
+
+        _rsl()
+    except ImportError as exc:
+        raise _missing_module("train --learner rsl", exc) from None
+    path = args.config or builtin_config("train/rsl_ppo.yaml")
+    data = read_yaml(path)
+    data["backend"] = args.backend
+    if args.n_envs is not None:
+        data["num_envs"] = args.n_envs
+    config = from_dict(TorchPPOConfig, data, where=Path(path).name)
+    if config.backend == "cuda":
+        from numba import cuda
+
+        if not cuda.is_available():
+            raise _usage("--backend cuda: no CUDA GPU found (numba.cuda.is_available() is False); run on a machine "
+                         "with an NVIDIA GPU and the gpu extra, or set NUMBA_ENABLE_CUDASIM=1 (numba's simulator: "
+                         "slow, for tests)")
+    if args.seeds is None:
+        seeds = [config.seed if args.seed is None else args.seed]
+    else:
+        from ..agents.seeds import parse_seeds
+
+        seeds = parse_seeds(args.seeds)
+    results = []
+    for seed in seeds:
+        run = from_dict(TorchPPOConfig, {**data, "seed": seed}, where=Path(path).name)
+        out = args.out if args.seeds is None else args.out / f"seed_{seed}"
+        results.append(train_torch(run, out, progress=not args.quiet))
+    if args.seeds is None:
+        print(json.dumps(results[0], indent=2))
+        return 0
+    from ..physics.config import atomic_write
+
+    success = [r.get("validation_success", float("nan")) for r in results]
+    report = {"seeds": seeds, "per_seed": results, "validation_success_mean": float(sum(success) / len(success)),
+              "validation_success_min": float(min(success)), "train_s": [r["train_s"] for r in results]}
+    atomic_write(args.out / "seeds.json", lambda p: p.write_text(json.dumps(report, indent=2)))
+    print(json.dumps({k: v for k, v in report.items() if k != "per_seed"}, indent=2))
+    return 0
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from ..physics.config import builtin_config, from_dict, read_yaml, to_dict
     from ..agents.models import TrainConfig
+
+    learner = args.learner or ("rsl" if args.backend == "cuda" else "sb3")
+    if learner == "rsl":
+        return _cmd_train_torch(args)
+    if args.backend == "cuda":
+        raise _usage("--backend cuda trains with the torch-native PPO (--learner rsl); SB3 steps host arrays")
 
     try:
         from ..agents.seeds import parse_seeds, run_seeds
@@ -230,6 +294,12 @@ def add_rl_commands(sub) -> None:
     t.add_argument("--out", type=Path, default=Path("logs") / "train", help="output folder (default logs/train)")
     t.add_argument("--resume", type=Path, default=None, help="continue the run saved in this folder")
     t.add_argument("--quiet", action="store_true", help="no progress output")
+    t.add_argument("--backend", choices=["cpu", "cuda"], default="cpu",
+                   help="where the task runs: cpu (numba) or cuda (the whole agent step on the GPU; trains with "
+                        "--learner rsl; pip install 'msdgrasp[gpu]')")
+    t.add_argument("--learner", choices=["sb3", "rsl"], default=None,
+                   help="sb3 (Stable-Baselines3, the default on cpu) or rsl (rsl-rl's torch-native PPO, the default "
+                        "on cuda; config configs/train/rsl_ppo.yaml)")
     t.set_defaults(func=_cmd_train)
 
     sw = sub.add_parser("sweep", help="hyper-parameter sweep: a grid of training configs, each over several seeds")

@@ -164,3 +164,28 @@ def test_gpu_task_input_errors_name_the_field_and_the_range():
         gpu.step(np.zeros((3, 2)))
     with pytest.raises(ConfigError, match=r"unknown field\(s\) \['obz'\]"):
         gpu.download("obz")
+
+
+def test_the_torch_ppo_trains_on_the_gpu_task_and_reads_its_device_arrays(tmp_path):
+    import torch
+
+    from msdgrasp.agents.torch_ppo import TorchPPOConfig, make_torch_env, train_torch
+    from msdgrasp.physics.config import to_dict
+
+    data = to_dict(TorchPPOConfig())
+    data.update(backend="cuda", num_envs=2, iterations=1, steps_per_env=3, validation_episodes=0)
+    data["env"].update(resolution=60, physics_steps_per_action=2, time_limit_s=0.004)  # 2 steps: an autoreset
+    config = from_dict(TorchPPOConfig, data)
+    summary = train_torch(config, tmp_path, progress=False)
+    assert summary["backend"] == "cuda" and summary["agent_steps"] == 6 and (tmp_path / "policy.pt").is_file()
+    # the adapter hands over the GPU core's own arrays (views on a GPU; copies in the simulator)
+    gpu = _gpu(config.env, num_envs=2, seed=1)
+    env = make_torch_env(gpu, "cpu")
+    for k in range(2):
+        obs, rew, dones, extras = env.step(torch.tensor([[0.5, 0.0], [-0.5, 1.0]]))
+        np.testing.assert_array_equal(obs["critic"].numpy(), gpu.state.obs.copy_to_host())
+        np.testing.assert_array_equal(rew.numpy(), gpu.state.reward.copy_to_host().astype(np.float32))
+        np.testing.assert_array_equal(extras["time_outs"].numpy(), gpu.state.truncated.copy_to_host())
+    assert dones.tolist() == [1, 1] and set(extras["log"]) == {"/episode/success", "/episode/peak_pinch_N",
+                                                                "/episode/slip_mm"}
+    np.testing.assert_array_equal(gpu.download("episode_length")["episode_length"], [2, 2])

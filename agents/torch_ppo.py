@@ -1,0 +1,281 @@
+"""Torch-native PPO (rsl-rl-lib, the learner of Isaac Lab) on a batched GraspLift core: the GPU path.
+
+Stable-Baselines3 steps a VecEnv of NumPy arrays and moves every batch through the host; at thousands of
+GPU envs per step that per-step overhead is what a torch-native learner avoids. Here rsl-rl's
+``OnPolicyRunner`` drives :class:`GraspLiftTorchEnv`, which wraps either core:
+
+* :class:`~msdgrasp.envs.cuda_core.CudaGraspLiftCore` (``backend: cuda``): actions go to the GPU task as
+  CUDA tensors and observations, rewards and flags come back as zero-copy views of its device arrays
+  (numba's ``__cuda_array_interface__``); nothing crosses to the host but the episode statistics of the
+  log (one small copy per step where an episode ended);
+* :class:`~msdgrasp.envs.core.GraspLiftCore` (``backend: cpu``): the same learner on the CPU core (NumPy in,
+  torch out), so the learner is testable and comparable without a GPU.
+
+The actor sees the task observation; the critic also sees the privileged entries (mu, scales, node
+displacements), as in the SB3 training's asymmetric critic. The trained actor is exported as TorchScript
+(``policy.pt``), which :class:`TorchScriptPolicy` runs in ``msdgrasp evaluate``.
+
+Needs the ``gpu`` extra (``pip install 'msdgrasp[gpu]'``: numba-cuda and rsl-rl-lib).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import field
+from pathlib import Path
+from typing import Annotated, Any, Literal, Sequence
+
+import numpy as np
+from annotated_types import Ge, Le
+
+from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
+from ..physics.config import (
+    Bool, ConfigError, Int, NonNegative, Positive, Real, atomic_write, config_dataclass, from_dict, read_yaml, to_dict,
+)
+from .models import TrainConfig
+from .networks import actor_mask
+
+Unit = Annotated[Real, Ge(0), Le(1)]
+
+
+@config_dataclass
+class TorchPPOConfig:
+    """One torch-native PPO run (``configs/train/rsl_ppo.yaml`` spells out the defaults)."""
+
+    #: where the task runs: "cuda" (CudaGraspLiftCore: the whole step on the GPU) or "cpu" (GraspLiftCore)
+    backend: Literal["cpu", "cuda"] = "cuda"
+    num_envs: Annotated[Int, Ge(1)] = 4096
+    seed: Annotated[Int, Ge(0)] = 0
+    #: PPO iterations (each: steps_per_env x num_envs agent steps, then the update)
+    iterations: Annotated[Int, Ge(1)] = 150
+    steps_per_env: Annotated[Int, Ge(1)] = 32
+    hidden_dims: tuple[Annotated[Int, Ge(1)], ...] = (64, 64)
+    activation: Literal["elu", "relu", "tanh"] = "elu"
+    #: running mean / std normalisation of the observations (inside the exported policy)
+    obs_normalization: Bool = True
+    init_std: Positive = 0.5
+    learning_rate: Positive = 1e-3
+    #: "adaptive": the learning rate follows the KL to desired_kl (rsl-rl); "fixed"
+    schedule: Literal["adaptive", "fixed"] = "adaptive"
+    desired_kl: Positive = 0.01
+    epochs: Annotated[Int, Ge(1)] = 5
+    mini_batches: Annotated[Int, Ge(1)] = 4
+    gamma: Unit = 0.999
+    lam: Unit = 0.95
+    clip: Positive = 0.2
+    entropy_coef: NonNegative = 0.0
+    value_loss_coef: NonNegative = 1.0
+    max_grad_norm: Positive = 1.0
+    #: the critic also sees the privileged observation (env.privileged_obs must be on); the actor does not
+    asymmetric_critic: Bool = True
+    #: validation of the exported policy on the CPU env at the end: episodes per mu (0: none)
+    validation_episodes: Annotated[Int, Ge(0)] = 10
+    validation_mu: tuple[Annotated[Real, Ge(0)], ...] = (0.2, 0.3, 0.5, 0.7, 0.9)
+    #: the task: the SB3 training's (TrainConfig.env), so both learners train and are judged on the same task
+    env: GraspLiftConfig = field(default_factory=lambda: TrainConfig().env)
+
+    def __post_init__(self) -> None:
+        if self.asymmetric_critic and not self.env.privileged_obs:
+            raise ConfigError("asymmetric_critic needs env.privileged_obs: true (the critic's extra entries)")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "TorchPPOConfig":
+        return from_dict(cls, read_yaml(path), where=Path(path).name)
+
+    def runner_cfg(self) -> dict[str, Any]:
+        """rsl-rl's runner configuration of this run."""
+        groups = {"actor": ["policy"], "critic": ["critic"] if self.asymmetric_critic else ["policy"]}
+        mlp = {"class_name": "MLPModel", "hidden_dims": list(self.hidden_dims), "activation": self.activation,
+               "obs_normalization": self.obs_normalization}
+        return {
+            "num_steps_per_env": self.steps_per_env, "save_interval": max(self.iterations, 1), "obs_groups": groups,
+            "check_for_nan": True, "multi_gpu": None, "logger": "tensorboard",
+            "actor": {**mlp, "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": self.init_std,
+                                                  "std_type": "log"}},
+            "critic": mlp,
+            "algorithm": {
+                "class_name": "PPO", "num_learning_epochs": self.epochs, "num_mini_batches": self.mini_batches,
+                "clip_param": self.clip, "gamma": self.gamma, "lam": self.lam, "value_loss_coef": self.value_loss_coef,
+                "entropy_coef": self.entropy_coef, "learning_rate": self.learning_rate,
+                "max_grad_norm": self.max_grad_norm, "schedule": self.schedule, "desired_kl": self.desired_kl,
+            },
+        }
+
+
+def _rsl():
+    try:
+        import rsl_rl  # noqa: F401
+        from rsl_rl.env import VecEnv
+    except ImportError as exc:
+        raise ImportError(f"{exc}; the torch-native PPO needs rsl-rl-lib: pip install 'msdgrasp[gpu]'") from None
+    return VecEnv
+
+
+def actor_columns(config: GraspLiftConfig, frame_dim: int) -> np.ndarray:
+    """Indices of the observation entries the actor sees (the task entries of every frame)."""
+    return np.flatnonzero(actor_mask(len(OBS_NAMES), frame_dim, config.obs_history))
+
+
+def make_torch_env(core, device: str, seed: int = 0):
+    """The rsl-rl VecEnv of a core (:class:`GraspLiftTorchEnv`), every env reset (CPU env i seeded seed + i)."""
+    VecEnv = _rsl()
+    import torch
+    from tensordict import TensorDict
+
+    class GraspLiftTorchEnv(VecEnv):
+        """rsl-rl's vectorised-env interface over a GraspLift core (see the module docstring).
+
+        ``step(actions)`` returns observations ({"policy": actor entries, "critic": all}), rewards, dones
+        and extras with ``time_outs`` (truncations, which PPO bootstraps) and ``log`` (success rate, peak
+        pinch and slip of the episodes that ended)."""
+
+        def __init__(self) -> None:
+            self.core = core
+            self.num_envs = core.num_envs
+            self.num_actions = 2
+            self.max_episode_length = core.config.max_episode_steps
+            self.device = device
+            self.cfg = to_dict(core.config)
+            self.gpu = hasattr(core, "physics")
+            self.columns = torch.as_tensor(actor_columns(core.config, core.host.frame_dim if self.gpu else core.frame_dim),
+                                           device=device)
+            if self.gpu:
+                core.reset()
+            else:
+                for i in range(self.num_envs):
+                    core.seed(i, seed + i)
+                    core.reset(i)
+            self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=device)
+
+        def _tensor(self, array) -> torch.Tensor:
+            if self.gpu:
+                from ..envs.cuda_core import as_torch
+
+                return as_torch(array).to(self.device)
+            return torch.as_tensor(np.asarray(array), device=self.device)
+
+        def _observations(self, obs) -> TensorDict:
+            full = self._tensor(obs).float()
+            return TensorDict({"policy": full[:, self.columns], "critic": full}, batch_size=[self.num_envs],
+                              device=self.device)
+
+        def get_observations(self) -> TensorDict:
+            return self._observations(self.core.state.obs if self.gpu else self.core.obs)
+
+        def step(self, actions: torch.Tensor):
+            if self.gpu:
+                obs, reward, terminated, truncated = self.core.step(actions.detach().to(torch.float32).contiguous())
+                term, trunc = self._tensor(terminated), self._tensor(truncated)
+                done = term | trunc
+                ended = {}
+                if bool(done.any()):
+                    st = self.core.state
+                    ended = {"success": self._tensor(st.is_success)[done].float(),
+                             "peak_pinch_N": self._tensor(st.episode_peak_pinch)[done].float(),
+                             "slip_mm": 1e3 * self._tensor(st.episode_slip)[done].float()}
+            else:
+                obs, reward, term_np, trunc_np, info = self.core.step(actions.detach().cpu().numpy())
+                done_np = term_np | trunc_np
+                ended = {}
+                if done_np.any():
+                    ended = {"success": torch.as_tensor(info["is_success"][done_np], dtype=torch.float32),
+                             "peak_pinch_N": torch.as_tensor(info["peak_pinch_N"][done_np], dtype=torch.float32),
+                             "slip_mm": torch.as_tensor(1e3 * info["slip_distance_m"][done_np], dtype=torch.float32)}
+                    for i in np.flatnonzero(done_np):
+                        self.core.reset(int(i))
+                    obs = self.core.obs
+                term, trunc = torch.as_tensor(term_np, device=self.device), torch.as_tensor(trunc_np, device=self.device)
+                done = term | trunc
+            self.episode_length_buf += 1
+            self.episode_length_buf[done] = 0
+            extras = {"time_outs": trunc, "log": {f"/episode/{k}": v.mean() for k, v in ended.items()}}
+            return self._observations(obs), self._tensor(reward).float(), done.long(), extras
+
+    return GraspLiftTorchEnv()
+
+
+class TorchScriptPolicy:
+    """A policy exported by :func:`train_torch` (``policy.pt``: TorchScript of the actor, deterministic), in
+    the evaluation's policy interface."""
+
+    def __init__(self, path: str | Path, name: str | None = None) -> None:
+        import torch
+
+        path = Path(path)
+        meta_path = path.with_suffix(".json")
+        if not meta_path.is_file():
+            raise ConfigError(f"policy {str(path)!r}: no {meta_path.name} beside it (the run's observation layout)")
+        meta = json.loads(meta_path.read_text())
+        self.module = torch.jit.load(str(path), map_location="cpu")
+        self.columns = np.asarray(meta["actor_columns"], dtype=np.int64)
+        self.name = name or meta.get("name", path.stem)
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        import torch
+
+        x = torch.as_tensor(np.atleast_2d(obs)[:, self.columns], dtype=torch.float32)
+        with torch.no_grad():
+            return self.module(x).numpy().astype(np.float32)
+
+
+def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = True) -> dict[str, Any]:
+    """Train with rsl-rl's PPO; write ``policy.pt`` (+ ``policy.json``), ``summary.json`` and tensorboard logs.
+
+    Returns the summary: training time, agent steps, and (``validation_episodes`` > 0) the exported
+    policy's success and peak pinch per mu on the CPU env, seeded apart from ``msdgrasp evaluate``'s."""
+    _rsl()
+    import torch
+    from rsl_rl.runners import OnPolicyRunner
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(config.seed)
+    np.random.seed(config.seed)
+    if config.backend == "cuda":
+        from ..envs.cuda_core import CudaGraspLiftCore
+
+        core = CudaGraspLiftCore(config.env, config.num_envs, seed=config.seed)
+        device = "cuda" if torch.cuda.is_available() else "cpu"  # (the simulator: torch on the CPU)
+        frame_dim = core.host.frame_dim
+    else:
+        core = GraspLiftCore(config.env, config.num_envs)
+        device = "cpu"
+        frame_dim = core.frame_dim
+    env = make_torch_env(core, device, config.seed)
+    runner = OnPolicyRunner(env, config.runner_cfg(), log_dir=str(out / "tb"), device=device)
+    if not progress:
+        runner.logger.log = lambda **kwargs: None  # type: ignore[method-assign]
+    t0 = time.perf_counter()
+    runner.learn(config.iterations)
+    train_s = time.perf_counter() - t0
+    steps = config.iterations * config.steps_per_env * config.num_envs
+
+    def export(path: Path) -> None:
+        runner.export_policy_to_jit(str(path.parent), path.name)
+
+    atomic_write(out / "policy.pt", export)
+    meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": actor_columns(config.env, frame_dim).tolist(),
+            "config": to_dict(config)}
+    atomic_write(out / "policy.json", lambda p: p.write_text(json.dumps(meta, indent=2)))
+    summary: dict[str, Any] = {"backend": config.backend, "device": device, "num_envs": config.num_envs,
+                               "seed": config.seed, "iterations": config.iterations, "agent_steps": steps,
+                               "train_s": train_s, "agent_steps_per_s": steps / train_s, "validation": []}
+    if config.validation_episodes > 0:
+        from .evaluation import evaluate_policy
+
+        policy = TorchScriptPolicy(out / "policy.pt")
+        rows = evaluate_policy(policy, config.validation_mu, config.validation_episodes, config.env,
+                               seed=1_000_000 + config.seed)
+        summary["validation"] = [{"mu": r["mu"], "success_rate": r["success_rate"],
+                                  "mean_peak_pinch_N": r["mean_peak_pinch_N"]} for r in rows]
+        summary["validation_success"] = float(np.mean([r["success_rate"] for r in rows]))
+    for v in summary.values():  # (a summary is JSON: no NaN)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise RuntimeError(f"non-finite number in the training summary: {summary}")
+    atomic_write(out / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    return summary

@@ -1,0 +1,96 @@
+"""The torch-native PPO (rsl-rl-lib, agents/torch_ppo.py) on the CPU core: its env adapter, a short run, the
+exported policy and the command line. (The same learner on the GPU task: tests/test_cuda_task.py.)"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from msdgrasp.agents.models import TrainConfig
+from msdgrasp.agents.torch_ppo import TorchPPOConfig, TorchScriptPolicy, actor_columns, make_torch_env, train_torch
+from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
+from msdgrasp.physics.config import builtin_config, from_dict, read_yaml, to_dict
+
+
+def test_the_shipped_config_is_the_defaults_and_trains_the_sb3_task():
+    assert TorchPPOConfig.load(builtin_config("train/rsl_ppo.yaml")) == TorchPPOConfig()
+    assert TorchPPOConfig().env == TrainConfig().env
+    assert from_dict(GraspLiftConfig, read_yaml(builtin_config("train/rsl_ppo.yaml"))["env"]) == \
+        from_dict(GraspLiftConfig, read_yaml(builtin_config("train/ppo.yaml"))["env"])
+
+
+def _small_task(**changes) -> GraspLiftConfig:
+    return from_dict(GraspLiftConfig, {**to_dict(TrainConfig().env), "time_limit_s": 0.2, **changes})  # 7 steps
+
+
+def test_the_adapter_hands_rsl_rl_the_core_s_steps_with_time_outs_and_episode_logs():
+    config = _small_task()
+    env = make_torch_env(GraspLiftCore(config, 3), "cpu", seed=5)
+    reference = GraspLiftCore(config, 3)
+    for i in range(3):
+        reference.seed(i, 5 + i)
+        reference.reset(i)
+    obs = env.get_observations()
+    cols = actor_columns(config, reference.frame_dim)
+    assert len(cols) == len(OBS_NAMES) and obs["critic"].shape == (3, reference.obs_dim)  # actor: no privileged entry
+    np.testing.assert_array_equal(obs["policy"].numpy(), reference.obs[:, cols].astype(np.float32))
+    actions = np.array([[0.2, -0.5], [1.0, 1.0], [-1.0, 0.0]], dtype=np.float32)
+    for k in range(config.max_episode_steps):
+        obs, rew, dones, extras = env.step(torch.as_tensor(actions))
+        o_ref, r_ref, term, trunc, info = reference.step(actions)
+        np.testing.assert_array_equal(rew.numpy(), r_ref.astype(np.float32))
+        np.testing.assert_array_equal(dones.numpy().astype(bool), term | trunc)
+        np.testing.assert_array_equal(extras["time_outs"].numpy(), trunc)
+        if not (term | trunc).any():
+            np.testing.assert_array_equal(obs["critic"].numpy(), o_ref)
+            assert extras["log"] == {}
+    assert (term | trunc).all() and trunc.any()
+    ended = term | trunc
+    assert float(extras["log"]["/episode/success"]) == pytest.approx(info["is_success"][ended].mean())
+    assert float(extras["log"]["/episode/peak_pinch_N"]) == pytest.approx(info["peak_pinch_N"][ended].mean(), rel=1e-6)
+    # the ended envs were reset: their observation is a new episode's first (time fraction 0)
+    assert np.all(obs["critic"].numpy()[:, OBS_NAMES.index("time_fraction")] == 0.0)
+    assert env.episode_length_buf.tolist() == [0, 0, 0]
+
+
+def test_a_short_cpu_run_exports_a_policy_that_acts_as_the_trained_actor(tmp_path):
+    data = to_dict(TorchPPOConfig())
+    data.update(backend="cpu", num_envs=8, iterations=2, steps_per_env=8, validation_episodes=2, validation_mu=[0.5])
+    config = from_dict(TorchPPOConfig, data)
+    summary = train_torch(config, tmp_path, progress=False)
+    assert summary["agent_steps"] == 2 * 8 * 8 and summary["train_s"] > 0
+    row, = summary["validation"]
+    assert row["mu"] == 0.5 and 0.0 <= row["success_rate"] <= 1.0 and row["mean_peak_pinch_N"] >= 0.0
+    assert json.loads((tmp_path / "summary.json").read_text()) == summary
+    policy = TorchScriptPolicy(tmp_path / "policy.pt")
+    core = GraspLiftCore(config.env, 4)
+    for i in range(4):
+        core.seed(i, i)
+        core.reset(i)
+    a = policy.act(core.obs)
+    assert a.shape == (4, 2) and np.all(np.isfinite(a))
+    # the policy reads only the actor's entries: changing the privileged ones changes nothing
+    perturbed = core.obs.copy()
+    perturbed[:, len(OBS_NAMES):] += 1.0
+    np.testing.assert_array_equal(policy.act(perturbed), a)
+    perturbed[:, 4] += 1.0  # a force reading does
+    assert not np.array_equal(policy.act(perturbed), a)
+
+
+def test_the_command_line_refuses_sb3_options_for_the_torch_learner(tmp_path):
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "msdgrasp.cli.main", "train", *args, "--out", str(tmp_path / "o")],
+                              capture_output=True, text=True)
+
+    r = run("--learner", "rsl", "--total-timesteps", "10")
+    assert r.returncode == 2 and "--total-timesteps is an option of the SB3 learner" in r.stderr
+    r = run("--backend", "cuda", "--learner", "sb3")
+    assert r.returncode == 2 and "--backend cuda trains with the torch-native PPO" in r.stderr
+    r = run("--learner", "rsl", "--n-envs", "0")
+    assert r.returncode == 2 and "--n-envs must be >= 1, got 0" in r.stderr
+    assert not (tmp_path / "o").exists()
