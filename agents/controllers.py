@@ -17,6 +17,7 @@ A policy maps observations to actions for a batch of episodes::
 from __future__ import annotations
 
 import functools
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,6 +25,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..envs.core import GraspLiftConfig, pinch_action
+from ..physics.config import ConfigError
 from .models import load_model, model_train_config
 
 # observation layout (see GraspLiftEnv's docstring); a stacked history ends with the current frame
@@ -228,6 +230,34 @@ class ModelPolicy:
         return np.asarray(action, dtype=np.float32)
 
 
+class TorchScriptPolicy:
+    """A policy exported by the torch-native PPO (:func:`.torch_ppo.train_torch`): ``policy.pt``, TorchScript of
+    the actor (deterministic, observation normaliser inside), with ``policy.json`` beside it (the actor's
+    observation columns and the training config)."""
+
+    def __init__(self, path: str | Path, name: str | None = None) -> None:
+        import torch
+
+        path = Path(path)
+        meta_path = path.with_suffix(".json")
+        if not meta_path.is_file():
+            raise ConfigError(f"policy {str(path)!r}: no {meta_path.name} beside it (the run's observation layout)")
+        meta = json.loads(meta_path.read_text())
+        self.module = torch.jit.load(str(path), map_location="cpu")
+        self.columns = np.asarray(meta["actor_columns"], dtype=np.int64)
+        self.name = name or meta.get("name", path.stem)
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        import torch
+
+        x = torch.as_tensor(np.atleast_2d(obs)[:, self.columns], dtype=torch.float32)
+        with torch.no_grad():
+            return self.module(x).numpy().astype(np.float32)
+
+
 class ConstantPolicy:
     """The same action every step: ``zero`` (action 0: in the default force/travel mode a 2.5 N set-point
     and a 30 mm travel set-point from the first step) or ``idle`` (never touch: no force, no pull)."""
@@ -249,7 +279,8 @@ def idle_action(config: GraspLiftConfig) -> np.ndarray:
 
 
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
-    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | 'zero' | 'idle' | a path to a saved model (.zip)."""
+    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | 'zero' | 'idle' | a path to a saved model (SB3 .zip, or
+    a torch PPO policy .pt)."""
     config = config or GraspLiftConfig()
     if spec == "zero":
         return ConstantPolicy([0.0, 0.0], "zero")
@@ -266,4 +297,6 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
         return SlipReactivePolicy(config)
     if spec == "oracle":
         return OraclePolicy(config)
+    if spec.endswith(".pt"):
+        return TorchScriptPolicy(spec)
     return ModelPolicy(spec)

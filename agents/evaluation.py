@@ -42,7 +42,7 @@ import numpy as np
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
-from .models import model_config_path, model_train_config
+from .models import model_sidecar, model_task
 from .parallel import Runner
 from .stats import bootstrap_ci, wilson_interval
 
@@ -315,14 +315,14 @@ def check_policy_spec(spec: str) -> None:
         return
     path = Path(spec)
     if path.is_dir():
-        raise ConfigError(f"policy {spec!r}: {path} is a folder, not a saved model file (.zip)")
+        raise ConfigError(f"policy {spec!r}: {path} is a folder, not a saved model file (.zip or .pt)")
     if path.is_file():
         return
     looks_like_path = path.suffix != "" or "/" in spec or "\\" in spec
     if looks_like_path:
         raise ConfigError(f"policy {spec!r}: model file not found: {path}")
     raise ConfigError(
-        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model (.zip)"
+        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model (.zip or .pt)"
     )
 
 
@@ -514,9 +514,9 @@ def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[Gr
     for spec in policies:
         if spec in _NAMED or spec.startswith("fixed:"):
             continue
-        train_cfg = model_train_config(spec)
-        if train_cfg is not None:
-            found[str(model_config_path(spec))] = train_cfg.env
+        env = model_task(spec)
+        if env is not None:
+            found[str(model_sidecar(spec))] = env
     if not found:
         return GraspLiftConfig(), None
     envs = list(found.values())
@@ -653,7 +653,7 @@ def _payload(spec: str, name: str) -> PolicyPayload:
     """What a job needs to rebuild a policy on any machine: a built-in spec, or the model's bytes and config."""
     if spec in _NAMED or spec.startswith("fixed:"):
         return spec, name, None, None
-    cfg = model_config_path(spec)
+    cfg = model_sidecar(spec)
     return Path(spec).name, name, Path(spec).read_bytes(), cfg.read_text() if cfg is not None else None
 
 
@@ -663,14 +663,16 @@ def _policy_of(payload: PolicyPayload, config: GraspLiftConfig):
         return make_policy(spec, config)
     import tempfile
 
-    from .controllers import ModelPolicy
+    from .controllers import ModelPolicy, TorchScriptPolicy
 
     with tempfile.TemporaryDirectory(prefix="msdgrasp-model-") as tmp:
         path = Path(tmp) / spec
         path.write_bytes(data)
+        torch_policy = path.suffix == ".pt"
         if cfg_text is not None:  # load_model reads the algorithm from the config saved beside the model
-            path.with_suffix(".yaml").write_text(cfg_text)
-        return ModelPolicy(path, name)  # loaded into memory: the folder may go
+            path.with_suffix(".json" if torch_policy else ".yaml").write_text(cfg_text)
+        # loaded into memory: the folder may go
+        return TorchScriptPolicy(path, name) if torch_policy else ModelPolicy(path, name)
 
 
 def _cell_job(payload: PolicyPayload, config_dict: dict[str, Any], mu: float, episodes: int, seed: int,

@@ -8,6 +8,7 @@ here keeps ``agents/`` acyclic: models <- controllers <- evaluation <- training 
 
 from __future__ import annotations
 
+import json
 import zipfile
 from dataclasses import field
 from pathlib import Path
@@ -184,6 +185,30 @@ def model_train_config(path: str | Path) -> TrainConfig | None:
         return TrainConfig.load(cfg)
     except ConfigError as exc:
         raise ConfigError(f"model {path}: its training config {cfg} is invalid: {exc}") from None
+
+
+def model_sidecar(path: str | Path) -> Path | None:
+    """The file that describes a saved policy: ``<policy>.json`` of a torch PPO policy (.pt), else the SB3
+    model's training config (:func:`model_config_path`)."""
+    path = Path(path)
+    if path.suffix == ".pt":
+        meta = path.with_suffix(".json")
+        return meta if meta.is_file() else None
+    return model_config_path(path)
+
+
+def model_task(path: str | Path) -> GraspLiftConfig | None:
+    """The task (env config) a saved policy was trained on; None where nothing was saved with it."""
+    path = Path(path)
+    side = model_sidecar(path)
+    if side is not None and path.suffix == ".pt":
+        try:
+            env = json.loads(side.read_text())["config"]["env"]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"policy {path}: {side.name} is not a torch PPO policy's description ({exc!r})") from None
+        return from_dict(GraspLiftConfig, env, where=f"{side.name}:config.env")
+    cfg = model_train_config(path)
+    return cfg.env if cfg is not None else None
 
 
 def load_model(path: str | Path, env=None):

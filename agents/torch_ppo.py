@@ -34,6 +34,7 @@ from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, atomic_write, config_dataclass, from_dict, read_yaml, to_dict,
 )
+from .controllers import TorchScriptPolicy
 from .models import TrainConfig
 from .networks import actor_mask
 
@@ -194,33 +195,6 @@ def make_torch_env(core, device: str, seed: int = 0):
             return self._observations(obs), self._tensor(reward).float(), done.long(), extras
 
     return GraspLiftTorchEnv()
-
-
-class TorchScriptPolicy:
-    """A policy exported by :func:`train_torch` (``policy.pt``: TorchScript of the actor, deterministic), in
-    the evaluation's policy interface."""
-
-    def __init__(self, path: str | Path, name: str | None = None) -> None:
-        import torch
-
-        path = Path(path)
-        meta_path = path.with_suffix(".json")
-        if not meta_path.is_file():
-            raise ConfigError(f"policy {str(path)!r}: no {meta_path.name} beside it (the run's observation layout)")
-        meta = json.loads(meta_path.read_text())
-        self.module = torch.jit.load(str(path), map_location="cpu")
-        self.columns = np.asarray(meta["actor_columns"], dtype=np.int64)
-        self.name = name or meta.get("name", path.stem)
-
-    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
-        pass
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        import torch
-
-        x = torch.as_tensor(np.atleast_2d(obs)[:, self.columns], dtype=torch.float32)
-        with torch.no_grad():
-            return self.module(x).numpy().astype(np.float32)
 
 
 def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = True) -> dict[str, Any]:

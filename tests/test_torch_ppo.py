@@ -80,6 +80,13 @@ def test_a_short_cpu_run_exports_a_policy_that_acts_as_the_trained_actor(tmp_pat
     np.testing.assert_array_equal(policy.act(perturbed), a)
     perturbed[:, 4] += 1.0  # a force reading does
     assert not np.array_equal(policy.act(perturbed), a)
+    # msdgrasp evaluate takes it like an SB3 model: by path, on the task it was trained on, in worker processes
+    from msdgrasp.agents.evaluation import _payload, _policy_of, task_of
+
+    spec = str(tmp_path / "policy.pt")
+    assert task_of([spec], None) == (config.env, str(tmp_path / "policy.json"))
+    shipped = _policy_of(_payload(spec, "torch"), config.env)
+    assert shipped.name == "torch" and np.array_equal(shipped.act(core.obs), a)
 
 
 def test_the_command_line_refuses_sb3_options_for_the_torch_learner(tmp_path):
