@@ -453,7 +453,7 @@ def gpu_unavailable_reason() -> str | None:
 
 def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_BATCHES, settle_s: float = 2.0,
               close_s: float = 1.5, steps: int = STEPS_PER_AGENT_STEP, min_time: float | None = None,
-              force: bool = False) -> dict:
+              force: bool = False, task_warmup_s: float = 0.5, threads: int | None = None) -> dict:
     """Agent steps/s (``steps`` physics ms each) of a :class:`~..physics.cuda_step.CudaBatch` per batch size,
     jaws closed on the tissue (contact) and open (none), float64. Without a GPU: the reason, no numbers
     (``force=True`` runs the harness anyway, e.g. in the simulator for tests; its numbers are not timings)."""
@@ -462,7 +462,7 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
         return {"available": False, "reason": reason, "rows": []}
     from numba import cuda
 
-    from ..physics.cuda_step import CudaBatch
+    from ..physics.cuda_step import THREADS_PER_BLOCK, CudaBatch
     from ..physics.simulation import Simulation
 
     batches = tuple(batches[:2]) if quick else tuple(batches)
@@ -476,7 +476,8 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
                 _clone(sim1, sim)  # every tissue grasped: the contact pass runs on every step
             else:
                 scene.reset(sim)  # settled tissue, jaws open at the start radius: no contact
-            dev = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout())
+            dev = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(),
+                            threads=threads or THREADS_PER_BLOCK)
 
             def run(n: int) -> None:
                 for _ in range(n):
@@ -490,8 +491,45 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
                          "agent_steps_per_s": _r(batch / timing["median_s"]),
                          "ms_per_agent_step": _r(timing["median_s"] * 1e3),
                          "contact_nodes_mean": _r(float(sim.jaw_out[:, :, 4].sum(axis=1).mean()))})
+    task_rows = bench_gpu_task(batches, resolution, steps, min_time, task_warmup_s, threads)
     return {"available": reason is None, "reason": reason, "resolution": resolution,
-            "nodes": scene.model.n_nodes, "steps_per_agent_step": steps, "rows": rows}
+            "nodes": scene.model.n_nodes, "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
+
+
+def bench_gpu_task(batches: tuple[int, ...], resolution="coarse", steps: int = STEPS_PER_AGENT_STEP,
+                   min_time: float = 2.0, warmup_s: float = 0.5, threads: int | None = None) -> list[dict]:
+    """Agent steps/s of the whole GPU task step (:class:`~..envs.cuda_core.CudaGraspLiftCore`: commands, physics,
+    observation, reward, flags, autoreset; actions already on the device) per batch size: the jaws pinch at
+    2.5 N without a pull, so after ``warmup_s`` nearly every env holds the tissue (``contact_fraction``: the
+    share of envs with contact over 10 steps after the timing). float64."""
+    from numba import cuda
+
+    from ..envs.core import GraspLiftConfig
+    from ..envs.cuda_core import CudaGraspLiftCore
+    from ..physics.cuda_step import THREADS_PER_BLOCK
+
+    config = GraspLiftConfig(resolution=resolution, physics_steps_per_action=steps)
+    rows = []
+    for batch in batches:
+        core = CudaGraspLiftCore(config, batch, seed=0, threads=threads or THREADS_PER_BLOCK)
+        core.reset()
+        actions = cuda.to_device(np.tile([0.0, -1.0], (batch, 1)))  # 2.5 N set-point, no pull
+
+        def run(n: int) -> None:
+            for _ in range(n):
+                core.step(actions)
+            cuda.synchronize()
+
+        run(max(1, int(round(warmup_s / config.agent_dt_s))))  # compile, close the jaws
+        timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
+        held = []
+        for _ in range(10):
+            core.step(actions)
+            held.append(float(np.mean(core.download("contact")["contact"] > 0)))
+        rows.append({"batch": batch, "contact": True, "dtype": "float64", "what": "task",
+                     "agent_steps_per_s": _r(batch / timing["median_s"]), "ms_per_agent_step": _r(timing["median_s"] * 1e3),
+                     "contact_fraction": _r(float(np.mean(held)))})
+    return rows
 
 
 def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[str], None] = lambda s: None) -> dict:

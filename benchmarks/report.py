@@ -108,12 +108,14 @@ def evaluate_targets(report: dict) -> dict:
                                                            "aggregate agent steps/s",
                                                            f"best batched vector env (N={best['n_envs']})",
                                                            best.get("cpu_total_steps_per_s"))
-    gpu = (report.get("gpu") or {}).get("rows") or []
+    # judged on the whole task step (physics, observation, reward, autoreset), the "agent step"
+    gpu = (report.get("gpu") or {}).get("task_rows") or []
     big = [r for r in gpu if r["contact"] and r["batch"] >= 4096 and r["dtype"] == "float64"]
     if report.get("gpu", {}).get("available") and big:
         best = max(big, key=lambda r: r["agent_steps_per_s"])
         t["gpu_ge_200k_agent_steps_per_s"] = _target(best["agent_steps_per_s"], TARGETS["gpu_agent_steps_per_s"],
-                                                     ">=", "agent steps/s", f"float64, contact, batch {best['batch']}")
+                                                     ">=", "agent steps/s",
+                                                     f"task step, float64, contact, batch {best['batch']}")
     return t
 
 
@@ -210,6 +212,12 @@ def markdown(report: dict) -> str:
             lines += ["| batch | contact | dtype | agent steps/s | ms per agent step |", "|---|---|---|---|---|"]
             lines += [f"| {r['batch']} | {'yes' if r['contact'] else 'no'} | {r['dtype']} | {r['agent_steps_per_s']} "
                       f"| {r['ms_per_agent_step']} |" for r in gpu["rows"]]
+            lines.append("")
+        if gpu.get("task_rows"):
+            lines += ["The whole task step (CudaGraspLiftCore: physics, observation, reward, autoreset):", "",
+                      "| batch | envs in contact | dtype | agent steps/s | ms per agent step |", "|---|---|---|---|---|"]
+            lines += [f"| {r['batch']} | {r['contact_fraction']} | {r['dtype']} | {r['agent_steps_per_s']} "
+                      f"| {r['ms_per_agent_step']} |" for r in gpu["task_rows"]]
             lines.append("")
     if report["targets"]:
         lines += ["## Targets", "", "| target | value (wall) | limit | pass | value (CPU time) | pass (CPU) |",
