@@ -198,7 +198,8 @@ def make_torch_env(core, device: str, seed: int = 0):
 
 
 def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = True) -> dict[str, Any]:
-    """Train with rsl-rl's PPO; write ``policy.pt`` (+ ``policy.json``), ``summary.json`` and tensorboard logs.
+    """Train with rsl-rl's PPO; write ``policy.pt`` (+ ``policy.json``), ``summary.json`` and tensorboard logs
+    (``progress=False``: no per-iteration log, printed or tensorboard).
 
     Returns the summary: training time, agent steps, and (``validation_episodes`` > 0) the exported
     policy's success and peak pinch per mu on the CPU env, seeded apart from ``msdgrasp evaluate``'s."""

@@ -133,6 +133,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from ..agents.models import TrainConfig
 
     learner = args.learner or ("rsl" if args.backend == "cuda" else "sb3")
+    if args.out is None:  # the learners' runs are kept apart (evaluate's default reads logs/train)
+        args.out = Path("logs") / ("train_torch" if learner == "rsl" else "train")
     if learner == "rsl":
         return _cmd_train_torch(args)
     if args.backend == "cuda":
@@ -291,7 +293,8 @@ def add_rl_commands(sub) -> None:
                    help="train several seeds in parallel processes and evaluate each, e.g. 0-4 or 0,3,7: "
                         "writes seed_<k>/ runs and seeds.json, seeds.md, learning_curves.png (aggregate over seeds)")
     _add_runner_args(t, "the seeds of --seeds")
-    t.add_argument("--out", type=Path, default=Path("logs") / "train", help="output folder (default logs/train)")
+    t.add_argument("--out", type=Path, default=None,
+                   help="output folder (default logs/train; logs/train_torch for --learner rsl)")
     t.add_argument("--resume", type=Path, default=None, help="continue the run saved in this folder")
     t.add_argument("--quiet", action="store_true", help="no progress output")
     t.add_argument("--backend", choices=["cpu", "cuda"], default="cpu",
