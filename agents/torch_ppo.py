@@ -140,8 +140,7 @@ def make_torch_env(core, device: str, seed: int = 0):
             self.device = device
             self.cfg = to_dict(core.config)
             self.gpu = hasattr(core, "physics")
-            self.columns = torch.as_tensor(actor_columns(core.config, core.host.frame_dim if self.gpu else core.frame_dim),
-                                           device=device)
+            self.columns = torch.as_tensor(actor_columns(core.config, core.frame_dim), device=device)
             if self.gpu:
                 core.reset()
             else:
@@ -216,11 +215,9 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
 
         core = CudaGraspLiftCore(config.env, config.num_envs, seed=config.seed)
         device = "cuda" if torch.cuda.is_available() else "cpu"  # (the simulator: torch on the CPU)
-        frame_dim = core.host.frame_dim
     else:
         core = GraspLiftCore(config.env, config.num_envs)
         device = "cpu"
-        frame_dim = core.frame_dim
     env = make_torch_env(core, device, config.seed)
     runner = OnPolicyRunner(env, config.runner_cfg(), log_dir=str(out / "tb"), device=device)
     if not progress:
@@ -234,18 +231,18 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
         runner.export_policy_to_jit(str(path.parent), path.name)
 
     atomic_write(out / "policy.pt", export)
-    meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": actor_columns(config.env, frame_dim).tolist(),
-            "config": to_dict(config)}
+    meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
     atomic_write(out / "policy.json", lambda p: p.write_text(json.dumps(meta, indent=2)))
     summary: dict[str, Any] = {"backend": config.backend, "device": device, "num_envs": config.num_envs,
                                "seed": config.seed, "iterations": config.iterations, "agent_steps": steps,
                                "train_s": train_s, "agent_steps_per_s": steps / train_s, "validation": []}
     if config.validation_episodes > 0:
         from .evaluation import evaluate_policy
+        from .training import VALIDATION_SEED_OFFSET
 
         policy = TorchScriptPolicy(out / "policy.pt")
         rows = evaluate_policy(policy, config.validation_mu, config.validation_episodes, config.env,
-                               seed=1_000_000 + config.seed)
+                               seed=VALIDATION_SEED_OFFSET + config.seed)
         summary["validation"] = [{"mu": r["mu"], "success_rate": r["success_rate"],
                                   "mean_peak_pinch_N": r["mean_peak_pinch_N"]} for r in rows]
         summary["validation_success"] = float(np.mean([r["success_rate"] for r in rows]))

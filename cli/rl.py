@@ -93,7 +93,8 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
         raise _missing_module("train --learner rsl", exc) from None
     path = args.config or builtin_config("train/rsl_ppo.yaml")
     data = read_yaml(path)
-    data["backend"] = args.backend
+    if args.backend is not None:  # else the config's (rsl_ppo.yaml: cuda)
+        data["backend"] = args.backend
     if args.n_envs is not None:
         data["num_envs"] = args.n_envs
     config = from_dict(TorchPPOConfig, data, where=Path(path).name)
@@ -120,9 +121,10 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
         return 0
     from ..physics.config import atomic_write
 
-    success = [r.get("validation_success", float("nan")) for r in results]
-    report = {"seeds": seeds, "per_seed": results, "validation_success_mean": float(sum(success) / len(success)),
-              "validation_success_min": float(min(success)), "train_s": [r["train_s"] for r in results]}
+    success = [r["validation_success"] for r in results if "validation_success" in r]  # (none: validation off)
+    report = {"seeds": seeds, "per_seed": results,
+              "validation_success_mean": sum(success) / len(success) if success else None,
+              "validation_success_min": min(success) if success else None, "train_s": [r["train_s"] for r in results]}
     atomic_write(args.out / "seeds.json", lambda p: p.write_text(json.dumps(report, indent=2)))
     print(json.dumps({k: v for k, v in report.items() if k != "per_seed"}, indent=2))
     return 0
@@ -297,12 +299,12 @@ def add_rl_commands(sub) -> None:
                    help="output folder (default logs/train; logs/train_torch for --learner rsl)")
     t.add_argument("--resume", type=Path, default=None, help="continue the run saved in this folder")
     t.add_argument("--quiet", action="store_true", help="no progress output")
-    t.add_argument("--backend", choices=["cpu", "cuda"], default="cpu",
-                   help="where the task runs: cpu (numba) or cuda (the whole agent step on the GPU; trains with "
-                        "--learner rsl; pip install 'msdgrasp[gpu]')")
+    t.add_argument("--backend", choices=["cpu", "cuda"], default=None,
+                   help="where the task runs: cpu (numba; SB3's default) or cuda (the whole agent step on the GPU; "
+                        "trains with --learner rsl; pip install 'msdgrasp[gpu]'); default: the config's")
     t.add_argument("--learner", choices=["sb3", "rsl"], default=None,
-                   help="sb3 (Stable-Baselines3, the default on cpu) or rsl (rsl-rl's torch-native PPO, the default "
-                        "on cuda; config configs/train/rsl_ppo.yaml)")
+                   help="sb3 (Stable-Baselines3, the default) or rsl (rsl-rl's torch-native PPO, the default with "
+                        "--backend cuda; config configs/train/rsl_ppo.yaml, whose backend is cuda)")
     t.set_defaults(func=_cmd_train)
 
     sw = sub.add_parser("sweep", help="hyper-parameter sweep: a grid of training configs, each over several seeds")

@@ -219,7 +219,7 @@ def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, ti
                    azimuth_deg: float) -> GrasperPose:
     """The grasp pose of one episode: ``pose`` moved by the episode's random draws (``offset_dir`` and
     ``tilt_axis``: 3 standard normals each; ``offset_r`` in [0, 1]; ``tilt`` and ``azimuth`` in [-1, 1]).
-    The tip moves up to ``offset_m`` normal to the axis (uniform in a disc's ball), the axis tilts up to
+    The tip moves up to ``offset_m`` normal to the axis (radius drawn as in a ball), the axis tilts up to
     ``tilt_deg`` about a random normal, and the jaws turn up to ``azimuth_deg`` about the new axis."""
     a = pose.axis
     # offset: uniform in a ball of radius `offset_m`, normal to the axis
@@ -351,12 +351,11 @@ class GraspLiftCore:
         pose = perturbed_pose(self.scene.pose, draws, off, tilt, azi)
         self.scene.reset(self.sim, index)
         self.sim.set_grasper_pose(pose, index)
-        tip = pose.tip
         self.sim.g_radius[index] = self.start_radius
         self.sim.set_friction(mu, mu_k, index)
         self.sim.set_scales(ks, ms, index)
         self.mu[index] = mu
-        self.tip0[index] = tip
+        self.tip0[index] = pose.tip
         self.region0[index] = self.sim.x[index, self.region].mean(axis=0)
         self.steps[index] = 0
         self.prev_action[index] = 0.0

@@ -631,12 +631,13 @@ class CudaGraspLiftCore:
         self.host = host = GraspLiftCore(config, num_envs)
         self.config = host.config
         self.num_envs = host.num_envs
+        self.frame_dim = host.frame_dim
         self.obs_dim = host.obs_dim
         self.threads = int(threads)
         sim = host.sim
         self.physics = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(), threads=self.threads)
         self.params = to_device(task_params(host))
-        self.state = to_device(_task_state(self.num_envs, self.config.obs_history, host.frame_dim))
+        self.state = to_device(_task_state(self.num_envs, self.config.obs_history, self.frame_dim))
         with warnings.catch_warnings():  # the simulator compiles the state set-up in object mode, noisily
             warnings.simplefilter("ignore")
             self.rng = create_xoroshiro128p_states(self.num_envs, seed=int(seed))

@@ -253,7 +253,7 @@ def test_rl_subcommands_are_wired():
                            "--resume", "runs/x", "--quiet"])
     assert (a.algo, a.total_timesteps, a.n_envs, a.seed, a.resume, a.quiet) == ("sac", 100, 2, 3, Path("runs/x"), True)
     # (--out defaults in the handler: logs/train for SB3, logs/train_torch for the torch PPO)
-    assert a.config is None and a.out is None and a.backend == "cpu" and a.learner is None
+    assert a.config is None and a.out is None and a.backend is None and a.learner is None
     e = parser.parse_args(["evaluate"])
     assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (None, None, 10, 0, Path("logs/evaluate"), False)
     r = parser.parse_args(["record"])
