@@ -47,6 +47,9 @@ class TorchPPOConfig:
 
     #: where the task runs: "cuda" (CudaGraspLiftCore: the whole step on the GPU) or "cpu" (GraspLiftCore)
     backend: Literal["cpu", "cuda"] = "cuda"
+    #: the GPU tissue's per-node, spring and tet arrays: float64 (the CPU kernel's numbers) or float32
+    #: (half the memory traffic; its error: ``msdgrasp bench precision``). The CPU core is float64 only.
+    precision: Literal["float64", "float32"] = "float64"
     num_envs: Annotated[Int, Ge(1)] = 4096
     seed: Annotated[Int, Ge(0)] = 0
     #: PPO iterations (each: steps_per_env x num_envs agent steps, then the update)
@@ -78,6 +81,8 @@ class TorchPPOConfig:
     env: GraspLiftConfig = field(default_factory=lambda: TrainConfig().env)
 
     def __post_init__(self) -> None:
+        if self.precision != "float64" and self.backend != "cuda":
+            raise ConfigError(f"precision = {self.precision!r} needs backend: cuda (the CPU core is float64 only)")
         if self.asymmetric_critic and not self.env.privileged_obs:
             raise ConfigError("asymmetric_critic needs env.privileged_obs: true (the critic's extra entries)")
 
@@ -213,7 +218,7 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     if config.backend == "cuda":
         from ..envs.cuda_core import CudaGraspLiftCore
 
-        core = CudaGraspLiftCore(config.env, config.num_envs, seed=config.seed)
+        core = CudaGraspLiftCore(config.env, config.num_envs, seed=config.seed, precision=config.precision)
         device = "cuda" if torch.cuda.is_available() else "cpu"  # (the simulator: torch on the CPU)
     else:
         core = GraspLiftCore(config.env, config.num_envs)
@@ -233,7 +238,7 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     atomic_write(out / "policy.pt", export)
     meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
     atomic_write(out / "policy.json", lambda p: p.write_text(json.dumps(meta, indent=2)))
-    summary: dict[str, Any] = {"backend": config.backend, "device": device, "num_envs": config.num_envs,
+    summary: dict[str, Any] = {"backend": config.backend, "precision": config.precision, "device": device, "num_envs": config.num_envs,
                                "seed": config.seed, "iterations": config.iterations, "agent_steps": steps,
                                "train_s": train_s, "agent_steps_per_s": steps / train_s, "validation": []}
     if config.validation_episodes > 0:

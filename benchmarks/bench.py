@@ -453,10 +453,12 @@ def gpu_unavailable_reason() -> str | None:
 
 def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_BATCHES, settle_s: float = 2.0,
               close_s: float = 1.5, steps: int = STEPS_PER_AGENT_STEP, min_time: float | None = None,
-              force: bool = False, task_warmup_s: float = 0.5, threads: int | None = None) -> dict:
+              force: bool = False, task_warmup_s: float = 0.5, threads: int | None = None,
+              precisions: tuple[str, ...] = ("float64", "float32")) -> dict:
     """Agent steps/s (``steps`` physics ms each) of a :class:`~..physics.cuda_step.CudaBatch` per batch size,
-    jaws closed on the tissue (contact) and open (none), float64. Without a GPU: the reason, no numbers
-    (``force=True`` runs the harness anyway, e.g. in the simulator for tests; its numbers are not timings)."""
+    jaws closed on the tissue (contact) and open (none), in each of ``precisions``. Without a GPU: the reason,
+    no numbers (``force=True`` runs the harness anyway, e.g. in the simulator for tests; its numbers are not
+    timings)."""
     reason = gpu_unavailable_reason()
     if reason is not None and not force:
         return {"available": False, "reason": reason, "rows": []}
@@ -469,39 +471,41 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
     min_time = min_time if min_time is not None else (0.5 if quick else 2.0)
     scene, sim1 = _grasped(resolution, settle_s, close_s)
     rows = []
-    for contact in (True, False):
-        for batch in batches:
-            sim = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
-            if contact:
-                _clone(sim1, sim)  # every tissue grasped: the contact pass runs on every step
-            else:
-                scene.reset(sim)  # settled tissue, jaws open at the start radius: no contact
-            dev = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(),
-                            threads=threads or THREADS_PER_BLOCK)
+    for precision in precisions:
+        for contact in (True, False):
+            for batch in batches:
+                sim = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
+                if contact:
+                    _clone(sim1, sim)  # every tissue grasped: the contact pass runs on every step
+                else:
+                    scene.reset(sim)  # settled tissue, jaws open at the start radius: no contact
+                dev = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(),
+                                threads=threads or THREADS_PER_BLOCK, precision=precision)
 
-            def run(n: int) -> None:
-                for _ in range(n):
-                    dev.step(steps)
-                cuda.synchronize()
+                def run(n: int) -> None:
+                    for _ in range(n):
+                        dev.step(steps)
+                    cuda.synchronize()
 
-            run(1)  # compile / load
-            timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
-            dev.download(out=sim.kernel_readout(), fields=("jaw_out",))
-            rows.append({"batch": batch, "contact": contact, "dtype": "float64", "n_sub": sim.n_sub,
-                         "agent_steps_per_s": _r(batch / timing["median_s"]),
-                         "ms_per_agent_step": _r(timing["median_s"] * 1e3),
-                         "contact_nodes_mean": _r(float(sim.jaw_out[:, :, 4].sum(axis=1).mean()))})
-    task_rows = bench_gpu_task(batches, resolution, steps, min_time, task_warmup_s, threads)
+                run(1)  # compile / load
+                timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
+                dev.download(out=sim.kernel_readout(), fields=("jaw_out",))
+                rows.append({"batch": batch, "contact": contact, "dtype": precision, "n_sub": sim.n_sub,
+                             "agent_steps_per_s": _r(batch / timing["median_s"]),
+                             "ms_per_agent_step": _r(timing["median_s"] * 1e3),
+                             "contact_nodes_mean": _r(float(sim.jaw_out[:, :, 4].sum(axis=1).mean()))})
+    task_rows = bench_gpu_task(batches, resolution, steps, min_time, task_warmup_s, threads, precisions)
     return {"available": reason is None, "reason": reason, "resolution": resolution,
             "nodes": scene.model.n_nodes, "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
 
 
 def bench_gpu_task(batches: tuple[int, ...], resolution="coarse", steps: int = STEPS_PER_AGENT_STEP,
-                   min_time: float = 2.0, warmup_s: float = 0.5, threads: int | None = None) -> list[dict]:
+                   min_time: float = 2.0, warmup_s: float = 0.5, threads: int | None = None,
+                   precisions: tuple[str, ...] = ("float64",)) -> list[dict]:
     """Agent steps/s of the whole GPU task step (:class:`~..envs.cuda_core.CudaGraspLiftCore`: commands, physics,
-    observation, reward, flags, autoreset; actions already on the device) per batch size: the jaws pinch at
-    2.5 N without a pull, so after ``warmup_s`` nearly every env holds the tissue (``contact_fraction``: the
-    share of envs with contact over 10 steps after the timing). float64."""
+    observation, reward, flags, autoreset; actions already on the device) per precision and batch size: the
+    jaws pinch at 2.5 N without a pull, so after ``warmup_s`` nearly every env holds the tissue
+    (``contact_fraction``: the share of envs with contact over 10 steps after the timing)."""
     from numba import cuda
 
     from ..envs.core import GraspLiftConfig
@@ -510,33 +514,125 @@ def bench_gpu_task(batches: tuple[int, ...], resolution="coarse", steps: int = S
 
     config = GraspLiftConfig(resolution=resolution, physics_steps_per_action=steps)
     rows = []
-    for batch in batches:
-        core = CudaGraspLiftCore(config, batch, seed=0, threads=threads or THREADS_PER_BLOCK)
-        core.reset()
-        actions = cuda.to_device(np.tile([0.0, -1.0], (batch, 1)))  # 2.5 N set-point, no pull
+    for precision in precisions:
+        for batch in batches:
+            core = CudaGraspLiftCore(config, batch, seed=0, threads=threads or THREADS_PER_BLOCK, precision=precision)
+            core.reset()
+            actions = cuda.to_device(np.tile([0.0, -1.0], (batch, 1)))  # 2.5 N set-point, no pull
 
-        def run(n: int) -> None:
-            for _ in range(n):
+            def run(n: int) -> None:
+                for _ in range(n):
+                    core.step(actions)
+                cuda.synchronize()
+
+            run(max(1, int(round(warmup_s / config.agent_dt_s))))  # compile, close the jaws
+            timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
+            held = []
+            for _ in range(10):
                 core.step(actions)
-            cuda.synchronize()
-
-        run(max(1, int(round(warmup_s / config.agent_dt_s))))  # compile, close the jaws
-        timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
-        held = []
-        for _ in range(10):
-            core.step(actions)
-            held.append(float(np.mean(core.download("contact")["contact"] > 0)))
-        rows.append({"batch": batch, "contact": True, "dtype": "float64", "what": "task",
-                     "agent_steps_per_s": _r(batch / timing["median_s"]), "ms_per_agent_step": _r(timing["median_s"] * 1e3),
-                     "contact_fraction": _r(float(np.mean(held)))})
+                held.append(float(np.mean(core.download("contact")["contact"] > 0)))
+            rows.append({"batch": batch, "contact": True, "dtype": precision, "what": "task",
+                         "agent_steps_per_s": _r(batch / timing["median_s"]),
+                         "ms_per_agent_step": _r(timing["median_s"] * 1e3), "contact_fraction": _r(float(np.mean(held)))})
     return rows
 
 
+def precision_actions(num_envs: int, step: int, steps_per_s: float) -> np.ndarray:
+    """The scripted grasp of :func:`bench_precision`: env b pinches at its own set-point (action 0 spread over
+    -0.4..0.6, 0.9-3.1 N) from the start and pulls forward at half speed after 0.3 s."""
+    pinch = np.linspace(-0.4, 0.6, num_envs) if num_envs > 1 else np.array([0.2])
+    pull = 0.0 if step >= 0.3 * steps_per_s else -1.0
+    return np.stack([pinch, np.full(num_envs, pull)], axis=1)
+
+
+def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: int | None = None,
+                    force: bool = False, jaws_in_m: float = 0.0) -> dict:
+    """The float32 option's error: the GPU task in float32 against float64, same seed (same friction, scales
+    and poses), same scripted grasp-and-pull (:func:`precision_actions`) for one episode length.
+
+    Per agent step, while both precisions are in the same episode: the largest position difference (m),
+    the share of surface nodes in the same contact state (free / stick / slip), the largest reward and
+    observation differences and the largest relative pinch difference; at the ends: how many envs ended on a
+    different step or with a different outcome (success, lost grasp, slip, time limit). On a GPU these are
+    the GPU's numbers; in numba's simulator (``force=True``) NumPy's promotion rules apply, which keep more
+    of the arithmetic in float32 than numba's compiled typing does. ``jaws_in_m``: the jaws start this much
+    closer than the task's start radius (contact within a short episode)."""
+    from numba import config as numba_config
+
+    reason = gpu_unavailable_reason()
+    if reason is not None and not (force or numba_config.ENABLE_CUDASIM):  # (an error is no timing: the simulator's counts)
+        return {"available": False, "reason": reason}
+    from ..envs.core import GraspLiftConfig
+    from ..envs.cuda_core import CudaGraspLiftCore
+    from ..physics.cuda_step import THREADS_PER_BLOCK
+
+    config = config or GraspLiftConfig()
+    cores = [CudaGraspLiftCore(config, num_envs, seed=seed, threads=threads or THREADS_PER_BLOCK, precision=p)
+             for p in ("float64", "float32")]
+    for core in cores:
+        core.reset()
+        radius = core.arrays()["g_radius"]
+        radius.copy_to_device(radius.copy_to_host() - jaws_in_m)
+    fields = ("x", "contact_state", "reward", "obs", "pinch", "done", "is_success", "lost_grasp", "slipped",
+              "truncated", "steps")
+    live = np.ones(num_envs, dtype=bool)  # both precisions still in the first episode, on the same step
+    worst = {"position_m": 0.0, "reward": 0.0, "obs": 0.0, "pinch_rel": 0.0}
+    same_contact, total_contact, in_contact = 0, 0, 0
+    ended_apart = np.zeros(num_envs, dtype=bool)
+    outcome_apart = np.zeros(num_envs, dtype=bool)
+    t0 = time.perf_counter()
+    steps_per_s = 1.0 / config.agent_dt_s
+    for k in range(config.max_episode_steps):
+        actions = precision_actions(num_envs, k, steps_per_s)
+        for core in cores:
+            core.step(actions)
+        a, b = (core.download(*fields) for core in cores)
+        m = live
+        if m.any():
+            worst["position_m"] = max(worst["position_m"], float(np.abs(a["x"][m] - b["x"][m]).max()))
+            worst["reward"] = max(worst["reward"], float(np.abs(a["reward"][m] - b["reward"][m]).max()))
+            worst["obs"] = max(worst["obs"], float(np.abs(a["obs"][m] - b["obs"][m]).max()))
+            rel = np.abs(a["pinch"][m] - b["pinch"][m]) / np.maximum(np.abs(a["pinch"][m]), 0.1)
+            worst["pinch_rel"] = max(worst["pinch_rel"], float(rel.max()))
+            surf = cores[0].host.sim.surface_nodes
+            same_contact += int((a["contact_state"][m][:, surf] == b["contact_state"][m][:, surf]).sum())
+            total_contact += int(m.sum()) * surf.size
+            in_contact += int((a["contact_state"][m][:, surf] > 0).any(axis=1).sum())
+        for name in ("is_success", "lost_grasp", "slipped", "truncated"):
+            outcome_apart |= live & a["done"] & b["done"] & (a[name] != b[name])
+        ended_apart |= live & (a["done"] != b["done"])
+        live = live & ~a["done"] & ~b["done"]
+    return {"available": reason is None, "reason": reason, "resolution": config.resolution, "num_envs": num_envs,
+            "agent_steps": config.max_episode_steps, "seed": seed,
+            "max_position_diff_m": worst["position_m"], "max_reward_diff": worst["reward"],
+            "max_obs_diff": worst["obs"], "max_pinch_rel_diff": worst["pinch_rel"],
+            "contact_state_agreement": same_contact / max(total_contact, 1), "env_steps_in_contact": in_contact,
+            "envs_ended_on_another_step": int(ended_apart.sum()), "envs_with_another_outcome": int(outcome_apart.sum()),
+            "wall_s": _r(time.perf_counter() - t0)}
+
+
+#: what ``msdgrasp bench`` measures
+BENCH_PARTS = ("physics", "grasp", "env", "gpu", "precision", "all")
+
+
+def bench_precision_run(quick: bool) -> dict:
+    """:func:`bench_precision` at the command line's sizes: a GPU's default task, 256 envs, a whole 10 s
+    episode; ``quick`` (and the simulator's, which runs the kernels in Python): the 60-node spleen, 2 envs,
+    a 1 s episode, blocks of 4 threads."""
+    from numba import config as numba_config
+
+    from ..envs.core import GraspLiftConfig
+
+    if quick or numba_config.ENABLE_CUDASIM:
+        return bench_precision(GraspLiftConfig(resolution=60, time_limit_s=1.0), num_envs=2, threads=4)
+    return bench_precision(GraspLiftConfig(), num_envs=256)
+
+
 def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[str], None] = lambda s: None) -> dict:
-    if what not in ("physics", "grasp", "env", "gpu", "all"):
+    if what not in BENCH_PARTS:
         from ..physics.config import ConfigError
 
-        raise ConfigError(f"bench: what must be physics, grasp, env, gpu or all, got {what!r}")
+        raise ConfigError(f"bench: what must be one of {', '.join(BENCH_PARTS)}, got {what!r}")
     t0 = time.perf_counter()
     report: dict[str, Any] = {"what": what, "quick": bool(quick), "machine": machine_info()}
     if what in ("physics", "all"):
@@ -548,6 +644,12 @@ def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[st
     if what in ("gpu", "all"):
         progress("gpu: device-resident batches, with and without contact")
         report["gpu"] = bench_gpu(quick)
+    reason = gpu_unavailable_reason() if what in ("gpu", "all") else None
+    if what in ("gpu", "all") and reason is not None:  # (the simulator's error run is asked for by name: minutes)
+        report["precision"] = {"available": False, "reason": reason}
+    elif what in ("gpu", "precision", "all"):
+        progress("precision: the GPU task in float32 against float64, one episode")
+        report["precision"] = bench_precision_run(quick)
     report["targets"] = evaluate_targets(report)
     flags = [v["pass"] for v in report["targets"].values() if v["pass"] is not None]
     report["all_targets_pass"] = bool(all(flags)) if flags else None

@@ -219,6 +219,20 @@ def markdown(report: dict) -> str:
             lines += [f"| {r['batch']} | {r['contact_fraction']} | {r['dtype']} | {r['agent_steps_per_s']} "
                       f"| {r['ms_per_agent_step']} |" for r in gpu["task_rows"]]
             lines.append("")
+    prec = report.get("precision")
+    if prec is not None:
+        lines += ["## float32 against float64 (the GPU task, same seed and scripted grasp, one episode)", ""]
+        if "max_position_diff_m" not in prec:
+            lines += [f"Not measured: {prec['reason']}.", ""]
+        else:
+            where = "a GPU" if prec["available"] else f"numba's CUDA simulator ({prec['reason'].split(':')[0]})"
+            lines += [f"On {where}: spleen resolution {prec['resolution']}, {prec['num_envs']} envs, {prec['agent_steps']} "
+                      f"agent steps, {prec['env_steps_in_contact']} env steps with contact.",
+                      "", "| measure | value |", "|---|---|"]
+            lines += [f"| {k} | {prec[k]:.3g} |" for k in ("max_position_diff_m", "max_reward_diff", "max_obs_diff",
+                                                          "max_pinch_rel_diff", "contact_state_agreement")]
+            lines += [f"| {k} | {prec[k]} |" for k in ("envs_ended_on_another_step", "envs_with_another_outcome")]
+            lines.append("")
     if report["targets"]:
         lines += ["## Targets", "", "| target | value (wall) | limit | pass | value (CPU time) | pass (CPU) |",
                   "|---|---|---|---|---|---|"]

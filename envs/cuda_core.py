@@ -38,11 +38,11 @@ import numpy as np
 from numba import cuda
 from numba.cuda.random import create_xoroshiro128p_states, xoroshiro128p_normal_float64, xoroshiro128p_uniform_float64
 
-from ..physics.config import ConfigError, check_range
+from ..physics.config import ConfigError, check_choice, check_range
 from ..physics.contact import (
     G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TY, J_TZ,
 )
-from ..physics.cuda_step import THREADS_PER_BLOCK, CudaBatch, _tet_edges, to_device
+from ..physics.cuda_step import PRECISIONS, THREADS_PER_BLOCK, CudaBatch, _tet_edges, to_device
 from ..physics.viscoelastic import elongations
 from .core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
 
@@ -618,6 +618,9 @@ def as_torch(array):
 class CudaGraspLiftCore:
     """The GraspLift task for ``num_envs`` tissues resident on the GPU (see the module docstring).
 
+    ``precision="float32"`` keeps the tissue's per-node, per-spring and per-tet arrays in float32
+    (:data:`~msdgrasp.physics.cuda_step.FLOAT32_FIELDS`); the task's own state stays float64.
+
     ``reset()`` starts every env; ``step(actions)`` advances all of them by one agent step and resets the
     ones that ended. Both return the device arrays ``(obs, reward, terminated, truncated)``: the same
     arrays every call, updated in place. Every other output (``terminal_obs``, the info flags, the reward
@@ -625,8 +628,9 @@ class CudaGraspLiftCore:
     """
 
     def __init__(self, config: GraspLiftConfig | None = None, num_envs: int = 1, seed: int = 0,
-                 threads: int = THREADS_PER_BLOCK) -> None:
+                 threads: int = THREADS_PER_BLOCK, precision: str = "float64") -> None:
         check_range("threads", threads, 1, THREADS_PER_BLOCK)
+        check_choice("precision", precision, PRECISIONS)
         # the CPU core builds the scene, the simulation's host arrays and the task's constants once
         self.host = host = GraspLiftCore(config, num_envs)
         self.config = host.config
@@ -634,8 +638,10 @@ class CudaGraspLiftCore:
         self.frame_dim = host.frame_dim
         self.obs_dim = host.obs_dim
         self.threads = int(threads)
+        self.precision = precision
         sim = host.sim
-        self.physics = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(), threads=self.threads)
+        self.physics = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(), threads=self.threads,
+                                 precision=precision)
         self.params = to_device(task_params(host))
         self.state = to_device(_task_state(self.num_envs, self.config.obs_history, self.frame_dim))
         with warnings.catch_warnings():  # the simulator compiles the state set-up in object mode, noisily

@@ -33,10 +33,39 @@ from numba import cuda
 from . import contact as _contact
 from . import forces as _forces
 from . import integrator as _integrator
+from .config import check_choice
 from .records import SimModel, SimReadout, SimState
 
 #: threads per block (one block per tissue); the loops stride over springs, tets and nodes
 THREADS_PER_BLOCK = 128
+#: the float types of the per-node, per-spring and per-tet arrays (see :data:`FLOAT32_FIELDS`)
+PRECISIONS = ("float64", "float32")
+#: the arrays stored in float32 when ``precision="float32"``: those of one entry per node, spring or tet,
+#: the memory the step streams through. Per-tissue values (time, friction, scales, the grasper and its force
+#: loop, the jaw, plate and anchor sums) stay float64: a clock summed 10,000 times per second or a friction
+#: coefficient gains nothing from 4 bytes. Arithmetic follows numba's typing: float32 operands give float32,
+#: a float64 constant or per-tissue value promotes the operation to float64. The error against float64 is
+#: measured, not assumed (``msdgrasp bench gpu``'s precision rows).
+FLOAT32_FIELDS = frozenset({
+    # SimModel
+    "x_rest", "rest_length", "k1", "k2", "dlc", "cdash", "kv", "rest_volume", "kvol", "mass", "b0", "b1",
+    "anchor_k", "node_area",
+    # SimState
+    "x", "v", "fv", "dl_prev", "f_ext",
+    # SimReadout
+    "contact_force",
+    # CudaScratch
+    "fe", "ft", "react", "meff", "fa",
+})
+
+
+def with_precision(record: NamedTuple, precision: str) -> NamedTuple:
+    """The record with its :data:`FLOAT32_FIELDS` arrays in ``precision`` ("float64": the record as it is)."""
+    check_choice("precision", precision, PRECISIONS)
+    if precision == "float64":
+        return record
+    return record._replace(**{name: np.ascontiguousarray(getattr(record, name), dtype=np.float32)
+                              for name in record._fields if name in FLOAT32_FIELDS})
 
 
 def device_twin(cpu_function, **callees):
@@ -335,7 +364,9 @@ def copy_back(device_record: NamedTuple, host_record: NamedTuple) -> None:
 class CudaBatch:
     """A batch of tissues resident on the GPU: state and readouts stay on the device between calls.
 
-    Made from host records once; :meth:`step` only launches the kernel. (:class:`.simulation.Simulation`
+    Made from host records once; :meth:`step` only launches the kernel. ``precision="float32"`` stores the
+    per-node, per-spring and per-tet arrays in float32 (:data:`FLOAT32_FIELDS`); downloads into float64 host
+    records convert. (:class:`.simulation.Simulation`
     with ``backend="cuda"`` uploads and downloads everything around each step, so that every host-side API
     works unchanged.) Only what a caller asks for crosses
     to the host (:meth:`download`, by field: e.g. ``jaw_out`` for the sensors, 108 bytes per tissue), and
@@ -344,11 +375,13 @@ class CudaBatch:
     ``torch.as_tensor(batch.arrays()["x"], device="cuda")`` is a view of the positions.
     """
 
-    def __init__(self, model: SimModel, state: SimState, out: SimReadout, threads: int = THREADS_PER_BLOCK) -> None:
-        self.model = to_device(model)
-        self.state = to_device(state)
-        self.out = to_device(out)
-        self.scratch = to_device(make_scratch(model, state.x.shape[0]))
+    def __init__(self, model: SimModel, state: SimState, out: SimReadout, threads: int = THREADS_PER_BLOCK,
+                 precision: str = "float64") -> None:
+        self.precision = precision
+        self.model = to_device(with_precision(model, precision))
+        self.state = to_device(with_precision(state, precision))
+        self.out = to_device(with_precision(out, precision))
+        self.scratch = to_device(with_precision(make_scratch(model, state.x.shape[0]), precision))
         self.threads = int(threads)
 
     def step(self, n_steps: int) -> None:
@@ -366,14 +399,17 @@ class CudaBatch:
         """Copy the device arrays of ``fields`` (default all) into the given host records, in place."""
         self._check(fields)
         for _, dev, host in self._pairs(state, out, fields):
-            dev.copy_to_host(host)
+            if dev.dtype == host.dtype:
+                dev.copy_to_host(host)
+            else:  # (a float32 array into a float64 record)
+                host[...] = dev.copy_to_host()
 
     def upload(self, state: SimState | None = None, out: SimReadout | None = None,
                fields: tuple[str, ...] | None = None) -> None:
         """Copy host arrays of ``fields`` (default all) into the device arrays (no reallocation)."""
         self._check(fields)
         for _, dev, host in self._pairs(state, out, fields):
-            dev.copy_to_device(np.ascontiguousarray(host))
+            dev.copy_to_device(np.ascontiguousarray(host, dtype=dev.dtype))
 
     def arrays(self) -> dict[str, object]:
         """The device arrays of the state and the readouts, by field name (no copy)."""

@@ -166,12 +166,17 @@ def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_s
     assert report["gpu"] == {"available": False, "reason": bench.gpu_unavailable_reason(), "rows": []}
     assert "simulator" in report["gpu"]["reason"] and "gpu_ge_200k_agent_steps_per_s" not in report["targets"]
     assert "Not measured: NUMBA_ENABLE_CUDASIM=1" in markdown(report)
+    # float32's error run: only when asked for by name in the simulator (minutes of Python kernels)
+    assert report["precision"] == {"available": False, "reason": bench.gpu_unavailable_reason()}
     res = bench.bench_gpu(True, resolution=60, batches=(1, 2), settle_s=0.2, close_s=0.3, steps=1,
                           min_time=0.01, force=True, task_warmup_s=0.002, threads=4)
-    assert [(r["batch"], r["contact"]) for r in res["rows"]] == [(1, True), (2, True), (1, False), (2, False)]
+    cases = [(1, True), (2, True), (1, False), (2, False)]
+    assert [(r["dtype"], r["batch"], r["contact"]) for r in res["rows"]] == \
+        [("float64", *c) for c in cases] + [("float32", *c) for c in cases]
     grasped = [r["contact_nodes_mean"] for r in res["rows"] if r["contact"]]
     assert min(grasped) > 0 and all(r["contact_nodes_mean"] == 0 for r in res["rows"] if not r["contact"])
     # the whole task step's rows: one per batch, the share of envs holding the tissue measured, not assumed
-    assert [r["batch"] for r in res["task_rows"]] == [1, 2]
+    assert [(r["dtype"], r["batch"]) for r in res["task_rows"]] == [("float64", 1), ("float64", 2), ("float32", 1),
+                                                                     ("float32", 2)]
     assert all(r["what"] == "task" and 0.0 <= r["contact_fraction"] <= 1.0 for r in res["task_rows"])
     assert "The whole task step" in markdown({**report, "gpu": res, "targets": {}})

@@ -33,10 +33,10 @@ def _config(**changes) -> GraspLiftConfig:
     return from_dict(GraspLiftConfig, data)
 
 
-def _gpu(config: GraspLiftConfig, num_envs: int = 2, seed: int = 3):
+def _gpu(config: GraspLiftConfig, num_envs: int = 2, seed: int = 3, precision: str = "float64"):
     from msdgrasp.envs.cuda_core import CudaGraspLiftCore
 
-    return CudaGraspLiftCore(config, num_envs, seed=seed, threads=4)
+    return CudaGraspLiftCore(config, num_envs, seed=seed, threads=4, precision=precision)
 
 
 def _pin_cpu_to(cpu: GraspLiftCore, gpu) -> None:
@@ -189,3 +189,39 @@ def test_the_torch_ppo_trains_on_the_gpu_task_and_reads_its_device_arrays(tmp_pa
     assert dones.tolist() == [1, 1] and set(extras["log"]) == {"/episode/success", "/episode/peak_pinch_N",
                                                                 "/episode/slip_mm"}
     np.testing.assert_array_equal(gpu.download("episode_length")["episode_length"], [2, 2])
+
+
+def test_float32_stores_the_big_arrays_in_float32_and_stays_within_its_resolution_of_float64():
+    from msdgrasp.benchmarks.bench import bench_precision
+    from msdgrasp.benchmarks.report import markdown
+    from msdgrasp.physics.cuda_step import FLOAT32_FIELDS
+
+    gpu = _gpu(_config(), precision="float32")
+    arrays = gpu.arrays()
+    for name in ("x", "v", "fv", "dl_prev", "f_ext", "contact_force"):
+        assert name in FLOAT32_FIELDS and arrays[name].dtype == np.float32, name
+    for name in ("t", "mu_s", "g_radius", "g_force", "jaw_out", "anchor_out"):  # per tissue: float64
+        assert arrays[name].dtype == np.float64, name
+    assert gpu.physics.model.k1.dtype == np.float32 and gpu.physics.scratch.fe.dtype == np.float32
+    # the same 8-step episodes as the parity test (jaws 4 mm in: contact at once), float32 against float64
+    res = bench_precision(_config(), num_envs=2, seed=3, threads=4, force=True, jaws_in_m=0.004)
+    assert res["agent_steps"] == 8 and res["max_pinch_rel_diff"] > 0.0  # the jaws held the tissue in both
+    # float32 really rounds (float64 stays within 1e-12 m of the CPU), and by little more than its resolution:
+    # float32's spacing near 0.1 m is 7.5e-9 m; 1e-6 m is a 2000th of the task's 2 mm slip tolerance
+    assert 1e-12 < res["max_position_diff_m"] <= 1e-6
+    assert res["env_steps_in_contact"] >= 6  # of 16: the stick / slip decisions below were compared
+    assert res["contact_state_agreement"] == 1.0  # and were the same
+    assert res["max_reward_diff"] <= 1e-4 and res["max_pinch_rel_diff"] <= 1e-4
+    assert res["envs_ended_on_another_step"] == 0 and res["envs_with_another_outcome"] == 0
+    from msdgrasp.benchmarks.report import machine_info
+
+    text = markdown({"what": "precision", "quick": True, "machine": machine_info(), "elapsed_s": 1.0, "targets": {},
+                     "precision": res})
+    assert "On numba's CUDA simulator" in text and "| contact_state_agreement | 1 |" in text
+
+
+def test_an_unknown_precision_is_a_one_line_error():
+    from msdgrasp.envs.cuda_core import CudaGraspLiftCore
+
+    with pytest.raises(ConfigError, match=r"precision = 'float16' is not allowed; choose one of 'float64', 'float32'"):
+        CudaGraspLiftCore(_config(), 2, precision="float16")

@@ -14,14 +14,25 @@ import torch
 from msdgrasp.agents.models import TrainConfig
 from msdgrasp.agents.torch_ppo import TorchPPOConfig, TorchScriptPolicy, actor_columns, make_torch_env, train_torch
 from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
-from msdgrasp.physics.config import builtin_config, from_dict, read_yaml, to_dict
+from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, read_yaml, to_dict
 
 
-def test_the_shipped_config_is_the_defaults_and_trains_the_sb3_task():
+def test_the_shipped_configs_are_the_defaults_and_train_the_sb3_task():
     assert TorchPPOConfig.load(builtin_config("train/rsl_ppo.yaml")) == TorchPPOConfig()
     assert TorchPPOConfig().env == TrainConfig().env
-    assert from_dict(GraspLiftConfig, read_yaml(builtin_config("train/rsl_ppo.yaml"))["env"]) == \
-        from_dict(GraspLiftConfig, read_yaml(builtin_config("train/ppo.yaml"))["env"])
+    sb3_env = from_dict(GraspLiftConfig, read_yaml(builtin_config("train/ppo.yaml"))["env"])
+    assert from_dict(GraspLiftConfig, read_yaml(builtin_config("train/rsl_ppo.yaml"))["env"]) == sb3_env
+    # the CPU-sized run: the defaults but for where it runs and its size, on the SB3 training's step budget
+    cpu = TorchPPOConfig.load(builtin_config("train/rsl_ppo_cpu.yaml"))
+    assert cpu.env == sb3_env
+    assert cpu == TorchPPOConfig(backend="cpu", num_envs=64, iterations=440)
+    assert cpu.iterations * cpu.steps_per_env * cpu.num_envs == pytest.approx(TrainConfig().total_timesteps, rel=0.01)
+
+
+def test_float32_is_a_gpu_option():
+    with pytest.raises(ConfigError, match=r"precision = 'float32' needs backend: cuda"):
+        TorchPPOConfig(backend="cpu", precision="float32")
+    assert TorchPPOConfig(precision="float32").precision == "float32"
 
 
 def _small_task(**changes) -> GraspLiftConfig:
