@@ -173,11 +173,12 @@ def test_the_torch_ppo_trains_on_the_gpu_task_and_reads_its_device_arrays(tmp_pa
     from msdgrasp.physics.config import to_dict
 
     data = to_dict(TorchPPOConfig())
-    data.update(backend="cuda", num_envs=2, iterations=1, steps_per_env=3, validation_episodes=0)
+    data.update(backend="cuda", precision="float32", num_envs=2, iterations=1, steps_per_env=3, validation_episodes=0)
     data["env"].update(resolution=60, physics_steps_per_action=2, time_limit_s=0.004)  # 2 steps: an autoreset
     config = from_dict(TorchPPOConfig, data)
     summary = train_torch(config, tmp_path, progress=False)
     assert summary["backend"] == "cuda" and summary["agent_steps"] == 6 and (tmp_path / "policy.pt").is_file()
+    assert summary["precision"] == "float32"  # (the core's own: the config reached it)
     # the adapter hands over the GPU core's own arrays (views on a GPU; copies in the simulator)
     gpu = _gpu(config.env, num_envs=2, seed=1)
     env = make_torch_env(gpu, "cpu")
