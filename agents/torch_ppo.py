@@ -238,8 +238,8 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     atomic_write(out / "policy.pt", export)
     meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
     atomic_write(out / "policy.json", lambda p: p.write_text(json.dumps(meta, indent=2)))
-    summary: dict[str, Any] = {"backend": config.backend, "precision": getattr(core, "precision", "float64"), "device": device, "num_envs": config.num_envs,
-                               "seed": config.seed, "iterations": config.iterations, "agent_steps": steps,
+    summary: dict[str, Any] = {"backend": config.backend, "precision": getattr(core, "precision", "float64"),
+                               "device": device, "num_envs": config.num_envs, "seed": config.seed, "iterations": config.iterations, "agent_steps": steps,
                                "train_s": train_s, "agent_steps_per_s": steps / train_s, "validation": []}
     if config.validation_episodes > 0:
         from .evaluation import evaluate_policy

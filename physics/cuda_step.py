@@ -42,10 +42,10 @@ THREADS_PER_BLOCK = 128
 PRECISIONS = ("float64", "float32")
 #: the arrays stored in float32 when ``precision="float32"``: those of one entry per node, spring or tet,
 #: the memory the step streams through. Per-tissue values (time, friction, scales, the grasper and its force
-#: loop, the jaw, plate and anchor sums) stay float64: a clock summed 10,000 times per second or a friction
-#: coefficient gains nothing from 4 bytes. Arithmetic follows numba's typing: float32 operands give float32,
+#: loop, the jaw, plate and anchor sums) stay float64: a clock summed at every substep would drift in float32,
+#: and a friction coefficient gains nothing from 4 bytes. Arithmetic follows numba's typing: float32 operands give float32,
 #: a float64 constant or per-tissue value promotes the operation to float64. The error against float64 is
-#: measured, not assumed (``msdgrasp bench gpu``'s precision rows).
+#: measured, not assumed (``msdgrasp bench precision``).
 FLOAT32_FIELDS = frozenset({
     # SimModel
     "x_rest", "rest_length", "k1", "k2", "dlc", "cdash", "kv", "rest_volume", "kvol", "mass", "b0", "b1",

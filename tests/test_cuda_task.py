@@ -204,6 +204,14 @@ def test_float32_stores_the_big_arrays_in_float32_and_stays_within_its_resolutio
     for name in ("t", "mu_s", "g_radius", "g_force", "jaw_out", "anchor_out"):  # per tissue: float64
         assert arrays[name].dtype == np.float64, name
     assert gpu.physics.model.k1.dtype == np.float32 and gpu.physics.scratch.fe.dtype == np.float32
+    # a download into the host's float64 records converts; an upload back rounds to float32 again
+    host = gpu.host.sim.kernel_state()
+    host.x[:] = np.pi
+    gpu.physics.download(state=host, fields=("x",))
+    np.testing.assert_array_equal(host.x, arrays["x"].copy_to_host().astype(np.float64))
+    host.x[0, 0, 0] = 0.1
+    gpu.physics.upload(state=host, fields=("x",))
+    assert arrays["x"].copy_to_host()[0, 0, 0] == np.float32(0.1)
     # the same 8-step episodes as the parity test (jaws 4 mm in: contact at once), float32 against float64
     res = bench_precision(_config(), num_envs=2, seed=3, threads=4, force=True, jaws_in_m=0.004)
     assert res["agent_steps"] == 8 and res["max_pinch_rel_diff"] > 0.0  # the jaws held the tissue in both
