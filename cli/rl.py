@@ -70,14 +70,24 @@ def _runner(args: argparse.Namespace, default_workers: int | None = None):
 # ------------------------------------------------------------------------------------------------
 
 
+def torch_config_path(config: Path | None, backend: str | None) -> Path:
+    """The torch PPO's config: the one given, else the CPU-sized one for ``--backend cpu``
+    (configs/train/rsl_ppo_cpu.yaml: 64 envs), else configs/train/rsl_ppo.yaml (the GPU's 4,096 envs)."""
+    from ..physics.config import builtin_config
+
+    if config is not None:
+        return Path(config)
+    return builtin_config("train/rsl_ppo_cpu.yaml" if backend == "cpu" else "train/rsl_ppo.yaml")
+
+
 def _cmd_train_torch(args: argparse.Namespace) -> int:
     """``train --learner rsl`` (the default of ``--backend cuda``): rsl-rl's PPO on the batched core."""
-    from ..physics.config import builtin_config, from_dict, read_yaml
+    from ..physics.config import from_dict, read_yaml
 
     for flag, given in (("--algo", args.algo), ("--total-timesteps", args.total_timesteps), ("--resume", args.resume)):
         if given is not None:
             raise _usage(f"{flag} is an option of the SB3 learner; the torch PPO's run length is 'iterations' in its "
-                         "config (configs/train/rsl_ppo.yaml)")
+                         "config (configs/train/rsl_ppo.yaml, rsl_ppo_cpu.yaml)")
     if _runner_asked(args):
         raise _usage("--ray, --address and --workers run SB3 seeds in parallel; the torch PPO runs its seeds one "
                      "after the other on the one GPU")
@@ -91,7 +101,7 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
         _rsl()
     except ImportError as exc:
         raise _missing_module("train --learner rsl", exc) from None
-    path = args.config or builtin_config("train/rsl_ppo.yaml")
+    path = torch_config_path(args.config, args.backend)
     data = read_yaml(path)
     if args.backend is not None:  # else the config's (rsl_ppo.yaml: cuda)
         data["backend"] = args.backend
@@ -304,7 +314,8 @@ def add_rl_commands(sub) -> None:
                         "trains with --learner rsl; pip install 'msdgrasp[gpu]'); default: the config's")
     t.add_argument("--learner", choices=["sb3", "rsl"], default=None,
                    help="sb3 (Stable-Baselines3, the default) or rsl (rsl-rl's torch-native PPO, the default with "
-                        "--backend cuda; config configs/train/rsl_ppo.yaml, whose backend is cuda)")
+                        "--backend cuda; config configs/train/rsl_ppo.yaml, whose backend is cuda, or with --backend "
+                        "cpu configs/train/rsl_ppo_cpu.yaml)")
     t.set_defaults(func=_cmd_train)
 
     sw = sub.add_parser("sweep", help="hyper-parameter sweep: a grid of training configs, each over several seeds")

@@ -29,6 +29,15 @@ def test_the_shipped_configs_are_the_defaults_and_train_the_sb3_task():
     assert cpu.iterations * cpu.steps_per_env * cpu.num_envs == pytest.approx(TrainConfig().total_timesteps, rel=0.01)
 
 
+def test_the_command_line_picks_the_config_sized_for_where_it_runs():
+    from msdgrasp.cli.rl import torch_config_path
+
+    assert torch_config_path(None, "cpu") == builtin_config("train/rsl_ppo_cpu.yaml")  # 64 envs, not 4,096
+    assert torch_config_path(None, "cuda") == builtin_config("train/rsl_ppo.yaml")
+    assert torch_config_path(None, None) == builtin_config("train/rsl_ppo.yaml")  # (its backend: cuda)
+    assert torch_config_path("my.yaml", "cpu").name == "my.yaml"
+
+
 def test_float32_is_a_gpu_option():
     with pytest.raises(ConfigError, match=r"precision = 'float32' needs backend: cuda"):
         TorchPPOConfig(backend="cpu", precision="float32")
