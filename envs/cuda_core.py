@@ -347,7 +347,8 @@ def _task_update(p, s, out, ts, rng, b, finite, vratio):
     ts.truncated[b] = truncated
     done = terminated or truncated
     ts.done[b] = done
-    ts.episode_return[b] += reward
+    # (an episode's first step starts the sum: the same-step reset must leave an ended episode's return)
+    ts.episode_return[b] = reward if ts.steps[b] == 1 else ts.episode_return[b] + reward
     if done:
         ts.episode_length[b] = ts.steps[b]
         ts.episode_peak_pinch[b] = ts.peak_pinch[b]
@@ -538,7 +539,6 @@ def _reset_kernel(m, s, out, p, ts, rng, mask):
     ts.lift_started[b] = False
     ts.hold_progress[b] = 0.0
     ts.travel_target[b] = 0.0
-    ts.episode_return[b] = 0.0
     _observe(p, s, out, ts, b, 0.0, 0.0, 0.0, True)
 
 

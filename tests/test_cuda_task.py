@@ -66,6 +66,7 @@ def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core():
     cpu.sim.g_radius[:] = radius
     actions = np.array([[1.0, -1.0], [0.3, -1.0]])
     seen_contact = seen_damage = 0
+    returns = np.zeros(2)
     for k in range(config.max_episode_steps):
         if k >= 4:  # pull at 25 % and 75 % of the top speed, the second env with a lighter grip
             actions[:, 1] = [-0.5, 0.5]
@@ -73,7 +74,7 @@ def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core():
         o_cpu, r_cpu, term_cpu, trunc_cpu, info = cpu.step(actions.astype(np.float32))
         got = gpu.download("x", "terminal_obs", "terms", "pinch", "stress", "contact", "lift", "slip_total",
                            "peak_pinch", "min_volume_ratio", "contact_state", "episode_slip", "episode_peak_pinch",
-                           "damaged")
+                           "damaged", "episode_return")
         np.testing.assert_array_equal(got["damaged"], info["damaged"])
         seen_damage += int(info["damaged"].sum())
         np.testing.assert_array_equal(term_gpu.copy_to_host(), term_cpu)
@@ -84,6 +85,8 @@ def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core():
             np.testing.assert_array_equal(got["contact_state"], cpu.sim.contact_state)  # identical stick/slip
             _close("lift", got["lift"], info["lifted_m"])
         _close("reward", r_gpu.copy_to_host(), r_cpu)
+        returns += r_cpu
+        _close("episode return", got["episode_return"], returns)  # (where done: of the episode that ended)
         for j, name in enumerate(("progress", "hold", "grasp", "slip", "force", "peak_force", "damage", "success",
                                   "failure")):
             _close(f"reward term {name}", got["terms"][:, j], info["reward_terms"][name])
