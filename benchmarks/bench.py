@@ -611,8 +611,63 @@ def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: in
             "wall_s": _r(time.perf_counter() - t0)}
 
 
+def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_per_env: int = 32,
+                   threads: int | None = None, force: bool = False) -> dict:
+    """Does SB3 keep up with the GPU task? Agent steps/s on the same GPU task (``batch`` envs) of: the env
+    alone (actions already on the device), rsl-rl's PPO (torch-native: zero-copy observations) and SB3's PPO
+    through :class:`~msdgrasp.envs.sb3.CudaSB3VecEnv` (NumPy: a host round trip and an info dict per env
+    each step). Both learners: ``iterations`` x ``steps_per_env`` x ``batch`` steps, 64x64 networks, 5 epochs
+    of 4 minibatches, on the GPU where torch has one. The env is timed first, so that no learner pays the
+    kernels' compilation. Without a GPU: the reason (``force``: the harness runs anyway, e.g. in the simulator
+    for tests; its numbers are not timings)."""
+    import tempfile
+
+    reason = gpu_unavailable_reason()
+    if reason is not None and not force:
+        return {"available": False, "reason": reason}
+    import torch
+    from numba import cuda
+    from stable_baselines3 import PPO
+
+    from ..agents.torch_ppo import TorchPPOConfig, train_torch
+    from ..envs.core import GraspLiftConfig
+    from ..envs.cuda_core import CudaGraspLiftCore
+    from ..envs.sb3 import CudaSB3VecEnv
+    from ..physics.config import replace
+    from ..physics.cuda_step import THREADS_PER_BLOCK
+
+    config = config or GraspLiftConfig()
+    threads = threads or THREADS_PER_BLOCK
+    steps = iterations * steps_per_env * batch
+    core = CudaGraspLiftCore(config, batch, seed=0, threads=threads)
+    core.reset()
+    actions = cuda.to_device(np.tile([0.0, 0.0], (batch, 1)))
+    core.step(actions)  # compile
+    cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(iterations * steps_per_env):
+        core.step(actions)
+    cuda.synchronize()
+    env_s = time.perf_counter() - t0
+    rsl_config = replace(TorchPPOConfig(), num_envs=batch, iterations=iterations, steps_per_env=steps_per_env,
+                         validation_episodes=0, env=config)
+    with tempfile.TemporaryDirectory() as tmp:
+        rsl = train_torch(rsl_config, tmp, progress=False)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    venv = CudaSB3VecEnv(CudaGraspLiftCore(config, batch, seed=0, threads=threads))
+    model = PPO("MlpPolicy", venv, n_steps=steps_per_env, batch_size=max(2, steps_per_env * batch // 4), n_epochs=5,
+                policy_kwargs={"net_arch": [64, 64]}, device=device, seed=0, verbose=0)
+    t0 = time.perf_counter()
+    model.learn(steps)
+    sb3_s = time.perf_counter() - t0
+    return {"available": reason is None, "reason": reason, "resolution": config.resolution, "batch": batch,
+            "agent_steps": steps, "torch_device": device, "env_steps_per_s": _r(steps / env_s),
+            "rsl_steps_per_s": _r(rsl["agent_steps_per_s"]), "sb3_steps_per_s": _r(steps / sb3_s),
+            "sb3_over_rsl": _r((steps / sb3_s) / rsl["agent_steps_per_s"])}
+
+
 #: what ``msdgrasp bench`` measures
-BENCH_PARTS = ("physics", "grasp", "env", "gpu", "precision", "all")
+BENCH_PARTS = ("physics", "grasp", "env", "gpu", "precision", "learners", "all")
 
 
 def bench_precision_run(quick: bool) -> dict:
@@ -644,6 +699,9 @@ def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[st
     if what in ("gpu", "all"):
         progress("gpu: device-resident batches, with and without contact")
         report["gpu"] = bench_gpu(quick)
+    if what in ("learners", "all"):
+        progress("learners: SB3's and rsl-rl's PPO on the GPU task, beside the env alone")
+        report["learners"] = bench_learners()
     reason = gpu_unavailable_reason() if what in ("gpu", "all") else None
     if what in ("gpu", "all") and reason is not None:  # (the simulator's error run is asked for by name: minutes)
         report["precision"] = {"available": False, "reason": reason}

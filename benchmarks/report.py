@@ -219,6 +219,16 @@ def markdown(report: dict) -> str:
             lines += [f"| {r['batch']} | {r['contact_fraction']} | {r['dtype']} | {r['agent_steps_per_s']} "
                       f"| {r['ms_per_agent_step']} |" for r in gpu["task_rows"]]
             lines.append("")
+    learners = report.get("learners")
+    if learners is not None:
+        lines += ["## Learners on the GPU task (agent steps/s, training included)", ""]
+        if "env_steps_per_s" not in learners:
+            lines += [f"Not measured: {learners['reason']}.", ""]
+        else:
+            lines += [f"Batch {learners['batch']}, {learners['agent_steps']} agent steps, torch on {learners['torch_device']}.",
+                      "", "| env alone | rsl-rl PPO | SB3 PPO | SB3 / rsl-rl |", "|---|---|---|---|",
+                      f"| {learners['env_steps_per_s']} | {learners['rsl_steps_per_s']} | {learners['sb3_steps_per_s']} "
+                      f"| {learners['sb3_over_rsl']} |", ""]
     prec = report.get("precision")
     if prec is not None:
         lines += ["## float32 against float64 (the GPU task, same seed and scripted grasp, one episode)", ""]

@@ -2,7 +2,7 @@
 
     msdgrasp experiment compress|grasp|grasp-sphere ...   the paper's experiments (CSV + PNG)
     msdgrasp calibrate --data CSV ...                      fit the tissue's constants to compression curves
-    msdgrasp bench [physics|grasp|env|gpu|precision|all]   speed benchmarks (JSON); float32's error
+    msdgrasp bench [physics|grasp|env|gpu|learners|...]    speed benchmarks (JSON); precision: float32's error
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
 
 Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.set_defaults(func=_cmd_calibrate)
 
     b = sub.add_parser("bench", help="speed benchmarks, printed as JSON")
-    b.add_argument("what", nargs="?", default="physics", choices=["physics", "grasp", "env", "gpu", "precision", "all"])
+    b.add_argument("what", nargs="?", default="physics", choices=["physics", "grasp", "env", "gpu", "precision", "learners", "all"])
     b.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
     b.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     b.set_defaults(func=_cmd_bench)

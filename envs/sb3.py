@@ -248,3 +248,60 @@ def make_sb3_env(num_envs: int = 8, config: GraspLiftConfig | dict | None = None
     """
     return GraspLiftSB3VecEnv(num_envs, config, seed=seed, **overrides)
 
+
+
+class CudaSB3VecEnv(VecEnv):
+    """The GPU task (:class:`~msdgrasp.envs.cuda_core.CudaGraspLiftCore`) as an SB3 ``VecEnv``.
+
+    SB3 steps NumPy arrays: every step uploads the actions and downloads the observations, rewards and
+    flags, and builds one info dict per env; where episodes ended, their terminal observation, success,
+    return and length are downloaded too (``info["terminal_observation"]``, ``"is_success"``, ``"episode"``,
+    ``"TimeLimit.truncated"``, as :class:`GraspLiftSB3VecEnv` gives them). This host round trip is what a
+    torch-native learner avoids; ``msdgrasp bench learners`` measures it. The GPU core resets ended envs in
+    the same step and pins nothing through ``reset()`` here; ``seed`` is the core's.
+    """
+
+    def __init__(self, core) -> None:
+        self.core = core
+        obs_space = spaces.Box(-np.inf, np.inf, (core.obs_dim,), np.float32)
+        super().__init__(core.num_envs, obs_space, spaces.Box(-1.0, 1.0, (2,), np.float32))
+        self._actions: np.ndarray | None = None
+        self._t0 = time.time()
+
+    def reset(self) -> VecEnvObs:
+        return self.core.reset().copy_to_host()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = _check_action(actions, self.num_envs)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        if self._actions is None:
+            raise RuntimeError("step_wait() called without a pending step_async(actions)")
+        obs, reward, terminated, truncated = (a.copy_to_host() for a in self.core.step(self._actions))
+        self._actions = None
+        dones = terminated | truncated
+        infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        if dones.any():
+            ended = self.core.download("terminal_obs", "is_success", "episode_return", "episode_length")
+            for i in np.flatnonzero(dones):
+                infos[i] = {"terminal_observation": ended["terminal_obs"][i],
+                            "TimeLimit.truncated": bool(truncated[i] and not terminated[i]),
+                            "is_success": bool(ended["is_success"][i]),
+                            "episode": {"r": float(ended["episode_return"][i]), "l": int(ended["episode_length"][i]),
+                                        "t": round(time.time() - self._t0, 6)}}
+        return obs, reward.astype(np.float32), dones, infos
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return [getattr(self.core, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        raise AttributeError(f"CudaSB3VecEnv: the GPU task's {attr_name!r} is set through its config, not per env")
+
+    def env_method(self, method_name: str, *method_args, indices: VecEnvIndices = None, **method_kwargs) -> list[Any]:
+        raise AttributeError(f"CudaSB3VecEnv: no per-env method {method_name!r} on the GPU task")
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]

@@ -237,3 +237,37 @@ def test_an_unknown_precision_is_a_one_line_error():
 
     with pytest.raises(ConfigError, match=r"precision = 'float16' is not allowed; choose one of 'float64', 'float32'"):
         CudaGraspLiftCore(_config(), 2, precision="float16")
+
+
+def test_sb3_steps_the_gpu_task_through_host_copies_with_its_episode_infos():
+    from msdgrasp.envs.sb3 import CudaSB3VecEnv
+
+    venv = CudaSB3VecEnv(_gpu(_config(time_limit_s=0.004)))  # 2 agent steps per episode
+    obs = venv.reset()
+    assert obs.shape == (2, venv.core.obs_dim) and obs.dtype == np.float32
+    returns = np.zeros(2)
+    for k in range(2):
+        venv.step_async(np.array([[0.5, 0.0], [-0.5, 1.0]]))
+        obs, reward, dones, infos = venv.step_wait()
+        returns += reward
+        np.testing.assert_array_equal(obs, venv.core.state.obs.copy_to_host())
+    assert dones.tolist() == [True, True]
+    ended = venv.core.download("terminal_obs")["terminal_obs"]
+    for i, info in enumerate(infos):
+        assert info["TimeLimit.truncated"] and info["episode"]["l"] == 2 and info["is_success"] is False
+        np.testing.assert_allclose(info["episode"]["r"], returns[i], rtol=1e-6)  # (rewards are float32 to SB3)
+        np.testing.assert_array_equal(info["terminal_observation"], ended[i])
+    with pytest.raises(ValueError, match=r"action must have shape \(2, 2\)"):
+        venv.step_async(np.zeros((3, 2)))
+
+
+def test_the_learner_bench_runs_sb3_and_rsl_rl_on_the_gpu_task_in_the_simulator():
+    from msdgrasp.benchmarks.bench import bench_learners
+    from msdgrasp.benchmarks.report import machine_info, markdown
+
+    res = bench_learners(_config(time_limit_s=0.004), batch=2, iterations=1, steps_per_env=4, threads=4, force=True)
+    assert res["agent_steps"] == 8 and not res["available"] and "simulator" in res["reason"]
+    assert min(res["env_steps_per_s"], res["rsl_steps_per_s"], res["sb3_steps_per_s"]) > 0  # (not timings here)
+    text = markdown({"what": "learners", "quick": True, "machine": machine_info(), "elapsed_s": 1.0, "targets": {},
+                     "learners": res})
+    assert "| env alone | rsl-rl PPO | SB3 PPO | SB3 / rsl-rl |" in text
