@@ -177,26 +177,67 @@ def train_points(configs: Sequence[TrainConfig], folders: Sequence[Path], seeds:
     per_point: list[list[dict[str, Any]]] = [[] for _ in configs]
     for (p, run_dir), res in zip(where, seed_results):
         per_point[p].append(land(res, run_dir))
-    out = []
-    for p, recs in enumerate(per_point):
-        base = bases[task_of_point[p]]
-        minimal = {round(m, 6): f for m, f in zip(base["oracle_minimal_force"]["mu"],
-                                                  base["oracle_minimal_force"]["minimal_force_N"])}
-        seed_recs = []
-        for res in sorted(recs, key=lambda r: r["seed"]):
-            tr = res["train"]
-            seed_recs.append({"seed": res["seed"], "run": res["run"], "model": res["model"],
-                              "train_wall_s": res["train_wall_s"], "timesteps": tr["timesteps"],
-                              "steps_per_s": tr["steps_per_s"], **_row_metrics(res["rows"], minimal),
-                              "rows": res["rows"], "validation": res["validation"]})
-        out.append({
-            "per_seed": seed_recs,
-            "aggregate": {k: aggregate([r[k] for r in seed_recs]) for k in AGGREGATED},
-            "baselines": {name: _row_metrics(base[name], minimal) | {"rows": base[name]}
-                          for name in ("reactive", "oracle")},
-            "oracle_minimal_force": base["oracle_minimal_force"],
-        })
-    return out
+    return [_point_result(bases[task_of_point[p]], recs) for p, recs in enumerate(per_point)]
+
+
+def _point_result(base: dict[str, Any], recs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One config's multi-seed result: the per-seed records (metrics of each seed's evaluation rows), their
+    aggregate, and the baselines (``base``: :func:`_baselines`) with the same metrics."""
+    minimal = {round(m, 6): f for m, f in zip(base["oracle_minimal_force"]["mu"],
+                                              base["oracle_minimal_force"]["minimal_force_N"])}
+    seed_recs = []
+    for res in sorted(recs, key=lambda r: r["seed"]):
+        tr = res["train"]
+        seed_recs.append({"seed": res["seed"], "run": res["run"], "model": res["model"],
+                          "train_wall_s": res["train_wall_s"], "timesteps": tr["timesteps"],
+                          "steps_per_s": tr["steps_per_s"], **_row_metrics(res["rows"], minimal),
+                          "rows": res["rows"], "validation": res["validation"]})
+    return {
+        "per_seed": seed_recs,
+        "aggregate": {k: aggregate([r[k] for r in seed_recs]) for k in AGGREGATED},
+        "baselines": {name: _row_metrics(base[name], minimal) | {"rows": base[name]} for name in ("reactive", "oracle")},
+        "oracle_minimal_force": base["oracle_minimal_force"],
+    }
+
+
+def _evaluate_trained(seed: int, model: str, train: dict[str, Any], env_dict: dict[str, Any], episodes: int,
+                      mus: Sequence[float]) -> dict[str, Any]:
+    env = from_dict(GraspLiftConfig, env_dict, where="env")
+    rows = evaluate_policy(make_policy(model, env), mus, episodes, env)
+    return {"seed": seed, "run": str(Path(model).parent), "model": model, "train_wall_s": train["train_s"],
+            "train": {"timesteps": train["agent_steps"], "steps_per_s": train["agent_steps_per_s"]}, "rows": rows,
+            "validation": []}
+
+
+def report_trained_seeds(models: Sequence[tuple[int, str | Path, dict[str, Any]]], env: GraspLiftConfig,
+                         out_dir: str | Path, config: dict[str, Any], *, episodes: int = 10,
+                         mus: Sequence[float] = EVAL_MU, runner: Runner | None = None,
+                         progress: bool = True) -> dict[str, Any]:
+    """The multi-seed report of policies trained elsewhere (the torch PPO's ``policy.pt``), made as
+    :func:`run_seeds` makes SB3's: every seed's policy at every mu of ``mus`` on the same evaluation episodes,
+    beside the baselines; ``seeds.json``, ``seeds.md`` and ``learning_curves.png`` (empty: these runs log no
+    validation history) in ``out_dir``. ``models``: (seed, policy file, its training summary with
+    ``train_s``, ``agent_steps`` and ``agent_steps_per_s``); ``config``: the training config, for the record."""
+    out = Path(out_dir)
+    seeds = [int(s) for s, _, _ in models]
+    check_run_args(out, seeds, episodes)
+    mus = [float(m) for m in mus]
+    if runner is None:
+        runner = Runner.processes(min(len(seeds) + 1, os.cpu_count() or 1))
+    env_dict = to_dict(env)
+    jobs: list[Job] = [(_baselines, (env_dict, episodes, mus))]
+    jobs += [(_evaluate_trained, (int(s), str(m), t, env_dict, episodes, mus)) for s, m, t in models]
+    t0 = time.perf_counter()
+    with runner:
+        results = runner.run(jobs)
+        capacity = runner.capacity()
+    result = {"config": config, "seeds": seeds, "episodes_per_mu": episodes, "mu_grid": mus,
+              "reference_mu": list(REFERENCE_MU), "workers": capacity, "runner": runner.label,
+              "wall_s": round(time.perf_counter() - t0, 1), **_point_result(results[0], results[1:])}
+    result["files"] = write_seed_report(result, out)
+    if progress:
+        print(format_markdown(result), file=sys.stderr)
+    return result
 
 
 def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int | None = None,

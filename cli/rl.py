@@ -129,15 +129,40 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
     if args.seeds is None:
         print(json.dumps(results[0], indent=2))
         return 0
-    from ..physics.config import atomic_write
+    return _report_torch_seeds(args.out, args.quiet)
 
-    success = [r["validation_success"] for r in results if "validation_success" in r]  # (none: validation off)
-    report = {"seeds": seeds, "per_seed": results,
-              "validation_success_mean": sum(success) / len(success) if success else None,
-              "validation_success_min": min(success) if success else None, "train_s": [r["train_s"] for r in results]}
-    atomic_write(args.out / "seeds.json", lambda p: p.write_text(json.dumps(report, indent=2)))
-    print(json.dumps({k: v for k, v in report.items() if k != "per_seed"}, indent=2))
+
+def _report_torch_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None) -> int:
+    """The multi-seed report of the torch PPO runs folder/seed_<k>/ (policy.pt, policy.json, summary.json):
+    seeds.json / seeds.md as SB3's ``train --seeds`` writes them (agents.seeds.report_trained_seeds)."""
+    from ..agents.evaluation import task_of
+    from ..agents.seeds import report_trained_seeds
+
+    runs = sorted((int(d.name.split("_", 1)[1]), d) for d in Path(folder).glob("seed_*")
+                  if d.name.split("_", 1)[1].isdigit() and (d / "policy.pt").is_file())
+    if not runs:
+        raise _usage(f"{folder}: no seed_<k>/policy.pt there (the runs of train --learner rsl --seeds)")
+    missing = [str(d / "summary.json") for _, d in runs if not (d / "summary.json").is_file()]
+    if missing:
+        raise _usage(f"{missing[0]} is missing: the run did not finish (its training summary is written last)")
+    models = [(k, str(d / "policy.pt"), json.loads((d / "summary.json").read_text())) for k, d in runs]
+    env, _ = task_of([m for _, m, _ in models], None)  # (all from one task, or a one-line error)
+    config = json.loads((runs[0][1] / "policy.json").read_text())["config"]
+    config.pop("seed", None)
+    result = report_trained_seeds(models, env, folder, config, episodes=episodes, runner=runner, progress=not quiet)
+    print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
     return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    """``msdgrasp report DIR``: the multi-seed report of torch PPO runs (what ``train --learner rsl --seeds``
+    writes at its end), for runs made elsewhere or before it wrote one."""
+    if args.episodes < 1:
+        raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    if not Path(args.folder).is_dir():
+        raise _usage(f"{args.folder}: not a folder")
+    runner = _runner(args, os.cpu_count() or 1) if _runner_asked(args) else None
+    return _report_torch_seeds(Path(args.folder), args.quiet, args.episodes, runner)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -345,6 +370,14 @@ def add_rl_commands(sub) -> None:
     _add_runner_args(e, "every (policy, mu) cell as its own job")
     e.add_argument("--quiet", action="store_true", help="no progress output")
     e.set_defaults(func=_cmd_evaluate)
+
+    rp = sub.add_parser("report", help="the multi-seed report (seeds.json / seeds.md) of torch PPO runs DIR/seed_<k>/")
+    rp.add_argument("folder", type=Path, metavar="DIR",
+                    help="a folder of train --learner rsl --seeds runs (seed_<k>/policy.pt); the report is written there")
+    rp.add_argument("--episodes", type=int, default=10, help="episodes per seed and mu (default 10)")
+    _add_runner_args(rp, "every seed's evaluation")
+    rp.add_argument("--quiet", action="store_true", help="no progress output")
+    rp.set_defaults(func=_cmd_report)
 
     r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
     r.add_argument("--policy", default=None, metavar="SPEC",

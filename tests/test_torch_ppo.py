@@ -121,3 +121,36 @@ def test_the_command_line_refuses_sb3_options_for_the_torch_learner(tmp_path):
     r = run("--learner", "rsl", "--n-envs", "0")
     assert r.returncode == 2 and "--n-envs must be >= 1, got 0" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_torch_seeds_get_the_multi_seed_report_of_sb3_seeds_and_report_remakes_it(tmp_path):
+    from msdgrasp.agents.seeds import EVAL_MU
+
+    cfg = tmp_path / "tiny.yaml"
+    data = {**to_dict(TorchPPOConfig(backend="cpu", num_envs=4, iterations=2, steps_per_env=8, validation_episodes=0)),
+            "env": {**to_dict(_small_task())}}
+    cfg.write_text(json.dumps(data))  # (JSON is YAML)
+    out = tmp_path / "runs"
+
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "msdgrasp.cli.main", *args], capture_output=True, text=True)
+
+    r = cli("train", "--learner", "rsl", "--config", str(cfg), "--seeds", "0-1", "--out", str(out), "--quiet")
+    assert r.returncode == 0, r.stderr
+    first = json.loads((out / "seeds.json").read_text())
+    assert first["seeds"] == [0, 1] and [s["seed"] for s in first["per_seed"]] == [0, 1]
+    for rec in first["per_seed"]:  # every seed evaluated at every mu of the multi-seed grid, as SB3's seeds are
+        assert [row["mu"] for row in rec["rows"]] == list(EVAL_MU) and rec["model"].endswith("policy.pt")
+        assert rec["timesteps"] == 2 * 8 * 4 and 0.0 <= rec["success_ref"] <= 1.0
+    assert set(first["baselines"]) == {"reactive", "oracle"} and "| PPO (seed 1) |" in (out / "seeds.md").read_text()
+    # msdgrasp report remakes it from the runs: the same evaluation episodes, the same numbers
+    (out / "seeds.json").unlink()
+    r = cli("report", str(out), "--quiet")
+    assert r.returncode == 0, r.stderr
+    again = json.loads((out / "seeds.json").read_text())
+    for a, b in zip(first["per_seed"], again["per_seed"]):
+        assert a["rows"] == b["rows"]
+    assert again["baselines"] == first["baselines"]
+    (out / "seed_1" / "summary.json").unlink()
+    r = cli("report", str(out))
+    assert r.returncode == 2 and "seed_1/summary.json is missing: the run did not finish" in r.stderr
