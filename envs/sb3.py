@@ -16,6 +16,9 @@ and speaks SB3's VecEnv API:
   episode reward/length logging (what ``Monitor``/``VecMonitor`` would add; wrapping in ``VecMonitor``
   still works and overwrites it).
 
+:class:`CudaSB3VecEnv` puts the GPU task (:class:`~msdgrasp.envs.cuda_core.CudaGraspLiftCore`) behind the
+same API, host copies included: what ``msdgrasp bench learners`` times against the torch-native learner.
+
 Example::
 
     from stable_baselines3 import PPO
@@ -247,7 +250,6 @@ def make_sb3_env(num_envs: int = 8, config: GraspLiftConfig | dict | None = None
     wanted; episode statistics and success rates are logged without a ``VecMonitor``.
     """
     return GraspLiftSB3VecEnv(num_envs, config, seed=seed, **overrides)
-
 
 
 class CudaSB3VecEnv(VecEnv):
