@@ -546,7 +546,7 @@ def precision_actions(num_envs: int, step: int, steps_per_s: float) -> np.ndarra
 
 
 def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: int | None = None,
-                    force: bool = False, jaws_in_m: float = 0.0) -> dict:
+                    jaws_in_m: float = 0.0) -> dict:
     """The float32 option's error: the GPU task in float32 against float64, same seed (same friction, scales
     and poses), same scripted grasp-and-pull (:func:`precision_actions`) for one episode length.
 
@@ -554,13 +554,13 @@ def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: in
     the share of surface nodes in the same contact state (free / stick / slip), the largest reward and
     observation differences and the largest relative pinch difference; at the ends: how many envs ended on a
     different step or with a different outcome (success, lost grasp, slip, time limit). On a GPU these are
-    the GPU's numbers; in numba's simulator (``force=True``) NumPy's promotion rules apply, which keep more
-    of the arithmetic in float32 than numba's compiled typing does. ``jaws_in_m``: the jaws start this much
+    the GPU's numbers; in numba's simulator (an error is no timing: it runs there too) NumPy's promotion rules
+    apply, which keep more of the arithmetic in float32 than numba's compiled typing does. ``jaws_in_m``: the jaws start this much
     closer than the task's start radius (contact within a short episode)."""
     from numba import config as numba_config
 
     reason = gpu_unavailable_reason()
-    if reason is not None and not (force or numba_config.ENABLE_CUDASIM):  # (an error is no timing: the simulator's counts)
+    if reason is not None and not numba_config.ENABLE_CUDASIM:
         return {"available": False, "reason": reason}
     from ..envs.core import GraspLiftConfig
     from ..envs.cuda_core import CudaGraspLiftCore
@@ -574,7 +574,8 @@ def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: in
         radius = core.arrays()["g_radius"]
         radius.copy_to_device(radius.copy_to_host() - jaws_in_m)
     fields = ("x", "contact_state", "reward", "obs", "pinch", "done", "is_success", "lost_grasp", "slipped",
-              "truncated", "steps")
+              "truncated")
+    surf = cores[0].host.sim.surface_nodes
     live = np.ones(num_envs, dtype=bool)  # both precisions still in the first episode, on the same step
     worst = {"position_m": 0.0, "reward": 0.0, "obs": 0.0, "pinch_rel": 0.0}
     same_contact, total_contact, in_contact = 0, 0, 0
@@ -594,7 +595,6 @@ def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: in
             worst["obs"] = max(worst["obs"], float(np.abs(a["obs"][m] - b["obs"][m]).max()))
             rel = np.abs(a["pinch"][m] - b["pinch"][m]) / np.maximum(np.abs(a["pinch"][m]), 0.1)
             worst["pinch_rel"] = max(worst["pinch_rel"], float(rel.max()))
-            surf = cores[0].host.sim.surface_nodes
             same_contact += int((a["contact_state"][m][:, surf] == b["contact_state"][m][:, surf]).sum())
             total_contact += int(m.sum()) * surf.size
             in_contact += int((a["contact_state"][m][:, surf] > 0).any(axis=1).sum())

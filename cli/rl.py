@@ -129,17 +129,20 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
     if args.seeds is None:
         print(json.dumps(results[0], indent=2))
         return 0
-    return _report_torch_seeds(args.out, args.quiet)
+    return _report_torch_seeds(args.out, args.quiet, seeds=seeds)  # (only these: the folder may hold older runs)
 
 
-def _report_torch_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None) -> int:
-    """The multi-seed report of the torch PPO runs folder/seed_<k>/ (policy.pt, policy.json, summary.json):
-    seeds.json / seeds.md as SB3's ``train --seeds`` writes them (agents.seeds.report_trained_seeds)."""
+def _report_torch_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, seeds=None) -> int:
+    """The multi-seed report of the torch PPO runs folder/seed_<k>/ (policy.pt, policy.json, summary.json),
+    of ``seeds`` (default: every run there): seeds.json / seeds.md as SB3's ``train --seeds`` writes them
+    (agents.seeds.report_trained_seeds)."""
     from ..agents.evaluation import task_of
     from ..agents.seeds import report_trained_seeds
 
     runs = sorted((int(d.name.split("_", 1)[1]), d) for d in Path(folder).glob("seed_*")
                   if d.name.split("_", 1)[1].isdigit() and (d / "policy.pt").is_file())
+    if seeds is not None:
+        runs = [(k, d) for k, d in runs if k in set(seeds)]
     if not runs:
         raise _usage(f"{folder}: no seed_<k>/policy.pt there (the runs of train --learner rsl --seeds)")
     missing = [str(d / "summary.json") for _, d in runs if not (d / "summary.json").is_file()]

@@ -216,7 +216,7 @@ def test_float32_stores_the_big_arrays_in_float32_and_stays_within_its_resolutio
     gpu.physics.upload(state=host, fields=("x",))
     assert arrays["x"].copy_to_host()[0, 0, 0] == np.float32(0.1)
     # the same 8-step episodes as the parity test (jaws 4 mm in: contact at once), float32 against float64
-    res = bench_precision(_config(), num_envs=2, seed=3, threads=4, force=True, jaws_in_m=0.004)
+    res = bench_precision(_config(), num_envs=2, seed=3, threads=4, jaws_in_m=0.004)
     assert res["agent_steps"] == 8 and res["max_pinch_rel_diff"] > 0.0  # the jaws held the tissue in both
     # float32 really rounds (float64 stays within 1e-12 m of the CPU), and by little more than its resolution:
     # float32's spacing near 0.1 m is 7.5e-9 m; 1e-6 m is a 2000th of the task's 2 mm slip tolerance

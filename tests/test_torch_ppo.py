@@ -4,6 +4,7 @@ exported policy and the command line. (The same learner on the GPU task: tests/t
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -135,8 +136,12 @@ def test_torch_seeds_get_the_multi_seed_report_of_sb3_seeds_and_report_remakes_i
     def cli(*args):
         return subprocess.run([sys.executable, "-m", "msdgrasp.cli.main", *args], capture_output=True, text=True)
 
+    stale = out / "seed_7"  # an older, unfinished run in the same folder: not one of these seeds
+    stale.mkdir(parents=True)
+    (stale / "policy.pt").write_bytes(b"")
     r = cli("train", "--learner", "rsl", "--config", str(cfg), "--seeds", "0-1", "--out", str(out), "--quiet")
     assert r.returncode == 0, r.stderr
+    shutil.rmtree(stale)
     first = json.loads((out / "seeds.json").read_text())
     assert first["seeds"] == [0, 1] and [s["seed"] for s in first["per_seed"]] == [0, 1]
     for rec in first["per_seed"]:  # every seed evaluated at every mu of the multi-seed grid, as SB3's seeds are
