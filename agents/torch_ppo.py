@@ -59,7 +59,10 @@ class TorchPPOConfig:
     activation: Literal["elu", "relu", "tanh"] = "elu"
     #: running mean / std normalisation of the observations (inside the exported policy)
     obs_normalization: Bool = True
+    #: initial std of the action noise (of the Gaussian before the squash, with squash_actions)
     init_std: Positive = 0.5
+    #: tanh-squashed Gaussian actions (agents/rsl_distributions.py) instead of clipping them to [-1, 1]
+    squash_actions: Bool = False
     learning_rate: Positive = 1e-3
     #: "adaptive": the learning rate follows the KL to desired_kl (rsl-rl); "fixed"
     schedule: Literal["adaptive", "fixed"] = "adaptive"
@@ -93,12 +96,14 @@ class TorchPPOConfig:
     def runner_cfg(self) -> dict[str, Any]:
         """rsl-rl's runner configuration of this run."""
         groups = {"actor": ["policy"], "critic": ["critic"] if self.asymmetric_critic else ["policy"]}
+        distribution = (f"{__package__}.rsl_distributions:SquashedGaussianDistribution" if self.squash_actions
+                        else "GaussianDistribution")
         mlp = {"class_name": "MLPModel", "hidden_dims": list(self.hidden_dims), "activation": self.activation,
                "obs_normalization": self.obs_normalization}
         return {
             "num_steps_per_env": self.steps_per_env, "save_interval": max(self.iterations, 1), "obs_groups": groups,
             "check_for_nan": True, "multi_gpu": None, "logger": "tensorboard",
-            "actor": {**mlp, "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": self.init_std,
+            "actor": {**mlp, "distribution_cfg": {"class_name": distribution, "init_std": self.init_std,
                                                   "std_type": "log"}},
             "critic": mlp,
             "algorithm": {

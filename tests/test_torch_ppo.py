@@ -45,6 +45,46 @@ def test_float32_is_a_gpu_option():
     assert TorchPPOConfig(precision="float32").precision == "float32"
 
 
+def test_squashed_actions_are_a_tanh_gaussian_whose_density_integrates_to_one():
+    from msdgrasp.agents.rsl_distributions import SquashedGaussianDistribution
+
+    torch.manual_seed(0)
+    dist = SquashedGaussianDistribution(2, init_std=0.37, std_type="log")
+    mean = torch.tensor([[0.3, -1.2]])
+    dist.update(mean)
+    a = torch.stack([dist.sample() for _ in range(2000)])[:, 0]
+    assert a.abs().max() < 1.0  # every action inside the bounds: nothing for the env to clip
+    # the change of variables: p(a) = N(atanh a; mean, std) / (1 - a^2), per action entry
+    u = torch.atanh(a)
+    expected = (torch.distributions.Normal(mean, 0.37).log_prob(u) - torch.log(1 - a * a)).sum(-1)
+    torch.testing.assert_close(dist.log_prob(a), expected, rtol=1e-5, atol=1e-4)
+    # a density: on a grid over (-1, 1)^2 it integrates to 1 (trapezoid, both axes)
+    grid = torch.linspace(-1 + 1e-6, 1 - 1e-6, 2001, dtype=torch.float64)
+    dist.update(mean.double())
+    aa = torch.stack(torch.meshgrid(grid, grid, indexing="ij"), -1).reshape(-1, 2)
+    p = dist.log_prob(aa).exp().reshape(2001, 2001)
+    assert float(torch.trapezoid(torch.trapezoid(p, grid), grid)) == pytest.approx(1.0, abs=1e-3)
+    # the deterministic action (the exported policy's) is tanh of the mean, inside the bounds
+    torch.testing.assert_close(dist.deterministic_output(mean), torch.tanh(mean))
+    torch.testing.assert_close(dist.as_deterministic_output_module()(mean), torch.tanh(mean))
+
+
+def test_a_squashed_run_exports_a_policy_inside_the_action_bounds(tmp_path):
+    data = to_dict(TorchPPOConfig())
+    data.update(backend="cpu", num_envs=4, iterations=2, steps_per_env=8, validation_episodes=0, squash_actions=True)
+    config = from_dict(TorchPPOConfig, data)
+    assert config.runner_cfg()["actor"]["distribution_cfg"]["class_name"].endswith(":SquashedGaussianDistribution")
+    train_torch(config, tmp_path, progress=False)
+    policy = TorchScriptPolicy(tmp_path / "policy.pt")
+    core = GraspLiftCore(config.env, 2)
+    for i in range(2):
+        core.seed(i, i)
+        core.reset(i)
+    # observations far outside the training's drive the linear head far past +-1; the squash keeps them inside
+    a = policy.act(1e4 * core.obs)
+    assert np.all(np.abs(a) <= 1.0) and np.abs(a).max() > 0.99
+
+
 def _small_task(**changes) -> GraspLiftConfig:
     return from_dict(GraspLiftConfig, {**to_dict(TrainConfig().env), "time_limit_s": 0.2, **changes})  # 7 steps
 
