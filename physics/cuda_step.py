@@ -36,6 +36,36 @@ from . import integrator as _integrator
 from .config import check_choice
 from .records import SimModel, SimReadout, SimState
 
+
+def check_numba_cuda_numpy(numba_cuda_version: str | None, numpy_version: str) -> None:
+    """Refuse numba-cuda <= 0.30.4 beside numpy >= 2.5 with a one-line fix, before any kernel is compiled.
+
+    Those numba-cuda releases register an overload of ``np.row_stack``, which numpy 2.5 removed, so their
+    first kernel launch raises ``AttributeError`` deep inside numba (NVIDIA/numba-cuda#907; numba-cuda is in
+    maintenance and will not fix it). The ``gpu`` extra pins ``numpy<2.5``; this catches an environment
+    that has both anyway (the lent GPU image has numpy 2.5.2). ``None``: numba-cuda is not installed
+    (numba's built-in CUDA target, or its simulator, which have no such overload)."""
+
+    from packaging.version import Version
+
+    if numba_cuda_version is not None and Version(numba_cuda_version) <= Version("0.30.4") \
+            and Version(numpy_version).release >= (2, 5):
+        raise ImportError(f"numba-cuda {numba_cuda_version} cannot compile kernels with numpy {numpy_version} "
+                          "(np.row_stack was removed in numpy 2.5): pip install 'numpy<2.5'")
+
+
+def _installed(name: str) -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return None
+
+
+check_numba_cuda_numpy(_installed("numba-cuda"), np.__version__)
+
+
 #: threads per block (one block per tissue); the loops stride over springs, tets and nodes
 THREADS_PER_BLOCK = 128
 #: the float types of the per-node, per-spring and per-tet arrays (see :data:`FLOAT32_FIELDS`)

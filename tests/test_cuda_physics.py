@@ -180,3 +180,17 @@ def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_s
                                                                      ("float32", 2)]
     assert all(r["what"] == "task" and 0.0 <= r["contact_fraction"] <= 1.0 for r in res["task_rows"])
     assert "The whole task step" in markdown({**report, "gpu": res, "targets": {}})
+
+
+def test_numba_cuda_beside_numpy_2_5_is_refused_with_the_fix_before_any_kernel():
+    from msdgrasp.physics.cuda_step import check_numba_cuda_numpy
+
+    # numba-cuda <= 0.30.4 registers np.row_stack, which numpy 2.5 removed: its first launch would fail deep inside
+    with pytest.raises(ImportError, match=r"numba-cuda 0\.30\.4 cannot compile kernels with numpy 2\.5\.2 .*"
+                                          r"pip install 'numpy<2\.5'"):
+        check_numba_cuda_numpy("0.30.4", "2.5.2")
+    with pytest.raises(ImportError):
+        check_numba_cuda_numpy("0.30.0", "2.6.0rc1")
+    check_numba_cuda_numpy("0.30.4", "2.4.6")  # the gpu extra's pin
+    check_numba_cuda_numpy(None, "2.5.2")  # numba's own CUDA target / its simulator: no such overload
+    check_numba_cuda_numpy("0.31.0", "2.5.2")  # a later release is trusted to have fixed it
