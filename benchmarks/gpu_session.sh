@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# The GPU measurements of issue 15 on a lent device machine (../.library/device), in as few calls as its
+# 30 minutes allow. That machine reaches no package registry and its image lacks some of our dependencies,
+# so they travel as wheels (for its Python 3.12), and its numpy 2.5 is replaced by the gpu extra's numpy<2.5
+# (numba-cuda 0.30.4 cannot compile a kernel beside numpy 2.5).
+#
+#   here:   bash benchmarks/gpu_session.sh wheels           # -> .gpu_wheels/ (~21 MB, ignored by git)
+#   there:  run(command="bash benchmarks/gpu_session.sh bench gpu", carry=[".gpu_wheels"])   # one part per call
+#           run(command="bash benchmarks/gpu_session.sh train 0-1", carry=[".gpu_wheels"])   # seeds per call
+#
+# Each call stays inside the tool's 10 minutes (timeout 560 s). bench PART: `msdgrasp bench gpu` (physics
+# batches 1..16,384 and the whole task step, float64 and float32, against 200k agent steps/s), `precision`
+# (float32 error, coarse spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS:
+# `msdgrasp train --backend cuda` on rsl_ppo.yaml, timed, each seed evaluated; the runs come back as one
+# archive. Everything lands in $OUT (the device tool brings back at most 8 files), each stage's log included,
+# so a stage killed at its limit still reports.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PACKAGES=("numpy>=2.0,<2.5" "gymnasium==1.4.0" farama-notifications "stable-baselines3==2.9.2" "pydantic==2.14.4"
+          "pydantic-core==2.50.5" annotated-types typing-inspection "rsl-rl-lib==5.5.1" "tensordict==0.15.3" pyvers
+          GitPython gitdb smmap "meshio==5.3.5")
+
+setup() {  # on the device: our wheels over its image (no dependency resolution: the image has the rest)
+    python3 -m pip install -q --no-index --no-deps .gpu_wheels/*.whl
+    python3 -m pip install -q --no-deps --no-build-isolation -e .
+    export NUMBA_CACHE_DIR=/tmp/numba_cache RAY_USAGE_STATS_ENABLED=0 PYTHONUNBUFFERED=1
+    : "${OUT:?OUT: the device tool output folder}"
+    nvidia-smi --query-gpu=name,driver_version,clocks.max.sm --format=csv >"$OUT/gpu.txt"
+    python3 -m pip list 2>/dev/null | grep -Ei "^(numba|numba-cuda|numpy|torch|rsl-rl-lib|stable.baselines3) " >>"$OUT/gpu.txt"
+}
+
+case "${1:-}" in
+    wheels)
+        rm -rf .gpu_wheels && mkdir .gpu_wheels
+        python3 -m pip download -q --dest .gpu_wheels --no-deps --only-binary=:all: --python-version 3.12 \
+            --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux2014_x86_64 "${PACKAGES[@]}"
+        du -sh .gpu_wheels ;;
+    bench)
+        part="${2:?bench PART: gpu, precision or learners}"
+        setup
+        timeout 560 msdgrasp bench "$part" --out "$OUT/bench_$part.json" 2>&1 | tee "$OUT/bench_$part.log" || true ;;
+    train)
+        setup
+        seeds="${2:?train SEEDS, e.g. 0-1}"
+        ( time timeout 560 msdgrasp train --backend cuda --seeds "$seeds" --out logs/train_torch_gpu --quiet ) \
+            2>&1 | tee "$OUT/train_$seeds.log" || true
+        tar czf "$OUT/train_$seeds.tgz" logs/train_torch_gpu ;;
+    *)
+        echo "usage: bash benchmarks/gpu_session.sh wheels | bench gpu|precision|learners | train SEEDS" >&2
+        exit 2 ;;
+esac
