@@ -77,7 +77,11 @@ class TorchPPOConfig:
     max_grad_norm: Positive = 1.0
     #: the critic also sees the privileged observation (env.privileged_obs must be on); the actor does not
     asymmetric_critic: Bool = True
-    #: validation of the exported policy on the CPU env at the end: episodes per mu (0: none)
+    #: PPO iterations between checkpoints; after training every checkpoint (and the last iteration's policy)
+    #: runs the validation episodes and the best is shipped as policy.pt, as the SB3 training keeps its best
+    #: checkpoint (PPO is not monotonic); 0: only the last policy
+    checkpoint_every: Annotated[Int, Ge(0)] = 15
+    #: validation on the CPU env, episodes per mu, of every checkpoint (0: none; then policy.pt is the last)
     validation_episodes: Annotated[Int, Ge(0)] = 10
     validation_mu: tuple[Annotated[Real, Ge(0)], ...] = (0.2, 0.3, 0.5, 0.7, 0.9)
     #: the task: the SB3 training's (TrainConfig.env), so both learners train and are judged on the same task
@@ -101,7 +105,8 @@ class TorchPPOConfig:
         mlp = {"class_name": "MLPModel", "hidden_dims": list(self.hidden_dims), "activation": self.activation,
                "obs_normalization": self.obs_normalization}
         return {
-            "num_steps_per_env": self.steps_per_env, "save_interval": max(self.iterations, 1), "obs_groups": groups,
+            "num_steps_per_env": self.steps_per_env, "obs_groups": groups,
+            "save_interval": self.checkpoint_every if self.checkpoint_every and self.validation_episodes else self.iterations,
             "check_for_nan": True, "multi_gpu": None, "logger": "tensorboard",
             "actor": {**mlp, "distribution_cfg": {"class_name": distribution, "init_std": self.init_std,
                                                   "std_type": "log"}},
@@ -210,8 +215,13 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     """Train with rsl-rl's PPO; write ``policy.pt`` (+ ``policy.json``), ``summary.json`` and tensorboard logs
     (``progress=False``: no per-iteration log, printed or tensorboard).
 
-    Returns the summary: training time, agent steps, and (``validation_episodes`` > 0) the exported
-    policy's success and peak pinch per mu on the CPU env, seeded apart from ``msdgrasp evaluate``'s."""
+    With ``validation_episodes`` > 0, every checkpoint (``checkpoint_every`` iterations, and the last) is
+    exported to ``checkpoints/policy_<iteration>.pt`` and runs the validation episodes on the CPU env, seeded
+    apart from ``msdgrasp evaluate``'s; the best (success, then force: :class:`~.training.BestModel`, as the
+    SB3 training selects) is ``policy.pt``, the history ``validation.json``. Else ``policy.pt`` is the last.
+
+    Returns the summary: training time (``train_s``, rollouts and updates; ``selection_s`` after it), agent
+    steps, and the shipped policy's iteration and validation success and peak pinch per mu."""
     _rsl()
     import torch
     from rsl_rl.runners import OnPolicyRunner
@@ -237,25 +247,51 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     train_s = time.perf_counter() - t0
     steps = config.iterations * config.steps_per_env * config.num_envs
 
-    def export(path: Path) -> None:
-        runner.export_policy_to_jit(str(path.parent), path.name)
-
-    atomic_write(out / "policy.pt", export)
+    per_iteration = config.steps_per_env * config.num_envs
     meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
-    atomic_write(out / "policy.json", lambda p: p.write_text(json.dumps(meta, indent=2)))
-    summary: dict[str, Any] = {"backend": config.backend, "precision": getattr(core, "precision", "float64"),
-                               "device": device, "num_envs": config.num_envs, "seed": config.seed, "iterations": config.iterations, "agent_steps": steps,
-                               "train_s": train_s, "agent_steps_per_s": steps / train_s, "validation": []}
-    if config.validation_episodes > 0:
-        from .evaluation import evaluate_policy
-        from .training import VALIDATION_SEED_OFFSET
 
-        policy = TorchScriptPolicy(out / "policy.pt")
-        rows = evaluate_policy(policy, config.validation_mu, config.validation_episodes, config.env,
-                               seed=VALIDATION_SEED_OFFSET + config.seed)
-        summary["validation"] = [{"mu": r["mu"], "success_rate": r["success_rate"],
-                                  "mean_peak_pinch_N": r["mean_peak_pinch_N"]} for r in rows]
-        summary["validation_success"] = float(np.mean([r["success_rate"] for r in rows]))
+    def export(path: Path, iteration: int) -> None:
+        """The runner's actor as TorchScript at ``path``, its observation layout and iteration beside it."""
+        atomic_write(path, lambda p: runner.export_policy_to_jit(str(p.parent), p.name))
+        text = json.dumps({**meta, "iteration": iteration}, indent=2)
+        atomic_write(path.with_suffix(".json"), lambda p: p.write_text(text))
+
+    summary: dict[str, Any] = {"backend": config.backend, "precision": getattr(core, "precision", "float64"),
+                               "device": device, "num_envs": config.num_envs, "seed": config.seed,
+                               "iterations": config.iterations, "agent_steps": steps, "train_s": train_s,
+                               "agent_steps_per_s": steps / train_s, "validation": []}
+    if config.validation_episodes == 0:
+        export(out / "policy.pt", config.iterations - 1)
+    else:
+        # the checkpoints rsl-rl saved (after iterations 0, k, 2k, ... and the last), validated in order; the
+        # best (BestModel's key: success, then the reward's force charge) is shipped as policy.pt
+        from .training import BestModel
+
+        t1 = time.perf_counter()
+        every = config.checkpoint_every
+        iterations = sorted({*(range(0, config.iterations, every) if every else ()), config.iterations - 1})
+        selector = BestModel(config, out)
+        best_iteration = None
+        for it in iterations:
+            runner.load(str(out / "tb" / f"model_{it}.pt"))
+            path = out / "checkpoints" / f"policy_{it}.pt"
+            path.parent.mkdir(exist_ok=True)
+            export(path, it)
+
+            def keep(path: Path = path, it: int = it) -> None:
+                nonlocal best_iteration
+                best_iteration = it
+                for src in (path, path.with_suffix(".json")):
+                    atomic_write(out / f"policy{src.suffix}", lambda p, src=src: p.write_bytes(src.read_bytes()))
+
+            selector.consider_policy(TorchScriptPolicy(path), (it + 1) * per_iteration, path, keep)
+        best = selector.best
+        summary["best_iteration"] = best_iteration
+        summary["checkpoints_validated"] = len(iterations)
+        summary["validation"] = [{"mu": float(m), "success_rate": best["success_by_mu"][m],
+                                  "mean_peak_pinch_N": best["peak_pinch_by_mu"][m]} for m in best["success_by_mu"]]
+        summary["validation_success"] = best["success_rate"]
+        summary["selection_s"] = time.perf_counter() - t1
     for v in summary.values():  # (a summary is JSON: no NaN)
         if isinstance(v, float) and not math.isfinite(v):
             raise RuntimeError(f"non-finite number in the training summary: {summary}")

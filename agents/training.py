@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -176,6 +177,8 @@ class BestModel:
     """
 
     def __init__(self, config: TrainConfig, out: Path, resume: bool = False) -> None:
+        # (config: any learner's config with seed, env and validation_episodes / validation_mu: SB3's
+        # TrainConfig or the torch PPO's TorchPPOConfig)
         self.config = config
         self.out = out
         self.history: list[dict[str, Any]] = []
@@ -200,15 +203,25 @@ class BestModel:
         return float(np.mean([r["mean_peak_pinch_N"] * weight(r["mu"]) for r in rows]))
 
     def consider(self, model, path: Path) -> dict[str, Any] | None:
-        """Validate ``model`` (saved at ``path``); copy it to best_model.zip if it beats the best so far."""
+        """Validate the SB3 ``model`` (saved at ``path``); copy it to best_model.zip if it beats the best so far."""
+
+        def keep() -> None:
+            _save_atomic(model, self.out / "best_model.zip")
+            write_yaml(self.out / "best_model.yaml", to_dict(self.config))
+
+        return self.consider_policy(ModelPolicy.from_model(model, "validation"), int(model.num_timesteps), path, keep)
+
+    def consider_policy(self, policy, timesteps: int, path: Path, keep: Callable[[], None]) -> dict[str, Any] | None:
+        """Validate ``policy`` (saved at ``path`` after ``timesteps`` agent steps); call ``keep()`` if it beats
+        the best so far (the learner saves it as its best). Any learner's policy: SB3's or the torch PPO's."""
         cfg = self.config
         if cfg.validation_episodes == 0:
             return None
 
-        rows = evaluate_policy(ModelPolicy.from_model(model, "validation"), cfg.validation_mu, cfg.validation_episodes,
-                               cfg.env, seed=cfg.seed + VALIDATION_SEED_OFFSET, _envs=self._envs)
+        rows = evaluate_policy(policy, cfg.validation_mu, cfg.validation_episodes, cfg.env,
+                               seed=cfg.seed + VALIDATION_SEED_OFFSET, _envs=self._envs)
         rec = {
-            "timesteps": int(model.num_timesteps),
+            "timesteps": int(timesteps),
             "model": str(path),
             "success_rate": round(float(np.mean([r["success_rate"] for r in rows])), 4),
             "mean_peak_pinch_N": round(float(np.mean([r["mean_peak_pinch_N"] for r in rows])), 4),
@@ -219,8 +232,7 @@ class BestModel:
         self.history.append(rec)
         if self.best is None or self._key(rec) > self._key(self.best):
             self.best = rec
-            _save_atomic(model, self.out / "best_model.zip")
-            write_yaml(self.out / "best_model.yaml", to_dict(cfg))
+            keep()
         data = {"validation_mu": list(cfg.validation_mu), "episodes_per_mu": cfg.validation_episodes,
                 "best": self.best, "history": self.history}
         atomic_write(self.out / "validation.json", lambda p: p.write_text(json.dumps(data, indent=2)))

@@ -26,7 +26,7 @@ def test_the_shipped_configs_are_the_defaults_and_train_the_sb3_task():
     # the CPU-sized run: the defaults but for where it runs and its size, on the SB3 training's step budget
     cpu = TorchPPOConfig.load(builtin_config("train/rsl_ppo_cpu.yaml"))
     assert cpu.env == sb3_env
-    assert cpu == TorchPPOConfig(backend="cpu", num_envs=64, iterations=440)
+    assert cpu == TorchPPOConfig(backend="cpu", num_envs=64, iterations=440, checkpoint_every=12)
     assert cpu.iterations * cpu.steps_per_env * cpu.num_envs == pytest.approx(TrainConfig().total_timesteps, rel=0.01)
 
 
