@@ -97,9 +97,14 @@ def _train_and_evaluate(run_dir: str, config_dict: dict[str, Any], seed: int, ep
     wall = time.perf_counter() - t0
     model = Path(summary["best_model"] or summary["final_model"])
     rows = evaluate_policy(ModelPolicy(model, f"PPO seed {seed}"), mus, episodes, config.env)
-    history = json.loads((run / "validation.json").read_text())["history"] if (run / "validation.json").is_file() else []
     return {"seed": seed, "run": str(run), "model": str(model), "train_wall_s": round(wall, 1),
-            "train": summary, "rows": rows, "validation": history}
+            "train": summary, "rows": rows, "validation": _validation_history(run)}
+
+
+def _validation_history(run: Path) -> list[dict[str, Any]]:
+    """The run's validated checkpoints (``validation.json``, either learner), for the learning curves."""
+    log = run / "validation.json"
+    return json.loads(log.read_text())["history"] if log.is_file() else []
 
 
 def _baselines(env_dict: dict[str, Any], episodes: int, mus: Sequence[float]) -> dict[str, Any]:
@@ -206,7 +211,7 @@ def _evaluate_trained(seed: int, model: str, train: dict[str, Any], env_dict: di
     rows = evaluate_policy(make_policy(model, env), mus, episodes, env)
     return {"seed": seed, "run": str(Path(model).parent), "model": model, "train_wall_s": train["train_s"],
             "train": {"timesteps": train["agent_steps"], "steps_per_s": train["agent_steps_per_s"]}, "rows": rows,
-            "validation": []}
+            "validation": _validation_history(Path(model).parent)}
 
 
 def report_trained_seeds(models: Sequence[tuple[int, str | Path, dict[str, Any]]], env: GraspLiftConfig,
@@ -215,8 +220,8 @@ def report_trained_seeds(models: Sequence[tuple[int, str | Path, dict[str, Any]]
                          progress: bool = True) -> dict[str, Any]:
     """The multi-seed report of policies trained elsewhere (the torch PPO's ``policy.pt``), made as
     :func:`run_seeds` makes SB3's: every seed's policy at every mu of ``mus`` on the same evaluation episodes,
-    beside the baselines; ``seeds.json``, ``seeds.md`` and ``learning_curves.png`` (empty: these runs log no
-    validation history) in ``out_dir``. ``models``: (seed, policy file, its training summary with
+    beside the baselines; ``seeds.json``, ``seeds.md`` and ``learning_curves.png`` (from each run's
+    ``validation.json``, where it has one) in ``out_dir``. ``models``: (seed, policy file, its training summary with
     ``train_s``, ``agent_steps`` and ``agent_steps_per_s``); ``config``: the training config, for the record."""
     out = Path(out_dir)
     seeds = [int(s) for s, _, _ in models]

@@ -150,6 +150,27 @@ def test_a_short_cpu_run_exports_a_policy_that_acts_as_the_trained_actor(tmp_pat
     assert shipped.name == "torch" and np.array_equal(shipped.act(core.obs), a)
 
 
+def test_the_shipped_policy_is_the_best_validated_checkpoint(tmp_path):
+    data = to_dict(TorchPPOConfig())
+    data.update(backend="cpu", num_envs=4, iterations=5, steps_per_env=8, checkpoint_every=2, validation_episodes=2,
+                validation_mu=[0.3, 0.9], env=to_dict(_small_task()))
+    config = from_dict(TorchPPOConfig, data)
+    summary = train_torch(config, tmp_path, progress=False)
+    history = json.loads((tmp_path / "validation.json").read_text())["history"]
+    # checkpoints after iterations 0, 2, 4 (the last), each validated once, in order, at its agent steps
+    assert summary["checkpoints_validated"] == 3
+    assert [h["timesteps"] for h in history] == [1 * 32, 3 * 32, 5 * 32]
+    assert [h["model"] for h in history] == [str(tmp_path / "checkpoints" / f"policy_{i}.pt") for i in (0, 2, 4)]
+    # the best by the SB3 training's key (success, then the reward's force charge; the first of equals)
+    key = [(h["success_rate"], -h["force_cost_N"]) for h in history]
+    best = key.index(max(key))
+    assert summary["best_iteration"] == (0, 2, 4)[best]
+    assert (tmp_path / "policy.pt").read_bytes() == (tmp_path / "checkpoints" / f"policy_{(0, 2, 4)[best]}.pt").read_bytes()
+    assert json.loads((tmp_path / "policy.json").read_text())["iteration"] == summary["best_iteration"]
+    assert summary["validation_success"] == history[best]["success_rate"]
+    assert [r["mu"] for r in summary["validation"]] == [0.3, 0.9]
+
+
 def test_the_command_line_refuses_sb3_options_for_the_torch_learner(tmp_path):
     def run(*args):
         return subprocess.run([sys.executable, "-m", "msdgrasp.cli.main", "train", *args, "--out", str(tmp_path / "o")],

@@ -220,8 +220,11 @@ def test_every_shipped_training_config_loads_strictly():
     """configs/train/*.yaml and the experiment configs behind docs/task-design.md stay valid."""
     paths = sorted(builtin_config("train/ppo.yaml").parent.rglob("*.yaml"))
     assert len(paths) >= 11
+    from msdgrasp.agents.torch_ppo import TorchPPOConfig
+
     for path in paths:
-        if path.name.startswith("rsl_ppo"):  # the torch PPO's (TorchPPOConfig: tests/test_torch_ppo.py)
+        if path.name.startswith("rsl"):  # the torch PPO's (its shipped defaults: tests/test_torch_ppo.py)
+            assert TorchPPOConfig.load(path).env == TrainConfig().env, path  # (the same task as SB3's)
             continue
         config = TrainConfig.load(path)
         assert config.algo in ("ppo", "sac"), path
