@@ -82,7 +82,7 @@ class TorchPPOConfig:
     #: checkpoint (PPO is not monotonic); 0: only the last policy
     checkpoint_every: Annotated[Int, Ge(0)] = 15
     #: validation on the CPU env, episodes per mu, of every checkpoint (0: none; then policy.pt is the last)
-    validation_episodes: Annotated[Int, Ge(0)] = 10
+    validation_episodes: Annotated[Int, Ge(0)] = 6
     validation_mu: tuple[Annotated[Real, Ge(0)], ...] = (0.2, 0.3, 0.5, 0.7, 0.9)
     #: the task: the SB3 training's (TrainConfig.env), so both learners train and are judged on the same task
     env: GraspLiftConfig = field(default_factory=lambda: TrainConfig().env)
