@@ -104,9 +104,11 @@ class TorchPPOConfig:
                         else "GaussianDistribution")
         mlp = {"class_name": "MLPModel", "hidden_dims": list(self.hidden_dims), "activation": self.activation,
                "obs_normalization": self.obs_normalization}
+        # rsl-rl saves a checkpoint every save_interval iterations and after the last one
+        selecting = self.checkpoint_every and self.validation_episodes
         return {
             "num_steps_per_env": self.steps_per_env, "obs_groups": groups,
-            "save_interval": self.checkpoint_every if self.checkpoint_every and self.validation_episodes else self.iterations,
+            "save_interval": self.checkpoint_every if selecting else self.iterations,
             "check_for_nan": True, "multi_gpu": None, "logger": "tensorboard",
             "actor": {**mlp, "distribution_cfg": {"class_name": distribution, "init_std": self.init_std,
                                                   "std_type": "log"}},
