@@ -11,6 +11,9 @@ from the same ``a`` (``u = atanh(a)``, clamped 1e-6 inside the bounds); the chan
 Gaussian's (the squash is one-to-one, so the KL of the squashed pair is the same). The exported policy
 (``as_deterministic_output_module``) is ``tanh(mean)``.
 
+Tested on four seeds against the clipped Gaussian (docs/task-design.md, session 14): lighter grips at high
+friction on two, heavier at low friction on all four; an option, off by default.
+
 Only imported where rsl-rl is installed (the ``gpu`` extra); rsl-rl resolves it by name.
 """
 
