@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from dataclasses import field
 from pathlib import Path
@@ -32,7 +33,8 @@ from annotated_types import Ge, Le
 
 from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
 from ..physics.config import (
-    Bool, ConfigError, Int, NonNegative, Positive, Real, atomic_write, config_dataclass, from_dict, read_yaml, to_dict,
+    Bool, ConfigError, Int, NonNegative, Positive, Real, atomic_write, atomic_write_text, config_dataclass, from_dict,
+    read_yaml, to_dict,
 )
 from .controllers import TorchScriptPolicy
 from .models import TrainConfig
@@ -247,16 +249,14 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     t0 = time.perf_counter()
     runner.learn(config.iterations)
     train_s = time.perf_counter() - t0
-    steps = config.iterations * config.steps_per_env * config.num_envs
-
     per_iteration = config.steps_per_env * config.num_envs
+    steps = config.iterations * per_iteration
     meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
 
     def export(path: Path, iteration: int) -> None:
         """The runner's actor as TorchScript at ``path``, its observation layout and iteration beside it."""
         atomic_write(path, lambda p: runner.export_policy_to_jit(str(p.parent), p.name))
-        text = json.dumps({**meta, "iteration": iteration}, indent=2)
-        atomic_write(path.with_suffix(".json"), lambda p: p.write_text(text))
+        atomic_write_text(path.with_suffix(".json"), json.dumps({**meta, "iteration": iteration}, indent=2))
 
     summary: dict[str, Any] = {"backend": config.backend, "precision": getattr(core, "precision", "float64"),
                                "device": device, "num_envs": config.num_envs, "seed": config.seed,
@@ -273,22 +273,19 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
         every = config.checkpoint_every
         iterations = sorted({*(range(0, config.iterations, every) if every else ()), config.iterations - 1})
         selector = BestModel(config, out)
-        best_iteration = None
         for it in iterations:
             runner.load(str(out / "tb" / f"model_{it}.pt"))
             path = out / "checkpoints" / f"policy_{it}.pt"
             path.parent.mkdir(exist_ok=True)
             export(path, it)
 
-            def keep(path: Path = path, it: int = it) -> None:
-                nonlocal best_iteration
-                best_iteration = it
+            def keep(path: Path = path) -> None:
                 for src in (path, path.with_suffix(".json")):
-                    atomic_write(out / f"policy{src.suffix}", lambda p, src=src: p.write_bytes(src.read_bytes()))
+                    atomic_write(out / f"policy{src.suffix}", lambda p, src=src: shutil.copyfile(src, p))
 
             selector.consider_policy(TorchScriptPolicy(path), (it + 1) * per_iteration, path, keep)
         best = selector.best
-        summary["best_iteration"] = best_iteration
+        summary["best_iteration"] = best["timesteps"] // per_iteration - 1
         summary["checkpoints_validated"] = len(iterations)
         summary["validation"] = [{"mu": float(m), "success_rate": best["success_by_mu"][m],
                                   "mean_peak_pinch_N": best["peak_pinch_by_mu"][m]} for m in best["success_by_mu"]]

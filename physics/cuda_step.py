@@ -45,7 +45,6 @@ def check_numba_cuda_numpy(numba_cuda_version: str | None, numpy_version: str) -
     maintenance and will not fix it). The ``gpu`` extra pins ``numpy<2.5``; this catches an environment
     that has both anyway (the lent GPU image has numpy 2.5.2). ``None``: numba-cuda is not installed
     (numba's built-in CUDA target, or its simulator, which have no such overload)."""
-
     from packaging.version import Version
 
     if numba_cuda_version is not None and Version(numba_cuda_version) <= Version("0.30.4") \
