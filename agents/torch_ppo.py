@@ -95,6 +95,16 @@ class TorchPPOConfig:
         if self.asymmetric_critic and not self.env.privileged_obs:
             raise ConfigError("asymmetric_critic needs env.privileged_obs: true (the critic's extra entries)")
 
+    @property
+    def steps_per_iteration(self) -> int:
+        """Agent steps collected per PPO iteration (all envs)."""
+        return self.steps_per_env * self.num_envs
+
+    @property
+    def total_steps(self) -> int:
+        """Agent steps of the whole run (what SB3 calls total_timesteps)."""
+        return self.iterations * self.steps_per_iteration
+
     @classmethod
     def load(cls, path: str | Path) -> "TorchPPOConfig":
         return from_dict(cls, read_yaml(path), where=Path(path).name)
@@ -249,8 +259,7 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     t0 = time.perf_counter()
     runner.learn(config.iterations)
     train_s = time.perf_counter() - t0
-    per_iteration = config.steps_per_env * config.num_envs
-    steps = config.iterations * per_iteration
+    per_iteration = config.steps_per_iteration
     meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
 
     def export(path: Path, iteration: int) -> None:
@@ -260,8 +269,8 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
 
     summary: dict[str, Any] = {"backend": config.backend, "precision": getattr(core, "precision", "float64"),
                                "device": device, "num_envs": config.num_envs, "seed": config.seed,
-                               "iterations": config.iterations, "agent_steps": steps, "train_s": train_s,
-                               "agent_steps_per_s": steps / train_s, "validation": []}
+                               "iterations": config.iterations, "agent_steps": config.total_steps, "train_s": train_s,
+                               "agent_steps_per_s": config.total_steps / train_s, "validation": []}
     if config.validation_episodes == 0:
         export(out / "policy.pt", config.iterations - 1)
     else:
