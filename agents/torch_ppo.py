@@ -259,7 +259,6 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     t0 = time.perf_counter()
     runner.learn(config.iterations)
     train_s = time.perf_counter() - t0
-    per_iteration = config.steps_per_iteration
     meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
 
     def export(path: Path, iteration: int) -> None:
@@ -274,34 +273,51 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     if config.validation_episodes == 0:
         export(out / "policy.pt", config.iterations - 1)
     else:
-        # the checkpoints rsl-rl saved (after iterations 0, k, 2k, ... and the last), validated in order; the
-        # best (BestModel's key: success, then the reward's force charge) is shipped as policy.pt
-        from .training import BestModel
-
-        t1 = time.perf_counter()
+        # the checkpoints rsl-rl saved (after iterations 0, k, 2k, ... and the last), exported, then validated
         every = config.checkpoint_every
         iterations = sorted({*(range(0, config.iterations, every) if every else ()), config.iterations - 1})
-        selector = BestModel(config, out)
+        checkpoints = []
         for it in iterations:
             runner.load(str(out / "tb" / f"model_{it}.pt"))
             path = out / "checkpoints" / f"policy_{it}.pt"
             path.parent.mkdir(exist_ok=True)
             export(path, it)
-
-            def keep(path: Path = path) -> None:
-                for src in (path, path.with_suffix(".json")):
-                    atomic_write(out / f"policy{src.suffix}", lambda p, src=src: shutil.copyfile(src, p))
-
-            selector.consider_policy(TorchScriptPolicy(path), (it + 1) * per_iteration, path, keep)
-        best = selector.best
-        summary["best_iteration"] = best["timesteps"] // per_iteration - 1
-        summary["checkpoints_validated"] = len(iterations)
-        summary["validation"] = [{"mu": float(m), "success_rate": best["success_by_mu"][m],
-                                  "mean_peak_pinch_N": best["peak_pinch_by_mu"][m]} for m in best["success_by_mu"]]
-        summary["validation_success"] = best["success_rate"]
-        summary["selection_s"] = time.perf_counter() - t1
+            checkpoints.append((it, path))
+        summary.update(select_torch_checkpoints(config, checkpoints, out))
     for v in summary.values():  # (a summary is JSON: no NaN)
         if isinstance(v, float) and not math.isfinite(v):
             raise RuntimeError(f"non-finite number in the training summary: {summary}")
     atomic_write(out / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
     return summary
+
+
+def select_torch_checkpoints(config: TorchPPOConfig, checkpoints: Sequence[tuple[int, Path]], out: Path) -> dict[str, Any]:
+    """Validate the exported ``checkpoints`` ((iteration, policy_<iteration>.pt), in order) with ``config``'s
+    validation settings and ship the best (:class:`~.training.BestModel`'s key: success, then the reward's
+    force charge) as ``out/policy.pt`` (+ ``policy.json``, whose config is ``config``); the history is
+    ``out/validation.json``. Used by :func:`train_torch` and by ``msdgrasp select`` (:mod:`.selection`).
+
+    Returns the summary's selection entries: the shipped iteration, its validation success and peak pinch
+    per mu, the number of checkpoints validated and the time it took (``selection_s``)."""
+    from .training import BestModel
+
+    if config.validation_episodes < 1:
+        raise ConfigError(f"validation_episodes must be >= 1 to select a checkpoint, got {config.validation_episodes}")
+    t0 = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    selector = BestModel(config, out)
+    for it, path in checkpoints:
+
+        def keep(path: Path = path) -> None:
+            atomic_write(out / "policy.pt", lambda p: shutil.copyfile(path, p))
+            meta = json.loads(path.with_suffix(".json").read_text())
+            atomic_write_text(out / "policy.json", json.dumps({**meta, "config": to_dict(config)}, indent=2))
+
+        selector.consider_policy(TorchScriptPolicy(path), (it + 1) * config.steps_per_iteration, path, keep)
+    best = selector.best
+    return {"best_iteration": best["timesteps"] // config.steps_per_iteration - 1,
+            "checkpoints_validated": len(checkpoints),
+            "validation": [{"mu": float(m), "success_rate": best["success_by_mu"][m],
+                            "mean_peak_pinch_N": best["peak_pinch_by_mu"][m]} for m in best["success_by_mu"]],
+            "validation_success": best["success_rate"],
+            "selection_s": time.perf_counter() - t0}

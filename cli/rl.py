@@ -1,4 +1,4 @@
-"""The RL subcommands of ``msdgrasp``: train, sweep, evaluate, record, replay, soak.
+"""The RL subcommands of ``msdgrasp``: train, sweep, evaluate, report, select, record, replay, soak.
 
 Only argparse wiring lives here; every handler imports its (torch-, rerun- or numba-heavy) module lazily,
 so ``msdgrasp --help`` stays fast and an unavailable optional module only breaks its own subcommand.
@@ -320,6 +320,24 @@ def _cmd_soak(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 
 
+def _cmd_select(args: argparse.Namespace) -> int:
+    """``msdgrasp select RUN --out DIR``: validate a finished run's checkpoints again (other episodes or mu)
+    and write the pick into DIR, the run untouched (agents.selection)."""
+    from ..agents.evaluation import parse_mu_grid
+    from ..agents.selection import select
+
+    if args.workers is not None and args.workers < 1:
+        raise _usage(f"--workers must be >= 1, got {args.workers}")
+    mu = None if args.validation_mu is None else [float(m) for m in parse_mu_grid(args.validation_mu)]
+    results = select(args.run, args.out, args.validation_episodes, mu, args.workers)
+    print(json.dumps([{k: r[k] for k in ("run", "learner", "validation_episodes", "checkpoints_validated",
+                                          "selection_s")} | {"best": r["best"]["model"],
+                                                              "success_rate": r["best"]["success_rate"],
+                                                              "force_cost_N": r["best"].get("force_cost_N")}
+                      for r in results], indent=2))
+    return 0
+
+
 def add_rl_commands(sub) -> None:
     """Add train / evaluate / record / replay / soak to the ``msdgrasp`` subparsers ``sub``."""
     t = sub.add_parser("train", help="train a PPO/SAC grasp policy (Stable-Baselines3)")
@@ -381,6 +399,19 @@ def add_rl_commands(sub) -> None:
     _add_runner_args(rp, "every seed's evaluation")
     rp.add_argument("--quiet", action="store_true", help="no progress output")
     rp.set_defaults(func=_cmd_report)
+
+    sl = sub.add_parser("select", help="validate a finished run's checkpoints again (more episodes, other mu) "
+                                       "and write the best into a new folder")
+    sl.add_argument("run", type=Path, metavar="RUN",
+                    help="a run folder of train (SB3) or train --learner rsl, or a folder of their seed_<k>/ runs")
+    sl.add_argument("--out", type=Path, required=True,
+                    help="where the pick goes (OUT/seed_<k>/ for a folder of seeds); the run itself is not changed")
+    sl.add_argument("--validation-episodes", type=int, default=None,
+                    help="episodes per mu and checkpoint (default: the run's own, 6 in the shipped configs)")
+    sl.add_argument("--validation-mu", default=None,
+                    help="friction coefficients to validate at: a comma list or start:stop:step (default: the run's own)")
+    sl.add_argument("--workers", type=int, default=None, help="seeds at a time (default: one per CPU core)")
+    sl.set_defaults(func=_cmd_select)
 
     r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
     r.add_argument("--policy", default=None, metavar="SPEC",

@@ -1,0 +1,156 @@
+"""Model selection again, on a finished run's saved checkpoints: ``msdgrasp select``.
+
+Training validates every checkpoint as it goes and ships the best (:class:`~.training.BestModel`: success,
+then the reward's force charge). The checkpoints stay on disk, so the choice can be made again with other
+validation settings (more episodes per mu, other mu) without training again: validation costs minutes where
+training costs half an hour per seed. The result is a run folder of its own, beside the original (which is
+never touched), in the layout its learner writes:
+
+* a torch PPO run (``train --learner rsl``: ``policy.json``, ``checkpoints/policy_<iteration>.pt``):
+  ``policy.pt`` / ``policy.json``, ``validation.json`` and ``summary.json`` (the run's, with the new
+  selection), so ``msdgrasp report`` and ``msdgrasp evaluate`` read it like a trained run;
+* an SB3 run (``train``: ``config.yaml``, ``checkpoints/model_<steps>.zip``, ``final_model.zip``):
+  ``best_model.zip`` / ``best_model.yaml`` and ``validation.json``.
+
+Both also get ``selection.json``: where the checkpoints came from, the validation settings and the pick.
+A folder of seeds (``seed_<k>/`` runs, what ``--seeds`` writes) is selected seed by seed into
+``OUT/seed_<k>/``, in parallel processes.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..physics.config import ConfigError, atomic_write_text, from_dict, read_yaml
+from .parallel import Runner
+
+
+@dataclass(frozen=True)
+class SelectionPlan:
+    """One run to select again: its learner ("rsl" or "sb3"), the config with the new validation settings,
+    and its checkpoints in training order: (iteration for rsl / agent steps for sb3, path)."""
+
+    run: Path
+    learner: str
+    config: Any
+    checkpoints: tuple[tuple[int, Path], ...]
+
+
+def _numbered(folder: Path, pattern: str) -> list[tuple[int, Path]]:
+    found = []
+    for p in folder.glob("*"):
+        m = re.fullmatch(pattern, p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    return sorted(found)
+
+
+def plan_selection(run: str | Path, validation_episodes: int | None = None,
+                   validation_mu: Sequence[float] | None = None) -> SelectionPlan:
+    """Read run folder ``run`` and check it can be selected again with the given validation settings (None:
+    the run's own); raises :class:`ConfigError` naming what is wrong, before anything runs."""
+    run = Path(run)
+    if not run.is_dir():
+        raise ConfigError(f"select: {run} is not a folder")
+    overrides: dict[str, Any] = {}
+    if validation_episodes is not None:
+        if isinstance(validation_episodes, bool) or not isinstance(validation_episodes, int) or validation_episodes < 1:
+            raise ConfigError(f"validation_episodes must be an integer >= 1, got {validation_episodes!r}")
+        overrides["validation_episodes"] = validation_episodes
+    if validation_mu is not None:
+        if not validation_mu:
+            raise ConfigError("validation_mu must name at least one friction coefficient")
+        overrides["validation_mu"] = [float(m) for m in validation_mu]
+    if (run / "policy.json").is_file():
+        from .torch_ppo import TorchPPOConfig
+
+        try:
+            saved = json.loads((run / "policy.json").read_text())["config"]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(f"select: {run / 'policy.json'} is corrupt ({exc})") from None
+        config = from_dict(TorchPPOConfig, {**saved, **overrides}, where=str(run / "policy.json"))
+        checkpoints = _numbered(run / "checkpoints", r"policy_(\d+)\.pt")
+        learner, what = "rsl", "checkpoints/policy_<iteration>.pt"
+    elif (run / "config.yaml").is_file():
+        from .models import TrainConfig
+
+        config = from_dict(TrainConfig, {**read_yaml(run / "config.yaml"), **overrides}, where=str(run / "config.yaml"))
+        checkpoints = _numbered(run / "checkpoints", r"model_(\d+)\.zip")
+        if (run / "final_model.zip").is_file():
+            checkpoints.append((config.total_timesteps, run / "final_model.zip"))
+        learner, what = "sb3", "checkpoints/model_<steps>.zip"
+    else:
+        raise ConfigError(f"select: {run} is not a training run (no policy.json of train --learner rsl, no "
+                          "config.yaml of train)")
+    if not checkpoints:
+        raise ConfigError(f"select: {run} has no {what} to validate")
+    if config.validation_episodes < 1:
+        raise ConfigError(f"select: {run} was trained without validation; give validation_episodes >= 1")
+    return SelectionPlan(run, learner, config, tuple(checkpoints))
+
+
+def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
+    """Validate every checkpoint of ``plan`` and write the pick into ``out`` (see the module docstring).
+    Returns what ``selection.json`` holds."""
+    out = Path(out)
+    if out.resolve() == plan.run.resolve():
+        raise ConfigError(f"select: --out {out} is the run itself; the run's own pick is kept, give another folder")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    if plan.learner == "rsl":
+        from .torch_ppo import select_torch_checkpoints
+
+        picked = select_torch_checkpoints(plan.config, plan.checkpoints, out)
+        summary_path = plan.run / "summary.json"
+        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+        atomic_write_text(out / "summary.json", json.dumps({**summary, **picked, "selected_from": str(plan.run)},
+                                                           indent=2))
+    else:
+        from .models import load_model
+        from .training import BestModel
+
+        selector = BestModel(plan.config, out)
+        for _, path in plan.checkpoints:
+            selector.consider(load_model(path), path)
+    best = json.loads((out / "validation.json").read_text())["best"]
+    result = {"run": str(plan.run), "learner": plan.learner, "validation_episodes": plan.config.validation_episodes,
+              "validation_mu": list(plan.config.validation_mu), "checkpoints_validated": len(plan.checkpoints),
+              "best": best, "selection_s": round(time.perf_counter() - t0, 1)}
+    atomic_write_text(out / "selection.json", json.dumps(result, indent=2))
+    return result
+
+
+def _select_job(run: str, out: str, validation_episodes: int | None, validation_mu: list[float] | None) -> dict[str, Any]:
+    return select_run(plan_selection(run, validation_episodes, validation_mu), out)
+
+
+def seed_runs(folder: Path) -> list[tuple[int, Path]]:
+    """The ``seed_<k>/`` runs in ``folder`` (what ``train --seeds`` writes), by seed."""
+    return _numbered(folder, r"seed_(\d+)") if folder.is_dir() else []
+
+
+def select(run: str | Path, out: str | Path, validation_episodes: int | None = None,
+           validation_mu: Sequence[float] | None = None, workers: int | None = None) -> list[dict[str, Any]]:
+    """Select again in run folder ``run``, or in each ``seed_<k>/`` run of it (into ``out/seed_<k>``, in
+    ``workers`` parallel processes). Every run is checked before the first is validated."""
+    run, out = Path(run), Path(out)
+    mu = None if validation_mu is None else [float(m) for m in validation_mu]
+    seeds = seed_runs(run) if not (run / "checkpoints").is_dir() else []
+    if not seeds:
+        return [select_run(plan_selection(run, validation_episodes, mu), out)]
+    for _, d in seeds:  # all of them valid, or nothing runs
+        plan_selection(d, validation_episodes, mu)
+    if out.resolve() == run.resolve():
+        raise ConfigError(f"select: --out {out} is the runs' own folder; give another folder")
+    jobs = [(_select_job, (str(d), str(out / f"seed_{k}"), validation_episodes, mu)) for k, d in seeds]
+    with Runner.processes(workers) as runner:
+        return runner.run(jobs)
+
+
+__all__ = ["SelectionPlan", "plan_selection", "select", "select_run", "seed_runs"]
