@@ -10,7 +10,8 @@ never touched), in the layout its learner writes:
   ``policy.pt`` / ``policy.json``, ``validation.json`` and ``summary.json`` (the run's, with the new
   selection), so ``msdgrasp report`` and ``msdgrasp evaluate`` read it like a trained run;
 * an SB3 run (``train``: ``config.yaml``, ``checkpoints/model_<steps>.zip``, ``final_model.zip``):
-  ``best_model.zip`` / ``best_model.yaml`` and ``validation.json``.
+  ``best_model.zip`` / ``best_model.yaml``, ``validation.json`` and ``train_summary.json`` (the run's, with the
+  new pick), so ``msdgrasp evaluate`` and ``msdgrasp report`` read it like a trained run.
 
 Both also get ``selection.json``: where the checkpoints came from, the validation settings and the pick.
 A folder of seeds (``seed_<k>/`` runs, what ``--seeds`` writes) is selected seed by seed into
@@ -118,6 +119,11 @@ def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
         selector = BestModel(plan.config, out)
         for _, path in plan.checkpoints:
             selector.consider(load_model(path), path)
+        summary_path = plan.run / "train_summary.json"
+        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+        atomic_write_text(out / "train_summary.json", json.dumps(
+            {**summary, "best_model": str(out / "best_model.zip"), "best_validation": selector.best,
+             "selected_from": str(plan.run)}, indent=2))
     best = json.loads((out / "validation.json").read_text())["best"]
     result = {"run": str(plan.run), "learner": plan.learner, "validation_episodes": plan.config.validation_episodes,
               "validation_mu": list(plan.config.validation_mu), "checkpoints_validated": len(plan.checkpoints),

@@ -129,28 +129,52 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
     if args.seeds is None:
         print(json.dumps(results[0], indent=2))
         return 0
-    return _report_torch_seeds(args.out, args.quiet, seeds=seeds)  # (only these: the folder may hold older runs)
+    return _report_seeds(args.out, args.quiet, seeds=seeds)  # (only these: the folder may hold older runs)
 
 
-def _report_torch_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, seeds=None) -> int:
-    """The multi-seed report of the torch PPO runs folder/seed_<k>/ (policy.pt, policy.json, summary.json),
-    of ``seeds`` (default: every run there): seeds.json / seeds.md as SB3's ``train --seeds`` writes them
-    (agents.seeds.report_trained_seeds)."""
+def _seed_run(d: Path) -> tuple[str, Path, Path] | None:
+    """A finished-or-not seed run's learner, policy and training summary: torch PPO (policy.pt, summary.json)
+    or SB3 (best_model.zip, train_summary.json); None where neither policy is there."""
+    if (d / "policy.pt").is_file():
+        return "rsl", d / "policy.pt", d / "summary.json"
+    if (d / "best_model.zip").is_file():
+        return "sb3", d / "best_model.zip", d / "train_summary.json"
+    return None
+
+
+def _report_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, seeds=None) -> int:
+    """The multi-seed report of the runs folder/seed_<k>/ of either learner (torch PPO: policy.pt and
+    summary.json; SB3: best_model.zip and train_summary.json), of ``seeds`` (default: every run there):
+    seeds.json / seeds.md as ``train --seeds`` writes them (agents.seeds.report_trained_seeds)."""
     from ..agents.evaluation import task_of
+    from ..agents.models import model_config_path
     from ..agents.seeds import report_trained_seeds
+    from ..physics.config import read_yaml
 
-    runs = sorted((int(d.name.split("_", 1)[1]), d) for d in Path(folder).glob("seed_*")
-                  if d.name.split("_", 1)[1].isdigit() and (d / "policy.pt").is_file())
+    runs = sorted((int(d.name.split("_", 1)[1]), d, _seed_run(d)) for d in Path(folder).glob("seed_*")
+                  if d.name.split("_", 1)[1].isdigit() and _seed_run(d) is not None)
     if seeds is not None:
-        runs = [(k, d) for k, d in runs if k in set(seeds)]
+        runs = [r for r in runs if r[0] in set(seeds)]
     if not runs:
-        raise _usage(f"{folder}: no seed_<k>/policy.pt there (the runs of train --learner rsl --seeds)")
-    missing = [str(d / "summary.json") for _, d in runs if not (d / "summary.json").is_file()]
+        raise _usage(f"{folder}: no seed_<k>/policy.pt or seed_<k>/best_model.zip there (the runs of train --seeds)")
+    if len({learner for _, _, (learner, _, _) in runs}) > 1:
+        raise _usage(f"{folder}: the seed_<k>/ runs mix learners (policy.pt and best_model.zip); report them apart")
+    missing = [str(summary) for _, _, (_, _, summary) in runs if not summary.is_file()]
     if missing:
         raise _usage(f"{missing[0]} is missing: the run did not finish (its training summary is written last)")
-    models = [(k, str(d / "policy.pt"), json.loads((d / "summary.json").read_text())) for k, d in runs]
+    models = []
+    for k, _, (learner, policy, summary_path) in runs:
+        summary = json.loads(summary_path.read_text())
+        if learner == "sb3":  # (SB3's summary, in the torch PPO's names)
+            summary = {"train_s": summary["wall_time_s"], "agent_steps": summary["timesteps"],
+                       "agent_steps_per_s": summary["steps_per_s"]}
+        models.append((k, str(policy), summary))
     env, _ = task_of([m for _, m, _ in models], None)  # (all from one task, or a one-line error)
-    config = json.loads((runs[0][1] / "policy.json").read_text())["config"]
+    first = runs[0][2]
+    if first[0] == "rsl":
+        config = json.loads((first[1].with_suffix(".json")).read_text())["config"]
+    else:
+        config = read_yaml(model_config_path(first[1]))
     config.pop("seed", None)
     result = report_trained_seeds(models, env, folder, config, episodes=episodes, runner=runner, progress=not quiet)
     print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
@@ -158,14 +182,14 @@ def _report_torch_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=No
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    """``msdgrasp report DIR``: the multi-seed report of torch PPO runs (what ``train --learner rsl --seeds``
-    writes at its end), for runs made elsewhere or before it wrote one."""
+    """``msdgrasp report DIR``: the multi-seed report of seed runs (what ``train --seeds`` writes at its end),
+    for runs made elsewhere, re-selected (``msdgrasp select``) or made before it wrote one."""
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
     if not Path(args.folder).is_dir():
         raise _usage(f"{args.folder}: not a folder")
     runner = _runner(args, os.cpu_count() or 1) if _runner_asked(args) else None
-    return _report_torch_seeds(Path(args.folder), args.quiet, args.episodes, runner)
+    return _report_seeds(Path(args.folder), args.quiet, args.episodes, runner)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -392,9 +416,10 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--quiet", action="store_true", help="no progress output")
     e.set_defaults(func=_cmd_evaluate)
 
-    rp = sub.add_parser("report", help="the multi-seed report (seeds.json / seeds.md) of torch PPO runs DIR/seed_<k>/")
+    rp = sub.add_parser("report", help="the multi-seed report (seeds.json / seeds.md) of the runs DIR/seed_<k>/")
     rp.add_argument("folder", type=Path, metavar="DIR",
-                    help="a folder of train --learner rsl --seeds runs (seed_<k>/policy.pt); the report is written there")
+                    help="a folder of train --seeds runs (seed_<k>/best_model.zip, or policy.pt of --learner rsl), "
+                         "or of msdgrasp select's picks; the report is written there")
     rp.add_argument("--episodes", type=int, default=10, help="episodes per seed and mu (default 10)")
     _add_runner_args(rp, "every seed's evaluation")
     rp.add_argument("--quiet", action="store_true", help="no progress output")

@@ -134,3 +134,28 @@ def test_bad_selections_are_one_line_errors_before_anything_is_written(torch_run
     r = cli(str(tmp_path / "missing"), "--out", str(tmp_path / "o"))
     assert r.returncode == 2 and "is not a folder" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_report_makes_the_multi_seed_report_of_re_selected_sb3_seeds(sb3_run, torch_run, tmp_path):
+    runs = tmp_path / "runs"
+    for k in (0, 1):
+        shutil.copytree(sb3_run, runs / f"seed_{k}")
+
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "msdgrasp.cli.main", *args], capture_output=True, text=True)
+
+    r = cli("select", str(runs), "--out", str(tmp_path / "sel"), "--validation-episodes", "2", "--workers", "2")
+    assert r.returncode == 0, r.stderr
+    r = cli("report", str(tmp_path / "sel"), "--episodes", "1", "--quiet")
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "sel" / "seeds.json").read_text())
+    assert report["seeds"] == [0, 1] and report["config"]["validation_episodes"] == 2
+    trained = json.loads((sb3_run / "train_summary.json").read_text())
+    for rec in report["per_seed"]:
+        assert rec["model"].endswith("best_model.zip") and rec["timesteps"] == trained["timesteps"]
+        assert len(rec["validation"]) == len(json.loads((sb3_run / "validation.json").read_text())["history"])
+    # same copies, same pick: the two seeds' evaluations agree episode for episode
+    assert report["per_seed"][0]["rows"] == report["per_seed"][1]["rows"]
+    shutil.copytree(torch_run, tmp_path / "sel" / "seed_2")
+    r = cli("report", str(tmp_path / "sel"))
+    assert r.returncode == 2 and "mix learners" in r.stderr
