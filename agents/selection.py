@@ -102,6 +102,8 @@ def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
     out = Path(out)
     if out.resolve() == plan.run.resolve():
         raise ConfigError(f"select: --out {out} is the run itself; the run's own pick is kept, give another folder")
+    if (out / "checkpoints").is_dir():  # (its pick would be overwritten by another run's)
+        raise ConfigError(f"select: --out {out} is a training run of its own (it has checkpoints/); give another folder")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if plan.learner == "rsl":

@@ -134,11 +134,13 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
 
 def _seed_run(d: Path) -> tuple[str, Path, Path] | None:
     """A finished-or-not seed run's learner, policy and training summary: torch PPO (policy.pt, summary.json)
-    or SB3 (best_model.zip, train_summary.json); None where neither policy is there."""
+    or SB3 (best_model.zip, or final_model.zip of a run without validation, as ``train --seeds`` evaluates;
+    train_summary.json); None where no policy is there."""
     if (d / "policy.pt").is_file():
         return "rsl", d / "policy.pt", d / "summary.json"
-    if (d / "best_model.zip").is_file():
-        return "sb3", d / "best_model.zip", d / "train_summary.json"
+    for name in ("best_model.zip", "final_model.zip"):
+        if (d / name).is_file():
+            return "sb3", d / name, d / "train_summary.json"
     return None
 
 
@@ -151,8 +153,8 @@ def _report_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, se
     from ..agents.seeds import report_trained_seeds
     from ..physics.config import read_yaml
 
-    runs = sorted((int(d.name.split("_", 1)[1]), d, _seed_run(d)) for d in Path(folder).glob("seed_*")
-                  if d.name.split("_", 1)[1].isdigit() and _seed_run(d) is not None)
+    runs = sorted((int(d.name.split("_", 1)[1]), d, found) for d in Path(folder).glob("seed_*")
+                  if d.name.split("_", 1)[1].isdigit() and (found := _seed_run(d)) is not None)
     if seeds is not None:
         runs = [r for r in runs if r[0] in set(seeds)]
     if not runs:

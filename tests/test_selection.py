@@ -129,6 +129,11 @@ def test_bad_selections_are_one_line_errors_before_anything_is_written(torch_run
 
     r = cli(str(torch_run), "--out", str(torch_run))
     assert r.returncode == 2 and "is the run itself" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    other = tmp_path / "other_run"
+    shutil.copytree(torch_run, other)
+    r = cli(str(torch_run), "--out", str(other))
+    assert r.returncode == 2 and "is a training run of its own" in r.stderr
+    assert _digest(other) == _digest(torch_run)
     r = cli(str(torch_run), "--out", str(tmp_path / "o"), "--validation-mu", "0.5,-1")
     assert r.returncode == 2 and "negative" in r.stderr
     r = cli(str(tmp_path / "missing"), "--out", str(tmp_path / "o"))
