@@ -66,8 +66,9 @@ class TorchPPOConfig:
     #: tanh-squashed Gaussian actions (agents/rsl_distributions.py) instead of clipping them to [-1, 1]
     squash_actions: Bool = False
     learning_rate: Positive = 1e-3
-    #: "adaptive": the learning rate follows the KL to desired_kl (rsl-rl); "fixed"
-    schedule: Literal["adaptive", "fixed"] = "adaptive"
+    #: "adaptive": the learning rate follows the KL to desired_kl (rsl-rl); "fixed"; "linear": from
+    #: learning_rate down to 0 at the last iteration (SB3's recipe, which settles the policy at the end)
+    schedule: Literal["adaptive", "fixed", "linear"] = "adaptive"
     desired_kl: Positive = 0.01
     epochs: Annotated[Int, Ge(1)] = 5
     mini_batches: Annotated[Int, Ge(1)] = 4
@@ -129,7 +130,9 @@ class TorchPPOConfig:
                 "class_name": "PPO", "num_learning_epochs": self.epochs, "num_mini_batches": self.mini_batches,
                 "clip_param": self.clip, "gamma": self.gamma, "lam": self.lam, "value_loss_coef": self.value_loss_coef,
                 "entropy_coef": self.entropy_coef, "learning_rate": self.learning_rate,
-                "max_grad_norm": self.max_grad_norm, "schedule": self.schedule, "desired_kl": self.desired_kl,
+                "max_grad_norm": self.max_grad_norm, "desired_kl": self.desired_kl,
+                # (rsl-rl knows adaptive and fixed; linear is a fixed rate that train_torch lowers per update)
+                "schedule": "fixed" if self.schedule == "linear" else self.schedule,
             },
         }
 
@@ -256,6 +259,8 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     runner = OnPolicyRunner(env, config.runner_cfg(), log_dir=str(out / "tb"), device=device)
     if not progress:
         runner.logger.log = lambda **kwargs: None  # type: ignore[method-assign]
+    if config.schedule == "linear":
+        anneal_learning_rate(runner.alg, config.learning_rate, config.iterations)
     t0 = time.perf_counter()
     runner.learn(config.iterations)
     train_s = time.perf_counter() - t0
@@ -289,6 +294,23 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
             raise RuntimeError(f"non-finite number in the training summary: {summary}")
     atomic_write(out / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
     return summary
+
+
+def anneal_learning_rate(alg: Any, initial: float, updates: int) -> None:
+    """Make rsl-rl's PPO ``alg`` (schedule "fixed") lower its learning rate linearly: update k (0-based) of
+    ``updates`` runs at ``initial * (1 - k / updates)``, so the last one is at ``initial / updates``."""
+    update = alg.update
+    done = 0
+
+    def annealed_update(*args: Any, **kwargs: Any) -> Any:
+        nonlocal done
+        alg.learning_rate = initial * (1.0 - min(done, updates) / updates)
+        for group in alg.optimizer.param_groups:
+            group["lr"] = alg.learning_rate
+        done += 1
+        return update(*args, **kwargs)
+
+    alg.update = annealed_update
 
 
 def select_torch_checkpoints(config: TorchPPOConfig, checkpoints: Sequence[tuple[int, Path]], out: Path) -> dict[str, Any]:

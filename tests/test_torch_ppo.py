@@ -225,3 +225,17 @@ def test_torch_seeds_get_the_multi_seed_report_of_sb3_seeds_and_report_remakes_i
     (out / "seed_1" / "summary.json").unlink()
     r = cli("report", str(out))
     assert r.returncode == 2 and "seed_1/summary.json is missing: the run did not finish" in r.stderr
+
+
+def test_the_linear_schedule_lowers_the_learning_rate_each_update_to_the_last(tmp_path):
+    data = to_dict(TorchPPOConfig())
+    data.update(backend="cpu", num_envs=4, iterations=3, steps_per_env=8, validation_episodes=0, schedule="linear",
+                learning_rate=3e-4, env=to_dict(_small_task()))
+    config = from_dict(TorchPPOConfig, data)
+    assert config.runner_cfg()["algorithm"]["schedule"] == "fixed"  # (rsl-rl's; train_torch anneals it)
+    train_torch(config, tmp_path, progress=False)
+    saved = torch.load(tmp_path / "tb" / "model_2.pt", map_location="cpu", weights_only=False)
+    # updates 0, 1, 2 of 3 ran at 3e-4 x (1, 2/3, 1/3): the optimizer keeps the last one's rate
+    assert [g["lr"] for g in saved["optimizer_state_dict"]["param_groups"]] == pytest.approx([1e-4])
+    with pytest.raises(ConfigError, match="schedule"):
+        from_dict(TorchPPOConfig, {**data, "schedule": "cosine"})
