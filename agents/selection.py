@@ -35,12 +35,14 @@ from .parallel import Runner
 @dataclass(frozen=True)
 class SelectionPlan:
     """One run to select again: its learner ("rsl" or "sb3"), the config with the new validation settings,
-    and its checkpoints in training order: (iteration for rsl / agent steps for sb3, path)."""
+    its checkpoints in training order: (iteration for rsl / agent steps for sb3, path), and its training
+    summary (summary.json / train_summary.json, written last: the run finished)."""
 
     run: Path
     learner: str
     config: Any
     checkpoints: tuple[tuple[int, Path], ...]
+    summary: Path
 
 
 def _numbered(folder: Path, pattern: str) -> list[tuple[int, Path]]:
@@ -77,7 +79,7 @@ def plan_selection(run: str | Path, validation_episodes: int | None = None,
             raise ConfigError(f"select: {run / 'policy.json'} is corrupt ({exc})") from None
         config = from_dict(TorchPPOConfig, {**saved, **overrides}, where=str(run / "policy.json"))
         checkpoints = _numbered(run / "checkpoints", r"policy_(\d+)\.pt")
-        learner, what = "rsl", "checkpoints/policy_<iteration>.pt"
+        learner, what, summary = "rsl", "checkpoints/policy_<iteration>.pt", run / "summary.json"
     elif (run / "config.yaml").is_file():
         from .models import TrainConfig
 
@@ -85,7 +87,7 @@ def plan_selection(run: str | Path, validation_episodes: int | None = None,
         checkpoints = _numbered(run / "checkpoints", r"model_(\d+)\.zip")
         if (run / "final_model.zip").is_file():
             checkpoints.append((config.total_timesteps, run / "final_model.zip"))
-        learner, what = "sb3", "checkpoints/model_<steps>.zip"
+        learner, what, summary = "sb3", "checkpoints/model_<steps>.zip", run / "train_summary.json"
     else:
         raise ConfigError(f"select: {run} is not a training run (no policy.json of train --learner rsl, no "
                           "config.yaml of train)")
@@ -93,7 +95,9 @@ def plan_selection(run: str | Path, validation_episodes: int | None = None,
         raise ConfigError(f"select: {run} has no {what} to validate")
     if config.validation_episodes < 1:
         raise ConfigError(f"select: {run} was trained without validation; give validation_episodes >= 1")
-    return SelectionPlan(run, learner, config, tuple(checkpoints))
+    if not summary.is_file():
+        raise ConfigError(f"select: {summary} is missing: the run did not finish (its training summary is written last)")
+    return SelectionPlan(run, learner, config, tuple(checkpoints), summary)
 
 
 def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
@@ -110,10 +114,7 @@ def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
         from .torch_ppo import select_torch_checkpoints
 
         picked = select_torch_checkpoints(plan.config, plan.checkpoints, out)
-        summary_path = plan.run / "summary.json"
-        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-        atomic_write_text(out / "summary.json", json.dumps({**summary, **picked, "selected_from": str(plan.run)},
-                                                           indent=2))
+        summary = {**json.loads(plan.summary.read_text()), **picked}
     else:
         from .models import load_model
         from .training import BestModel
@@ -121,21 +122,16 @@ def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
         selector = BestModel(plan.config, out)
         for _, path in plan.checkpoints:
             selector.consider(load_model(path), path)
-        summary_path = plan.run / "train_summary.json"
-        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-        atomic_write_text(out / "train_summary.json", json.dumps(
-            {**summary, "best_model": str(out / "best_model.zip"), "best_validation": selector.best,
-             "selected_from": str(plan.run)}, indent=2))
+        summary = {**json.loads(plan.summary.read_text()), "best_model": str(out / "best_model.zip"),
+                   "best_validation": selector.best}
+    # the run's training summary (same file name) with the new pick, as report and evaluate read it
+    atomic_write_text(out / plan.summary.name, json.dumps({**summary, "selected_from": str(plan.run)}, indent=2))
     best = json.loads((out / "validation.json").read_text())["best"]
     result = {"run": str(plan.run), "learner": plan.learner, "validation_episodes": plan.config.validation_episodes,
               "validation_mu": list(plan.config.validation_mu), "checkpoints_validated": len(plan.checkpoints),
               "best": best, "selection_s": round(time.perf_counter() - t0, 1)}
     atomic_write_text(out / "selection.json", json.dumps(result, indent=2))
     return result
-
-
-def _select_job(run: str, out: str, validation_episodes: int | None, validation_mu: list[float] | None) -> dict[str, Any]:
-    return select_run(plan_selection(run, validation_episodes, validation_mu), out)
 
 
 def seed_runs(folder: Path) -> list[tuple[int, Path]]:
@@ -152,11 +148,10 @@ def select(run: str | Path, out: str | Path, validation_episodes: int | None = N
     seeds = seed_runs(run) if not (run / "checkpoints").is_dir() else []
     if not seeds:
         return [select_run(plan_selection(run, validation_episodes, mu), out)]
-    for _, d in seeds:  # all of them valid, or nothing runs
-        plan_selection(d, validation_episodes, mu)
+    plans = [plan_selection(d, validation_episodes, mu) for _, d in seeds]  # all of them valid, or nothing runs
     if out.resolve() == run.resolve():
         raise ConfigError(f"select: --out {out} is the runs' own folder; give another folder")
-    jobs = [(_select_job, (str(d), str(out / f"seed_{k}"), validation_episodes, mu)) for k, d in seeds]
+    jobs = [(select_run, (plan, out / f"seed_{k}")) for plan, (k, _) in zip(plans, seeds)]
     with Runner.processes(workers) as runner:
         return runner.run(jobs)
 

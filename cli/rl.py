@@ -355,12 +355,13 @@ def _cmd_select(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise _usage(f"--workers must be >= 1, got {args.workers}")
     mu = None if args.validation_mu is None else [float(m) for m in parse_mu_grid(args.validation_mu)]
-    results = select(args.run, args.out, args.validation_episodes, mu, args.workers)
-    print(json.dumps([{k: r[k] for k in ("run", "learner", "validation_episodes", "checkpoints_validated",
-                                          "selection_s")} | {"best": r["best"]["model"],
-                                                              "success_rate": r["best"]["success_rate"],
-                                                              "force_cost_N": r["best"].get("force_cost_N")}
-                      for r in results], indent=2))
+    shown = []
+    for r in select(args.run, args.out, args.validation_episodes, mu, args.workers):
+        best = r["best"]
+        shown.append({"run": r["run"], "learner": r["learner"], "validation_episodes": r["validation_episodes"],
+                      "checkpoints_validated": r["checkpoints_validated"], "selection_s": r["selection_s"],
+                      "best": best["model"], "success_rate": best["success_rate"], "force_cost_N": best["force_cost_N"]})
+    print(json.dumps(shown, indent=2))
     return 0
 
 

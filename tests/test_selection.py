@@ -122,6 +122,11 @@ def test_bad_selections_are_one_line_errors_before_anything_is_written(torch_run
     shutil.rmtree(empty / "checkpoints")
     with pytest.raises(ConfigError, match=r"has no checkpoints/policy_<iteration>\.pt to validate"):
         plan_selection(empty)
+    unfinished = tmp_path / "unfinished"
+    shutil.copytree(torch_run, unfinished)
+    (unfinished / "summary.json").unlink()
+    with pytest.raises(ConfigError, match="summary.json is missing: the run did not finish"):
+        plan_selection(unfinished)
 
     def cli(*args):
         return subprocess.run([sys.executable, "-m", "msdgrasp.cli.main", "select", *args], capture_output=True,
