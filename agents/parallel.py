@@ -12,7 +12,8 @@ finishes; what differs between a laptop and a cluster is only the runner:
 Results land in one place, the driver's output folder, on a cluster too: a job that writes files gets its
 folder through :func:`run_in_folder`; on the driver's node it writes there directly, on another node it
 writes into a temporary folder that travels back as a tar archive, and the driver unpacks it into place
-(paths in the job's result that point into the temporary folder are rewritten to the final one).
+(paths that point into the temporary folder are rewritten to the final one, in the job's result and in the
+JSON files it wrote: a run's ``train_summary.json`` and ``validation.json`` name its models).
 
 Ray's usage-statistics upload is switched off unless ``RAY_USAGE_STATS_ENABLED`` is set.
 """
@@ -20,6 +21,7 @@ Ray's usage-statistics upload is switched off unless ``RAY_USAGE_STATS_ENABLED``
 from __future__ import annotations
 
 import io
+import json
 import os
 import tarfile
 import tempfile
@@ -29,7 +31,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from ..physics.config import ConfigError
+from ..physics.config import ConfigError, atomic_write_text
 
 #: a job: a module-level function (picklable by reference) and its positional arguments
 Job = tuple[Callable[..., Any], tuple]
@@ -189,14 +191,29 @@ def _current_node() -> str | None:
     return ray.get_runtime_context().get_node_id()
 
 
-def _rewrite_paths(value: Any, old: str, new: str) -> Any:
+def rewrite_paths(value: Any, old: str, new: str) -> Any:
+    """``value`` (a JSON-like tree) with every string that is path ``old`` or lies under it moved to ``new``
+    (whole path parts only: ``old + "x"`` stays)."""
     if isinstance(value, str):
         return new + value[len(old):] if value == old or value.startswith(old + os.sep) else value
     if isinstance(value, dict):
-        return {k: _rewrite_paths(v, old, new) for k, v in value.items()}
+        return {k: rewrite_paths(v, old, new) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return type(value)(_rewrite_paths(v, old, new) for v in value)
+        return type(value)(rewrite_paths(v, old, new) for v in value)
     return value
+
+
+def rewrite_json_paths(folder: str | Path, old: str, new: str) -> None:
+    """:func:`rewrite_paths` in every JSON file under ``folder`` (files written in one place that name where
+    they were, moved to another). A file that is not JSON is an error, never skipped."""
+    for path in sorted(Path(folder).rglob("*.json")):
+        try:
+            data = json.loads(path.read_text())
+        except ValueError as exc:
+            raise ConfigError(f"{path}: not JSON ({exc})") from None
+        moved = rewrite_paths(data, old, new)
+        if moved != data:
+            atomic_write_text(path, json.dumps(moved, indent=2))
 
 
 def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None, *args: Any) -> dict[str, Any]:
@@ -210,10 +227,11 @@ def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: s
         return fn(folder, *args)
     with tempfile.TemporaryDirectory(prefix="msdgrasp-job-") as tmp:
         result = fn(tmp, *args)
+        rewrite_json_paths(tmp, tmp, folder)
         buf = io.BytesIO()
         with tarfile.open(fileobj=buf, mode="w:gz") as tar:
             tar.add(tmp, arcname=".")
-        result = _rewrite_paths(result, tmp, folder)
+        result = rewrite_paths(result, tmp, folder)
     return {**result, _ARCHIVE_KEY: buf.getvalue()}
 
 

@@ -15,13 +15,21 @@ never touched), in the layout its learner writes:
 
 Both also get ``selection.json``: where the checkpoints came from, the validation settings and the pick.
 A folder of seeds (``seed_<k>/`` runs, what ``--seeds`` writes) is selected seed by seed into
-``OUT/seed_<k>/``, in parallel processes.
+``OUT/seed_<k>/``, each seed a job on a :class:`~.parallel.Runner`: local processes, or Ray tasks (``--ray`` /
+``--address``). A Ray task may run on a node that cannot read the run's files, so on Ray each job gets the
+files the selection reads (checkpoints, their configs, the training summary: a few MB) as an archive, and
+its pick lands in ``OUT`` as a training run's does (:func:`~.parallel.run_in_folder`); the paths it records
+name the run's own checkpoints either way.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import io
 import json
 import re
+import tarfile
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -29,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from ..physics.config import ConfigError, atomic_write_text, from_dict, read_yaml
-from .parallel import Runner
+from .parallel import Runner, land, rewrite_json_paths, rewrite_paths, run_in_folder
 
 
 @dataclass(frozen=True)
@@ -100,14 +108,18 @@ def plan_selection(run: str | Path, validation_episodes: int | None = None,
     return SelectionPlan(run, learner, config, tuple(checkpoints), summary)
 
 
-def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
-    """Validate every checkpoint of ``plan`` and write the pick into ``out`` (see the module docstring).
-    Returns what ``selection.json`` holds."""
-    out = Path(out)
+def _check_out(plan: SelectionPlan, out: Path) -> None:
     if out.resolve() == plan.run.resolve():
         raise ConfigError(f"select: --out {out} is the run itself; the run's own pick is kept, give another folder")
     if (out / "checkpoints").is_dir():  # (its pick would be overwritten by another run's)
         raise ConfigError(f"select: --out {out} is a training run of its own (it has checkpoints/); give another folder")
+
+
+def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
+    """Validate every checkpoint of ``plan`` and write the pick into ``out`` (see the module docstring).
+    Returns what ``selection.json`` holds."""
+    out = Path(out)
+    _check_out(plan, out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if plan.learner == "rsl":
@@ -139,21 +151,67 @@ def seed_runs(folder: Path) -> list[tuple[int, Path]]:
     return _numbered(folder, r"seed_(\d+)") if folder.is_dir() else []
 
 
+def _run_files(plan: SelectionPlan) -> list[Path]:
+    """The files of ``plan.run`` that the selection reads: the run's config and summary, every checkpoint
+    and the file that describes it (a torch policy's .json, an SB3 model's .yaml)."""
+    from .models import model_sidecar
+
+    files = [plan.run / ("policy.json" if plan.learner == "rsl" else "config.yaml"), plan.summary]
+    for _, path in plan.checkpoints:
+        files += [path] + [side for side in (model_sidecar(path),) if side is not None]
+    return list(dict.fromkeys(files))
+
+
+def pack_run(plan: SelectionPlan) -> bytes:
+    """:func:`_run_files` of ``plan`` as a tar.gz archive, paths relative to the run."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        for path in _run_files(plan):
+            tar.add(path, arcname=str(path.relative_to(plan.run)))
+    return buf.getvalue()
+
+
+def _select_job(out: str, plan: SelectionPlan, archive: bytes | None) -> dict[str, Any]:
+    """One run's selection as a job: from the run's own files, or (``archive``: :func:`pack_run`) from a copy
+    unpacked here, with every path it records moved back to the run's."""
+    if archive is None:
+        return select_run(plan, out)
+    with tempfile.TemporaryDirectory(prefix="msdgrasp-run-") as tmp:
+        with tarfile.open(fileobj=io.BytesIO(archive), mode="r:gz") as tar:
+            tar.extractall(tmp, filter="data")  # "data": no absolute paths, links or devices from the archive
+        here = Path(tmp)
+        copy = dataclasses.replace(plan, run=here, summary=here / plan.summary.relative_to(plan.run),
+                                   checkpoints=tuple((k, here / p.relative_to(plan.run)) for k, p in plan.checkpoints))
+        result = select_run(copy, out)
+    rewrite_json_paths(out, tmp, str(plan.run))
+    return rewrite_paths(result, tmp, str(plan.run))
+
+
 def select(run: str | Path, out: str | Path, validation_episodes: int | None = None,
-           validation_mu: Sequence[float] | None = None, workers: int | None = None) -> list[dict[str, Any]]:
-    """Select again in run folder ``run``, or in each ``seed_<k>/`` run of it (into ``out/seed_<k>``, in
-    ``workers`` parallel processes). Every run is checked before the first is validated."""
+           validation_mu: Sequence[float] | None = None, workers: int | None = None,
+           runner: Runner | None = None) -> list[dict[str, Any]]:
+    """Select again in run folder ``run``, or in each ``seed_<k>/`` run of it (into ``out/seed_<k>``), each
+    run a job on ``runner`` (default: ``workers`` local processes; one run without a runner: this process).
+    Every run is checked before the first is validated."""
     run, out = Path(run), Path(out)
     mu = None if validation_mu is None else [float(m) for m in validation_mu]
     seeds = seed_runs(run) if not (run / "checkpoints").is_dir() else []
-    if not seeds:
-        return [select_run(plan_selection(run, validation_episodes, mu), out)]
-    plans = [plan_selection(d, validation_episodes, mu) for _, d in seeds]  # all of them valid, or nothing runs
-    if out.resolve() == run.resolve():
-        raise ConfigError(f"select: --out {out} is the runs' own folder; give another folder")
-    jobs = [(select_run, (plan, out / f"seed_{k}")) for plan, (k, _) in zip(plans, seeds)]
-    with Runner.processes(workers) as runner:
-        return runner.run(jobs)
+    if seeds:
+        if out.resolve() == run.resolve():
+            raise ConfigError(f"select: --out {out} is the runs' own folder; give another folder")
+        plans = [plan_selection(d, validation_episodes, mu) for _, d in seeds]  # all of them valid, or nothing runs
+        outs = [out / f"seed_{k}" for k, _ in seeds]
+    else:
+        plans, outs = [plan_selection(run, validation_episodes, mu)], [out]
+    for plan, folder in zip(plans, outs):
+        _check_out(plan, folder)
+    if runner is None and len(plans) == 1:
+        return [select_run(plans[0], out)]
+    with runner or Runner.processes(workers) as live:
+        # a Ray task may land on a node without the run's files: it gets them with the job
+        jobs = [(run_in_folder, (_select_job, str(folder), live.driver_node, plan, pack_run(plan) if live.is_ray else None))
+                for plan, folder in zip(plans, outs)]
+        return [land(res, folder) for res, folder in zip(live.run(jobs), outs)]
 
 
-__all__ = ["SelectionPlan", "plan_selection", "select", "select_run", "seed_runs"]
+__all__ = ["SelectionPlan", "pack_run", "plan_selection", "select", "select_run", "seed_runs"]

@@ -352,11 +352,10 @@ def _cmd_select(args: argparse.Namespace) -> int:
     from ..agents.evaluation import parse_mu_grid
     from ..agents.selection import select
 
-    if args.workers is not None and args.workers < 1:
-        raise _usage(f"--workers must be >= 1, got {args.workers}")
+    runner = _runner(args) if _runner_asked(args) else None
     mu = None if args.validation_mu is None else [float(m) for m in parse_mu_grid(args.validation_mu)]
     shown = []
-    for r in select(args.run, args.out, args.validation_episodes, mu, args.workers):
+    for r in select(args.run, args.out, args.validation_episodes, mu, runner=runner):
         best = r["best"]
         shown.append({"run": r["run"], "learner": r["learner"], "validation_episodes": r["validation_episodes"],
                       "checkpoints_validated": r["checkpoints_validated"], "selection_s": r["selection_s"],
@@ -438,7 +437,7 @@ def add_rl_commands(sub) -> None:
                     help="episodes per mu and checkpoint (default: the run's own, 6 in the shipped configs)")
     sl.add_argument("--validation-mu", default=None,
                     help="friction coefficients to validate at: a comma list or start:stop:step (default: the run's own)")
-    sl.add_argument("--workers", type=int, default=None, help="seeds at a time (default: one per CPU core)")
+    _add_runner_args(sl, "the seeds' selections")
     sl.set_defaults(func=_cmd_select)
 
     r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")

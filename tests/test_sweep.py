@@ -60,6 +60,8 @@ def test_a_failing_job_raises_in_the_driver(local_ray):
 def _write_run(folder: str, text: str) -> dict:
     Path(folder).mkdir(parents=True, exist_ok=True)
     (Path(folder) / "model.txt").write_text(text)
+    # a summary that names the model where it was written (as a run's train_summary.json does)
+    (Path(folder) / "summary.json").write_text(json.dumps({"best_model": str(Path(folder) / "model.txt")}))
     return {"run": folder, "model": str(Path(folder) / "model.txt"), "nested": [folder + "x"]}
 
 
@@ -74,11 +76,68 @@ def test_a_job_on_another_node_lands_its_folder_in_the_drivers_output(tmp_path, 
     assert res["nested"][0].endswith("x") and not res["nested"][0].startswith(str(target))  # only whole path parts
     landed = land(res, target)
     assert (target / "model.txt").read_text() == "weights"
+    # the files it wrote name where they landed, not the other node's temporary folder
+    assert json.loads((target / "summary.json").read_text()) == {"best_model": str(target / "model.txt")}
     assert set(landed) == {"run", "model", "nested"}
     # on the driver's own node the job writes in place and nothing is shipped
     monkeypatch.setattr(parallel, "_current_node", lambda: "node-a")
     res = run_in_folder(_write_run, str(tmp_path / "here"), "node-a", "w2")
     assert land(res, tmp_path / "here") == res and (tmp_path / "here" / "model.txt").read_text() == "w2"
+
+
+@pytest.fixture(scope="module")
+def sb3_seeds(tmp_path_factory) -> Path:
+    """Two seeds of a TINY finished SB3 run (copies: the same checkpoints) on 0.2 s episodes."""
+    import shutil
+
+    from msdgrasp.agents.models import TrainConfig
+    from msdgrasp.agents.training import train
+    from msdgrasp.physics.config import from_dict, to_dict
+
+    runs = tmp_path_factory.mktemp("sb3_seeds")
+    env = {**to_dict(TrainConfig().env), "time_limit_s": 0.2}
+    train(from_dict(TrainConfig, {**TINY, "env": env}), runs / "seed_0", progress=False)
+    shutil.copytree(runs / "seed_0", runs / "seed_1")
+    return runs
+
+
+def _picked(folder: Path) -> dict:
+    """What a selection decided, without the time it took."""
+    sel = json.loads((folder / "selection.json").read_text())
+    return {"selection": {k: v for k, v in sel.items() if k != "selection_s"},
+            "validation": json.loads((folder / "validation.json").read_text())}
+
+
+def test_select_on_ray_ships_each_runs_checkpoints_and_picks_as_local_processes(sb3_seeds, tmp_path, local_ray,
+                                                                               monkeypatch):
+    from msdgrasp.agents.selection import _select_job, pack_run, plan_selection, select
+
+    local = select(sb3_seeds, tmp_path / "local", validation_episodes=2, workers=2)
+    on_ray = select(sb3_seeds, tmp_path / "ray", validation_episodes=2, runner=Runner.ray())
+    assert [r["run"] for r in on_ray] == [r["run"] for r in local] == [str(sb3_seeds / f"seed_{k}") for k in (0, 1)]
+    for k in (0, 1):
+        a, b = _picked(tmp_path / "local" / f"seed_{k}"), _picked(tmp_path / "ray" / f"seed_{k}")
+        assert a == b
+        # the history names the run's own checkpoints, not the copy the job validated
+        run = sb3_seeds / f"seed_{k}"
+        assert [h["model"] for h in b["validation"]["history"]] == [
+            str(run / "checkpoints" / "model_256.zip"), str(run / "checkpoints" / "model_512.zip"), str(run / "final_model.zip")]
+    # a node that cannot read the run: the job validates the archive alone, its pick lands in the driver's folder
+    plan = plan_selection(sb3_seeds / "seed_0", validation_episodes=2)
+    archive = pack_run(plan)
+    away = sb3_seeds.parent / "sb3_seeds_away"
+    sb3_seeds.rename(away)
+    try:
+        monkeypatch.setattr(parallel, "_current_node", lambda: "node-b")
+        target = tmp_path / "remote" / "seed_0"
+        res = run_in_folder(_select_job, str(target), "node-a", plan, archive)
+        assert not target.exists()
+        land(res, target)
+    finally:
+        away.rename(sb3_seeds)
+    assert _picked(target) == _picked(tmp_path / "local" / "seed_0")
+    summary = json.loads((target / "train_summary.json").read_text())
+    assert summary["best_model"] == str(target / "best_model.zip") and summary["selected_from"] == str(sb3_seeds / "seed_0")
 
 
 def _sweep(**extra) -> SweepConfig:
