@@ -7,18 +7,20 @@
 #   here:   bash benchmarks/gpu_session.sh wheels           # -> .gpu_wheels/ (~21 MB, ignored by git)
 #   there:  run(command="bash benchmarks/gpu_session.sh bench gpu", carry=[".gpu_wheels"])   # one part per call
 #           run(command="bash benchmarks/gpu_session.sh train 0-1", carry=[".gpu_wheels"])   # seeds per call
+#           run(command="bash benchmarks/gpu_session.sh tests", carry=[".gpu_wheels"])
 #
 # Each call stays inside the tool's 10 minutes (timeout 560 s). bench PART: `msdgrasp bench gpu` (physics
 # batches 1..16,384 and the whole task step, float64 and float32, against 200k agent steps/s), `precision`
 # (float32 error, coarse spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS:
 # `msdgrasp train --backend cuda` on rsl_ppo.yaml, timed, each seed evaluated; the runs come back as one
-# archive. Everything lands in $OUT (the device tool brings back at most 8 files), each stage's log included,
-# so a stage killed at its limit still reports.
+# archive. tests: tests/test_cuda*.py on the GPU itself (NUMBA_ENABLE_CUDASIM=0): the kernels against the CPU
+# kernel on real hardware, and the timing test of the 200k target. Everything lands in $OUT (the device tool
+# brings back at most 8 files), each stage's log included, so a stage killed at its limit still reports.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PACKAGES=("numpy>=2.0,<2.5" "gymnasium==1.4.0" farama-notifications "stable-baselines3==2.9.2" "pydantic==2.14.4"
           "pydantic-core==2.50.5" annotated-types typing-inspection "rsl-rl-lib==5.5.1" "tensordict==0.15.3" pyvers
-          GitPython gitdb smmap "meshio==5.3.5")
+          GitPython gitdb smmap "meshio==5.3.5" pytest pluggy iniconfig packaging)
 
 setup() {  # on the device: our wheels over its image (no dependency resolution: the image has the rest)
     python3 -m pip install -q --no-index --no-deps .gpu_wheels/*.whl
@@ -45,7 +47,11 @@ case "${1:-}" in
         ( time timeout 560 msdgrasp train --backend cuda --seeds "$seeds" --out logs/train_torch_gpu --quiet ) \
             2>&1 | tee "$OUT/train_$seeds.log" || true
         tar czf "$OUT/train_$seeds.tgz" logs/train_torch_gpu ;;
+    tests)
+        setup
+        NUMBA_ENABLE_CUDASIM=0 timeout 560 python3 -m pytest tests/test_cuda_physics.py tests/test_cuda_task.py \
+            tests/test_cuda_timing.py -rs -q 2>&1 | tee "$OUT/tests.log" || true ;;
     *)
-        echo "usage: bash benchmarks/gpu_session.sh wheels | bench gpu|precision|learners | train SEEDS" >&2
+        echo "usage: bash benchmarks/gpu_session.sh wheels | bench gpu|precision|learners | train SEEDS | tests" >&2
         exit 2 ;;
 esac
