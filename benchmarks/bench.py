@@ -38,7 +38,8 @@ from typing import Any
 import numpy as np
 
 from ..physics.reference import DT_OUTER, NumpyMSD, cross_check, spleen_model
-from .report import BATCH, ENV_SIZES, _out_paths, _r, evaluate_targets, machine_info, markdown, plot_scaling
+from .report import (BATCH, ENV_SIZES, _out_paths, _r, evaluate_targets, machine_info, markdown, plot_gpu,
+                     plot_scaling)
 
 # ------------------------------------------------------------------------------------------------
 # timing helpers
@@ -537,6 +538,54 @@ def bench_gpu_task(batches: tuple[int, ...], resolution="coarse", steps: int = S
     return rows
 
 
+#: batch sizes of the CPU reference rows (quick: the first two); one core steps a batch in time linear in its size
+CPU_REFERENCE_BATCHES = (1, 64, 1024)
+
+
+def bench_cpu_reference(quick: bool, resolution="coarse", batches: tuple[int, ...] = CPU_REFERENCE_BATCHES,
+                        settle_s: float = 2.0, close_s: float = 1.5, steps: int = STEPS_PER_AGENT_STEP,
+                        min_time: float | None = None, task_warmup_s: float = 0.5) -> dict:
+    """The CPU side of the GPU rows, measured the same way on this machine: agent steps/s (``steps`` physics
+    ms each) of the numba kernel on one core for the same grasped tissues (``rows``), and of the CPU task step
+    (:class:`~..envs.core.GraspLiftCore`, the bench's 2.5 N pinch without a pull: ``task_rows``)."""
+    from ..envs.core import GraspLiftConfig, GraspLiftCore
+    from ..physics.simulation import Simulation
+
+    batches = tuple(batches[:2]) if quick else tuple(batches)
+    min_time = min_time if min_time is not None else (0.5 if quick else 2.0)
+    scene, sim1 = _grasped(resolution, settle_s, close_s)
+    rows = []
+    for batch in batches:
+        sim = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
+        _clone(sim1, sim)  # every tissue grasped, as the GPU rows with contact
+        sim.step(1)  # compile / load the numba cache
+        timing = time_per_unit(lambda n, sim=sim: sim.step(n * steps), min_time, repeats=3, max_units=10_000)
+        rows.append({"batch": batch, "contact": True, "dtype": "float64", "n_sub": sim.n_sub,
+                     "agent_steps_per_s": _r(batch / timing["median_s"]), "ms_per_agent_step": _r(timing["median_s"] * 1e3),
+                     "contact_nodes_mean": _r(float(sim.jaw_out[:, :, 4].sum(axis=1).mean()))})
+    config = GraspLiftConfig(resolution=resolution, physics_steps_per_action=steps)
+    task_rows = []
+    for batch in batches:
+        core = GraspLiftCore(config, batch)
+        for i in range(batch):
+            core.seed(i, i)
+            core.reset(i)
+        actions = np.tile([0.0, -1.0], (batch, 1))  # the GPU task rows' 2.5 N set-point, no pull
+
+        def run(n: int, core=core, actions=actions) -> None:
+            for _ in range(n):
+                core.step(actions)
+
+        run(max(1, int(round(task_warmup_s / config.agent_dt_s))))  # close the jaws
+        timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
+        held = [float(np.mean(core.step(actions)[4]["contact_nodes"] > 0)) for _ in range(10)]
+        task_rows.append({"batch": batch, "contact": True, "dtype": "float64", "what": "task",
+                          "agent_steps_per_s": _r(batch / timing["median_s"]),
+                          "ms_per_agent_step": _r(timing["median_s"] * 1e3), "contact_fraction": _r(float(np.mean(held)))})
+    return {"device": "one CPU core (numba)", "resolution": resolution, "nodes": scene.model.n_nodes,
+            "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
+
+
 def precision_actions(num_envs: int, step: int, steps_per_s: float) -> np.ndarray:
     """The scripted grasp of :func:`bench_precision`: env b pinches at its own set-point (action 0 spread over
     -0.4..0.6, 0.9-3.1 N) from the start and pulls forward at half speed after 0.3 s."""
@@ -699,6 +748,8 @@ def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[st
     if what in ("gpu", "all"):
         progress("gpu: device-resident batches, with and without contact")
         report["gpu"] = bench_gpu(quick)
+        progress("gpu: the same batches and task step on one CPU core, beside it")
+        report["gpu_cpu_reference"] = bench_cpu_reference(quick)
     if what in ("learners", "all"):
         progress("learners: SB3's and rsl-rl's PPO on the GPU task, beside the env alone")
         report["learners"] = bench_learners()
@@ -729,7 +780,9 @@ def bench_cli(args) -> int:
     if out is not None:
         json_path, md_path, png_path = _out_paths(out)
         png = plot_scaling(report, png_path)
-        report["files"] = {"json": str(json_path), "markdown": str(md_path), "png": str(png) if png else None}
+        gpu_png = plot_gpu(report, png_path.with_name(json_path.stem + "_gpu.png"))
+        report["files"] = {"json": str(json_path), "markdown": str(md_path), "png": str(png) if png else None,
+                           "gpu_png": str(gpu_png) if gpu_png else None}
         atomic_write_text(json_path, json.dumps(report, indent=2) + "\n")
         atomic_write_text(md_path, markdown(report) + "\n")
     print(json.dumps(report, indent=2))

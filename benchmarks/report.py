@@ -219,6 +219,19 @@ def markdown(report: dict) -> str:
             lines += [f"| {r['batch']} | {r['contact_fraction']} | {r['dtype']} | {r['agent_steps_per_s']} "
                       f"| {r['ms_per_agent_step']} |" for r in gpu["task_rows"]]
             lines.append("")
+    cpu = report.get("gpu_cpu_reference")
+    if cpu is not None:
+        gpu_rows = (gpu or {}).get("rows", []) if (gpu or {}).get("available") else []
+        gpu_task = (gpu or {}).get("task_rows", []) if (gpu or {}).get("available") else []
+        lines += [f"Beside it, {cpu['device']} of this machine: the same grasped tissues and task step (GPU / CPU: "
+                  "over the float64 GPU row with contact at the same batch):", "",
+                  "| what | batch | agent steps/s | ms per agent step | GPU / CPU |", "|---|---|---|---|---|"]
+        for kind, rows, against in (("physics", cpu["rows"], gpu_rows), ("task", cpu["task_rows"], gpu_task)):
+            for r in rows:
+                ratio = speedup(r, against)
+                lines.append(f"| {kind} | {r['batch']} | {r['agent_steps_per_s']} | {r['ms_per_agent_step']} "
+                             f"| {'-' if ratio is None else f'{ratio}x'} |")
+        lines.append("")
     learners = report.get("learners")
     if learners is not None:
         lines += ["## Learners on the GPU task (agent steps/s, training included)", ""]
@@ -252,6 +265,53 @@ def markdown(report: dict) -> str:
                          f"{yn[v.get('pass_cpu_time')]} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def speedup(cpu_row: dict, gpu_rows: list[dict]) -> float | None:
+    """GPU agent steps/s over ``cpu_row``'s: the float64 GPU row with contact at the same batch (None: none)."""
+    same = [g for g in gpu_rows if g["batch"] == cpu_row["batch"] and g["contact"] and g["dtype"] == "float64"]
+    return _r(same[0]["agent_steps_per_s"] / cpu_row["agent_steps_per_s"]) if same else None
+
+
+def plot_gpu(report: dict, path: Path) -> Path | None:
+    """Agent steps/s vs batch size, log-log: the GPU rows (physics with and without contact, float64 and
+    float32; the whole task step) beside the CPU reference. None where neither was measured."""
+    gpu = report.get("gpu") or {}
+    gpu_rows = (gpu.get("rows", []) + gpu.get("task_rows", [])) if gpu.get("available") else []
+    cpu = report.get("gpu_cpu_reference") or {}
+    if not gpu_rows and not cpu.get("rows"):
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..physics.config import save_figure
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+
+    def series(rows, label, style):
+        pts = sorted((r["batch"], r["agent_steps_per_s"]) for r in rows)
+        if pts:
+            ax.loglog(*zip(*pts), style, label=label)
+
+    for dtype, color in (("float64", "C0"), ("float32", "C1")):
+        for contact, ls in ((True, "-"), (False, "--")):
+            series([r for r in gpu_rows if r.get("what") != "task" and r["dtype"] == dtype and r["contact"] == contact],
+                   f"GPU physics, {dtype}, {'contact' if contact else 'no contact'}", color + "o" + ls)
+        series([r for r in gpu_rows if r.get("what") == "task" and r["dtype"] == dtype], f"GPU task step, {dtype}",
+               color + "s:")
+    series(cpu.get("rows", []), "CPU physics (one core), contact", "ko-")
+    series(cpu.get("task_rows", []), "CPU task step (one core)", "ks:")
+    ax.axhline(TARGETS["gpu_agent_steps_per_s"], color="0.5", lw=0.8, ls=":")
+    ax.text(1, TARGETS["gpu_agent_steps_per_s"], " target 200k (float64, contact, batch >= 4096)", va="bottom", fontsize=8)
+    ax.set_xlabel("batch (tissues)")
+    ax.set_ylabel("agent steps/s (33 physics ms each)")
+    ax.set_title(f"{gpu.get('resolution') or cpu.get('resolution')} spleen: throughput vs batch"
+                 + ("" if gpu_rows else " (CPU only: no GPU here)"))
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    return save_figure(fig, path)
 
 
 def plot_scaling(report: dict, path: Path) -> Path | None:

@@ -153,11 +153,11 @@ def test_a_device_resident_batch_steps_without_host_round_trips_and_matches_the_
         batch.download(host.kernel_state(), fields=("xx",))
 
 
-def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_simulator():
+def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_simulator(tmp_path):
     """Timings need a GPU: without one (or in the simulator) the bench says why and reports no numbers; the
     harness itself runs here on a tiny case (its numbers are not timings)."""
     from msdgrasp.benchmarks import bench
-    from msdgrasp.benchmarks.report import markdown
+    from msdgrasp.benchmarks.report import markdown, plot_gpu, speedup
     from numba import config as numba_config
 
     if not numba_config.ENABLE_CUDASIM:
@@ -180,6 +180,26 @@ def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_s
                                                                      ("float32", 2)]
     assert all(r["what"] == "task" and 0.0 <= r["contact_fraction"] <= 1.0 for r in res["task_rows"])
     assert "The whole task step" in markdown({**report, "gpu": res, "targets": {}})
+    # beside the GPU rows, the CPU measured the same way (here: real timings of this machine's numba kernel)
+    cpu = report["gpu_cpu_reference"]
+    assert [r["batch"] for r in cpu["rows"]] == [r["batch"] for r in cpu["task_rows"]] == [1, 64]
+    assert all(r["contact_nodes_mean"] > 0 for r in cpu["rows"])  # grasped, as the GPU rows with contact
+    assert all(r["contact_fraction"] >= 0.9 for r in cpu["task_rows"])  # the 2.5 N pinch holds after its warm-up
+    for r in cpu["rows"] + cpu["task_rows"]:
+        assert r["agent_steps_per_s"] == pytest.approx(r["batch"] / r["ms_per_agent_step"] * 1e3, rel=0.01)
+    # GPU / CPU: the float64 GPU row with contact at the same batch over the CPU row, "-" where there is none
+    one = cpu["rows"][0]
+    gpu_rows = [{"batch": 1, "contact": c, "dtype": d, "agent_steps_per_s": 100.0 * one["agent_steps_per_s"] * k,
+                 "ms_per_agent_step": 1.0}
+                for k, (c, d) in enumerate([(True, "float64"), (False, "float64"), (True, "float32")], start=1)]
+    assert speedup(one, gpu_rows) == 100.0 and speedup(cpu["rows"][1], gpu_rows) is None
+    md = markdown({**report, "gpu": {**res, "available": True, "rows": gpu_rows, "task_rows": []}, "targets": {}})
+    assert f"| physics | 1 | {one['agent_steps_per_s']} | {one['ms_per_agent_step']} | 100.0x |" in md
+    assert f"| physics | 64 | {cpu['rows'][1]['agent_steps_per_s']} | {cpu['rows'][1]['ms_per_agent_step']} | - |" in md
+    # the throughput-vs-batch figure: CPU alone here, nothing to draw without either
+    png = plot_gpu(report, tmp_path / "bench_gpu.png")
+    assert png is not None and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert plot_gpu({"gpu": report["gpu"]}, tmp_path / "none.png") is None and not (tmp_path / "none.png").exists()
 
 
 def test_numba_cuda_beside_numpy_2_5_is_refused_with_the_fix_before_any_kernel():
