@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ..physics.contact import J_CONTACT
 from ..physics.reference import DT_OUTER, NumpyMSD, cross_check, spleen_model
 from .report import (BATCH, ENV_SIZES, _out_paths, _r, evaluate_targets, machine_info, markdown, plot_gpu,
                      plot_scaling)
@@ -494,7 +495,7 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
                 rows.append({"batch": batch, "contact": contact, "dtype": precision, "n_sub": sim.n_sub,
                              "agent_steps_per_s": _r(batch / timing["median_s"]),
                              "ms_per_agent_step": _r(timing["median_s"] * 1e3),
-                             "contact_nodes_mean": _r(float(sim.jaw_out[:, :, 4].sum(axis=1).mean()))})
+                             "contact_nodes_mean": _r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))})
     task_rows = bench_gpu_task(batches, resolution, steps, min_time, task_warmup_s, threads, precisions)
     return {"available": reason is None, "reason": reason, "resolution": resolution,
             "nodes": scene.model.n_nodes, "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
@@ -562,7 +563,7 @@ def bench_cpu_reference(quick: bool, resolution="coarse", batches: tuple[int, ..
         timing = time_per_unit(lambda n, sim=sim: sim.step(n * steps), min_time, repeats=3, max_units=10_000)
         rows.append({"batch": batch, "contact": True, "dtype": "float64", "n_sub": sim.n_sub,
                      "agent_steps_per_s": _r(batch / timing["median_s"]), "ms_per_agent_step": _r(timing["median_s"] * 1e3),
-                     "contact_nodes_mean": _r(float(sim.jaw_out[:, :, 4].sum(axis=1).mean()))})
+                     "contact_nodes_mean": _r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))})
     config = GraspLiftConfig(resolution=resolution, physics_steps_per_action=steps)
     task_rows = []
     for batch in batches:
