@@ -203,9 +203,10 @@ def rewrite_paths(value: Any, old: str, new: str) -> Any:
     return value
 
 
-def rewrite_json_paths(folder: str | Path, old: str, new: str) -> None:
-    """:func:`rewrite_paths` in every JSON file under ``folder`` (files written in one place that name where
-    they were, moved to another). A file that is not JSON is an error, never skipped."""
+def move_paths(result: Any, folder: str | Path, old: str, new: str) -> Any:
+    """``result`` with its paths under ``old`` moved to ``new`` (:func:`rewrite_paths`), and the same done in
+    every JSON file under ``folder`` (a job's files that name where they were written, now elsewhere). A file
+    there that is not JSON is an error, never skipped."""
     for path in sorted(Path(folder).rglob("*.json")):
         try:
             data = json.loads(path.read_text())
@@ -214,25 +215,38 @@ def rewrite_json_paths(folder: str | Path, old: str, new: str) -> None:
         moved = rewrite_paths(data, old, new)
         if moved != data:
             atomic_write_text(path, json.dumps(moved, indent=2))
+    return rewrite_paths(result, old, new)
+
+
+def pack(root: str | Path, paths: Sequence[str | Path]) -> bytes:
+    """``paths`` (files or folders under ``root``) as a tar.gz archive, named relative to ``root``."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+        for path in paths:
+            tar.add(path, arcname=str(Path(path).relative_to(root)))
+    return buf.getvalue()
+
+
+def unpack(archive: bytes, folder: str | Path) -> None:
+    """Unpack a :func:`pack` archive into ``folder`` (made if missing)."""
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    with tarfile.open(fileobj=io.BytesIO(archive), mode="r:gz") as tar:
+        tar.extractall(folder, filter="data")  # "data": no absolute paths, links or devices from the archive
 
 
 def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None, *args: Any) -> dict[str, Any]:
     """Run ``fn(folder, *args)`` (a job body that writes into ``folder`` and returns a dict).
 
     On the driver's node (or outside Ray) it writes ``folder`` directly. On another node it writes a
-    temporary folder, packs it as a tar archive into the result and rewrites the result's paths to
-    ``folder``; :func:`land` unpacks it on the driver."""
+    temporary folder, packs it as a tar archive into the result and moves the paths in the result and in its
+    JSON files to ``folder``; :func:`land` unpacks it on the driver."""
     node = _current_node()
     if driver_node is None or node is None or node == driver_node:
         return fn(folder, *args)
     with tempfile.TemporaryDirectory(prefix="msdgrasp-job-") as tmp:
-        result = fn(tmp, *args)
-        rewrite_json_paths(tmp, tmp, folder)
-        buf = io.BytesIO()
-        with tarfile.open(fileobj=buf, mode="w:gz") as tar:
-            tar.add(tmp, arcname=".")
-        result = rewrite_paths(result, tmp, folder)
-    return {**result, _ARCHIVE_KEY: buf.getvalue()}
+        result = move_paths(fn(tmp, *args), tmp, tmp, folder)
+        archive = pack(tmp, [tmp])
+    return {**result, _ARCHIVE_KEY: archive}
 
 
 def land(result: dict[str, Any], folder: str | Path) -> dict[str, Any]:
@@ -240,8 +254,5 @@ def land(result: dict[str, Any], folder: str | Path) -> dict[str, Any]:
     archive = result.get(_ARCHIVE_KEY)
     if archive is None:
         return result
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(fileobj=io.BytesIO(archive), mode="r:gz") as tar:
-        tar.extractall(folder, filter="data")  # "data": no absolute paths, links or devices from the archive
+    unpack(archive, folder)
     return {k: v for k, v in result.items() if k != _ARCHIVE_KEY}

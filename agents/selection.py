@@ -25,10 +25,8 @@ name the run's own checkpoints either way.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import re
-import tarfile
 import tempfile
 import time
 from collections.abc import Sequence
@@ -37,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from ..physics.config import ConfigError, atomic_write_text, from_dict, read_yaml
-from .parallel import Runner, land, rewrite_json_paths, rewrite_paths, run_in_folder
+from .parallel import Runner, land, move_paths, pack, run_in_folder, unpack
 
 
 @dataclass(frozen=True)
@@ -164,11 +162,7 @@ def _run_files(plan: SelectionPlan) -> list[Path]:
 
 def pack_run(plan: SelectionPlan) -> bytes:
     """:func:`_run_files` of ``plan`` as a tar.gz archive, paths relative to the run."""
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
-        for path in _run_files(plan):
-            tar.add(path, arcname=str(path.relative_to(plan.run)))
-    return buf.getvalue()
+    return pack(plan.run, _run_files(plan))
 
 
 def _select_job(out: str, plan: SelectionPlan, archive: bytes | None) -> dict[str, Any]:
@@ -177,14 +171,12 @@ def _select_job(out: str, plan: SelectionPlan, archive: bytes | None) -> dict[st
     if archive is None:
         return select_run(plan, out)
     with tempfile.TemporaryDirectory(prefix="msdgrasp-run-") as tmp:
-        with tarfile.open(fileobj=io.BytesIO(archive), mode="r:gz") as tar:
-            tar.extractall(tmp, filter="data")  # "data": no absolute paths, links or devices from the archive
+        unpack(archive, tmp)
         here = Path(tmp)
         copy = dataclasses.replace(plan, run=here, summary=here / plan.summary.relative_to(plan.run),
                                    checkpoints=tuple((k, here / p.relative_to(plan.run)) for k, p in plan.checkpoints))
         result = select_run(copy, out)
-    rewrite_json_paths(out, tmp, str(plan.run))
-    return rewrite_paths(result, tmp, str(plan.run))
+    return move_paths(result, out, tmp, str(plan.run))
 
 
 def select(run: str | Path, out: str | Path, validation_episodes: int | None = None,

@@ -435,6 +435,19 @@ def bench_env(quick: bool, seed: int = 0, progress: Callable[[str], None] = lamb
 #: batch sizes of the GPU rows (quick: the first two)
 GPU_BATCHES = (1, 64, 1024, 4096, 16384)
 STEPS_PER_AGENT_STEP = 33  # 1 ms physics steps per 30 Hz agent step
+#: the task rows' action: a 2.5 N pinch set-point, no pull (the jaws close and hold)
+PINCH_ONLY_ACTION = (0.0, -1.0)
+
+
+def _rate_row(batch: int, timing: dict, **fields: Any) -> dict:
+    """A throughput row: ``batch`` agent steps per timed unit (:func:`time_per_unit`'s median) and ``fields``."""
+    return {"batch": batch, **fields, "agent_steps_per_s": _r(batch / timing["median_s"]),
+            "ms_per_agent_step": _r(timing["median_s"] * 1e3)}
+
+
+def _warmup_steps(config, warmup_s: float) -> int:
+    """Agent steps of a task row's warm-up (compile, close the jaws): at least one."""
+    return max(1, int(round(warmup_s / config.agent_dt_s)))
 
 
 def gpu_unavailable_reason() -> str | None:
@@ -492,10 +505,8 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
                 run(1)  # compile / load
                 timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
                 dev.download(out=sim.kernel_readout(), fields=("jaw_out",))
-                rows.append({"batch": batch, "contact": contact, "dtype": precision, "n_sub": sim.n_sub,
-                             "agent_steps_per_s": _r(batch / timing["median_s"]),
-                             "ms_per_agent_step": _r(timing["median_s"] * 1e3),
-                             "contact_nodes_mean": _r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))})
+                rows.append(_rate_row(batch, timing, contact=contact, dtype=precision, n_sub=sim.n_sub,
+                                      contact_nodes_mean=_r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))))
     task_rows = bench_gpu_task(batches, resolution, steps, min_time, task_warmup_s, threads, precisions)
     return {"available": reason is None, "reason": reason, "resolution": resolution,
             "nodes": scene.model.n_nodes, "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
@@ -520,22 +531,21 @@ def bench_gpu_task(batches: tuple[int, ...], resolution="coarse", steps: int = S
         for batch in batches:
             core = CudaGraspLiftCore(config, batch, seed=0, threads=threads or THREADS_PER_BLOCK, precision=precision)
             core.reset()
-            actions = cuda.to_device(np.tile([0.0, -1.0], (batch, 1)))  # 2.5 N set-point, no pull
+            actions = cuda.to_device(np.tile(PINCH_ONLY_ACTION, (batch, 1)))
 
             def run(n: int) -> None:
                 for _ in range(n):
                     core.step(actions)
                 cuda.synchronize()
 
-            run(max(1, int(round(warmup_s / config.agent_dt_s))))  # compile, close the jaws
+            run(_warmup_steps(config, warmup_s))
             timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
             held = []
             for _ in range(10):
                 core.step(actions)
                 held.append(float(np.mean(core.download("contact")["contact"] > 0)))
-            rows.append({"batch": batch, "contact": True, "dtype": precision, "what": "task",
-                         "agent_steps_per_s": _r(batch / timing["median_s"]),
-                         "ms_per_agent_step": _r(timing["median_s"] * 1e3), "contact_fraction": _r(float(np.mean(held)))})
+            rows.append(_rate_row(batch, timing, contact=True, dtype=precision, what="task",
+                                  contact_fraction=_r(float(np.mean(held)))))
     return rows
 
 
@@ -561,9 +571,8 @@ def bench_cpu_reference(quick: bool, resolution="coarse", batches: tuple[int, ..
         _clone(sim1, sim)  # every tissue grasped, as the GPU rows with contact
         sim.step(1)  # compile / load the numba cache
         timing = time_per_unit(lambda n, sim=sim: sim.step(n * steps), min_time, repeats=3, max_units=10_000)
-        rows.append({"batch": batch, "contact": True, "dtype": "float64", "n_sub": sim.n_sub,
-                     "agent_steps_per_s": _r(batch / timing["median_s"]), "ms_per_agent_step": _r(timing["median_s"] * 1e3),
-                     "contact_nodes_mean": _r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))})
+        rows.append(_rate_row(batch, timing, contact=True, dtype="float64", n_sub=sim.n_sub,
+                              contact_nodes_mean=_r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))))
     config = GraspLiftConfig(resolution=resolution, physics_steps_per_action=steps)
     task_rows = []
     for batch in batches:
@@ -571,18 +580,17 @@ def bench_cpu_reference(quick: bool, resolution="coarse", batches: tuple[int, ..
         for i in range(batch):
             core.seed(i, i)
             core.reset(i)
-        actions = np.tile([0.0, -1.0], (batch, 1))  # the GPU task rows' 2.5 N set-point, no pull
+        actions = np.tile(PINCH_ONLY_ACTION, (batch, 1))
 
         def run(n: int, core=core, actions=actions) -> None:
             for _ in range(n):
                 core.step(actions)
 
-        run(max(1, int(round(task_warmup_s / config.agent_dt_s))))  # close the jaws
+        run(_warmup_steps(config, task_warmup_s))
         timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
         held = [float(np.mean(core.step(actions)[4]["contact_nodes"] > 0)) for _ in range(10)]
-        task_rows.append({"batch": batch, "contact": True, "dtype": "float64", "what": "task",
-                          "agent_steps_per_s": _r(batch / timing["median_s"]),
-                          "ms_per_agent_step": _r(timing["median_s"] * 1e3), "contact_fraction": _r(float(np.mean(held)))})
+        task_rows.append(_rate_row(batch, timing, contact=True, dtype="float64", what="task",
+                                   contact_fraction=_r(float(np.mean(held)))))
     return {"device": "one CPU core (numba)", "resolution": resolution, "nodes": scene.model.n_nodes,
             "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
 

@@ -151,10 +151,10 @@ def _report_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, se
     from ..agents.evaluation import task_of
     from ..agents.models import model_config_path
     from ..agents.seeds import report_trained_seeds
+    from ..agents.selection import seed_runs
     from ..physics.config import read_yaml
 
-    runs = sorted((int(d.name.split("_", 1)[1]), d, found) for d in Path(folder).glob("seed_*")
-                  if d.name.split("_", 1)[1].isdigit() and (found := _seed_run(d)) is not None)
+    runs = [(k, d, found) for k, d in seed_runs(Path(folder)) if (found := _seed_run(d)) is not None]
     if seeds is not None:
         runs = [r for r in runs if r[0] in set(seeds)]
     if not runs:
