@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..experiments.calibration import fit_compression, tissue_config_dict, validate_curves
-from ..physics.config import ConfigError, atomic_write_text, builtin_config, from_dict, read_yaml, write_yaml
+from ..physics.config import (TISSUE_FILE, ConfigError, atomic_write_text, builtin_config, from_dict, read_config_file,
+                              write_yaml)
 from ..experiments.compression import (
     CompressionConfig,
     compression_verdicts,
@@ -33,7 +34,7 @@ from ..experiments.grasp import (
     write_grasp_csv,
     write_sphere_grasp_csv,
 )
-from ..physics.mesh_io import build_mesh, mesh_from_config
+from ..physics.mesh_io import mesh_spec
 from ..physics.scenario import sphere_scene, spleen_scene
 
 
@@ -48,15 +49,8 @@ def compress_cli(args: argparse.Namespace) -> int:
     """``msdgrasp experiment compress``: sphere between plates at each rate (CSV + PNG)."""
     cfg_path = args.config or builtin_config("tissue/sphere.yaml")
     params = load_tissue_params(cfg_path)
-    mesh = mesh_from_config(cfg_path)
-    if args.resolution is not None or args.diameter_mm is not None:
-        mesh_cfg = dict(read_yaml(cfg_path).get("mesh", {}))
-        shape = mesh_cfg.pop("shape", "sphere")
-        res = args.resolution or mesh_cfg.pop("resolution", "coarse")
-        mesh_cfg.pop("resolution", None)
-        if args.diameter_mm is not None:
-            mesh_cfg["diameter_m"] = args.diameter_mm * 1e-3
-        mesh = build_mesh(shape, _resolution(res), **mesh_cfg)
+    overrides = {} if args.diameter_mm is None else {"diameter_m": args.diameter_mm * 1e-3}
+    mesh = mesh_spec(cfg_path).build(_resolution(args.resolution), **overrides)
     cfg = from_dict(
         CompressionConfig,
         {
@@ -132,11 +126,12 @@ def calibrate_cli(args: argparse.Namespace) -> int:
     if out.is_dir():
         raise ConfigError(f"--out {out} is a folder; give the path of the tissue config (YAML) to write")
     cfg_path = Path(args.config) if args.config is not None else builtin_config("tissue/sphere.yaml")
-    mesh_section = read_yaml(cfg_path).get("mesh", {})
-    if not isinstance(mesh_section, dict):
-        raise ConfigError(f"{cfg_path}: the mesh section must be a mapping")
     base = load_tissue_params(cfg_path)
-    mesh = mesh_from_config(cfg_path)
+    spec = mesh_spec(cfg_path)
+    mesh = spec.build()
+    mesh_section = read_config_file(cfg_path, TISSUE_FILE)["mesh"]
+    if spec.is_file:  # the written config lives elsewhere: it names the mesh file by its absolute path
+        mesh_section = {**mesh_section, "shape": spec.shape}
 
     data_path = Path(args.data)
     curves = read_compression_csv(data_path)

@@ -83,6 +83,7 @@ def torch_config_path(config: Path | None, backend: str | None) -> Path:
 def _cmd_train_torch(args: argparse.Namespace) -> int:
     """``train --learner rsl`` (the default of ``--backend cuda``): rsl-rl's PPO on the batched core."""
     from ..physics.config import from_dict, read_yaml
+    from ..physics.scenario import check_scene_files, resolve_scene_paths
 
     for flag, given in (("--algo", args.algo), ("--total-timesteps", args.total_timesteps), ("--resume", args.resume)):
         if given is not None:
@@ -103,11 +104,14 @@ def _cmd_train_torch(args: argparse.Namespace) -> int:
         raise _missing_module("train --learner rsl", exc) from None
     path = torch_config_path(args.config, args.backend)
     data = read_yaml(path)
+    if "env" in data:  # the env's tissue / grasper configs: relative to this YAML
+        data["env"] = resolve_scene_paths(data["env"], path)
     if args.backend is not None:  # else the config's (rsl_ppo.yaml: cuda)
         data["backend"] = args.backend
     if args.n_envs is not None:
         data["num_envs"] = args.n_envs
     config = from_dict(TorchPPOConfig, data, where=Path(path).name)
+    check_scene_files(config.env.tissue_config, config.env.grasper_config, f"{path}:env")  # before any write
     if config.backend == "cuda":
         from numba import cuda
 
@@ -196,6 +200,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from ..physics.config import builtin_config, from_dict, read_yaml, to_dict
+    from ..physics.scenario import check_scene_files, resolve_scene_paths
     from ..agents.models import TrainConfig
 
     learner = args.learner or ("rsl" if args.backend == "cuda" else "sb3")
@@ -226,6 +231,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     else:
         path = args.config or builtin_config("train/ppo.yaml")
         data = read_yaml(path)
+        if "env" in data:  # the env's tissue / grasper configs: relative to this YAML
+            data["env"] = resolve_scene_paths(data["env"], path)
         for key, val in (("algo", args.algo), ("total_timesteps", args.total_timesteps), ("n_envs", args.n_envs),
                          ("seed", args.seed)):
             if val is not None:
@@ -233,6 +240,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         if args.algo == "sac":  # the asymmetric critic is PPO's (documented in --algo's help)
             data["asymmetric_critic"] = False
         config = from_dict(TrainConfig, data, where=Path(path).name)
+        check_scene_files(config.env.tissue_config, config.env.grasper_config, f"{path}:env")  # before any write
         if args.seeds is not None:
             if args.seed is not None:
                 raise _usage("give either --seed or --seeds, not both")

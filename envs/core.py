@@ -184,8 +184,16 @@ class GraspLiftConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "GraspLiftConfig":
+        """The task of the ``env:`` section of a YAML file (a training config's, e.g. configs/train/ppo.yaml),
+        strictly: the section is required (no default task is assumed) and its keys are checked. The file's
+        other keys are the training's, checked by the training config's loader."""
         data = read_yaml(path)
-        return from_dict(cls, data.get("env", data), where=f"{Path(path).name}:env")
+        if "env" not in data:
+            raise ConfigError(f"{path}: no 'env:' section; put the task's keys under env: (e.g. env: {{scene: spleen, "
+                              f"privileged_obs: true}}; see configs/train/ppo.yaml)")
+        if not isinstance(data["env"], dict):
+            raise ConfigError(f"{path}:env must be a mapping of keys, got {data['env']!r}")
+        return from_dict(cls, data["env"], where=f"{path}:env")
 
 
 OBS_NAMES = (

@@ -19,9 +19,10 @@ import numpy as np
 from annotated_types import Ge, Gt, Le, MinLen
 
 from ..physics.config import (
-    Bool, ConfigError, Int, NonNegative, Real, atomic_write, config_dataclass, from_dict, read_yaml, save_figure,
+    Bool, ConfigError, Int, NonNegative, Real, atomic_write, config_dataclass, from_dict, save_figure,
 )
 from ..physics.mesh import TetMesh
+from ..physics.scenario import load_params
 from ..physics.simulation import Plate, Simulation
 from ..physics.tissue import TissueModel, TissueParams
 
@@ -249,7 +250,6 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float) -
 
 
 def load_tissue_params(path: str | Path) -> TissueParams:
-    """A tissue config file (YAML) -> TissueParams; keys under ``tissue:`` or at the top level."""
-    data = read_yaml(path)
-    section = data.get("tissue", data)
-    return from_dict(TissueParams, section, where=f"{Path(path).name}:tissue")
+    """A tissue config file (YAML) -> TissueParams: its ``tissue:`` section, strictly (the file's sections and
+    the keys are checked, :func:`~msdgrasp.physics.scenario.load_params`)."""
+    return load_params(path, "tissue", TissueParams)

@@ -32,7 +32,8 @@ T = TypeVar("T")
 
 __all__ = [
     "RECORD_CONFIG", "Bool", "ConfigError", "Int", "NonNegative", "Positive", "Real", "Str", "atomic_write",
-    "atomic_write_text", "builtin_config", "check_choice", "check_range", "config_dataclass", "from_dict", "load_config", "read_yaml", "replace",
+    "ConfigFile", "GRASPER_FILE", "TISSUE_FILE", "atomic_write_text", "builtin_config", "check_choice", "check_range",
+    "config_dataclass", "from_dict", "load_config", "read_config_file", "read_yaml", "replace",
     "save_figure", "to_dict", "write_yaml",
 ]
 
@@ -265,6 +266,9 @@ def replace(obj: T, **changes: Any) -> T:
 
 
 def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
+    """The top-level mapping of a YAML config file. A missing file, invalid YAML, an empty file (every
+    config needs at least one key: an empty one would silently be all defaults) or a top level that is
+    not a mapping raises :class:`ConfigError` naming the file."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
@@ -273,17 +277,69 @@ def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
     except yaml.YAMLError as exc:
         raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
     if data is None:
-        return {}
+        raise ConfigError(f"config file {path} is empty; a config needs at least one key (an empty file is not "
+                          "taken as all defaults)")
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path} must contain a mapping at the top level")
     return data
 
 
-def load_config(cls: type[T], path: str | os.PathLike, section: str | None = None) -> T:
+@dataclasses.dataclass(frozen=True)
+class ConfigFile:
+    """What one kind of YAML config file holds: its top-level sections, which of them it must have, and what
+    to write for each required one (the error of a missing section says what to add)."""
+
+    #: what the file is, for messages ("tissue config")
+    kind: str
+    #: every allowed top-level section
+    sections: tuple[str, ...]
+    #: the sections the file must have: a missing one is an error, never a default
+    required: tuple[str, ...]
+    #: per required section, a one-line example of it
+    examples: tuple[tuple[str, str], ...] = ()
+
+
+#: a tissue config (configs/tissue/*.yaml): the mesh, the material, and the record of a calibration that wrote it
+TISSUE_FILE = ConfigFile(
+    "tissue config", ("mesh", "tissue", "calibration"), ("mesh", "tissue"),
+    (("mesh", "mesh: {shape: sphere-even | sphere | spleen | <mesh file, relative to this YAML>, resolution: coarse}"),
+     ("tissue", "tissue: {youngs_modulus_pa: 12000.0, mass_kg: 0.15, ...} (see configs/tissue/spleen.yaml)")),
+)
+#: a grasper config (configs/grasper/*.yaml)
+GRASPER_FILE = ConfigFile(
+    "grasper config", ("grasper",), ("grasper",),
+    (("grasper", "grasper: {jaw_length_m: 0.03, jaw_width_m: 0.014, mu: 0.6, ...} (see configs/grasper/default.yaml)"),),
+)
+
+
+def read_config_file(path: str | os.PathLike, spec: ConfigFile) -> dict[str, Any]:
+    """The top-level sections of a config file of kind ``spec``, checked: an unknown section (a misspelt
+    one included), a missing required one or a section that is not a mapping raises :class:`ConfigError`
+    naming the file and the section."""
     data = read_yaml(path)
-    if section is not None:
-        data = data.get(section, {})
-    return from_dict(cls, data, where=f"{Path(path).name}" + (f":{section}" if section else ""))
+    allowed = ", ".join(spec.sections)
+    for name in data:
+        if name not in spec.sections:
+            raise ConfigError(f"{path}: unknown section {name!r} in a {spec.kind}; allowed sections: {allowed}")
+    examples = dict(spec.examples)
+    for name in spec.required:
+        if name not in data:
+            example = f"; add e.g. {examples[name]}" if name in examples else ""
+            raise ConfigError(f"{path}: no '{name}:' section (a {spec.kind} must have "
+                              f"{', '.join(spec.required)}){example}")
+    for name, section in data.items():
+        if not isinstance(section, dict):
+            raise ConfigError(f"{path}:{name} must be a mapping of keys, got {section!r}")
+    return data
+
+
+def load_config(cls: type[T], path: str | os.PathLike, spec: ConfigFile, section: str) -> T:
+    """Config record ``cls`` from section ``section`` of a file of kind ``spec``, strictly: the file's sections
+    are checked (:func:`read_config_file`) and the section's keys, types and ranges (:func:`from_dict`), each
+    error one line naming the file and the key. A section the file may leave out gives ``cls``'s defaults."""
+    if section not in spec.sections:
+        raise ValueError(f"{section!r} is not a section of a {spec.kind}")  # (a programming error)
+    return from_dict(cls, read_config_file(path, spec).get(section), where=f"{path}:{section}")
 
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"

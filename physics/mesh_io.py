@@ -4,16 +4,18 @@
 
 from __future__ import annotations
 
+import inspect
 import os
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from .config import atomic_write, read_yaml
+from .config import TISSUE_FILE, ConfigError, atomic_write, read_config_file
 from .mesh import MeshError, TetMesh
 from .mesh_gen import sphere_mesh, spleen_mesh
 
-__all__ = ["load_mesh", "save_mesh", "build_mesh", "mesh_from_config"]
+__all__ = ["MeshSpec", "load_mesh", "save_mesh", "build_mesh", "mesh_from_config", "mesh_spec"]
 
 
 
@@ -127,6 +129,10 @@ def sphere_even_mesh(diameter_m: float = 0.05, resolution: str = "coarse", cente
     return TetMesh(nodes, base.tets, name=f"{SPHERE_EVEN}-{resolution.strip().lower()}")
 
 
+#: the built-in mesh generators by ``shape`` name (any other shape is a mesh file)
+GENERATORS = {"sphere": sphere_mesh, SPHERE_EVEN: sphere_even_mesh, "spleen": spleen_mesh}
+
+
 def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwargs) -> TetMesh:
     """Build a mesh from a spec: ``"sphere"`` (mapped box), ``"sphere-even"`` (gmsh, evenly sampled
     surface), ``"spleen"`` or a mesh file path.
@@ -135,12 +141,8 @@ def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwar
     is ignored and keyword options are an error.
     """
     key = str(spec).strip().lower() if isinstance(spec, str) else None
-    if key == "sphere":
-        return sphere_mesh(resolution=resolution, **kwargs)
-    if key == SPHERE_EVEN:
-        return sphere_even_mesh(resolution=resolution, **kwargs)
-    if key == "spleen":
-        return spleen_mesh(resolution=resolution, **kwargs)
+    if key in GENERATORS:
+        return GENERATORS[key](resolution=resolution, **kwargs)
     if kwargs:
         raise MeshError(
             f"options {sorted(kwargs)} only apply to the built-in meshes 'sphere', '{SPHERE_EVEN}' and 'spleen', "
@@ -149,10 +151,69 @@ def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwar
     return load_mesh(spec)
 
 
+class MeshSpec(NamedTuple):
+    """A tissue config's ``mesh:`` section, checked: a built-in shape (its generator's options) or a mesh
+    file (an absolute path: a relative one is read from the folder of the YAML that names it)."""
+
+    #: ``sphere``, ``sphere-even``, ``spleen`` or the absolute path of a mesh file
+    shape: str
+    #: the generator's resolution (None: the generator's default; unused for a file)
+    resolution: str | int | None
+    #: the generator's other options (sizes in m)
+    options: dict[str, Any]
+
+    @property
+    def is_file(self) -> bool:
+        return self.shape not in GENERATORS
+
+    def build(self, resolution: str | int | None = None, **overrides: Any) -> TetMesh:
+        """The mesh; ``resolution`` and ``overrides`` replace the section's values (built-in shapes only)."""
+        if self.is_file:
+            if overrides:
+                raise MeshError(f"options {sorted(overrides)} only apply to the built-in meshes, not to the mesh "
+                                f"file {self.shape}")
+            return load_mesh(self.shape)
+        res = resolution if resolution is not None else self.resolution
+        kwargs = {**self.options, **overrides}
+        return GENERATORS[self.shape](**({"resolution": res} if res is not None else {}), **kwargs)
+
+
+def mesh_spec(path: str | os.PathLike) -> MeshSpec:
+    """The checked ``mesh:`` section of tissue config ``path``: the file must have it (no shape is assumed),
+    ``shape`` is required, every other key must be an option of that shape's generator, and a mesh file
+    must exist (a relative path is taken from the YAML's folder, so a config and its mesh move together).
+    Every error is one :class:`ConfigError` line naming the YAML and the key or the path."""
+    section = dict(read_config_file(path, TISSUE_FILE)["mesh"])
+    where = f"{path}:mesh"
+    gens = GENERATORS
+    if "shape" not in section:
+        raise ConfigError(f"{where}.shape is required: one of {', '.join(gens)} or a mesh file (relative to the "
+                          "YAML's folder)")
+    shape = section.pop("shape")
+    if not isinstance(shape, str) or not shape.strip():
+        raise ConfigError(f"{where}.shape must be one of {', '.join(gens)} or a mesh file path, got {shape!r}")
+    key = shape.strip().lower()
+    if key in gens:
+        params = inspect.signature(gens[key]).parameters
+        allowed = sorted(["shape", *params])
+        for name in section:
+            if name not in params:
+                raise ConfigError(f"{where}: unknown key {name!r} for shape {key!r}; allowed keys: {', '.join(allowed)}")
+        resolution = section.pop("resolution", None)
+        return MeshSpec(key, resolution, section)
+    if section:
+        raise ConfigError(f"{where}: unknown key {next(iter(section))!r} for a mesh file (shape {shape!r}); a mesh "
+                          f"file takes no options; allowed keys: shape")
+    file = Path(shape).expanduser()
+    if not file.is_absolute():
+        file = Path(path).resolve().parent / file
+    if not file.is_file():
+        raise ConfigError(f"{where}.shape: mesh file not found: {file} (not a built-in shape: {', '.join(gens)}; "
+                          "a relative path is read from the YAML's folder)")
+    return MeshSpec(str(file), None, {})
+
+
 def mesh_from_config(path: str | os.PathLike, resolution: str | int | None = None) -> TetMesh:
-    """The mesh of a tissue config's ``mesh:`` section ({shape: sphere|sphere-even|spleen|FILE, resolution,
-    ...sizes}); ``resolution`` overrides the config's."""
-    data = dict(read_yaml(path).get("mesh", {}))
-    shape = data.pop("shape", "sphere")
-    res = data.pop("resolution", "coarse")
-    return build_mesh(shape, res if resolution is None else resolution, **data)
+    """The mesh of a tissue config's ``mesh:`` section (:func:`mesh_spec`); ``resolution`` overrides the
+    config's."""
+    return mesh_spec(path).build(resolution)

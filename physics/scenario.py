@@ -12,15 +12,18 @@ import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
-from .config import ConfigError, builtin_config, from_dict, read_yaml
+from .config import GRASPER_FILE, TISSUE_FILE, ConfigError, builtin_config, from_dict, load_config
 from .grasper import GrasperParams, GrasperPose, reachable_radius
 from .mesh import TetMesh
-from .mesh_io import mesh_from_config
+from .mesh_io import mesh_from_config, mesh_spec
 from .simulation import SUBSTEP_SAFETY, Simulation
 from .tissue import TissueModel, TissueParams
+
+T = TypeVar("T")
 
 
 @dataclass(eq=False)
@@ -58,9 +61,44 @@ class GraspScene:
         sim.g_radius[idx] = self.start_radius
 
 
-def load_params(path: str | Path, section: str, cls):
-    data = read_yaml(path)
-    return from_dict(cls, data.get(section, {}), where=f"{Path(path).name}:{section}")
+#: the kind of config file each parameter section lives in
+_FILE_OF_SECTION = {"tissue": TISSUE_FILE, "grasper": GRASPER_FILE}
+
+
+def load_params(path: str | Path, section: str, cls: type[T]) -> T:
+    """Record ``cls`` from section ``section`` (``tissue`` or ``grasper``) of a tissue or grasper config,
+    strictly (:func:`.config.load_config`): a misspelt or missing section or an unknown key is a one-line
+    :class:`ConfigError` naming the file and the key, never the defaults."""
+    return load_config(cls, path, _FILE_OF_SECTION[section], section)
+
+
+def check_scene_files(tissue_config: str | Path | None, grasper_config: str | Path | None, where: str = "env") -> None:
+    """Load a scene's tissue config (sections, ``tissue:`` keys, ``mesh:`` section and mesh file) and grasper
+    config strictly, without building the mesh: a run that will build the scene calls this before it writes
+    anything, so a bad file fails as one :class:`ConfigError` line, not after the run folder is made. None:
+    the built-in config, which needs no check. ``where`` names the config that names the files."""
+    for key, value in (("tissue_config", tissue_config), ("grasper_config", grasper_config)):
+        if value is not None and not Path(value).is_file():
+            raise ConfigError(f"{where}.{key}: config file not found: {value}")
+    if tissue_config is not None:
+        load_params(tissue_config, "tissue", TissueParams)
+        mesh_spec(tissue_config)
+    if grasper_config is not None:
+        load_params(grasper_config, "grasper", GrasperParams)
+
+
+def resolve_scene_paths(env: dict | None, yaml_path: str | Path) -> dict | None:
+    """The ``env:`` section of a YAML file with a relative ``tissue_config`` / ``grasper_config`` made absolute
+    against the YAML's folder (a config and the files it names move together; the run's saved config then
+    names them wherever it is read)."""
+    if not isinstance(env, dict):
+        return env  # (not a mapping: the record's loader says so)
+    out = dict(env)
+    for key in ("tissue_config", "grasper_config"):
+        value = out.get(key)
+        if isinstance(value, str) and value and not Path(value).is_absolute():
+            out[key] = str(Path(yaml_path).resolve().parent / value)
+    return out
 
 
 def settle(
