@@ -24,11 +24,11 @@ from ..physics.config import (
 )
 from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
-from ..physics.simulation import SUBSTEP_SAFETY
+from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
     OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, begin_episode, command, draw_episode, perturb_pose, pinch_setpoint,
-    task_params, task_state, update,
+    restore_settled, task_params, task_state, update,
 )
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
@@ -219,6 +219,22 @@ def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, ti
     return GrasperPose(tip, axis, e1)
 
 
+def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> None:
+    """A value pinned by ``reset(options=...)`` (PINNABLE) in its range, or a one-line ConfigError; ``mu``:
+    the episode's friction, the bound of mu_kinetic."""
+    lo, hi = {"mu": (0.0, 10.0), "mu_kinetic": (0.0, mu), "stiffness_scale": (0.0, sim.max_stiffness_scale),
+              "mass_scale": (sim.min_mass_scale, None), "pose_offset_m": (0.0, 0.02), "pose_tilt_deg": (0.0, 30.0),
+              "pose_azimuth_deg": (0.0, 60.0)}[name]
+    check_range(f"options[{name!r}]", value, lo, hi, lo_inclusive=name != "stiffness_scale")
+
+
+@njit(cache=True, error_model="numpy")
+def _start_episode(p, s, out, ts, b):
+    """Env b's new episode from its draws and pins: the settled tissue, then :func:`.task.begin_episode`."""
+    restore_settled(p, s, out, b, 0, 1)
+    begin_episode(p, s, out, ts, b)
+
+
 @njit(cache=True, error_model="numpy")
 def _command_batch(p, s, ts, actions):
     """Every env's action -> its commands (:func:`.task.command`)."""
@@ -306,21 +322,14 @@ class GraspLiftCore:
             self.draws[index, k] = rng.standard_normal() if normal else rng.random()
         draw_episode(self.params, self.state, index)
         drawn = self.draws[index]
-        mu = float(options.get("mu", drawn[D_MU]))
-        check_range("options['mu']", mu, 0.0, 10.0)
-        mu_k = float(options.get("mu_kinetic", mu))
-        check_range("options['mu_kinetic']", mu_k, 0.0, mu)
-        ks = float(options.get("stiffness_scale", drawn[D_KS]))
-        check_range("options['stiffness_scale']", ks, 0.0, self.sim.max_stiffness_scale, lo_inclusive=False)
-        ms = float(options.get("mass_scale", drawn[D_MS]))
-        check_range("options['mass_scale']", ms, self.sim.min_mass_scale, None)
-        pose = [float(options.get(name, getattr(rnd, name))) for name in PINNABLE[P_OFFSET:]]
-        for name, value, hi in zip(PINNABLE[P_OFFSET:], pose, (0.02, 30.0, 60.0)):
-            check_range(f"options[{name!r}]", value, 0.0, hi)
-        self.pin[index] = (mu, mu_k, ks, ms, *pose)
-        self.scene.reset(self.sim, index)
-        begin_episode(self.params, self.sim.kernel_state(), self.sim.kernel_readout(), self.state, index)
-        return {"mu": mu, "mu_kinetic": mu_k, "stiffness_scale": ks, "mass_scale": ms}
+        v = {"mu": drawn[D_MU], "stiffness_scale": drawn[D_KS], "mass_scale": drawn[D_MS],
+             **{name: getattr(rnd, name) for name in PINNABLE[P_OFFSET:]}, **options}
+        v = {"mu_kinetic": v["mu"], **{name: float(value) for name, value in v.items()}}
+        for name in PINNABLE:
+            check_pin(name, v[name], self.sim, v["mu"])
+        self.pin[index] = [v[name] for name in PINNABLE]
+        _start_episode(self.params, self.sim.kernel_state(), self.sim.kernel_readout(), self.state, index)
+        return {name: v[name] for name in ("mu", "mu_kinetic", "stiffness_scale", "mass_scale")}
 
     # ------------------------------------------------------------------------------------------
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
@@ -360,7 +369,7 @@ class GraspLiftCore:
 
     # ------------------------------------------------------------------------------------------
     def pinch_setpoint(self, a: np.ndarray) -> np.ndarray:
-        """Pinch-force set-point (N) of jaw action(s) ``a`` in [-1, 1] (jaw_action = force): :func:`.task.pinch_setpoint`."""
+        """Pinch-force set-point (N) of jaw action(s) ``a`` in [-1, 1] (:func:`.task.pinch_setpoint`)."""
         a = np.asarray(a, dtype=np.float64)
         return np.array([pinch_setpoint(self.params.env, x) for x in a.ravel()]).reshape(a.shape)
 

@@ -2,24 +2,19 @@
 termination and autoreset with domain randomisation) on the device, for thousands of tissues at once.
 
 :class:`CudaGraspLiftCore` runs :mod:`.task`'s per-env functions, compiled for the device from the CPU core's
-own source (:func:`~msdgrasp.physics.cuda_step.device_twin`), on :class:`~msdgrasp.physics.cuda_step.CudaBatch`.
-This module holds only what the GPU adds: device memory, the launches, the block-parallel finiteness / smallest
-tet volume and settled-state restore, and the random numbers. One agent step is four launches, no transfer:
-``_command_kernel`` (a thread per env: :func:`.task.command`), the physics (a block per tissue),
-``_task_kernel`` (a block per env: the reductions, then :func:`.task.update`) and ``_reset_kernel`` (a block
-per env that is done: the settled tissue back, then :func:`.task.draw_episode` and :func:`.task.begin_episode`).
+source (:func:`~msdgrasp.physics.cuda_step.device_twin`), on :class:`~msdgrasp.physics.cuda_step.CudaBatch`;
+this module adds only device memory, the launches, the block-parallel reductions and restore, and the random
+numbers. An agent step is four launches, no transfer: ``_command_kernel`` (a thread per env), the physics (a
+block per tissue), ``_task_kernel`` (a block per env: finiteness and smallest tet volume, then the update) and
+``_reset_kernel`` (a block per done env: the settled tissue back, then the draws and the first frame).
+Outputs stay in device arrays (:meth:`CudaGraspLiftCore.arrays`; torch reads them in place: :func:`as_torch`).
 
-Observations, rewards and flags stay in device arrays (:meth:`CudaGraspLiftCore.arrays`); a torch learner
-reads them without a copy (:func:`as_torch`). The tests compare both cores step by step in numba's simulator.
-
-Differences from the CPU core, by design: the random numbers come from xoroshiro128+ streams on the device
-(one per env, seeded by ``seed``) instead of NumPy's per-env generators, so a GPU batch is reproducible by
-its own seed but does not replay the CPU's episodes; both turn the same kinds of variates (uniform, normal)
-into the draws by the same function, so the distributions agree (tests/test_task_backends.py). A done env is
-reset in the same step (the observation returned for it is its new episode's first; the last one of the old
-episode is in ``terminal_obs``, and ``truncated`` says which ends were time limits, for bootstrapping);
-``reset(options)`` pins friction and scales (``mu``, ``stiffness_scale``, ``mass_scale``) for every later
-episode until the next ``reset``.
+Differences from the CPU core, by design: the random numbers come from xoroshiro128+ streams (one per env,
+seeded by ``seed``), not NumPy's per-env generators, so a GPU batch replays its own seed's episodes, not the
+CPU's; both backends turn uniform and normal variates into draws by the same function, so the distributions
+agree (tests/test_task_backends.py). A done env is reset in the same step (its returned observation is the
+new episode's first; the old one's last is ``terminal_obs``, and ``truncated`` marks time limits);
+``reset(options)`` pins ``mu``, ``stiffness_scale`` and ``mass_scale`` for every later episode.
 """
 
 from __future__ import annotations
@@ -35,31 +30,21 @@ from numba.cuda.random import create_xoroshiro128p_states, xoroshiro128p_normal_
 
 from ..physics.config import ConfigError, check_choice, check_range
 from ..physics.cuda_step import PRECISIONS, THREADS_PER_BLOCK, CudaBatch, _tet_edges, device_twin, to_device
-from ..physics.viscoelastic import elongations
 from . import task
-from .core import GraspLiftConfig, GraspLiftCore
+from .core import GraspLiftConfig, GraspLiftCore, check_pin
 from .task import PINNABLE, TaskState, task_state
 
 #: what ``reset(options=...)`` may pin (for every later episode)
 GPU_PINNABLE = ("mu", "stiffness_scale", "mass_scale")
 
 
-def _twins(module) -> dict:
-    """The GPU twins of a module's numba functions, each calling the twins of the ones defined before it."""
-    twins: dict = {}
-    for name, f in vars(module).items():
-        if isinstance(f, CPUDispatcher) and f.py_func.__module__ == module.__name__:
-            late = [n for n in f.py_func.__code__.co_names if isinstance(vars(module).get(n), CPUDispatcher)
-                    and n not in twins]
-            if late:
-                raise ImportError(f"{module.__name__}.{name} calls {late}, defined after it")
-            twins[name] = device_twin(f, **twins)
-    return twins
-
-
-_task = _twins(task)
-_command, _update, _draw_episode, _begin_episode = (_task[n] for n in ("command", "update", "draw_episode",
-                                                                       "begin_episode"))
+_twin: dict = {}  # the GPU twins of task.py's numba functions, each calling the twins of those defined before it
+for _name, _f in vars(task).items():
+    if isinstance(_f, CPUDispatcher) and _f.py_func.__module__ == task.__name__:
+        assert all(n in _twin for n in _f.py_func.__code__.co_names if isinstance(getattr(task, n, 0), CPUDispatcher))
+        _twin[_name] = device_twin(_f, **_twin)
+_command, _update, _restore_settled, _draw_episode, _begin_episode = (
+    _twin[n] for n in ("command", "update", "restore_settled", "draw_episode", "begin_episode"))
 
 
 @cuda.jit
@@ -76,8 +61,7 @@ def _task_kernel(m, s, out, p, ts, rng):
     if b >= s.x.shape[0]:
         return
     tid = cuda.threadIdx.x
-    lo_sh = cuda.shared.array(THREADS_PER_BLOCK, np.float64)
-    ok_sh = cuda.shared.array(THREADS_PER_BLOCK, np.int32)
+    lo_sh, ok_sh = cuda.shared.array(THREADS_PER_BLOCK, np.float64), cuda.shared.array(THREADS_PER_BLOCK, np.int32)
     ok = 1
     for i in range(tid, s.x.shape[1], cuda.blockDim.x):
         for c in range(3):
@@ -88,8 +72,7 @@ def _task_kernel(m, s, out, p, ts, rng):
         r = _tet_edges(s.x[b], m.tets, t)[9] / m.rest_volume[t]
         if r < lo:  # (as forces.min_volume_ratios compares)
             lo = r
-    lo_sh[tid] = lo
-    ok_sh[tid] = ok
+    lo_sh[tid], ok_sh[tid] = lo, ok
     cuda.syncthreads()
     if tid == 0:
         for k in range(1, cuda.blockDim.x):
@@ -101,27 +84,17 @@ def _task_kernel(m, s, out, p, ts, rng):
 
 
 @cuda.jit
-def _reset_kernel(s, out, p, ts, rng, mask, fv_start, dl_start):
+def _reset_kernel(s, out, p, ts, rng, mask):
     """New episodes for the envs where ``mask``: the settled tissue (block-parallel), then the draws."""
     b = cuda.blockIdx.x
     if b >= s.x.shape[0] or not mask[b]:
         return
-    tid = cuda.threadIdx.x
-    for i in range(tid, s.x.shape[1], cuda.blockDim.x):
-        for c in range(3):
-            s.x[b, i, c] = p.x_start[i, c]
-            s.v[b, i, c] = 0.0
-            s.f_ext[b, i, c] = 0.0
-            out.contact_force[b, i, c] = 0.0
-        out.contact_state[b, i] = 0
-    for e in range(tid, s.fv.shape[1], cuda.blockDim.x):
-        s.fv[b, e] = fv_start[e]
-        s.dl_prev[b, e] = dl_start[e]
+    _restore_settled(p, s, out, b, cuda.threadIdx.x, cuda.blockDim.x)
     cuda.syncthreads()
-    if tid == 0:
+    if cuda.threadIdx.x == 0:
         for k in range(ts.draws.shape[1]):  # the raw variates, in column order
-            normal = p.draw_is_normal[k]
-            ts.draws[b, k] = xoroshiro128p_normal_float64(rng, b) if normal else xoroshiro128p_uniform_float64(rng, b)
+            ts.draws[b, k] = (xoroshiro128p_normal_float64(rng, b) if p.draw_is_normal[k]
+                              else xoroshiro128p_uniform_float64(rng, b))
         _draw_episode(p, ts, b)
         _begin_episode(p, s, out, ts, b)
 
@@ -137,34 +110,28 @@ def as_torch(array):
 
 
 class CudaGraspLiftCore:
-    """The GraspLift task for ``num_envs`` tissues resident on the GPU (see the module docstring).
-
-    ``precision="float32"`` keeps the tissue's per-node, per-spring and per-tet arrays in float32
-    (:data:`~msdgrasp.physics.cuda_step.FLOAT32_FIELDS`); the task's own state stays float64.
-    ``reset()`` starts every env; ``step(actions)`` advances all of them by one agent step and resets the ones
-    that ended. Both return the device arrays ``(obs, reward, terminated, truncated)``, updated in place; every
-    other output is a field of :meth:`arrays`; :meth:`download` copies named fields to the host.
-    """
+    """The GraspLift task for ``num_envs`` tissues on the GPU. ``reset()`` and ``step(actions)`` return the device
+    arrays ``(obs, reward, terminated, truncated)``, updated in place; the other outputs are fields of :meth:`arrays`.
+    ``precision="float32"``: the tissue's per-node, per-spring and per-tet arrays in float32
+    (:data:`~msdgrasp.physics.cuda_step.FLOAT32_FIELDS`); the task's state stays float64."""
 
     def __init__(self, config: GraspLiftConfig | None = None, num_envs: int = 1, seed: int = 0,
                  threads: int = THREADS_PER_BLOCK, precision: str = "float64") -> None:
         check_range("threads", threads, 1, THREADS_PER_BLOCK)
         check_choice("precision", precision, PRECISIONS)
         self.host = host = GraspLiftCore(config, num_envs)  # builds the scene, host arrays and task constants once
-        self.config, self.num_envs, self.frame_dim, self.obs_dim = host.config, host.num_envs, host.frame_dim, host.obs_dim
+        self.config, self.num_envs, self.frame_dim, self.obs_dim = host.config, host.num_envs, host.frame_dim, \
+            host.obs_dim
         self.threads, self.precision = int(threads), precision
-        sim, scene = host.sim, host.scene
+        sim = host.sim
         self.physics = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(), threads=self.threads,
                                  precision=precision)
         self.params = to_device(host.params)
         self.state = to_device(task_state(self.num_envs, self.config.obs_history, self.frame_dim, np.float32))
-        self._settled = [cuda.to_device(a) for a in (scene.fv_start, elongations(scene.x_start, scene.model.edges,
-                                                                                  scene.model.rest_length))]
         with warnings.catch_warnings():  # the simulator compiles the state set-up in object mode, noisily
             warnings.simplefilter("ignore")
             self.rng = create_xoroshiro128p_states(self.num_envs, seed=int(seed))
         self._all = cuda.to_device(np.ones(self.num_envs, dtype=np.bool_))
-        self._blocks = (self.num_envs + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
 
     def reset(self, options: dict[str, Any] | None = None):
         """Start a new episode in every env. ``options`` pins ``mu``, ``stiffness_scale`` and ``mass_scale``
@@ -173,21 +140,15 @@ class CudaGraspLiftCore:
         unknown = sorted(set(options) - set(GPU_PINNABLE))
         if unknown:
             raise ConfigError(f"reset options: unknown key(s) {unknown}; allowed on the GPU: {list(GPU_PINNABLE)}")
-        sim = self.host.sim
-        bounds = {"mu": (0.0, 10.0), "stiffness_scale": (0.0, sim.max_stiffness_scale), "mass_scale": (sim.min_mass_scale, None)}
         pin = np.full((self.num_envs, len(PINNABLE)), np.nan)
-        for name in set(options):
-            values = np.broadcast_to(np.asarray(options[name], dtype=np.float64), (self.num_envs,))
-            for v in np.unique(values):
-                check_range(f"options[{name!r}]", float(v), *bounds[name], lo_inclusive=name != "stiffness_scale")
-            pin[:, PINNABLE.index(name)] = values
+        for name, value in options.items():
+            pin[:, PINNABLE.index(name)] = np.broadcast_to(np.asarray(value, dtype=np.float64), (self.num_envs,))
+            for v in np.unique(pin[:, PINNABLE.index(name)]):
+                check_pin(name, float(v), self.host.sim)
         self.state.pin.copy_to_device(pin)
-        self._reset(self._all)
+        ph = self.physics
+        _reset_kernel[self.num_envs, self.threads](ph.state, ph.out, self.params, self.state, self.rng, self._all)
         return self.state.obs
-
-    def _reset(self, mask) -> None:
-        s, out = self.physics.state, self.physics.out
-        _reset_kernel[self.num_envs, self.threads](s, out, self.params, self.state, self.rng, mask, *self._settled)
 
     def step(self, actions):
         """Advance every env by one agent step; ``actions`` (B,2) in [-1, 1] (clipped): a host array, a
@@ -195,16 +156,14 @@ class CudaGraspLiftCore:
         shape = tuple(getattr(actions, "shape", np.shape(actions)))
         if shape != (self.num_envs, 2):
             raise ConfigError(f"actions must have shape ({self.num_envs}, 2), got {shape}")
-        if hasattr(actions, "__cuda_array_interface__"):
-            dev = cuda.as_cuda_array(actions)
-        else:
-            host = actions.numpy() if hasattr(actions, "numpy") else np.asarray(actions)
-            dev = cuda.to_device(np.ascontiguousarray(host, dtype=np.float64))
+        dev = (cuda.as_cuda_array(actions) if hasattr(actions, "__cuda_array_interface__")  # (a CUDA tensor: in place)
+               else cuda.to_device(np.ascontiguousarray(actions, dtype=np.float64)))
         m, s, out, st = self.physics.model, self.physics.state, self.physics.out, self.state
-        _command_kernel[self._blocks, THREADS_PER_BLOCK](self.params, s, st, dev)
+        blocks = (self.num_envs + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
+        _command_kernel[blocks, THREADS_PER_BLOCK](self.params, s, st, dev)
         self.physics.step(self.config.physics_steps_per_action)
         _task_kernel[self.num_envs, self.threads](m, s, out, self.params, st, self.rng)
-        self._reset(st.done)
+        _reset_kernel[self.num_envs, self.threads](s, out, self.params, st, self.rng, st.done)
         return st.obs, st.reward, st.terminated, st.truncated
 
     def arrays(self) -> dict[str, object]:

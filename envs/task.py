@@ -43,6 +43,7 @@ from numba import njit
 from ..physics.contact import (
     G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TY, J_TZ,
 )
+from ..physics.viscoelastic import elongations
 
 if TYPE_CHECKING:
     from .core import GraspLiftCore
@@ -172,7 +173,9 @@ class TaskParams(NamedTuple):
     env: Any  # config_record(GraspLiftConfig): .reward and .randomization nested
     region: np.ndarray  # (R,) int: surface nodes the jaws may hold (their mean is the lift)
     nominal: np.ndarray  # (3,) nominal contact nodes per jaw (contact fraction normaliser)
-    x_start: np.ndarray  # (N,3) m settled positions
+    x_start: np.ndarray  # (N,3) m settled positions (where every episode starts)
+    fv_start: np.ndarray  # (E,) N settled Maxwell forces
+    dl_start: np.ndarray  # (E,) m settled spring elongations
     pose_tip: np.ndarray  # (3,) m nominal grasp pose
     pose_axis: np.ndarray  # (3,)
     pose_e1: np.ndarray  # (3,)
@@ -192,8 +195,10 @@ def task_params(core: GraspLiftCore) -> TaskParams:
     cfg, scene = core.config, core.scene
     vec = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     return TaskParams(
-        env=config_record(cfg), region=np.ascontiguousarray(core.region, dtype=np.int64), nominal=vec(core.nominal_contacts),
-        x_start=vec(scene.x_start), pose_tip=vec(scene.pose.tip), pose_axis=vec(scene.pose.axis), pose_e1=vec(scene.pose.e1),
+        env=config_record(cfg), region=np.ascontiguousarray(core.region, dtype=np.int64),
+        nominal=vec(core.nominal_contacts), x_start=vec(scene.x_start), fv_start=vec(scene.fv_start),
+        dl_start=elongations(scene.x_start, scene.model.edges, scene.model.rest_length),
+        pose_tip=vec(scene.pose.tip), pose_axis=vec(scene.pose.axis), pose_e1=vec(scene.pose.e1),
         pull_dir=vec(scene.pull_direction), priv_nodes=np.ascontiguousarray(core.priv_nodes, dtype=np.int64),
         draw_is_normal=np.array(DRAW_IS_NORMAL), start_radius=float(core.start_radius), max_close=float(core.max_close),
         max_pull=float(core.max_pull), agent_dt=float(cfg.agent_dt_s), max_steps=int(cfg.max_episode_steps),
@@ -255,7 +260,8 @@ def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np
     shapes: dict[str, tuple[tuple[int, ...], Any]] = {
         "tip0": ((batch, 3), f), "region0": ((batch, 3), f), "steps": ((batch,), i), "act": ((batch, 2), f),
         "prev_action": ((batch, 2), f), "frames": ((batch, obs_history, frame_dim), f),
-        "obs": ((batch, obs_history * frame_dim), obs_dtype), "terminal_obs": ((batch, obs_history * frame_dim), obs_dtype),
+        "obs": ((batch, obs_history * frame_dim), obs_dtype),
+        "terminal_obs": ((batch, obs_history * frame_dim), obs_dtype),
         "terms": ((batch, len(REWARD_TERMS)), f), "episode_length": ((batch,), i),
         "draws": ((batch, len(DRAW_COLUMNS)), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, 3), f),
     }
@@ -477,7 +483,8 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     success = at_target and ts.hold_time[b] >= e.hold_time_s - 1e-9 and not slipped
     lost = ts.lift_started[b] and contact == 0
     damaged = stress > e.damage_stress_pa
-    failed = not (finite and (volume_ratio > 0.0 or not e.inverted_tet_is_failure))  # an inverted tet pushes the wrong way
+    # an inverted tet's springs and barrier push the wrong way
+    failed = not (finite and (volume_ratio > 0.0 or not e.inverted_tet_is_failure))
     terminated = success or lost or failed or (damaged and e.terminate_on_damage)
     truncated = (not terminated) and ts.steps[b] >= p.max_steps
     # every episode that ends without success pays the same failure penalty, running out of time
@@ -542,6 +549,22 @@ def update(p, s, out, ts, b, finite, volume_ratio):
 
 
 @njit(cache=True, error_model="numpy")
+def restore_settled(p, s, out, b, first, stride):
+    """Env b's tissue back to the settled state at rest (nodes and springs ``first``, ``first + stride``, ...:
+    a GPU block shares them out among its threads)."""
+    for i in range(first, s.x.shape[1], stride):
+        for c in range(3):
+            s.x[b, i, c] = p.x_start[i, c]
+            s.v[b, i, c] = 0.0
+            s.f_ext[b, i, c] = 0.0
+            out.contact_force[b, i, c] = 0.0
+        out.contact_state[b, i] = 0
+    for e in range(first, s.fv.shape[1], stride):
+        s.fv[b, e] = p.fv_start[e]
+        s.dl_prev[b, e] = p.dl_start[e]
+
+
+@njit(cache=True, error_model="numpy")
 def draw_episode(p, ts, b):
     """Turn env b's raw variates in ``ts.draws[b]`` (DRAW_IS_NORMAL) into the episode's draws in place:
     friction and scales uniform in their ranges (mu log-uniform if so configured), the pose's offset radius
@@ -563,7 +586,7 @@ def draw_episode(p, ts, b):
 
 @njit(cache=True, error_model="numpy")
 def begin_episode(p, s, out, ts, b):
-    """Start env b's episode from its draws and pins (the tissue is already back at its settled state):
+    """Start env b's episode from its draws and pins (after :func:`restore_settled`):
     friction, scales and the perturbed pose, open jaws at rest, cleared episode state, the first frame."""
     e = p.env
     r = e.randomization
