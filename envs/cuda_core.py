@@ -1,20 +1,18 @@
 """The GraspLift task on a CUDA GPU: the whole agent step (commands, physics, readouts, observation, reward,
-termination and autoreset with domain randomisation) on the device, for thousands of tissues at once.
+termination, autoreset with domain randomisation) on the device, for thousands of tissues at once.
 
 :class:`CudaGraspLiftCore` runs :mod:`.task`'s per-env functions, compiled for the device from the CPU core's
-source (:func:`~msdgrasp.physics.cuda_step.device_twin`), on :class:`~msdgrasp.physics.cuda_step.CudaBatch`;
-this module adds only device memory, the launches, the block-parallel reductions and restore, and the random
-numbers. An agent step is four launches, no transfer: ``_command_kernel`` (a thread per env), the physics (a
-block per tissue), ``_task_kernel`` (a block per env: finiteness and smallest tet volume, then the update) and
-``_reset_kernel`` (a block per done env: the settled tissue back, then the draws and the first frame).
-Outputs stay in device arrays (:meth:`CudaGraspLiftCore.arrays`; torch reads them in place: :func:`as_torch`).
+source (:func:`~msdgrasp.physics.cuda_step.device_twin`); this module adds only device memory, the launches,
+the block-parallel reductions and the device's random numbers. A step is four launches and no transfer: the
+commands (a thread per env), the physics (a block per tissue), the update (a block per env: finiteness and
+smallest tet volume, then :func:`.task.update`) and the reset of the done envs (a block each). Outputs stay in
+device arrays (:meth:`CudaGraspLiftCore.arrays`; torch reads them in place, :func:`as_torch`).
 
 Differences from the CPU core, by design: the random numbers come from xoroshiro128+ streams (one per env,
-seeded by ``seed``), not NumPy's per-env generators, so a GPU batch replays its own seed's episodes, not the
-CPU's; both backends turn uniform and normal variates into draws by the same function, so the distributions
-agree (tests/test_task_backends.py). A done env is reset in the same step (its returned observation is the
-new episode's first; the old one's last is ``terminal_obs``, and ``truncated`` marks time limits);
-``reset(options)`` pins ``mu``, ``stiffness_scale`` and ``mass_scale`` for every later episode.
+seeded by ``seed``), not NumPy's per-env generators, so a batch replays its own seed's episodes, not the CPU's
+(both turn uniform and normal variates into draws by one function: the distributions agree,
+tests/test_task_backends.py); a done env is reset in the same step (``terminal_obs`` holds its episode's last
+observation, ``truncated`` marks time limits); ``reset(options)`` pins for every later episode.
 """
 
 from __future__ import annotations
@@ -36,7 +34,6 @@ from .task import PINNABLE, TaskState, task_state
 
 #: what ``reset(options=...)`` may pin (for every later episode)
 GPU_PINNABLE = ("mu", "stiffness_scale", "mass_scale")
-
 
 _twin: dict = {}  # the GPU twins of task.py's numba functions, each calling the twins of those defined before it
 for _name, _f in vars(task).items():
@@ -61,17 +58,16 @@ def _task_kernel(m, s, out, p, ts, rng):
     if b >= s.x.shape[0]:
         return
     tid = cuda.threadIdx.x
-    lo_sh, ok_sh = cuda.shared.array(THREADS_PER_BLOCK, np.float64), cuda.shared.array(THREADS_PER_BLOCK, np.int32)
+    lo_sh = cuda.shared.array(THREADS_PER_BLOCK, np.float64)  # (one call a line: the simulator keys them by line)
+    ok_sh = cuda.shared.array(THREADS_PER_BLOCK, np.int32)
     ok = 1
     for i in range(tid, s.x.shape[1], cuda.blockDim.x):
         for c in range(3):
-            if not (math.isfinite(s.x[b, i, c]) and math.isfinite(s.v[b, i, c])):
-                ok = 0
+            ok = ok if math.isfinite(s.x[b, i, c]) and math.isfinite(s.v[b, i, c]) else 0
     lo = math.inf
     for t in range(tid, m.tets.shape[0], cuda.blockDim.x):
         r = _tet_edges(s.x[b], m.tets, t)[9] / m.rest_volume[t]
-        if r < lo:  # (as forces.min_volume_ratios compares)
-            lo = r
+        lo = r if r < lo else lo  # (as forces.min_volume_ratios compares)
     lo_sh[tid], ok_sh[tid] = lo, ok
     cuda.syncthreads()
     if tid == 0:
@@ -100,10 +96,8 @@ def _reset_kernel(s, out, p, ts, rng, mask):
 
 
 def as_torch(array):
-    """A torch tensor of a device array: a zero-copy view on a GPU (``__cuda_array_interface__``), a copy
-    on the host under numba's CUDA simulator (which has no device memory to share)."""
+    """A torch tensor of a device array: a view on a GPU, a copy under numba's CUDA simulator."""
     import torch
-
     if hasattr(array, "__cuda_array_interface__") and torch.cuda.is_available():
         return torch.as_tensor(array, device="cuda")
     return torch.from_numpy(array.copy_to_host())
@@ -120,12 +114,11 @@ class CudaGraspLiftCore:
         check_range("threads", threads, 1, THREADS_PER_BLOCK)
         check_choice("precision", precision, PRECISIONS)
         self.host = host = GraspLiftCore(config, num_envs)  # builds the scene, host arrays and task constants once
-        self.config, self.num_envs, self.frame_dim, self.obs_dim = host.config, host.num_envs, host.frame_dim, \
-            host.obs_dim
+        self.config, self.num_envs, self.frame_dim, self.obs_dim = (host.config, host.num_envs, host.frame_dim,
+                                                                    host.obs_dim)
         self.threads, self.precision = int(threads), precision
-        sim = host.sim
-        self.physics = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(), threads=self.threads,
-                                 precision=precision)
+        self.physics = CudaBatch(host.sim.kernel_model(), host.sim.kernel_state(), host.sim.kernel_readout(),
+                                 threads=self.threads, precision=precision)
         self.params = to_device(host.params)
         self.state = to_device(task_state(self.num_envs, self.config.obs_history, self.frame_dim, np.float32))
         with warnings.catch_warnings():  # the simulator compiles the state set-up in object mode, noisily
@@ -137,8 +130,7 @@ class CudaGraspLiftCore:
         """Start a new episode in every env. ``options`` pins ``mu``, ``stiffness_scale`` and ``mass_scale``
         (a number or one per env) for this and every later episode until the next ``reset``."""
         options = dict(options or {})
-        unknown = sorted(set(options) - set(GPU_PINNABLE))
-        if unknown:
+        if unknown := sorted(set(options) - set(GPU_PINNABLE)):
             raise ConfigError(f"reset options: unknown key(s) {unknown}; allowed on the GPU: {list(GPU_PINNABLE)}")
         pin = np.full((self.num_envs, len(PINNABLE)), np.nan)
         for name, value in options.items():
@@ -159,8 +151,7 @@ class CudaGraspLiftCore:
         dev = (cuda.as_cuda_array(actions) if hasattr(actions, "__cuda_array_interface__")  # (a CUDA tensor: in place)
                else cuda.to_device(np.ascontiguousarray(actions, dtype=np.float64)))
         m, s, out, st = self.physics.model, self.physics.state, self.physics.out, self.state
-        blocks = (self.num_envs + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
-        _command_kernel[blocks, THREADS_PER_BLOCK](self.params, s, st, dev)
+        _command_kernel[-(-self.num_envs // THREADS_PER_BLOCK), THREADS_PER_BLOCK](self.params, s, st, dev)
         self.physics.step(self.config.physics_steps_per_action)
         _task_kernel[self.num_envs, self.threads](m, s, out, self.params, st, self.rng)
         _reset_kernel[self.num_envs, self.threads](s, out, self.params, st, self.rng, st.done)
@@ -173,7 +164,6 @@ class CudaGraspLiftCore:
     def download(self, *names: str) -> dict[str, np.ndarray]:
         """Host copies of the named fields of :meth:`arrays`."""
         arrays = self.arrays()
-        unknown = [n for n in names if n not in arrays]
-        if unknown:
+        if unknown := [n for n in names if n not in arrays]:
             raise ConfigError(f"unknown field(s) {unknown}; allowed: {sorted(arrays)}")
         return {n: arrays[n].copy_to_host() for n in names}
