@@ -17,7 +17,6 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from annotated_types import Ge, Gt, Le
-from numba import njit
 
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml, to_dict,
@@ -27,8 +26,8 @@ from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
-    OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, begin_episode, command, draw_episode, perturb_pose, pinch_setpoint,
-    restore_settled, task_params, task_state, update,
+    OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, command_batch, draw_episode, perturb_pose, pinch_setpoint,
+    start_episode, task_params, task_state, update_batch,
 )
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
@@ -228,27 +227,6 @@ def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> Non
     check_range(f"options[{name!r}]", value, lo, hi, lo_inclusive=name != "stiffness_scale")
 
 
-@njit(cache=True, error_model="numpy")
-def _start_episode(p, s, out, ts, b):
-    """Env b's new episode from its draws and pins: the settled tissue, then :func:`.task.begin_episode`."""
-    restore_settled(p, s, out, b, 0, 1)
-    begin_episode(p, s, out, ts, b)
-
-
-@njit(cache=True, error_model="numpy")
-def _command_batch(p, s, ts, actions):
-    """Every env's action -> its commands (:func:`.task.command`)."""
-    for b in range(actions.shape[0]):
-        command(p, s, ts, b, actions[b, 0], actions[b, 1])
-
-
-@njit(cache=True, error_model="numpy")
-def _update_batch(p, s, out, ts, finite, volume_ratio):
-    """Every env's step after the physics (:func:`.task.update`)."""
-    for b in range(finite.shape[0]):
-        update(p, s, out, ts, b, finite[b], volume_ratio[b])
-
-
 class GraspLiftCore:
     """Batched GraspLift dynamics, observations and rewards. Arrays in, arrays out."""
 
@@ -328,7 +306,7 @@ class GraspLiftCore:
         for name in PINNABLE:
             check_pin(name, v[name], self.sim, v["mu"])
         self.pin[index] = [v[name] for name in PINNABLE]
-        _start_episode(self.params, self.sim.kernel_state(), self.sim.kernel_readout(), self.state, index)
+        start_episode(self.params, self.sim.kernel_state(), self.sim.kernel_readout(), self.state, index)
         return {name: v[name] for name in ("mu", "mu_kinetic", "stiffness_scale", "mass_scale")}
 
     # ------------------------------------------------------------------------------------------
@@ -338,14 +316,14 @@ class GraspLiftCore:
         if actions.shape != (self.num_envs, 2):
             raise ConfigError(f"actions must have shape ({self.num_envs}, 2), got {actions.shape}")
         sim, ts = self.sim, self.state
-        _command_batch(self.params, sim.kernel_state(), ts, actions)
+        command_batch(self.params, sim.kernel_state(), ts, actions)
         sim.step(self.config.physics_steps_per_action)
         finite = sim.finite()
         volume_ratio = sim.min_volume_ratio()
         noise_N = self.config.randomization.sensor_noise_N
         for b in range(self.num_envs):
             ts.noise[b] = self.rngs[b].normal(0.0, noise_N, size=3)
-        _update_batch(self.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
+        update_batch(self.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
         infos = {
             "mu": ts.mu.copy(),
             "pinch_force_N": ts.pinch.copy(),

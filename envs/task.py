@@ -26,6 +26,7 @@ or standard normal, :data:`DRAW_IS_NORMAL`) and the sensor noise into ``noise[b]
 per-env generators, the GPU from xoroshiro streams. Everything after the draw is shared.
 
 numba functions here must be defined after the functions they call (the GPU twins are made in that order).
+The last three (``command_batch``, ``update_batch``, ``start_episode``) are the CPU core's loops.
 """
 
 from __future__ import annotations
@@ -636,3 +637,31 @@ def begin_episode(p, s, out, ts, b):
     ts.hold_progress[b] = 0.0
     ts.travel_target[b] = 0.0
     observe(p, s, out, ts, b, True)
+
+
+# ------------------------------------------------------------------------------------------------
+# the CPU core's loops over its envs (here, not in core.py: numba checks a cached function against its own
+# file only, and these compile the functions above into themselves)
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def command_batch(p, s, ts, actions):
+    """Every env's action (B,2) -> its commands."""
+    for b in range(actions.shape[0]):
+        command(p, s, ts, b, actions[b, 0], actions[b, 1])
+
+
+@njit(cache=True, error_model="numpy")
+def update_batch(p, s, out, ts, finite, volume_ratio):
+    """Every env's step after the physics."""
+    for b in range(finite.shape[0]):
+        update(p, s, out, ts, b, finite[b], volume_ratio[b])
+
+
+@njit(cache=True, error_model="numpy")
+def start_episode(p, s, out, ts, b):
+    """Env b's new episode from its draws (already turned into values) and pins: the settled tissue, then
+    :func:`begin_episode`."""
+    restore_settled(p, s, out, b, 0, 1)
+    begin_episode(p, s, out, ts, b)
