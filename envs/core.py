@@ -27,7 +27,7 @@ from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
     OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, command_batch, draw_episode, perturb_pose, pinch_setpoint,
-    start_episode, task_params, task_state, update_batch,
+    start_episode, task_params, task_state, travel_setpoint, update_batch,
 )
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
@@ -350,6 +350,11 @@ class GraspLiftCore:
         """Pinch-force set-point (N) of jaw action(s) ``a`` in [-1, 1] (:func:`.task.pinch_setpoint`)."""
         a = np.asarray(a, dtype=np.float64)
         return np.array([pinch_setpoint(self.params.env, x) for x in a.ravel()]).reshape(a.shape)
+
+    def travel_setpoint(self, a: np.ndarray) -> np.ndarray:
+        """Pull-distance set-point (m) of pull action(s) ``a`` in [-1, 1] (:func:`.task.travel_setpoint`)."""
+        a = np.asarray(a, dtype=np.float64)
+        return np.array([travel_setpoint(self.params.env, x) for x in a.ravel()]).reshape(a.shape)
 
     def travel(self, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
         """Grasper pull distance along the pull direction since the episode start, m."""

@@ -36,7 +36,7 @@ import dataclasses
 import math
 import types
 import typing
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -45,9 +45,6 @@ from ..physics.contact import (
     G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TY, J_TZ,
 )
 from ..physics.viscoelastic import elongations
-
-if TYPE_CHECKING:
-    from .core import GraspLiftCore
 
 #: one observation frame (a stacked history repeats it, oldest first); privileged entries follow these
 OBS_NAMES = (
@@ -191,8 +188,8 @@ class TaskParams(NamedTuple):
     frame_dim: int  # entries per observation frame
 
 
-def task_params(core: GraspLiftCore) -> TaskParams:
-    """The task constants of a CPU core's config and scene."""
+def task_params(core: Any) -> TaskParams:
+    """The task constants of a CPU core's (:class:`.core.GraspLiftCore`) config and scene."""
     cfg, scene = core.config, core.scene
     vec = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     return TaskParams(
@@ -345,6 +342,12 @@ def pinch_setpoint(env, a):
 
 
 @njit(cache=True, error_model="numpy")
+def travel_setpoint(env, a):
+    """Pull-distance set-point (m) of pull action ``a`` in [-1, 1] (pull_action = travel)."""
+    return 0.5 * (a + 1.0) * env.max_travel_m
+
+
+@njit(cache=True, error_model="numpy")
 def command(p, s, ts, b, a0, a1):
     """Env b's action (clipped to [-1, 1]) -> the jaw's force set-point or closing speed, and the pull speed."""
     e = p.env
@@ -359,7 +362,7 @@ def command(p, s, ts, b, a0, a1):
     else:
         s.g_vradius[b] = -(a0 * p.max_close)
     if e.pull_action_travel:  # the arm's position loop: the set-point within the step if the speed limit allows
-        target = 0.5 * (a1 + 1.0) * e.max_travel_m
+        target = travel_setpoint(e, a1)
         ts.travel_target[b] = target
         speed = min(max((target - travel(p, s, ts, b)) / p.agent_dt, -p.max_pull), p.max_pull)
     elif e.pull_action_forward_speed:
