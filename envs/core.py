@@ -296,6 +296,7 @@ class GraspLiftCore:
         rnd = self.config.randomization
         rng = self.rngs[index]
         # always draw every value (keeps the random stream independent of which values are pinned)
+        # (random() and standard_normal() are the variates NumPy's uniform() and normal() scale: the same stream)
         for k, normal in enumerate(DRAW_IS_NORMAL):
             self.draws[index, k] = rng.standard_normal() if normal else rng.random()
         draw_episode(self.params, self.state, index)
