@@ -25,13 +25,14 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..envs.core import GraspLiftConfig, pinch_action
+from ..envs.task import OBS, obs_group
 from ..physics.config import ConfigError
 from .models import load_model, model_train_config
 
-# observation layout (see GraspLiftEnv's docstring); a stacked history ends with the current frame
-_NORMAL = slice(4, 7)
-_SLIP = slice(13, 16)
-_TRAVEL = 2
+# observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
+_NORMAL = obs_group("normal_force")
+_SLIP = obs_group("slip_speed")
+_TRAVEL = OBS["pull_distance"]
 
 
 def _current_frame(obs: np.ndarray, config: GraspLiftConfig) -> np.ndarray:

@@ -1,8 +1,10 @@
 """The GraspLift task as a batched, array-in/array-out core (no Gymnasium types here).
 
 `GraspLiftCore` owns one :class:`~msdgrasp.physics.simulation.Simulation` with ``num_envs`` tissues and
-advances all of them with ONE numba call per agent step. The single Gymnasium env is this core with
-``num_envs = 1``; the vector env is the same core with ``num_envs = N``. Every sub-env has its own random
+advances all of them with one numba call for the commands, one for the physics and one for the task's update
+and observation per agent step; the task's per-env functions are :mod:`.task`'s, shared with the GPU core.
+The single Gymnasium env is this core with ``num_envs = 1``; the vector env is the same core with
+``num_envs = N``. Every sub-env has its own random
 generator, so a batch reproduces N single envs seeded alike exactly.
 """
 
@@ -19,10 +21,14 @@ from annotated_types import Ge, Gt, Le
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml, to_dict,
 )
-from ..physics.contact import J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TZ
 from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
-from ..physics.simulation import SUBSTEP_SAFETY
+from ..physics.simulation import SUBSTEP_SAFETY, Simulation
+from .task import (
+    D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
+    OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, command_batch, draw_episode, perturb_pose, pinch_setpoint,
+    start_episode, task_params, task_state, travel_setpoint, update_batch,
+)
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
 
@@ -196,51 +202,37 @@ class GraspLiftConfig:
         return from_dict(cls, data["env"], where=f"{path}:env")
 
 
-OBS_NAMES = (
-    "jaw_opening", "jaw_speed", "pull_distance", "pull_speed",
-    "normal_force_0", "normal_force_1", "normal_force_2",
-    "tangential_force_0", "tangential_force_1", "tangential_force_2",
-    "contact_fraction_0", "contact_fraction_1", "contact_fraction_2",
-    "slip_speed_0", "slip_speed_1", "slip_speed_2",
-    "slipping_fraction_0", "slipping_fraction_1", "slipping_fraction_2",
-    "prev_action_jaw", "prev_action_pull", "time_fraction",
-    "lift_progress", "hold_progress", "hold_slip", "lift_lag", "peak_pinch", "best_lift",
-    "friction_use_0", "friction_use_1", "friction_use_2", "lift_slip",
-)
-
-PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
-
-
 def pinch_action(force_N: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:
     """The jaw action whose pinch-force set-point is ``force_N`` (jaw_action = force), clipped to [-1, 1]:
-    the inverse of :meth:`GraspLiftCore.pinch_setpoint`."""
+    the inverse of :func:`.task.pinch_setpoint`."""
     frac = np.clip(np.asarray(force_N, dtype=np.float64) / config.max_pinch_force_N, 0.0, 1.0)
     return 2.0 * frac ** (1.0 / config.pinch_action_exponent) - 1.0
-
-
-def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues rotation of v about the unit axis."""
-    return v * math.cos(angle) + np.cross(axis, v) * math.sin(angle) + axis * (axis @ v) * (1 - math.cos(angle))
 
 
 def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, tilt_deg: float,
                    azimuth_deg: float) -> GrasperPose:
     """The grasp pose of one episode: ``pose`` moved by the episode's random draws (``offset_dir`` and
-    ``tilt_axis``: 3 standard normals each; ``offset_r`` in [0, 1]; ``tilt`` and ``azimuth`` in [-1, 1]).
-    The tip moves up to ``offset_m`` normal to the axis (radius drawn as in a ball), the axis tilts up to
-    ``tilt_deg`` about a random normal, and the jaws turn up to ``azimuth_deg`` about the new axis."""
-    a = pose.axis
-    # offset: uniform in a ball of radius `offset_m`, normal to the axis
-    d = draws["offset_dir"] - a * (draws["offset_dir"] @ a)
-    d = d / (np.linalg.norm(d) + 1e-12)
-    tip = pose.tip + offset_m * draws["offset_r"] * d
-    t_axis = np.cross(a, draws["tilt_axis"])
-    t_axis = t_axis / (np.linalg.norm(t_axis) + 1e-12)
-    ang = math.radians(tilt_deg) * draws["tilt"]
-    axis = _rotate(a, t_axis, ang)
-    e1 = _rotate(pose.e1, t_axis, ang)
-    e1 = _rotate(e1, axis, math.radians(azimuth_deg) * draws["azimuth"])
+    ``tilt_axis``: 3 standard normals each; ``offset_r`` in [0, 1]; ``tilt`` and ``azimuth`` in [-1, 1]),
+    by :func:`.task.perturb_pose` (the tip moves up to ``offset_m`` normal to the axis, the axis tilts up to
+    ``tilt_deg``, the jaws turn up to ``azimuth_deg``)."""
+    d = np.zeros(len(DRAW_COLUMNS))
+    d[D_OFFSET_DIR : D_OFFSET_DIR + 3] = draws["offset_dir"]
+    d[D_TILT_AXIS : D_TILT_AXIS + 3] = draws["tilt_axis"]
+    d[D_OFFSET_R], d[D_TILT], d[D_AZIMUTH] = draws["offset_r"], draws["tilt"], draws["azimuth"]
+    tip, axis, e1 = (np.zeros(3) for _ in range(3))
+    vec = lambda a: np.asarray(a, dtype=np.float64)  # noqa: E731
+    perturb_pose(vec(pose.tip), vec(pose.axis), vec(pose.e1), d, float(offset_m), math.radians(tilt_deg),
+                 math.radians(azimuth_deg), tip, axis, e1)
     return GrasperPose(tip, axis, e1)
+
+
+def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> None:
+    """A value pinned by ``reset(options=...)`` (PINNABLE) in its range, or a one-line ConfigError; ``mu``:
+    the episode's friction, the bound of mu_kinetic."""
+    lo, hi = {"mu": (0.0, 10.0), "mu_kinetic": (0.0, mu), "stiffness_scale": (0.0, sim.max_stiffness_scale),
+              "mass_scale": (sim.min_mass_scale, None), "pose_offset_m": (0.0, 0.02), "pose_tilt_deg": (0.0, 30.0),
+              "pose_azimuth_deg": (0.0, 60.0)}[name]
+    check_range(f"options[{name!r}]", value, lo, hi, lo_inclusive=name != "stiffness_scale")
 
 
 class GraspLiftCore:
@@ -292,29 +284,12 @@ class GraspLiftCore:
         self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0)
         self.obs_dim = self.frame_dim * cfg.obs_history
 
-        # per-env episode state
         self.rngs = [np.random.default_rng() for _ in range(B)]
-        self.mu = np.zeros(B)
-        self.pull_dir = np.tile(self.scene.pull_direction, (B, 1))
-        self.tip0 = np.zeros((B, 3))
-        self.region0 = np.zeros((B, 3))
-        self.steps = np.zeros(B, dtype=np.int64)
-        self.prev_action = np.zeros((B, 2))
-        self.lift = np.zeros(B)
-        self.best_lift = np.zeros(B)
-        self.grip = np.zeros(B)
-        self.slip_total = np.zeros(B)
-        self.lift_slip = np.zeros(B)
-        self.hold_time = np.zeros(B)
-        self.hold_slip = np.zeros(B)
-        self.peak_pinch = np.zeros(B)
-        self.peak_stress = np.zeros(B)
-        self.lift_started = np.zeros(B, dtype=bool)
-        self.time_to_lift = np.full(B, np.nan)
-        self.hold_progress = np.zeros(B)
-        self.travel_target = np.zeros(B)
-        self.frames = np.zeros((B, cfg.obs_history, self.frame_dim))
-        self.obs = np.zeros((B, self.obs_dim))
+        self.params = task_params(self)
+        #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
+        #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
+        self.state = task_state(B, cfg.obs_history, self.frame_dim)
+        self.__dict__.update(self.state._asdict())
 
     # ------------------------------------------------------------------------------------------
     def seed(self, index: int, seed: int | None) -> None:
@@ -326,251 +301,73 @@ class GraspLiftCore:
         unknown = sorted(set(options) - set(PINNABLE))
         if unknown:
             raise ConfigError(f"reset options: unknown key(s) {unknown}; allowed: {list(PINNABLE)}")
-        cfg = self.config
-        rnd = cfg.randomization
+        rnd = self.config.randomization
         rng = self.rngs[index]
         # always draw every value (keeps the random stream independent of which values are pinned)
-        draws = {
-            "mu": (rng.uniform(*rnd.mu_range) if rnd.mu_distribution == "uniform"
-                   else math.exp(rng.uniform(math.log(rnd.mu_range[0]), math.log(rnd.mu_range[1])))),
-            "stiffness_scale": rng.uniform(*rnd.stiffness_scale_range),
-            "mass_scale": rng.uniform(*rnd.mass_scale_range),
-            "offset_dir": rng.normal(size=3),
-            "offset_r": rng.uniform(0.0, 1.0) ** (1.0 / 3.0),
-            "tilt_axis": rng.normal(size=3),
-            "tilt": rng.uniform(-1.0, 1.0),
-            "azimuth": rng.uniform(-1.0, 1.0),
-        }
-        mu = float(options.get("mu", draws["mu"]))
-        check_range("options['mu']", mu, 0.0, 10.0)
-        mu_k = float(options.get("mu_kinetic", mu))
-        check_range("options['mu_kinetic']", mu_k, 0.0, mu)
-        ks = float(options.get("stiffness_scale", draws["stiffness_scale"]))
-        check_range("options['stiffness_scale']", ks, 0.0, self.sim.max_stiffness_scale, lo_inclusive=False)
-        ms = float(options.get("mass_scale", draws["mass_scale"]))
-        check_range("options['mass_scale']", ms, self.sim.min_mass_scale, None)
-        off = float(options.get("pose_offset_m", rnd.pose_offset_m))
-        check_range("options['pose_offset_m']", off, 0.0, 0.02)
-        tilt = float(options.get("pose_tilt_deg", rnd.pose_tilt_deg))
-        check_range("options['pose_tilt_deg']", tilt, 0.0, 30.0)
-        azi = float(options.get("pose_azimuth_deg", rnd.pose_azimuth_deg))
-        check_range("options['pose_azimuth_deg']", azi, 0.0, 60.0)
-
-        pose = perturbed_pose(self.scene.pose, draws, off, tilt, azi)
-        self.scene.reset(self.sim, index)
-        self.sim.set_grasper_pose(pose, index)
-        self.sim.g_radius[index] = self.start_radius
-        self.sim.set_friction(mu, mu_k, index)
-        self.sim.set_scales(ks, ms, index)
-        self.mu[index] = mu
-        self.tip0[index] = pose.tip
-        self.region0[index] = self.sim.x[index, self.region].mean(axis=0)
-        self.steps[index] = 0
-        self.prev_action[index] = 0.0
-        self.lift[index] = 0.0
-        self.best_lift[index] = 0.0
-        self.grip[index] = 0.0
-        self.slip_total[index] = 0.0
-        self.lift_slip[index] = 0.0
-        self.hold_time[index] = 0.0
-        self.hold_slip[index] = 0.0
-        self.peak_pinch[index] = 0.0
-        self.peak_stress[index] = 0.0
-        self.lift_started[index] = False
-        self.time_to_lift[index] = np.nan
-        self.hold_progress[index] = 0.0
-        self.travel_target[index] = 0.0
-        self.sim.jaw_out[index] = 0.0
-        if cfg.jaw_action == "force":  # the jaw motor starts in force control at zero force (jaws at rest)
-            self.sim.command_pinch_force(0.0, cfg.force_loop_gain_m_s_per_N, self.max_close, index)
-        self._observe(np.array([index]), np.zeros((1, 3)), fresh=True)
-        return {"mu": mu, "mu_kinetic": mu_k, "stiffness_scale": ks, "mass_scale": ms}
+        # (random() and standard_normal() are the variates NumPy's uniform() and normal() scale: the same stream)
+        for k, normal in enumerate(DRAW_IS_NORMAL):
+            self.draws[index, k] = rng.standard_normal() if normal else rng.random()
+        draw_episode(self.params, self.state, index)
+        drawn = self.draws[index]
+        v = {"mu": drawn[D_MU], "stiffness_scale": drawn[D_KS], "mass_scale": drawn[D_MS],
+             **{name: getattr(rnd, name) for name in PINNABLE[P_OFFSET:]}, **options}
+        v = {"mu_kinetic": v["mu"], **{name: float(value) for name, value in v.items()}}
+        for name in PINNABLE:
+            check_pin(name, v[name], self.sim, v["mu"])
+        self.pin[index] = [v[name] for name in PINNABLE]
+        start_episode(self.params, self.sim.kernel_state(), self.sim.kernel_readout(), self.state, index)
+        return {name: v[name] for name in ("mu", "mu_kinetic", "stiffness_scale", "mass_scale")}
 
     # ------------------------------------------------------------------------------------------
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Advance every sub-env by one agent step. ``actions``: (B,2) in [-1,1] (clipped)."""
-        cfg = self.config
-        B = self.num_envs
-        act = np.clip(actions, -1.0, 1.0)
-        sim = self.sim
-        dt = cfg.agent_dt_s
-        if cfg.jaw_action == "force":
-            sim.command_pinch_force(self.pinch_setpoint(act[:, 0]), cfg.force_loop_gain_m_s_per_N, self.max_close)
-        else:
-            sim.command(closing_speed=act[:, 0] * self.max_close)
-        if cfg.pull_action == "travel":
-            # the arm's position loop: reach the set-point within the step if the speed limit allows
-            self.travel_target = self.travel_setpoint(act[:, 1])
-            pull_speed = np.clip((self.travel_target - self.travel()) / dt, -self.max_pull, self.max_pull)
-        elif cfg.pull_action == "forward_speed":
-            pull_speed = 0.5 * (act[:, 1] + 1.0) * self.max_pull
-        else:
-            pull_speed = act[:, 1] * self.max_pull
-        sim.command(pull_velocity=self.pull_dir * pull_speed[:, None])
-        sim.step(cfg.physics_steps_per_action)
-        self.steps += 1
+        actions = np.ascontiguousarray(actions, dtype=np.float64)
+        if actions.shape != (self.num_envs, 2):
+            raise ConfigError(f"actions must have shape ({self.num_envs}, 2), got {actions.shape}")
+        sim, ts = self.sim, self.state
+        command_batch(self.params, sim.kernel_state(), ts, actions)
+        sim.step(self.config.physics_steps_per_action)
         finite = sim.finite()
         volume_ratio = sim.min_volume_ratio()
-        if cfg.inverted_tet_is_failure:  # an inverted tet's springs and barrier push the wrong way
-            finite &= volume_ratio > 0.0
-        jo = sim.jaw_out
-        slip = jo[:, :, J_SLIP_DIST].mean(axis=1)  # mean over jaws of the grasped-surface slip this step, m
-        pinch = jo[:, :, J_NORMAL].sum(axis=1)
-        stress = jo[:, :, J_PEAK_PRESSURE].max(axis=1)
-        contact = jo[:, :, J_CONTACT].sum(axis=1)
-        region_now = sim.x[:, self.region].mean(axis=1)
-        lift_new = np.einsum("bi,bi->b", region_now - self.region0, self.pull_dir)
-        # progress pays for the highest lift reached (capped at the target), once: a lift that slips back is
-        # not charged again, so an attempt that fails late still beats never touching the tissue
-        best = np.maximum(self.best_lift, np.minimum(lift_new, cfg.lift_target_m))
-        progress = (best - self.best_lift) / cfg.lift_target_m
-        self.best_lift = best
-        self.lift = lift_new
-        grip = np.minimum(pinch / cfg.reward.grasp_force_N, 1.0)
-        grip_gain = grip - self.grip
-        self.grip = grip
-        self.slip_total += slip
-        peak_rise = np.maximum(pinch - self.peak_pinch, 0.0)
-        self.peak_pinch = np.maximum(self.peak_pinch, pinch)
-        self.peak_stress = np.maximum(self.peak_stress, stress)
-        self.lift_started |= lift_new >= cfg.lift_started_m
-        self.lift_slip += np.where(self.lift_started, slip, 0.0)
-        slipped = self.lift_slip > cfg.lift_slip_tolerance_m
-        at_target = lift_new >= cfg.lift_target_m
-        first_target = at_target & np.isnan(self.time_to_lift)
-        self.time_to_lift[first_target] = self.steps[first_target] * dt
-        self.hold_time = np.where(at_target, self.hold_time + dt, 0.0)
-        self.hold_slip = np.where(at_target, self.hold_slip + slip, 0.0)
-        # a hold spoilt by slip starts over (the tissue is still at the target, the timer restarts)
-        spoilt = self.hold_slip > cfg.hold_slip_tolerance_m
-        self.hold_time[spoilt] = 0.0
-        self.hold_slip[spoilt] = 0.0
-        hold_new = np.minimum(self.hold_time / cfg.hold_time_s, 1.0) if cfg.hold_time_s > 0 else at_target.astype(float)
-        hold_gain = hold_new - self.hold_progress
-        self.hold_progress = hold_new
-        success = at_target & (self.hold_time >= cfg.hold_time_s - 1e-9) & ~slipped
-        lost = self.lift_started & (contact == 0)
-        damaged = stress > cfg.damage_stress_pa
-        failed = ~finite
-        terminated = success | lost | failed | (damaged & cfg.terminate_on_damage)
-        truncated = (~terminated) & (self.steps >= cfg.max_episode_steps)
-        # every episode that ends without success pays the same failure penalty, running out of time
-        # (e.g. never touching the tissue) included: not touching is then no safe haven
-        unsuccessful = (terminated | truncated) & ~success
-
-        w = cfg.reward
-        if w.peak_force_timing == "at_success":
-            peak_charge = np.where(success, self.peak_pinch, 0.0)
-        else:  # charged as made, refunded without success
-            peak_charge = peak_rise - np.where(unsuccessful, self.peak_pinch, 0.0)
-        peak_charge = peak_charge * w.peak_force_weight(self.mu)
-        terms = {
-            "progress": w.progress * progress,
-            "hold": w.hold * hold_gain,
-            "grasp": w.grasp * grip_gain,
-            "slip": -w.slip_per_mm * slip * 1e3,
-            "force": -w.force_per_s * (pinch / cfg.reference_force_N) * dt,
-            "peak_force": -w.peak_force * peak_charge / cfg.reference_force_N,
-            "damage": -w.damage * damaged.astype(np.float64),
-            "success": w.success_bonus * success.astype(np.float64),
-            "failure": -w.failure_penalty * unsuccessful.astype(np.float64),
-        }
-        reward = sum(terms.values())
-        if np.any(failed):
-            # a blown-up tissue: never hand out NaN observations or rewards
-            bad = np.flatnonzero(failed)
-            reward[bad] = -w.failure_penalty
-            for v in terms.values():
-                v[bad] = np.where(np.isfinite(v[bad]), v[bad], 0.0)
-            self.lift[bad] = 0.0
-            self.grip[bad] = 0.0
-        self.prev_action = act.astype(np.float64)
-        noise = np.stack([self.rngs[b].normal(0.0, cfg.randomization.sensor_noise_N, size=3) for b in range(B)])
-        self._observe(np.arange(B), noise)
-        if np.any(failed):
-            self.obs[np.flatnonzero(failed)] = 0.0
-            self.frames[np.flatnonzero(failed)] = 0.0
+        noise_N = self.config.randomization.sensor_noise_N
+        for b in range(self.num_envs):
+            ts.noise[b] = self.rngs[b].normal(0.0, noise_N, size=3)
+        update_batch(self.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
         infos = {
-            "mu": self.mu.copy(),
-            "pinch_force_N": pinch,
-            "peak_pinch_N": self.peak_pinch.copy(),
-            "slip_distance_m": self.slip_total.copy(),
-            "lifted_m": self.lift.copy(),
+            "mu": ts.mu.copy(),
+            "pinch_force_N": ts.pinch.copy(),
+            "peak_pinch_N": ts.peak_pinch.copy(),
+            "slip_distance_m": ts.slip_total.copy(),
+            "lifted_m": ts.lift.copy(),
             "travel_m": self.travel(),
-            "hold_time_s": self.hold_time.copy(),
-            "peak_stress_pa": stress,
-            "contact_nodes": contact,
-            "is_success": success,
-            "lost_grasp": lost,
-            "slipped": slipped & ~lost,
-            "lift_slip_m": self.lift_slip.copy(),
-            "damaged": damaged,
-            "numerical_failure": failed,
+            "hold_time_s": ts.hold_time.copy(),
+            "peak_stress_pa": ts.stress.copy(),
+            "contact_nodes": ts.contact.copy(),
+            "is_success": ts.is_success.copy(),
+            "lost_grasp": ts.lost_grasp.copy(),
+            "slipped": ts.slipped.copy(),
+            "lift_slip_m": ts.lift_slip.copy(),
+            "damaged": ts.damaged.copy(),
+            "numerical_failure": ts.numerical_failure.copy(),
             "min_volume_ratio": volume_ratio,
-            "reward_terms": terms,
+            "reward_terms": {name: ts.terms[:, k].copy() for k, name in enumerate(REWARD_TERMS)},
         }
-        return self.obs.astype(np.float32), reward.astype(np.float64), terminated, truncated, infos
+        return ts.obs.astype(np.float32), ts.reward.copy(), ts.terminated.copy(), ts.truncated.copy(), infos
 
     # ------------------------------------------------------------------------------------------
     def pinch_setpoint(self, a: np.ndarray) -> np.ndarray:
-        """Pinch-force set-point (N) of jaw action(s) ``a`` in [-1, 1] (jaw_action = force)."""
-        cfg = self.config
-        return (0.5 * (np.asarray(a, dtype=np.float64) + 1.0)) ** cfg.pinch_action_exponent * cfg.max_pinch_force_N
+        """Pinch-force set-point (N) of jaw action(s) ``a`` in [-1, 1] (:func:`.task.pinch_setpoint`)."""
+        a = np.asarray(a, dtype=np.float64)
+        return np.array([pinch_setpoint(self.params.env, x) for x in a.ravel()]).reshape(a.shape)
 
     def travel_setpoint(self, a: np.ndarray) -> np.ndarray:
-        """Pull-distance set-point (m) of pull action(s) ``a`` in [-1, 1] (pull_action = travel)."""
-        return 0.5 * (np.asarray(a, dtype=np.float64) + 1.0) * self.config.max_travel_m
+        """Pull-distance set-point (m) of pull action(s) ``a`` in [-1, 1] (:func:`.task.travel_setpoint`)."""
+        a = np.asarray(a, dtype=np.float64)
+        return np.array([travel_setpoint(self.params.env, x) for x in a.ravel()]).reshape(a.shape)
 
     def travel(self, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
         """Grasper pull distance along the pull direction since the episode start, m."""
-        return np.einsum("bi,bi->b", self.sim.g_tip[idx] - self.tip0[idx], self.pull_dir[idx])
-
-    def _observe(self, idx: np.ndarray, noise: np.ndarray, fresh: bool = False) -> None:
-        """Write the current frame of sub-envs ``idx`` into the frame history and the observation.
-        ``fresh`` (reset): the history is filled with the current frame."""
-        cfg = self.config
-        sim = self.sim
-        jo = sim.jaw_out[idx]
-        ref = cfg.reference_force_N
-        r = sim.g_radius[idx]
-        rmin = sim.g_rmin[idx]
-        lift_target = cfg.lift_target_m
-        o = np.empty((len(idx), self.frame_dim))
-        o[:, 0] = (r - rmin) / (self.start_radius - rmin)
-        o[:, 1] = -sim.g_vradius[idx] / self.max_close
-        travel = self.travel(idx)
-        o[:, 2] = travel / lift_target
-        o[:, 3] = np.einsum("bi,bi->b", sim.g_vpull[idx], self.pull_dir[idx]) / self.max_pull
-        o[:, 4:7] = (jo[:, :, J_NORMAL] + noise) / ref
-        o[:, 7:10] = (np.linalg.norm(jo[:, :, J_TX : J_TZ + 1], axis=2) + np.abs(noise)) / ref
-        o[:, 10:13] = np.minimum(jo[:, :, J_CONTACT] / self.nominal_contacts, 2.0)
-        o[:, 13:16] = jo[:, :, J_SLIP_DIST] / cfg.agent_dt_s / self.max_pull
-        # incipient slip (what a tactile array sees): the share of each jaw's contact nodes that slip
-        o[:, 16:19] = jo[:, :, J_SLIP] / np.maximum(jo[:, :, J_CONTACT], 1.0)
-        o[:, 19:21] = self.prev_action[idx]
-        o[:, 21] = self.steps[idx] * cfg.agent_dt_s / cfg.time_limit_s
-        o[:, 22] = self.lift[idx] / lift_target
-        o[:, 23] = self.hold_progress[idx]
-        o[:, 24] = self.hold_slip[idx] / cfg.hold_slip_tolerance_m if cfg.hold_slip_tolerance_m > 0 else 0.0
-        # grasper travel minus tissue lift: how far the tissue has slid out of (or lags) the jaws
-        o[:, 25] = (travel - self.lift[idx]) / lift_target
-        o[:, 26] = self.peak_pinch[idx] / ref
-        o[:, 27] = self.best_lift[idx] / lift_target
-        # friction utilisation |T| / N per jaw (<= mu while the jaw sticks); 0.05 N keeps it finite off contact
-        o[:, 28:31] = o[:, 7:10] / np.maximum(o[:, 4:7], 0.05 / ref)
-        o[:, 31] = self.lift_slip[idx] / cfg.lift_slip_tolerance_m
-        if cfg.privileged_obs:
-            n0 = len(OBS_NAMES)
-            o[:, n0] = self.mu[idx]
-            o[:, n0 + 1] = sim.kscale[idx]
-            o[:, n0 + 2] = sim.mscale[idx]
-            disp = sim.x[idx][:, self.priv_nodes] - self.scene.x_start[self.priv_nodes]
-            o[:, n0 + 3 :] = disp.reshape(len(idx), -1) / lift_target
-        if fresh:
-            self.frames[idx] = o[:, None, :]
-        else:
-            self.frames[idx] = np.concatenate([self.frames[idx][:, 1:], o[:, None, :]], axis=1)
-        self.obs[idx] = self.frames[idx].reshape(len(idx), -1)
+        return np.einsum("bi,i->b", self.sim.g_tip[idx] - self.tip0[idx], self.params.pull_dir)
 
     def info_at_reset(self, index: int, draws: dict[str, float]) -> dict[str, Any]:
         return {**draws, "pinch_force_N": 0.0, "slip_distance_m": 0.0, "lifted_m": 0.0, "peak_stress_pa": 0.0,

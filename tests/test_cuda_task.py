@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.envs.core import GraspLiftConfig, GraspLiftCore, perturbed_pose
+from msdgrasp.envs.task import REWARD_TERMS
 from msdgrasp.physics.config import ConfigError, from_dict
 
 # positions within 1e-12 m after an episode with contact (the tolerance); the task's scalars are
@@ -87,8 +88,7 @@ def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core():
         _close("reward", r_gpu.copy_to_host(), r_cpu)
         returns += r_cpu
         _close("episode return", got["episode_return"], returns)  # (where done: of the episode that ended)
-        for j, name in enumerate(("progress", "hold", "grasp", "slip", "force", "peak_force", "damage", "success",
-                                  "failure")):
+        for j, name in enumerate(REWARD_TERMS):
             _close(f"reward term {name}", got["terms"][:, j], info["reward_terms"][name])
         # the step's readouts; the episode's totals (where an episode ended: as it ended)
         episode = ("episode_slip", "episode_peak_pinch") if done.any() else ("slip_total", "peak_pinch")

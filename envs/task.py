@@ -1,0 +1,670 @@
+"""The GraspLift task per env, written once for both backends: scalar numba functions over records.
+
+One source, two targets (as the physics' contact law): the CPU core (:class:`.core.GraspLiftCore`) calls
+these functions in ``@njit`` loops over its envs, the GPU core (:mod:`.cuda_core`) compiles the same Python
+source for the device (:func:`~msdgrasp.physics.cuda_step.device_twin`) and calls them per env from its
+kernels. They use scalar arithmetic and loops only, and write into preallocated arrays:
+
+* :func:`command`: actions -> the jaw's pinch set-point (or closing speed) and the pull speed;
+* :func:`update`: after the physics, lift, slip, hold, reward terms, flags and the observation;
+* :func:`observe`: the observation frame and its history;
+* :func:`draw_episode` and :func:`begin_episode`: the non-random part of a reset (an episode's raw random
+  numbers -> friction, scales and pose; cleared episode state; the first frame).
+
+What they read and write, passed whole:
+
+* :class:`TaskParams`: the task's constants. The config itself travels as a record *derived* from the
+  config dataclasses (:func:`config_record`: one NamedTuple per dataclass, field for field, nested records
+  for nested configs; a choice ``name: Literal["a", "b"]`` becomes one flag per option, ``name_a`` and
+  ``name_b``; ``None`` becomes NaN; strings, which the task does not read, are left out), so a new config
+  field needs no code here. Only what the scene and grasper derive (start radius, grasp region, ...) is
+  listed by hand.
+* :class:`TaskState`: the per-env episode state and the step's outputs, batch first.
+
+The random numbers are each backend's own: a reset fills ``draws[b]`` with raw variates (uniform on [0, 1)
+or standard normal, :data:`DRAW_IS_NORMAL`) and the sensor noise into ``noise[b]``; the CPU from NumPy's
+per-env generators, the GPU from xoroshiro streams. Everything after the draw is shared.
+
+numba functions here must be defined after the functions they call (the GPU twins are made in that order).
+The last three (``command_batch``, ``update_batch``, ``start_episode``) are the CPU core's loops.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import types
+import typing
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+from numba import njit
+
+from ..physics.contact import (
+    G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TY, J_TZ,
+)
+from ..physics.viscoelastic import elongations
+
+#: one observation frame (a stacked history repeats it, oldest first); privileged entries follow these
+OBS_NAMES = (
+    "jaw_opening", "jaw_speed", "pull_distance", "pull_speed",
+    "normal_force_0", "normal_force_1", "normal_force_2",
+    "tangential_force_0", "tangential_force_1", "tangential_force_2",
+    "contact_fraction_0", "contact_fraction_1", "contact_fraction_2",
+    "slip_speed_0", "slip_speed_1", "slip_speed_2",
+    "slipping_fraction_0", "slipping_fraction_1", "slipping_fraction_2",
+    "prev_action_jaw", "prev_action_pull", "time_fraction",
+    "lift_progress", "hold_progress", "hold_slip", "lift_lag", "peak_pinch", "best_lift",
+    "friction_use_0", "friction_use_1", "friction_use_2", "lift_slip",
+)
+#: position of each observation entry in a frame
+OBS = {name: i for i, name in enumerate(OBS_NAMES)}
+
+
+def obs_group(prefix: str) -> slice:
+    """The frame positions of a per-jaw group (``prefix_0`` .. ``prefix_2``, adjacent)."""
+    first = OBS[f"{prefix}_0"]
+    if [OBS.get(f"{prefix}_{k}") for k in range(3)] != [first, first + 1, first + 2]:
+        raise ValueError(f"observation group {prefix!r} is not three adjacent entries")
+    return slice(first, first + 3)
+
+
+# frame positions the kernels write (module integers: numba compiles them as constants)
+(I_OPENING, I_JAW_SPEED, I_TRAVEL, I_PULL_SPEED, I_PREV_ACTION, I_TIME, I_LIFT, I_HOLD, I_HOLD_SLIP, I_LIFT_LAG,
+ I_PEAK_PINCH, I_BEST_LIFT, I_LIFT_SLIP) = (OBS[n] for n in (
+    "jaw_opening", "jaw_speed", "pull_distance", "pull_speed", "prev_action_jaw", "time_fraction", "lift_progress",
+    "hold_progress", "hold_slip", "lift_lag", "peak_pinch", "best_lift", "lift_slip"))
+assert OBS["prev_action_pull"] == I_PREV_ACTION + 1
+(I_NORMAL, I_TANGENTIAL, I_CONTACT, I_SLIP_SPEED, I_SLIPPING, I_FRICTION_USE) = (obs_group(n).start for n in (
+    "normal_force", "tangential_force", "contact_fraction", "slip_speed", "slipping_fraction", "friction_use"))
+N_OBS = len(OBS_NAMES)
+
+#: the reward terms (``info["reward_terms"]`` keys; columns of ``TaskState.terms``)
+REWARD_TERMS = ("progress", "hold", "grasp", "slip", "force", "peak_force", "damage", "success", "failure")
+(R_PROGRESS, R_HOLD, R_GRASP, R_SLIP, R_FORCE, R_PEAK_FORCE, R_DAMAGE, R_SUCCESS, R_FAILURE) = (
+    REWARD_TERMS.index(n) for n in REWARD_TERMS)
+
+#: an episode's random draws, columns of ``TaskState.draws`` (after :func:`draw_episode`: the values)
+DRAW_COLUMNS = ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_dir_y", "offset_dir_z", "offset_r",
+                "tilt_axis_x", "tilt_axis_y", "tilt_axis_z", "tilt", "azimuth")
+#: which raw variate each column starts as: standard normal (True) or uniform on [0, 1) (False), drawn in
+#: column order
+DRAW_IS_NORMAL = tuple(c.startswith(("offset_dir", "tilt_axis")) for c in DRAW_COLUMNS)
+D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH = (DRAW_COLUMNS.index(n) for n in (
+    "mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_r", "tilt_axis_x", "tilt", "azimuth"))
+
+#: what a reset may pin (columns of ``TaskState.pin``; NaN: drawn, or the config's pose jitter)
+PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
+P_MU, P_MU_KINETIC, P_KS, P_MS, P_OFFSET, P_TILT, P_AZIMUTH = range(len(PINNABLE))
+
+
+# ------------------------------------------------------------------------------------------------
+# records
+# ------------------------------------------------------------------------------------------------
+
+
+def _kind(hint: Any) -> Any:
+    """What a config field becomes in its record: bool, int, float, "tuple", "choice", "record" or None (left out)."""
+    origin = typing.get_origin(hint)
+    if origin is typing.Annotated:
+        return _kind(typing.get_args(hint)[0])
+    if origin in (typing.Union, types.UnionType):
+        kinds = {_kind(a) for a in typing.get_args(hint) if a is not type(None)}
+        return None if None in kinds else (kinds.pop() if len(kinds) == 1 else float)
+    if origin is Literal:
+        return "choice"
+    if origin is tuple:
+        return "tuple"
+    if dataclasses.is_dataclass(hint):
+        return "record"
+    return {bool: bool, int: int, float: float}.get(hint)
+
+
+_RECORD_TYPES: dict[type, tuple[type, tuple]] = {}
+
+
+def _record_type(cls: type) -> tuple[type, tuple]:
+    """The record class of config dataclass ``cls`` and how each of its fields converts (made once)."""
+    if cls not in _RECORD_TYPES:
+        hints = typing.get_type_hints(cls, include_extras=True)
+        plan = []
+        for f in dataclasses.fields(cls):
+            kind = _kind(hints[f.name])
+            if kind == "choice":
+                options = typing.get_args(_strip_annotated(hints[f.name]))
+                plan.append((f.name, kind, tuple(f"{f.name}_{o}" for o in options), options))
+            elif kind is not None:
+                plan.append((f.name, kind, (f.name,), hints[f.name]))
+        name = f"{cls.__name__}Record"
+        record = collections.namedtuple(name, [n for entry in plan for n in entry[2]])
+        record.__module__ = __name__
+        globals()[name] = record  # importable by name: numba's cache pickles the type by reference
+        _RECORD_TYPES[cls] = (record, tuple(plan))
+    return _RECORD_TYPES[cls]
+
+
+def _strip_annotated(hint: Any) -> Any:
+    return _strip_annotated(typing.get_args(hint)[0]) if typing.get_origin(hint) is typing.Annotated else hint
+
+
+def config_record(config: Any) -> tuple:
+    """The config dataclass ``config`` as a numba-readable record (see the module docstring)."""
+    record, plan = _record_type(type(config))
+    values: list[Any] = []
+    for name, kind, _, extra in plan:
+        v = getattr(config, name)
+        if kind == "choice":
+            values.extend(v == o for o in extra)
+        elif kind == "record":
+            values.append(config_record(v))
+        elif kind == "tuple":
+            values.append(tuple(float(x) for x in v))
+        else:
+            values.append(math.nan if v is None else kind(v))
+    return record(*values)
+
+
+class TaskParams(NamedTuple):
+    """The task's constants (SI units): the config record and what the scene and grasper derive."""
+
+    env: Any  # config_record(GraspLiftConfig): .reward and .randomization nested
+    region: np.ndarray  # (R,) int: surface nodes the jaws may hold (their mean is the lift)
+    nominal: np.ndarray  # (3,) nominal contact nodes per jaw (contact fraction normaliser)
+    x_start: np.ndarray  # (N,3) m settled positions (where every episode starts)
+    fv_start: np.ndarray  # (E,) N settled Maxwell forces
+    dl_start: np.ndarray  # (E,) m settled spring elongations
+    pose_tip: np.ndarray  # (3,) m nominal grasp pose
+    pose_axis: np.ndarray  # (3,)
+    pose_e1: np.ndarray  # (3,)
+    pull_dir: np.ndarray  # (3,)
+    priv_nodes: np.ndarray  # (P,) int nodes of the privileged displacement observation
+    draw_is_normal: np.ndarray  # (len(DRAW_COLUMNS),) bool: DRAW_IS_NORMAL
+    start_radius: float  # m
+    max_close: float  # m/s jaw closing speed limit
+    max_pull: float  # m/s arm speed limit
+    agent_dt: float  # s
+    max_steps: int  # agent steps of the time limit
+    frame_dim: int  # entries per observation frame
+
+
+def task_params(core: Any) -> TaskParams:
+    """The task constants of a CPU core's (:class:`.core.GraspLiftCore`) config and scene."""
+    cfg, scene = core.config, core.scene
+    vec = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    return TaskParams(
+        env=config_record(cfg), region=np.ascontiguousarray(core.region, dtype=np.int64),
+        nominal=vec(core.nominal_contacts), x_start=vec(scene.x_start), fv_start=vec(scene.fv_start),
+        dl_start=elongations(scene.x_start, scene.model.edges, scene.model.rest_length),
+        pose_tip=vec(scene.pose.tip), pose_axis=vec(scene.pose.axis), pose_e1=vec(scene.pose.e1),
+        pull_dir=vec(scene.pull_direction), priv_nodes=np.ascontiguousarray(core.priv_nodes, dtype=np.int64),
+        draw_is_normal=np.array(DRAW_IS_NORMAL), start_radius=float(core.start_radius), max_close=float(core.max_close),
+        max_pull=float(core.max_pull), agent_dt=float(cfg.agent_dt_s), max_steps=int(cfg.max_episode_steps),
+        frame_dim=int(core.frame_dim),
+    )
+
+
+class TaskState(NamedTuple):
+    """Per-env episode state and the step's outputs, batch first."""
+
+    mu: np.ndarray  # (B,) static friction of the episode
+    tip0: np.ndarray  # (B,3) m grasper tip at the episode start
+    region0: np.ndarray  # (B,3) m grasp region's mean at the episode start
+    steps: np.ndarray  # (B,) int agent steps in the episode
+    act: np.ndarray  # (B,2) this step's clipped action
+    prev_action: np.ndarray  # (B,2)
+    lift: np.ndarray  # (B,) m
+    best_lift: np.ndarray  # (B,) m
+    grip: np.ndarray  # (B,) pinch / grasp_force_N, at most 1
+    slip_total: np.ndarray  # (B,) m
+    lift_slip: np.ndarray  # (B,) m slip since lifting began
+    hold_time: np.ndarray  # (B,) s
+    hold_slip: np.ndarray  # (B,) m
+    peak_pinch: np.ndarray  # (B,) N
+    peak_stress: np.ndarray  # (B,) Pa
+    lift_started: np.ndarray  # (B,) bool
+    time_to_lift: np.ndarray  # (B,) s to the lift target (NaN: not yet)
+    hold_progress: np.ndarray  # (B,)
+    travel_target: np.ndarray  # (B,) m
+    frames: np.ndarray  # (B,H,F) observation history, oldest first
+    obs: np.ndarray  # (B,H*F) the observation (on the GPU float32, and a new episode's first where done)
+    terminal_obs: np.ndarray  # (B,H*F) the last observation of an episode that ended this step
+    reward: np.ndarray  # (B,)
+    terms: np.ndarray  # (B,len(REWARD_TERMS)) reward terms
+    terminated: np.ndarray  # (B,) bool
+    truncated: np.ndarray  # (B,) bool
+    done: np.ndarray  # (B,) bool: terminated | truncated
+    pinch: np.ndarray  # (B,) N pinch force of the last 1 ms
+    stress: np.ndarray  # (B,) Pa peak contact pressure of the step
+    contact: np.ndarray  # (B,) contact nodes
+    is_success: np.ndarray  # (B,) bool
+    lost_grasp: np.ndarray  # (B,) bool
+    slipped: np.ndarray  # (B,) bool
+    damaged: np.ndarray  # (B,) bool
+    numerical_failure: np.ndarray  # (B,) bool
+    min_volume_ratio: np.ndarray  # (B,)
+    episode_return: np.ndarray  # (B,) sum of the rewards so far (of the episode that ended, where done)
+    episode_length: np.ndarray  # (B,) int steps of the episode that ended (where done)
+    episode_peak_pinch: np.ndarray  # (B,) N peak pinch of the episode that ended (where done)
+    episode_slip: np.ndarray  # (B,) m slip of the episode that ended (where done)
+    draws: np.ndarray  # (B,len(DRAW_COLUMNS)) this episode's random draws
+    pin: np.ndarray  # (B,len(PINNABLE)) pinned values (NaN: drawn)
+    noise: np.ndarray  # (B,3) N force-sensor noise of this step's frame
+
+
+def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np.float64) -> TaskState:
+    """Host arrays of a fresh task state (zeros; nothing pinned)."""
+    f, i, z = np.float64, np.int64, np.bool_
+    shapes: dict[str, tuple[tuple[int, ...], Any]] = {
+        "tip0": ((batch, 3), f), "region0": ((batch, 3), f), "steps": ((batch,), i), "act": ((batch, 2), f),
+        "prev_action": ((batch, 2), f), "frames": ((batch, obs_history, frame_dim), f),
+        "obs": ((batch, obs_history * frame_dim), obs_dtype),
+        "terminal_obs": ((batch, obs_history * frame_dim), obs_dtype),
+        "terms": ((batch, len(REWARD_TERMS)), f), "episode_length": ((batch,), i),
+        "draws": ((batch, len(DRAW_COLUMNS)), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, 3), f),
+    }
+    flags = ("lift_started", "terminated", "truncated", "done", "is_success", "lost_grasp", "slipped", "damaged",
+             "numerical_failure")
+    arrays = {name: np.zeros(*shapes.get(name, ((batch,), z if name in flags else f))) for name in TaskState._fields}
+    arrays["pin"][:] = np.nan
+    arrays["time_to_lift"][:] = np.nan
+    return TaskState(**arrays)
+
+
+# ------------------------------------------------------------------------------------------------
+# per-env functions (leaves first)
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def pinned(value, default):
+    """``value`` unless it is NaN (not pinned)."""
+    return default if math.isnan(value) else value
+
+
+@njit(cache=True, error_model="numpy")
+def rotate(v0, v1, v2, k0, k1, k2, ang):
+    """Rodrigues rotation of v about the unit axis k."""
+    c = math.cos(ang)
+    sn = math.sin(ang)
+    kv = k0 * v0 + k1 * v1 + k2 * v2
+    return (v0 * c + (k1 * v2 - k2 * v1) * sn + k0 * kv * (1 - c),
+            v1 * c + (k2 * v0 - k0 * v2) * sn + k1 * kv * (1 - c),
+            v2 * c + (k0 * v1 - k1 * v0) * sn + k2 * kv * (1 - c))
+
+
+@njit(cache=True, error_model="numpy")
+def perturb_pose(tip, axis, e1, d, offset_m, tilt_rad, azimuth_rad, tip_out, axis_out, e1_out):
+    """The grasp pose moved by an episode's draws ``d`` (DRAW_COLUMNS): the tip moves up to ``offset_m``
+    normal to the axis (radius drawn as in a ball), the axis tilts up to ``tilt_rad`` about a random normal,
+    and the jaws turn up to ``azimuth_rad`` about the new axis."""
+    a0, a1, a2 = axis[0], axis[1], axis[2]
+    n0, n1, n2 = d[D_OFFSET_DIR], d[D_OFFSET_DIR + 1], d[D_OFFSET_DIR + 2]
+    da = n0 * a0 + n1 * a1 + n2 * a2
+    e0, e1_, e2 = n0 - a0 * da, n1 - a1 * da, n2 - a2 * da
+    nrm = math.sqrt(e0 * e0 + e1_ * e1_ + e2 * e2) + 1e-12
+    r = offset_m * d[D_OFFSET_R]
+    tip_out[0] = tip[0] + r * (e0 / nrm)
+    tip_out[1] = tip[1] + r * (e1_ / nrm)
+    tip_out[2] = tip[2] + r * (e2 / nrm)
+    m0, m1, m2 = d[D_TILT_AXIS], d[D_TILT_AXIS + 1], d[D_TILT_AXIS + 2]
+    t0, t1, t2 = a1 * m2 - a2 * m1, a2 * m0 - a0 * m2, a0 * m1 - a1 * m0
+    nrm = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2) + 1e-12
+    t0, t1, t2 = t0 / nrm, t1 / nrm, t2 / nrm
+    ang = tilt_rad * d[D_TILT]
+    x0, x1, x2 = rotate(a0, a1, a2, t0, t1, t2, ang)
+    f0, f1, f2 = rotate(e1[0], e1[1], e1[2], t0, t1, t2, ang)
+    f0, f1, f2 = rotate(f0, f1, f2, x0, x1, x2, azimuth_rad * d[D_AZIMUTH])
+    axis_out[0], axis_out[1], axis_out[2] = x0, x1, x2
+    e1_out[0], e1_out[1], e1_out[2] = f0, f1, f2
+
+
+@njit(cache=True, error_model="numpy")
+def travel(p, s, ts, b):
+    """Grasper pull distance of env b along the pull direction since the episode start, m."""
+    return ((s.g_tip[b, 0] - ts.tip0[b, 0]) * p.pull_dir[0] + (s.g_tip[b, 1] - ts.tip0[b, 1]) * p.pull_dir[1]
+            + (s.g_tip[b, 2] - ts.tip0[b, 2]) * p.pull_dir[2])
+
+
+@njit(cache=True, error_model="numpy")
+def region_mean(p, x, b, c):
+    """Mean coordinate c of env b's grasp region (summed in node order)."""
+    acc = 0.0
+    for q in range(p.region.shape[0]):
+        acc += x[b, p.region[q], c]
+    return acc / p.region.shape[0]
+
+
+@njit(cache=True, error_model="numpy")
+def pinch_setpoint(env, a):
+    """Pinch-force set-point (N) of jaw action ``a`` in [-1, 1] (jaw_action = force); ``env``: the config record."""
+    return (0.5 * (a + 1.0)) ** env.pinch_action_exponent * env.max_pinch_force_N
+
+
+@njit(cache=True, error_model="numpy")
+def travel_setpoint(env, a):
+    """Pull-distance set-point (m) of pull action ``a`` in [-1, 1] (pull_action = travel)."""
+    return 0.5 * (a + 1.0) * env.max_travel_m
+
+
+@njit(cache=True, error_model="numpy")
+def command(p, s, ts, b, a0, a1):
+    """Env b's action (clipped to [-1, 1]) -> the jaw's force set-point or closing speed, and the pull speed."""
+    e = p.env
+    a0 = min(max(a0, -1.0), 1.0)
+    a1 = min(max(a1, -1.0), 1.0)
+    ts.act[b, 0] = a0
+    ts.act[b, 1] = a1
+    if e.jaw_action_force:  # the jaw motor's 1 kHz force loop tracks the set-point
+        s.g_force[b, G_SETPOINT] = pinch_setpoint(e, a0)
+        s.g_force[b, G_GAIN] = e.force_loop_gain_m_s_per_N
+        s.g_force[b, G_VMAX] = p.max_close
+    else:
+        s.g_vradius[b] = -(a0 * p.max_close)
+    if e.pull_action_travel:  # the arm's position loop: the set-point within the step if the speed limit allows
+        target = travel_setpoint(e, a1)
+        ts.travel_target[b] = target
+        speed = min(max((target - travel(p, s, ts, b)) / p.agent_dt, -p.max_pull), p.max_pull)
+    elif e.pull_action_forward_speed:
+        speed = 0.5 * (a1 + 1.0) * p.max_pull
+    else:
+        speed = a1 * p.max_pull
+    for c in range(3):
+        s.g_vpull[b, c] = p.pull_dir[c] * speed
+
+
+@njit(cache=True, error_model="numpy")
+def observe(p, s, out, ts, b, fresh):
+    """Write env b's current frame (sensor noise ``ts.noise[b]``) into its history and observation;
+    ``fresh`` (a reset): the whole history is the current frame."""
+    e = p.env
+    h = e.obs_history
+    fd = p.frame_dim
+    if not fresh:  # drop the oldest frame
+        for k in range(h - 1):
+            for c in range(fd):
+                ts.frames[b, k, c] = ts.frames[b, k + 1, c]
+    o = ts.frames[b, h - 1]
+    ref = e.reference_force_N
+    tgt = e.lift_target_m
+    rmin = s.g_rmin[b]
+    o[I_OPENING] = (s.g_radius[b] - rmin) / (p.start_radius - rmin)
+    o[I_JAW_SPEED] = -s.g_vradius[b] / p.max_close
+    tr = travel(p, s, ts, b)
+    o[I_TRAVEL] = tr / tgt
+    o[I_PULL_SPEED] = (s.g_vpull[b, 0] * p.pull_dir[0] + s.g_vpull[b, 1] * p.pull_dir[1]
+                       + s.g_vpull[b, 2] * p.pull_dir[2]) / p.max_pull
+    for k in range(3):
+        jo = out.jaw_out[b, k]
+        noise = ts.noise[b, k]
+        o[I_NORMAL + k] = (jo[J_NORMAL] + noise) / ref
+        tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
+        o[I_TANGENTIAL + k] = (tt + abs(noise)) / ref
+        o[I_CONTACT + k] = min(jo[J_CONTACT] / p.nominal[k], 2.0)
+        o[I_SLIP_SPEED + k] = jo[J_SLIP_DIST] / p.agent_dt / p.max_pull
+        # incipient slip (what a tactile array sees): the share of the jaw's contact nodes that slip
+        o[I_SLIPPING + k] = jo[J_SLIP] / max(jo[J_CONTACT], 1.0)
+        # friction utilisation |T| / N (<= mu while the jaw sticks); 0.05 N keeps it finite off contact
+        o[I_FRICTION_USE + k] = o[I_TANGENTIAL + k] / max(o[I_NORMAL + k], 0.05 / ref)
+    o[I_PREV_ACTION] = ts.prev_action[b, 0]
+    o[I_PREV_ACTION + 1] = ts.prev_action[b, 1]
+    o[I_TIME] = ts.steps[b] * p.agent_dt / e.time_limit_s
+    o[I_LIFT] = ts.lift[b] / tgt
+    o[I_HOLD] = ts.hold_progress[b]
+    o[I_HOLD_SLIP] = ts.hold_slip[b] / e.hold_slip_tolerance_m if e.hold_slip_tolerance_m > 0 else 0.0
+    # grasper travel minus tissue lift: how far the tissue has slid out of (or lags) the jaws
+    o[I_LIFT_LAG] = (tr - ts.lift[b]) / tgt
+    o[I_PEAK_PINCH] = ts.peak_pinch[b] / ref
+    o[I_BEST_LIFT] = ts.best_lift[b] / tgt
+    o[I_LIFT_SLIP] = ts.lift_slip[b] / e.lift_slip_tolerance_m
+    if e.privileged_obs:
+        o[N_OBS] = ts.mu[b]
+        o[N_OBS + 1] = s.kscale[b]
+        o[N_OBS + 2] = s.mscale[b]
+        for q in range(p.priv_nodes.shape[0]):
+            i = p.priv_nodes[q]
+            for c in range(3):
+                o[N_OBS + 3 + 3 * q + c] = (s.x[b, i, c] - p.x_start[i, c]) / tgt
+    if fresh:
+        for k in range(h - 1):
+            for c in range(fd):
+                ts.frames[b, k, c] = o[c]
+    for k in range(h):
+        for c in range(fd):
+            ts.obs[b, k * fd + c] = ts.frames[b, k, c]
+
+
+@njit(cache=True, error_model="numpy")
+def update(p, s, out, ts, b, finite, volume_ratio):
+    """One agent step of env b after the physics: lift, slip, hold, reward terms, flags, observation and
+    the episode's totals. ``finite``: the state is finite; ``volume_ratio``: its smallest tet volume ratio."""
+    e = p.env
+    w = e.reward
+    dt = p.agent_dt
+    ts.steps[b] += 1
+    jo = out.jaw_out[b]
+    slip = (jo[0, J_SLIP_DIST] + jo[1, J_SLIP_DIST] + jo[2, J_SLIP_DIST]) / 3.0  # this step's slip, mean over jaws, m
+    pinch = jo[0, J_NORMAL] + jo[1, J_NORMAL] + jo[2, J_NORMAL]
+    stress = max(max(jo[0, J_PEAK_PRESSURE], jo[1, J_PEAK_PRESSURE]), jo[2, J_PEAK_PRESSURE])
+    contact = jo[0, J_CONTACT] + jo[1, J_CONTACT] + jo[2, J_CONTACT]
+    lift_new = 0.0
+    for c in range(3):
+        lift_new += (region_mean(p, s.x, b, c) - ts.region0[b, c]) * p.pull_dir[c]
+    tgt = e.lift_target_m
+    # progress pays for the highest lift reached (capped at the target), once: a lift that slips back is
+    # not charged again, so an attempt that fails late still beats never touching the tissue
+    best = max(ts.best_lift[b], min(lift_new, tgt))
+    progress = (best - ts.best_lift[b]) / tgt
+    ts.best_lift[b] = best
+    ts.lift[b] = lift_new
+    grip = min(pinch / w.grasp_force_N, 1.0)
+    grip_gain = grip - ts.grip[b]
+    ts.grip[b] = grip
+    ts.slip_total[b] += slip
+    peak_rise = max(pinch - ts.peak_pinch[b], 0.0)
+    ts.peak_pinch[b] = max(ts.peak_pinch[b], pinch)
+    ts.peak_stress[b] = max(ts.peak_stress[b], stress)
+    if lift_new >= e.lift_started_m:
+        ts.lift_started[b] = True
+    if ts.lift_started[b]:
+        ts.lift_slip[b] += slip
+    slipped = ts.lift_slip[b] > e.lift_slip_tolerance_m
+    at_target = lift_new >= tgt
+    if at_target and math.isnan(ts.time_to_lift[b]):
+        ts.time_to_lift[b] = ts.steps[b] * dt
+    if at_target:
+        ts.hold_time[b] += dt
+        ts.hold_slip[b] += slip
+    else:
+        ts.hold_time[b] = 0.0
+        ts.hold_slip[b] = 0.0
+    if ts.hold_slip[b] > e.hold_slip_tolerance_m:  # a hold spoilt by slip starts over (the timer restarts)
+        ts.hold_time[b] = 0.0
+        ts.hold_slip[b] = 0.0
+    hold_new = min(ts.hold_time[b] / e.hold_time_s, 1.0) if e.hold_time_s > 0 else (1.0 if at_target else 0.0)
+    hold_gain = hold_new - ts.hold_progress[b]
+    ts.hold_progress[b] = hold_new
+    success = at_target and ts.hold_time[b] >= e.hold_time_s - 1e-9 and not slipped
+    lost = ts.lift_started[b] and contact == 0
+    damaged = stress > e.damage_stress_pa
+    # an inverted tet's springs and barrier push the wrong way
+    failed = not (finite and (volume_ratio > 0.0 or not e.inverted_tet_is_failure))
+    terminated = success or lost or failed or (damaged and e.terminate_on_damage)
+    truncated = (not terminated) and ts.steps[b] >= p.max_steps
+    # every episode that ends without success pays the same failure penalty, running out of time
+    # (e.g. never touching the tissue) included: not touching is then no safe haven
+    unsuccessful = (terminated or truncated) and not success
+    if w.peak_force_timing_as_made:  # charged as made, refunded without success
+        peak_charge = peak_rise - (ts.peak_pinch[b] if unsuccessful else 0.0)
+    else:
+        peak_charge = ts.peak_pinch[b] if success else 0.0
+    peak_charge = peak_charge * pinned(ts.mu[b] / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
+    t = ts.terms[b]
+    t[R_PROGRESS] = w.progress * progress
+    t[R_HOLD] = w.hold * hold_gain
+    t[R_GRASP] = w.grasp * grip_gain
+    t[R_SLIP] = -w.slip_per_mm * slip * 1e3
+    t[R_FORCE] = -w.force_per_s * (pinch / e.reference_force_N) * dt
+    t[R_PEAK_FORCE] = -w.peak_force * peak_charge / e.reference_force_N
+    t[R_DAMAGE] = -w.damage * (1.0 if damaged else 0.0)
+    t[R_SUCCESS] = w.success_bonus * (1.0 if success else 0.0)
+    t[R_FAILURE] = -w.failure_penalty * (1.0 if unsuccessful else 0.0)
+    reward = 0.0
+    for k in range(t.shape[0]):
+        reward += t[k]
+    if failed:  # a blown-up tissue: never hand out NaN observations or rewards
+        reward = -w.failure_penalty
+        for k in range(t.shape[0]):
+            if not math.isfinite(t[k]):
+                t[k] = 0.0
+        ts.lift[b] = 0.0
+        ts.grip[b] = 0.0
+    ts.reward[b] = reward
+    ts.prev_action[b, 0] = ts.act[b, 0]
+    ts.prev_action[b, 1] = ts.act[b, 1]
+    observe(p, s, out, ts, b, False)
+    if failed:
+        for k in range(ts.frames.shape[1]):
+            for c in range(ts.frames.shape[2]):
+                ts.frames[b, k, c] = 0.0
+        for c in range(ts.obs.shape[1]):
+            ts.obs[b, c] = 0.0
+    ts.pinch[b] = pinch
+    ts.stress[b] = stress
+    ts.contact[b] = contact
+    ts.is_success[b] = success
+    ts.lost_grasp[b] = lost
+    ts.slipped[b] = slipped and not lost
+    ts.damaged[b] = damaged
+    ts.numerical_failure[b] = failed
+    ts.min_volume_ratio[b] = volume_ratio
+    ts.terminated[b] = terminated
+    ts.truncated[b] = truncated
+    done = terminated or truncated
+    ts.done[b] = done
+    # (an episode's first step starts the sum: a same-step reset must leave an ended episode's return)
+    ts.episode_return[b] = reward if ts.steps[b] == 1 else ts.episode_return[b] + reward
+    if done:
+        ts.episode_length[b] = ts.steps[b]
+        ts.episode_peak_pinch[b] = ts.peak_pinch[b]
+        ts.episode_slip[b] = ts.slip_total[b]
+        for c in range(ts.obs.shape[1]):
+            ts.terminal_obs[b, c] = ts.obs[b, c]
+
+
+@njit(cache=True, error_model="numpy")
+def restore_settled(p, s, out, b, first, stride):
+    """Env b's tissue back to the settled state at rest (nodes and springs ``first``, ``first + stride``, ...:
+    a GPU block shares them out among its threads)."""
+    for i in range(first, s.x.shape[1], stride):
+        for c in range(3):
+            s.x[b, i, c] = p.x_start[i, c]
+            s.v[b, i, c] = 0.0
+            s.f_ext[b, i, c] = 0.0
+            out.contact_force[b, i, c] = 0.0
+        out.contact_state[b, i] = 0
+    for e in range(first, s.fv.shape[1], stride):
+        s.fv[b, e] = p.fv_start[e]
+        s.dl_prev[b, e] = p.dl_start[e]
+
+
+@njit(cache=True, error_model="numpy")
+def draw_episode(p, ts, b):
+    """Turn env b's raw variates in ``ts.draws[b]`` (DRAW_IS_NORMAL) into the episode's draws in place:
+    friction and scales uniform in their ranges (mu log-uniform if so configured), the pose's offset radius
+    u^(1/3) (uniform in a ball), tilt and azimuth uniform in [-1, 1]."""
+    r = p.env.randomization
+    d = ts.draws[b]
+    lo, hi = r.mu_range[0], r.mu_range[1]
+    if r.mu_distribution_log_uniform:
+        lo = math.log(lo)
+        d[D_MU] = math.exp(lo + (math.log(hi) - lo) * d[D_MU])
+    else:
+        d[D_MU] = lo + (hi - lo) * d[D_MU]
+    d[D_KS] = r.stiffness_scale_range[0] + (r.stiffness_scale_range[1] - r.stiffness_scale_range[0]) * d[D_KS]
+    d[D_MS] = r.mass_scale_range[0] + (r.mass_scale_range[1] - r.mass_scale_range[0]) * d[D_MS]
+    d[D_OFFSET_R] = d[D_OFFSET_R] ** (1.0 / 3.0)
+    d[D_TILT] = -1.0 + 2.0 * d[D_TILT]
+    d[D_AZIMUTH] = -1.0 + 2.0 * d[D_AZIMUTH]
+
+
+@njit(cache=True, error_model="numpy")
+def begin_episode(p, s, out, ts, b):
+    """Start env b's episode from its draws and pins (after :func:`restore_settled`):
+    friction, scales and the perturbed pose, open jaws at rest, cleared episode state, the first frame."""
+    e = p.env
+    r = e.randomization
+    d = ts.draws[b]
+    pin = ts.pin[b]
+    mu = pinned(pin[P_MU], d[D_MU])
+    ts.mu[b] = mu
+    s.mu_s[b] = mu
+    s.mu_k[b] = pinned(pin[P_MU_KINETIC], mu)
+    s.kscale[b] = pinned(pin[P_KS], d[D_KS])
+    s.mscale[b] = pinned(pin[P_MS], d[D_MS])
+    deg = math.pi / 180.0
+    perturb_pose(p.pose_tip, p.pose_axis, p.pose_e1, d, pinned(pin[P_OFFSET], r.pose_offset_m),
+                 pinned(pin[P_TILT], r.pose_tilt_deg) * deg, pinned(pin[P_AZIMUTH], r.pose_azimuth_deg) * deg,
+                 s.g_tip[b], s.g_axis[b], s.g_e1[b])
+    s.t[b] = 0.0
+    s.g_radius[b] = p.start_radius
+    s.g_vradius[b] = 0.0
+    for c in range(3):
+        s.g_vpull[b, c] = 0.0
+        out.anchor_out[b, c] = 0.0
+        for col in range(out.jaw_out.shape[2]):
+            out.jaw_out[b, c, col] = 0.0
+        ts.tip0[b, c] = s.g_tip[b, c]
+        ts.region0[b, c] = region_mean(p, s.x, b, c)
+        ts.noise[b, c] = 0.0  # (no sensor noise in the first frame)
+    s.g_force[b, G_PINCH] = 0.0
+    s.g_force[b, G_SETPOINT] = -1.0  # (the force loop off: the closing speed is commanded)
+    if e.jaw_action_force:  # the jaw motor starts in force control at zero force (jaws at rest)
+        s.g_force[b, G_SETPOINT] = 0.0
+        s.g_force[b, G_GAIN] = e.force_loop_gain_m_s_per_N
+        s.g_force[b, G_VMAX] = p.max_close
+    ts.steps[b] = 0
+    ts.prev_action[b, 0] = 0.0
+    ts.prev_action[b, 1] = 0.0
+    ts.lift[b] = 0.0
+    ts.best_lift[b] = 0.0
+    ts.grip[b] = 0.0
+    ts.slip_total[b] = 0.0
+    ts.lift_slip[b] = 0.0
+    ts.hold_time[b] = 0.0
+    ts.hold_slip[b] = 0.0
+    ts.peak_pinch[b] = 0.0
+    ts.peak_stress[b] = 0.0
+    ts.lift_started[b] = False
+    ts.time_to_lift[b] = math.nan
+    ts.hold_progress[b] = 0.0
+    ts.travel_target[b] = 0.0
+    observe(p, s, out, ts, b, True)
+
+
+# ------------------------------------------------------------------------------------------------
+# the CPU core's loops over its envs (here, not in core.py: numba checks a cached function against its own
+# file only, and these compile the functions above into themselves)
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def command_batch(p, s, ts, actions):
+    """Every env's action (B,2) -> its commands."""
+    for b in range(actions.shape[0]):
+        command(p, s, ts, b, actions[b, 0], actions[b, 1])
+
+
+@njit(cache=True, error_model="numpy")
+def update_batch(p, s, out, ts, finite, volume_ratio):
+    """Every env's step after the physics."""
+    for b in range(finite.shape[0]):
+        update(p, s, out, ts, b, finite[b], volume_ratio[b])
+
+
+@njit(cache=True, error_model="numpy")
+def start_episode(p, s, out, ts, b):
+    """Env b's new episode from its draws (already turned into values) and pins: the settled tissue, then
+    :func:`begin_episode`."""
+    restore_settled(p, s, out, b, 0, 1)
+    begin_episode(p, s, out, ts, b)
