@@ -44,7 +44,11 @@ from numba import njit
 from ..physics.contact import (
     G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TY, J_TZ,
 )
+from ..physics.numba_cache import key_on_physics
 from ..physics.viscoelastic import elongations
+
+# the kernels below compile in the readout columns J_* and G_* of physics/contact.py
+key_on_physics(__file__)
 
 #: one observation frame (a stacked history repeats it, oldest first); privileged entries follow these
 OBS_NAMES = (

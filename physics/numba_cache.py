@@ -7,6 +7,10 @@ kernel module) puts locators in front of numba's own for the functions defined i
 numba's locators (same cache folders: ``NUMBA_CACHE_DIR``, else ``__pycache__``, else the user cache)
 with one change: the source stamp is a hash of every ``*.py`` file in ``physics/``. Any edit there
 invalidates every cached physics kernel; functions of other packages are not affected.
+
+A module above physics whose kernels compile in physics constants or inline physics functions (the task's
+``envs/task.py`` reads the readout columns ``J_*`` and ``G_*``) registers its file with :func:`key_on_physics`
+before its first kernel runs: its functions are then stamped with all physics sources *and* their own file.
 """
 
 from __future__ import annotations
@@ -48,18 +52,40 @@ def _physics_digest() -> str:
     return sources_digest(PHYSICS_DIR)
 
 
+#: files outside physics/ whose cached functions are keyed on the physics sources too (:func:`key_on_physics`)
+_KEYED_FILES: set[Path] = set()
+
+
+def key_on_physics(py_file: str | Path) -> None:
+    """Stamp the cached numba functions of ``py_file`` with every physics source and the file itself, so an
+    edit of a physics constant or function they compile in invalidates them (call it at the file's import)."""
+    _KEYED_FILES.add(Path(py_file).resolve())
+
+
+@functools.lru_cache(maxsize=None)
+def _keyed_file_digest(path: Path) -> str:
+    return hashlib.sha256(_physics_digest().encode() + b"\0" + path.read_bytes()).hexdigest()
+
+
+def _source_path(py_file) -> Path | None:
+    try:
+        return Path(py_file).resolve()
+    except OSError:
+        return None
+
+
 class _AllPhysicsSourcesStamp:
-    """Locator mixin: handle only functions defined in physics/, stamped with all physics sources."""
+    """Locator mixin: handle only functions defined in physics/ (or a :func:`key_on_physics` file), stamped
+    with all physics sources (and their own file)."""
 
     def get_source_stamp(self) -> str:
-        return _physics_digest()
+        path = _source_path(self._py_file)
+        return _physics_digest() if path is None or path.parent == PHYSICS_DIR else _keyed_file_digest(path)
 
     @classmethod
     def from_function(cls, py_func, py_file):
-        try:
-            inside = Path(py_file).resolve().parent == PHYSICS_DIR
-        except OSError:
-            inside = False
+        path = _source_path(py_file)
+        inside = path is not None and (path.parent == PHYSICS_DIR or path in _KEYED_FILES)
         return super().from_function(py_func, py_file) if inside else None
 
 

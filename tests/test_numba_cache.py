@@ -42,3 +42,17 @@ def test_install_is_idempotent():
     numba_cache.install()
     classes = numba_cache.CacheImpl._locator_classes
     assert sum(c in LOCATORS for c in classes) == len(LOCATORS)
+
+
+def test_the_task_kernels_are_stamped_with_the_physics_sources_and_their_own_file(tmp_path):
+    """envs/task.py compiles physics readout columns into its kernels: an edit of either invalidates them."""
+    from msdgrasp.envs import task
+
+    locator = task.update_batch._cache._impl._locator
+    assert isinstance(locator, LOCATORS)
+    stamp = locator.get_source_stamp()
+    assert stamp != sources_digest(PHYSICS_DIR)  # the task's own file counts too
+    edited = tmp_path / "task.py"
+    edited.write_text(open(task.__file__).read() + "\n# an edit of the task only\n")
+    numba_cache.key_on_physics(edited)
+    assert numba_cache._keyed_file_digest(edited.resolve()) != stamp
