@@ -13,8 +13,8 @@ import os
 from pathlib import Path
 
 def _default_models() -> list[str]:
-    """The model the default learner's run in its default folder ships (logs/train/best_model.zip), else the
-    models of its seed runs there (a multi-seed run)."""
+    """The model the default learner's run in its default folder (logs/train) ships, else the models of its
+    seed runs there (a multi-seed run)."""
     from ..agents.learners import default_learner
     from ..agents.selection import seed_runs
 
