@@ -206,7 +206,7 @@ class ModelPolicy:
     """A trained Stable-Baselines3 model (deterministic actions)."""
 
     def __init__(self, path: str | Path, name: str | None = None) -> None:
-        from .learners.sb3 import load_model, model_train_config
+        from .learners.sb3_layout import load_model, model_train_config
 
         self.model = load_model(path)
         if name is None:  # named by what it is: "PPO (seed 3)" when its training config is saved with it
@@ -238,7 +238,7 @@ class TorchScriptPolicy:
     def __init__(self, path: str | Path, name: str | None = None) -> None:
         import torch
 
-        from .learners.rsl import read_meta
+        from .learners.rsl_layout import read_meta
 
         path = Path(path)
         meta = read_meta(path)  # (ConfigError where the description beside it is missing or broken)
@@ -296,6 +296,6 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
         return SlipReactivePolicy(config)
     if spec == "oracle":
         return OraclePolicy(config)
-    from .learners import learner_of_model
+    from .learners.base import learner_of_model
 
     return learner_of_model(spec).load_policy(Path(spec))

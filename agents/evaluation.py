@@ -42,7 +42,7 @@ import numpy as np
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
-from .learners import learner_of_model, model_kinds
+from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
 from .stats import bootstrap_ci, wilson_interval
 

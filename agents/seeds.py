@@ -34,7 +34,7 @@ from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
 from .controllers import make_policy
 from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve, task_of
-from .learners import get_learner, learner_of_config, learner_of_run
+from .learners.base import get_learner, learner_of_config, learner_of_run
 from .parallel import Job, Runner, land, run_in_folder
 from .stats import bootstrap_ci, iqm  # noqa: F401  (re-exported)
 

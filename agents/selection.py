@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from ..physics.config import ConfigError, atomic_write_text
-from .learners import get_learner, learner_of_run, numbered_files
+from .learners.base import get_learner, learner_of_run, numbered_files
 from .parallel import Runner, land, move_paths, pack, run_in_folder, unpack
 
 

@@ -37,7 +37,7 @@ from ..physics.config import (
     read_yaml, to_dict,
 )
 from .controllers import TorchScriptPolicy
-from .learners.rsl import LAYOUT, NAME, RUNNER_CHECKPOINT, meta_path
+from .learners.rsl_layout import LAYOUT, NAME, RUNNER_CHECKPOINT, meta_path
 from .models import TrainConfig
 from .networks import actor_mask
 

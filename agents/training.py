@@ -27,12 +27,12 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..physics.config import ConfigError, atomic_write, to_dict, write_yaml
-from .learners.sb3 import FINAL_MODEL, LAYOUT, _algo_class, is_ppo, load_model, model_config_path  # noqa: F401 (re-exported)
-from .learners.sb3 import model_train_config  # noqa: F401 (re-exported)
+from .learners.base import numbered_files
+from .learners.sb3_layout import FINAL_MODEL, LAYOUT, algo_class, is_ppo, load_model, model_config_path  # noqa: F401
+from .learners.sb3_layout import model_train_config  # noqa: F401 (re-exported)
 from .models import TrainConfig
 from .controllers import ModelPolicy, make_policy
 from .evaluation import evaluate_policy
-from .learners import numbered_files
 
 
 def _save_atomic(model, path: Path) -> Path:
@@ -61,7 +61,7 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     torch.set_num_threads(config.torch_threads)
     write_yaml(out / LAYOUT.config, to_dict(config))
     venv = GraspLiftSB3VecEnv(config.n_envs, config.env, seed=config.seed)
-    algo_cls = _algo_class(config.algo)
+    algo_cls = algo_class(config.algo)
     if resume:
         path, _ = _latest_model(out)
         model = algo_cls.load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))

@@ -95,7 +95,7 @@ def test_selecting_an_sb3_run_again_gives_its_best_model(sb3_run, tmp_path):
     assert [h["model"] for h in again["history"]] == [h["model"] for h in run["history"]]  # checkpoints, then final
     assert again["history"] == run["history"] and again["best"] == run["best"]
     assert result["learner"] == "ppo" and (tmp_path / "again" / "best_model.yaml").is_file()
-    from msdgrasp.agents.learners.sb3 import model_train_config
+    from msdgrasp.agents.learners.sb3_layout import model_train_config
 
     assert model_train_config(tmp_path / "again" / "best_model.zip").validation_episodes == 1
     assert _digest(sb3_run) == before

@@ -36,7 +36,7 @@ def test_the_shipped_configs_are_the_defaults_and_train_the_sb3_task():
 
 
 def test_the_command_line_picks_the_config_sized_for_where_it_runs():
-    from msdgrasp.agents.learners.rsl import config_path as torch_config_path
+    from msdgrasp.agents.learners.rsl_layout import config_path as torch_config_path
 
     assert torch_config_path(None, "cpu") == builtin_config("train/rsl_ppo_cpu.yaml")  # 64 envs, not 4,096
     assert torch_config_path(None, "cuda") == builtin_config("train/rsl_ppo.yaml")

@@ -9,87 +9,19 @@ written first), ``checkpoints/model_<steps>.zip``, ``final_model.zip`` + ``final
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ...physics.config import ConfigError
-from . import Learner, RunLayout, RunSummary, TrainOverrides, numbered_files, register
+from .base import Learner, RunSummary, TrainOverrides, numbered_files, register
+from .sb3_layout import (
+    DEFAULT_CONFIG, FINAL_MODEL, LAYOUT, SUFFIX, load_train_config, read_summary, required_config_path, load_model,
+    model_train_config,
+)
 
 if TYPE_CHECKING:
     from ...envs.core import GraspLiftConfig
     from ..models import TrainConfig
-
-LAYOUT = RunLayout(model="best_model.zip", fallback_model="final_model.zip", summary="train_summary.json",
-                   config="config.yaml", checkpoint="checkpoints/model_{}.zip",
-                   model_description="<name>.zip with <name>.yaml or the run's config.yaml beside it")
-#: the final model of a run (validated last; shipped where the run kept no best)
-FINAL_MODEL = LAYOUT.fallback_model
-#: the built-in training config (``msdgrasp train`` without ``--config``)
-DEFAULT_CONFIG = "train/ppo.yaml"
-_SUFFIX = Path(LAYOUT.model).suffix
-
-
-def model_config_path(path: str | Path) -> Path | None:
-    """The training config saved with a model: ``<model>.yaml`` or the run folder's ``config.yaml``."""
-    path = Path(path)
-    for cfg in (path.with_suffix(".yaml"), path.parent / LAYOUT.config, path.parent.parent / LAYOUT.config):
-        if cfg.is_file():
-            return cfg
-    return None
-
-
-def _required_config_path(path: Path) -> Path:
-    cfg = model_config_path(path)
-    if cfg is None:
-        raise ConfigError(f"model {path}: its training config is missing ({path.with_suffix('.yaml').name} beside it, "
-                          f"or the run's {LAYOUT.config}); a model is only run on the task it was trained on")
-    return cfg
-
-
-def _load_config(cfg: Path, what: str) -> "TrainConfig":
-    from ..models import TrainConfig
-
-    try:
-        return TrainConfig.load(cfg)
-    except ConfigError as exc:
-        raise ConfigError(f"{what}: its training config {cfg} is invalid: {exc}") from None
-
-
-def model_train_config(path: str | Path) -> "TrainConfig":
-    """The :class:`TrainConfig` a saved model was trained with (ConfigError: missing or invalid)."""
-    path = Path(path)
-    return _load_config(_required_config_path(path), f"model {path}")
-
-
-def is_ppo(algo: str) -> bool:
-    """Whether SB3 algorithm ``algo`` is PPO: a Gaussian policy with gSDE options and a log std, which
-    behaviour cloning and the asymmetric critic need (SAC's actor has neither)."""
-    return algo == "ppo"
-
-
-def _algo_class(name: str):
-    from stable_baselines3 import PPO, SAC
-
-    return {"ppo": PPO, "sac": SAC}[name]
-
-
-def load_model(path: str | Path, env=None):
-    """Load a saved SB3 model with the algorithm its saved training config names (ConfigError: the model or
-    its config is missing, or the archive is not a model of that algorithm)."""
-    import zipfile
-
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"model file not found: {path}")
-    if not zipfile.is_zipfile(path):
-        raise ConfigError(f"model file {path} is not a Stable-Baselines3 {_SUFFIX} archive (corrupt or wrong file)")
-    algo = model_train_config(path).algo
-    try:
-        return _algo_class(algo).load(path, env=env, device="cpu")
-    except (ValueError, KeyError, RuntimeError, OSError, zipfile.BadZipFile) as exc:
-        raise ConfigError(f"cannot load model {path} as {algo}: {type(exc).__name__}: {exc}") from None
 
 
 class SB3Learner(Learner):
@@ -155,7 +87,7 @@ class SB3Learner(Learner):
     def config_dict_of_model(self, model: Path) -> dict[str, Any]:
         from ...physics.config import read_yaml
 
-        return read_yaml(_required_config_path(Path(model)))
+        return read_yaml(required_config_path(Path(model)))
 
     def train(self, config: Any, out_dir: Path, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
         from ..training import train
@@ -163,7 +95,7 @@ class SB3Learner(Learner):
         return train(config, out_dir, resume=resume, progress=progress)
 
     def run_summary(self, run: Path) -> RunSummary:
-        s = _read_summary(run / LAYOUT.summary)
+        s = read_summary(run / LAYOUT.summary)
         return RunSummary(s["wall_time_s"], s["timesteps"], s["steps_per_s"])
 
     @staticmethod
@@ -173,9 +105,9 @@ class SB3Learner(Learner):
             for name in (LAYOUT.config, LAYOUT.model, LAYOUT.fallback_model):
                 cfg = path / Path(name).with_suffix(".yaml")
                 if cfg.is_file():
-                    return _load_config(cfg, f"run {path}").algo
+                    return load_train_config(cfg, f"run {path}").algo
             return None
-        if path.suffix != _SUFFIX:
+        if path.suffix != SUFFIX:
             return None
         return model_train_config(path).algo
 
@@ -189,7 +121,7 @@ class SB3Learner(Learner):
 
     def model_files(self, model: Path) -> dict[str, Path]:
         model = Path(model)
-        return {model.name: model, model.with_suffix(".yaml").name: _required_config_path(model)}
+        return {model.name: model, model.with_suffix(".yaml").name: required_config_path(model)}
 
     def checkpoints(self, run: Path, config: Any) -> list[tuple[int, Path]]:
         found = numbered_files(run, LAYOUT.checkpoint)
@@ -204,15 +136,6 @@ class SB3Learner(Learner):
         for _, path in checkpoints:
             selector.consider(load_model(path), path)
         return {"best_model": str(out / LAYOUT.model), "best_validation": selector.best}
-
-
-def _read_summary(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise ConfigError(f"{path} is missing: the run did not finish (its training summary is written last)")
-    try:
-        return json.loads(path.read_text())
-    except ValueError as exc:
-        raise ConfigError(f"{path} is not a training summary ({exc})") from None
 
 
 PPO = register(SB3Learner("ppo"))
