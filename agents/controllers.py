@@ -11,13 +11,13 @@ A policy maps observations to actions for a batch of episodes::
 * :class:`OraclePolicy`: knows mu; uses the smallest fixed force that lifts without slip at that mu
   (found by bisection in simulation, cached per mu) plus a margin: the physical limit a learned policy
   is measured against.
-* :class:`ModelPolicy`: a Stable-Baselines3 model.
+* :class:`ModelPolicy`: a Stable-Baselines3 model; :class:`TorchScriptPolicy`: a torch PPO policy (a saved
+  model is run through its learner: :func:`msdgrasp.agents.learners.learner_of_model`).
 """
 
 from __future__ import annotations
 
 import functools
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -27,7 +27,6 @@ import numpy as np
 from ..envs.core import GraspLiftConfig, pinch_action
 from ..envs.task import OBS, obs_group
 from ..physics.config import ConfigError
-from .models import load_model, model_train_config
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -208,11 +207,12 @@ class ModelPolicy:
     """A trained Stable-Baselines3 model (deterministic actions)."""
 
     def __init__(self, path: str | Path, name: str | None = None) -> None:
+        from .learners.sb3_layout import load_model, model_train_config
 
         self.model = load_model(path)
         if name is None:  # named by what it is: "PPO (seed 3)" when its training config is saved with it
             cfg = model_train_config(path)
-            name = f"{cfg.algo.upper()} (seed {cfg.seed})" if cfg is not None else Path(path).stem
+            name = f"{cfg.algo.upper()} (seed {cfg.seed})"
         self.name = name
 
     @classmethod
@@ -239,11 +239,10 @@ class TorchScriptPolicy:
     def __init__(self, path: str | Path, name: str | None = None) -> None:
         import torch
 
+        from .learners.rsl_layout import read_meta
+
         path = Path(path)
-        meta_path = path.with_suffix(".json")
-        if not meta_path.is_file():
-            raise ConfigError(f"policy {str(path)!r}: no {meta_path.name} beside it (the run's observation layout)")
-        meta = json.loads(meta_path.read_text())
+        meta = read_meta(path)  # (ConfigError where the description beside it is missing or broken)
         self.module = torch.jit.load(str(path), map_location="cpu")
         self.columns = np.asarray(meta["actor_columns"], dtype=np.int64)
         self.name = name or meta.get("name", path.stem)
@@ -280,8 +279,8 @@ def idle_action(config: GraspLiftConfig) -> np.ndarray:
 
 
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
-    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | 'zero' | 'idle' | a path to a saved model (SB3 .zip, or
-    a torch PPO policy .pt)."""
+    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | 'zero' | 'idle' | a path to a saved model of any learner
+    (run by the learner recorded beside it)."""
     config = config or GraspLiftConfig()
     if spec == "zero":
         return ConstantPolicy([0.0, 0.0], "zero")
@@ -298,6 +297,6 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
         return SlipReactivePolicy(config)
     if spec == "oracle":
         return OraclePolicy(config)
-    if spec.endswith(".pt"):
-        return TorchScriptPolicy(spec)
-    return ModelPolicy(spec)
+    from .learners.base import learner_of_model
+
+    return learner_of_model(spec).load_policy(Path(spec))

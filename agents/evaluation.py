@@ -42,7 +42,7 @@ import numpy as np
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
-from .models import model_sidecar, model_task
+from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
 from .stats import bootstrap_ci, wilson_interval
 
@@ -315,14 +315,15 @@ def check_policy_spec(spec: str) -> None:
         return
     path = Path(spec)
     if path.is_dir():
-        raise ConfigError(f"policy {spec!r}: {path} is a folder, not a saved model file (.zip or .pt)")
+        raise ConfigError(f"policy {spec!r}: {path} is a folder, not a saved model file ({model_kinds()})")
     if path.is_file():
+        learner_of_model(path)  # a model records its learner and training config beside it, or it is refused
         return
     looks_like_path = path.suffix != "" or "/" in spec or "\\" in spec
     if looks_like_path:
         raise ConfigError(f"policy {spec!r}: model file not found: {path}")
     raise ConfigError(
-        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model (.zip or .pt)"
+        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model ({model_kinds()})"
     )
 
 
@@ -505,24 +506,24 @@ def _curve_record(config: GraspLiftConfig, mus: Sequence[float], forces: Sequenc
 
 
 def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
-    """The task to evaluate on: ``config`` if given, else the env config the model(s) were trained with
-    (all models must agree), else the default task. Returns (config, where it came from)."""
-
-    if config is not None:
-        return config, None
+    """The task to evaluate on: the env config the model(s) were trained with (all models must agree, and
+    agree with ``config`` where one is given), else ``config``, else (controllers only) the default task.
+    Returns (config, the file it came from). A model is never run on a task it was not trained on."""
     found: dict[str, GraspLiftConfig] = {}
     for spec in policies:
         if spec in _NAMED or spec.startswith("fixed:"):
             continue
-        env = model_task(spec)
-        if env is not None:
-            found[str(model_sidecar(spec))] = env
+        path = Path(spec)
+        learner = learner_of_model(path)
+        found[str(learner.config_file(path))] = learner.model_task(path)
     if not found:
-        return GraspLiftConfig(), None
+        return (config if config is not None else GraspLiftConfig()), None
     envs = list(found.values())
     if any(e != envs[0] for e in envs[1:]):
         raise ConfigError("the models were trained on different tasks (env configs differ: "
                           + ", ".join(found) + "); evaluate them separately")
+    if config is not None and config != envs[0]:
+        raise ConfigError(f"the given task is not the one the models were trained on ({next(iter(found))})")
     return envs[0], next(iter(found))
 
 
@@ -646,33 +647,32 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 # ------------------------------------------------------------------------------------------------
 
 
-PolicyPayload = tuple[str, str, bytes | None, str | None]  # spec or file name, display name, model bytes, its config
+#: spec or the model's file name, display name, the model's files by name (None: a built-in controller)
+PolicyPayload = tuple[str, str, dict[str, bytes] | None]
 
 
 def _payload(spec: str, name: str) -> PolicyPayload:
-    """What a job needs to rebuild a policy on any machine: a built-in spec, or the model's bytes and config."""
+    """What a job needs to rebuild a policy on any machine: a built-in spec, or the model's files (the model
+    and the file that records its learner and config, :meth:`~.learners.Learner.model_files`)."""
     if spec in _NAMED or spec.startswith("fixed:"):
-        return spec, name, None, None
-    cfg = model_sidecar(spec)
-    return Path(spec).name, name, Path(spec).read_bytes(), cfg.read_text() if cfg is not None else None
+        return spec, name, None
+    path = Path(spec)
+    files = learner_of_model(path).model_files(path)
+    return path.name, name, {n: p.read_bytes() for n, p in files.items()}
 
 
 def _policy_of(payload: PolicyPayload, config: GraspLiftConfig):
-    spec, name, data, cfg_text = payload
-    if data is None:
+    spec, name, files = payload
+    if files is None:
         return make_policy(spec, config)
     import tempfile
 
-    from .controllers import ModelPolicy, TorchScriptPolicy
-
     with tempfile.TemporaryDirectory(prefix="msdgrasp-model-") as tmp:
+        for file_name, data in files.items():
+            (Path(tmp) / file_name).write_bytes(data)
         path = Path(tmp) / spec
-        path.write_bytes(data)
-        torch_policy = path.suffix == ".pt"
-        if cfg_text is not None:  # load_model reads the algorithm from the config saved beside the model
-            path.with_suffix(".json" if torch_policy else ".yaml").write_text(cfg_text)
         # loaded into memory: the folder may go
-        return TorchScriptPolicy(path, name) if torch_policy else ModelPolicy(path, name)
+        return learner_of_model(path).load_policy(path, name)
 
 
 def _cell_job(payload: PolicyPayload, config_dict: dict[str, Any], mu: float, episodes: int, seed: int,

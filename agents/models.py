@@ -1,15 +1,12 @@
-"""Saved models and the training config they were made with (no training code here).
+"""The SB3 learners' training config (no training code here), and the task a saved model was trained on.
 
-:class:`TrainConfig` is one training run's full description (``configs/train/ppo.yaml`` spells out its
-defaults); :func:`load_model` loads a saved SB3 model with the algorithm named in the config saved next to
-it. Controllers and evaluation need these to run a model; training needs them to make one. Keeping them
-here keeps ``agents/`` acyclic: models <- controllers <- evaluation <- training <- seeds (<- cli.rl).
+:class:`TrainConfig` is one SB3 training run's full description (``configs/train/ppo.yaml`` spells out its
+defaults). Loading a model is its learner's (:mod:`.learners`): the learner recorded beside the model
+says how, never a guess.
 """
 
 from __future__ import annotations
 
-import json
-import zipfile
 from dataclasses import field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -22,8 +19,6 @@ from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, config_dataclass, from_dict, read_yaml,
 )
-
-ALGOS = ("ppo", "sac")
 
 PositiveInt = Annotated[Int, Ge(1)]
 Unit = Annotated[Real, Ge(0), Le(1)]
@@ -158,72 +153,3 @@ class TrainConfig:
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
         return from_dict(cls, read_yaml(path), where=Path(path).name)
-
-
-def _algo_class(name: str):
-    from stable_baselines3 import PPO, SAC
-
-    return {"ppo": PPO, "sac": SAC}[name]
-
-
-def model_config_path(path: str | Path) -> Path | None:
-    """The training config saved with a model: ``<model>.yaml`` or the run folder's ``config.yaml``."""
-    path = Path(path)
-    for cfg in (path.with_suffix(".yaml"), path.parent / "config.yaml", path.parent.parent / "config.yaml"):
-        if cfg.is_file():
-            return cfg
-    return None
-
-
-def model_train_config(path: str | Path) -> TrainConfig | None:
-    """The :class:`TrainConfig` a saved model was trained with (None: no config saved with it). A config
-    that is there but broken is an error, never skipped."""
-    cfg = model_config_path(path)
-    if cfg is None:
-        return None
-    try:
-        return TrainConfig.load(cfg)
-    except ConfigError as exc:
-        raise ConfigError(f"model {path}: its training config {cfg} is invalid: {exc}") from None
-
-
-def model_sidecar(path: str | Path) -> Path | None:
-    """The file that describes a saved policy: ``<policy>.json`` of a torch PPO policy (.pt), else the SB3
-    model's training config (:func:`model_config_path`)."""
-    path = Path(path)
-    if path.suffix == ".pt":
-        meta = path.with_suffix(".json")
-        return meta if meta.is_file() else None
-    return model_config_path(path)
-
-
-def model_task(path: str | Path) -> GraspLiftConfig | None:
-    """The task (env config) a saved policy was trained on; None where nothing was saved with it."""
-    path = Path(path)
-    side = model_sidecar(path)
-    if side is not None and path.suffix == ".pt":
-        try:
-            env = json.loads(side.read_text())["config"]["env"]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(f"policy {path}: {side.name} is not a torch PPO policy's description ({exc!r})") from None
-        return from_dict(GraspLiftConfig, env, where=f"{side.name}:config.env")
-    cfg = model_train_config(path)
-    return cfg.env if cfg is not None else None
-
-
-def load_model(path: str | Path, env=None):
-    """Load a saved model; its algorithm comes from the config saved next to it (without one: PPO, then SAC)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"model file not found: {path}")
-    if not zipfile.is_zipfile(path):
-        raise ConfigError(f"model file {path} is not a Stable-Baselines3 .zip archive (corrupt or wrong file)")
-    saved = model_train_config(path)
-    algos = [saved.algo] if saved is not None else list(ALGOS)
-    errors = []
-    for name in algos:
-        try:
-            return _algo_class(name).load(path, env=env, device="cpu")
-        except Exception as exc:  # noqa: BLE001 - SB3 raises many kinds on a bad archive
-            errors.append(f"{name}: {type(exc).__name__}: {exc}")
-    raise ConfigError(f"cannot load model {path}: " + "; ".join(errors))

@@ -25,7 +25,6 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -33,12 +32,11 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
-from .controllers import ModelPolicy, make_policy
-from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve
-from .models import TrainConfig
+from .controllers import make_policy
+from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve, task_of
+from .learners.base import get_learner, learner_of_config, learner_of_run
 from .parallel import Job, Runner, land, run_in_folder
 from .stats import bootstrap_ci, iqm  # noqa: F401  (re-exported)
-from .training import train
 
 #: friction values of the per-seed evaluation; REFERENCE_MU are the ones the headline numbers average
 EVAL_MU = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -88,17 +86,20 @@ def aggregate(values: Sequence[float]) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------------------
 
 
-def _train_and_evaluate(run_dir: str, config_dict: dict[str, Any], seed: int, episodes: int,
+def _train_and_evaluate(run_dir: str, learner_name: str, config_dict: dict[str, Any], seed: int, episodes: int,
                         mus: Sequence[float]) -> dict[str, Any]:
-    config = from_dict(TrainConfig, {**config_dict, "seed": seed}, where="seeds")
+    learner = get_learner(learner_name)
+    config = learner.config_from_dict({**config_dict, "seed": seed}, where="seeds")
     run = Path(run_dir)
     t0 = time.perf_counter()
-    summary = train(config, run, progress=False)
+    learner.train(config, run, progress=False)
     wall = time.perf_counter() - t0
-    model = Path(summary["best_model"] or summary["final_model"])
-    rows = evaluate_policy(ModelPolicy(model, f"PPO seed {seed}"), mus, episodes, config.env)
+    model = learner.shipped_model(run)  # the validated best, or the final model of a run without validation
+    rows = evaluate_policy(learner.load_policy(model, f"PPO seed {seed}"), mus, episodes, config.env)
+    trained = learner.run_summary(run)
     return {"seed": seed, "run": str(run), "model": str(model), "train_wall_s": round(wall, 1),
-            "train": summary, "rows": rows, "validation": _validation_history(run)}
+            "train": {"timesteps": trained.agent_steps, "steps_per_s": trained.agent_steps_per_s}, "rows": rows,
+            "validation": _validation_history(run)}
 
 
 def _validation_history(run: Path) -> list[dict[str, Any]]:
@@ -146,13 +147,14 @@ def check_run_args(out: Path, seeds: Sequence[int], episodes: int) -> None:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
 
 
-def train_points(configs: Sequence[TrainConfig], folders: Sequence[Path], seeds: Sequence[int], runner: Runner,
+def train_points(configs: Sequence[Any], folders: Sequence[Path], seeds: Sequence[int], runner: Runner,
                  *, episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True) -> list[dict[str, Any]]:
     """Train and evaluate every seed of every config (one job each, on ``runner``) into
     ``folders[p]/seed_<k>``, beside the baselines of each distinct task. One result per config: the
     per-seed records, their aggregate, the baselines and the oracle's minimal-force curve."""
     mus = [float(m) for m in mus]
-    cfg_dicts = [to_dict(replace(c, torch_threads=1)) for c in configs]  # one core per job: jobs are the parallelism
+    learners = [learner_of_config(c).name for c in configs]
+    cfg_dicts = [to_dict(learner_of_config(c).one_core(c)) for c in configs]  # one core per job: jobs are the parallelism
     tasks: list[str] = []  # distinct env configs (a sweep over training settings shares one baseline)
     task_of_point = []
     for c in cfg_dicts:
@@ -166,7 +168,8 @@ def train_points(configs: Sequence[TrainConfig], folders: Sequence[Path], seeds:
     for p, (cfg, folder) in enumerate(zip(cfg_dicts, folders)):
         for s in seeds:
             run_dir = Path(folder) / f"seed_{s}"
-            jobs.append((run_in_folder, (_train_and_evaluate, str(run_dir), runner.driver_node, cfg, s, episodes, mus)))
+            jobs.append((run_in_folder, (_train_and_evaluate, str(run_dir), runner.driver_node, learners[p], cfg, s,
+                                         episodes, mus)))
             where.append((p, run_dir))
 
     def done(k: int, res: Any) -> None:
@@ -245,6 +248,39 @@ def report_trained_seeds(models: Sequence[tuple[int, str | Path, dict[str, Any]]
     return result
 
 
+def report_seed_runs(folder: str | Path, *, seeds: Sequence[int] | None = None, episodes: int = 10,
+                     runner: Runner | None = None, progress: bool = True) -> dict[str, Any]:
+    """The multi-seed report (:func:`report_trained_seeds`) of the runs ``folder/seed_<k>/`` of any one
+    learner (``seeds``: only these; default every run there that ships a model), each seed's model
+    evaluated on the task it was trained on. ConfigError where there is none, the runs mix learners or
+    tasks, or one did not finish."""
+    from .selection import seed_runs
+
+    folder = Path(folder)
+    runs = []
+    for k, d in seed_runs(folder):
+        if seeds is not None and k not in set(seeds):
+            continue  # (the folder may hold older runs)
+        learner = learner_of_run(d, required=False)
+        model = learner.shipped_model(d) if learner is not None else None
+        if model is not None:
+            runs.append((k, d, learner, model))
+    if not runs:
+        raise ConfigError(f"{folder}: no seed_<k>/ run with a trained model there (the runs of train --seeds)")
+    names = sorted({learner.name for _, _, learner, _ in runs})
+    if len(names) > 1:
+        raise ConfigError(f"{folder}: the seed_<k>/ runs mix learners ({', '.join(names)}); report them apart")
+    models = []
+    for k, d, learner, model in runs:
+        trained = learner.run_summary(d)  # (ConfigError: the run did not finish)
+        models.append((k, str(model), trained._asdict()))
+    env, _ = task_of([m for _, m, _ in models], None)  # (all from one task, or a one-line error)
+    first_learner, first_model = runs[0][2], runs[0][3]
+    config = first_learner.config_dict_of_model(first_model)
+    config.pop("seed", None)
+    return report_trained_seeds(models, env, folder, config, episodes=episodes, runner=runner, progress=progress)
+
+
 def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int | None = None,
               episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True,
               runner: Runner | None = None) -> dict[str, Any]:
@@ -262,7 +298,7 @@ def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int
         res = train_points([config], [out], seeds, runner, episodes=episodes, mus=mus, progress=progress)[0]
         capacity = runner.capacity()
     result = {
-        "config": to_dict(replace(config, torch_threads=1)),
+        "config": to_dict(learner_of_config(config).one_core(config)),
         "seeds": seeds,
         "episodes_per_mu": episodes,
         "mu_grid": [float(m) for m in mus],

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import re
 import tempfile
 import time
 from collections.abc import Sequence
@@ -34,30 +33,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..physics.config import ConfigError, atomic_write_text, from_dict, read_yaml
+from ..physics.config import ConfigError, atomic_write_text
+from .learners.base import get_learner, learner_of_run, numbered_files
 from .parallel import Runner, land, move_paths, pack, run_in_folder, unpack
 
 
 @dataclass(frozen=True)
 class SelectionPlan:
-    """One run to select again: its learner ("rsl" or "sb3"), the config with the new validation settings,
-    its checkpoints in training order: (iteration for rsl / agent steps for sb3, path), and its training
-    summary (summary.json / train_summary.json, written last: the run finished)."""
+    """One run to select again: its learner's name (:func:`~.learners.get_learner`), the config with the new
+    validation settings, its checkpoints in training order: (iteration or agent steps, path), and its
+    training summary (written last: the run finished)."""
 
     run: Path
     learner: str
     config: Any
     checkpoints: tuple[tuple[int, Path], ...]
     summary: Path
-
-
-def _numbered(folder: Path, pattern: str) -> list[tuple[int, Path]]:
-    found = []
-    for p in folder.glob("*"):
-        m = re.fullmatch(pattern, p.name)
-        if m:
-            found.append((int(m.group(1)), p))
-    return sorted(found)
 
 
 def plan_selection(run: str | Path, validation_episodes: int | None = None,
@@ -76,34 +67,23 @@ def plan_selection(run: str | Path, validation_episodes: int | None = None,
         if not validation_mu:
             raise ConfigError("validation_mu must name at least one friction coefficient")
         overrides["validation_mu"] = [float(m) for m in validation_mu]
-    if (run / "policy.json").is_file():
-        from .torch_ppo import TorchPPOConfig
-
-        try:
-            saved = json.loads((run / "policy.json").read_text())["config"]
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ConfigError(f"select: {run / 'policy.json'} is corrupt ({exc})") from None
-        config = from_dict(TorchPPOConfig, {**saved, **overrides}, where=str(run / "policy.json"))
-        checkpoints = _numbered(run / "checkpoints", r"policy_(\d+)\.pt")
-        learner, what, summary = "rsl", "checkpoints/policy_<iteration>.pt", run / "summary.json"
-    elif (run / "config.yaml").is_file():
-        from .models import TrainConfig
-
-        config = from_dict(TrainConfig, {**read_yaml(run / "config.yaml"), **overrides}, where=str(run / "config.yaml"))
-        checkpoints = _numbered(run / "checkpoints", r"model_(\d+)\.zip")
-        if (run / "final_model.zip").is_file():
-            checkpoints.append((config.total_timesteps, run / "final_model.zip"))
-        learner, what, summary = "sb3", "checkpoints/model_<steps>.zip", run / "train_summary.json"
-    else:
-        raise ConfigError(f"select: {run} is not a training run (no policy.json of train --learner rsl, no "
-                          "config.yaml of train)")
+    try:
+        learner = learner_of_run(run)
+    except ConfigError as exc:
+        raise ConfigError(f"select: {exc}") from None
+    layout = learner.layout
+    if not (run / layout.config).is_file():  # (a pick of msdgrasp select has no training config of its own)
+        raise ConfigError(f"select: {run} is not a training run (no {layout.config} of learner {learner.name})")
+    config = learner.config_of_run(run, overrides)
+    checkpoints = learner.checkpoints(run, config)
     if not checkpoints:
-        raise ConfigError(f"select: {run} has no {what} to validate")
+        raise ConfigError(f"select: {run} has no {layout.checkpoint.format('<number>')} to validate")
     if config.validation_episodes < 1:
         raise ConfigError(f"select: {run} was trained without validation; give validation_episodes >= 1")
+    summary = run / layout.summary
     if not summary.is_file():
         raise ConfigError(f"select: {summary} is missing: the run did not finish (its training summary is written last)")
-    return SelectionPlan(run, learner, config, tuple(checkpoints), summary)
+    return SelectionPlan(run, learner.name, config, tuple(checkpoints), summary)
 
 
 def _check_out(plan: SelectionPlan, out: Path) -> None:
@@ -120,20 +100,8 @@ def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
     _check_out(plan, out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    if plan.learner == "rsl":
-        from .torch_ppo import select_torch_checkpoints
-
-        picked = select_torch_checkpoints(plan.config, plan.checkpoints, out)
-        summary = {**json.loads(plan.summary.read_text()), **picked}
-    else:
-        from .models import load_model
-        from .training import BestModel
-
-        selector = BestModel(plan.config, out)
-        for _, path in plan.checkpoints:
-            selector.consider(load_model(path), path)
-        summary = {**json.loads(plan.summary.read_text()), "best_model": str(out / "best_model.zip"),
-                   "best_validation": selector.best}
+    picked = get_learner(plan.learner).select(plan.config, list(plan.checkpoints), out)
+    summary = {**json.loads(plan.summary.read_text()), **picked}
     # the run's training summary (same file name) with the new pick, as report and evaluate read it
     atomic_write_text(out / plan.summary.name, json.dumps({**summary, "selected_from": str(plan.run)}, indent=2))
     best = json.loads((out / "validation.json").read_text())["best"]
@@ -146,18 +114,13 @@ def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
 
 def seed_runs(folder: Path) -> list[tuple[int, Path]]:
     """The ``seed_<k>/`` runs in ``folder`` (what ``train --seeds`` writes), by seed."""
-    return _numbered(folder, r"seed_(\d+)") if folder.is_dir() else []
+    return numbered_files(folder, SEED_RUN) if folder.is_dir() else []
 
 
 def _run_files(plan: SelectionPlan) -> list[Path]:
     """The files of ``plan.run`` that the selection reads: the run's config and summary, every checkpoint
-    and the file that describes it (a torch policy's .json, an SB3 model's .yaml)."""
-    from .models import model_sidecar
-
-    files = [plan.run / ("policy.json" if plan.learner == "rsl" else "config.yaml"), plan.summary]
-    for _, path in plan.checkpoints:
-        files += [path] + [side for side in (model_sidecar(path),) if side is not None]
-    return list(dict.fromkeys(files))
+    and the file that records its learner and config."""
+    return get_learner(plan.learner).run_files(plan.run, list(plan.checkpoints))
 
 
 def pack_run(plan: SelectionPlan) -> bytes:
@@ -187,7 +150,7 @@ def select(run: str | Path, out: str | Path, validation_episodes: int | None = N
     Every run is checked before the first is validated."""
     run, out = Path(run), Path(out)
     mu = None if validation_mu is None else [float(m) for m in validation_mu]
-    seeds = seed_runs(run) if not (run / "checkpoints").is_dir() else []
+    seeds = seed_runs(run) if learner_of_run(run, required=False) is None else []
     if seeds:
         if out.resolve() == run.resolve():
             raise ConfigError(f"select: --out {out} is the runs' own folder; give another folder")
@@ -205,5 +168,8 @@ def select(run: str | Path, out: str | Path, validation_episodes: int | None = N
                 for plan, folder in zip(plans, outs)]
         return [land(res, folder) for res, folder in zip(live.run(jobs), outs)]
 
+
+#: the folder of one seed's run in a folder of seeds
+SEED_RUN = "seed_{}"
 
 __all__ = ["SelectionPlan", "pack_run", "plan_selection", "select", "select_run", "seed_runs"]

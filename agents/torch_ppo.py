@@ -37,6 +37,7 @@ from ..physics.config import (
     read_yaml, to_dict,
 )
 from .controllers import TorchScriptPolicy
+from .learners.rsl_layout import LAYOUT, NAME, RUNNER_CHECKPOINT, meta_path
 from .models import TrainConfig
 from .networks import actor_mask
 
@@ -264,27 +265,27 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     t0 = time.perf_counter()
     runner.learn(config.iterations)
     train_s = time.perf_counter() - t0
-    meta = {"name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
+    meta = {"learner": NAME, "name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
 
     def export(path: Path, iteration: int) -> None:
         """The runner's actor as TorchScript at ``path``, its observation layout and iteration beside it."""
         atomic_write(path, lambda p: runner.export_policy_to_jit(str(p.parent), p.name))
-        atomic_write_text(path.with_suffix(".json"), json.dumps({**meta, "iteration": iteration}, indent=2))
+        atomic_write_text(meta_path(path), json.dumps({**meta, "iteration": iteration}, indent=2))
 
     summary: dict[str, Any] = {"backend": config.backend, "precision": getattr(core, "precision", "float64"),
                                "device": device, "num_envs": config.num_envs, "seed": config.seed,
                                "iterations": config.iterations, "agent_steps": config.total_steps, "train_s": train_s,
                                "agent_steps_per_s": config.total_steps / train_s, "validation": []}
     if config.validation_episodes == 0:
-        export(out / "policy.pt", config.iterations - 1)
+        export(out / LAYOUT.model, config.iterations - 1)
     else:
         # the checkpoints rsl-rl saved (after iterations 0, k, 2k, ... and the last), exported, then validated
         every = config.checkpoint_every
         iterations = sorted({*(range(0, config.iterations, every) if every else ()), config.iterations - 1})
         checkpoints = []
         for it in iterations:
-            runner.load(str(out / "tb" / f"model_{it}.pt"))
-            path = out / "checkpoints" / f"policy_{it}.pt"
+            runner.load(str(out / RUNNER_CHECKPOINT.format(it)))
+            path = out / LAYOUT.checkpoint.format(it)
             path.parent.mkdir(exist_ok=True)
             export(path, it)
             checkpoints.append((it, path))
@@ -292,7 +293,7 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     for v in summary.values():  # (a summary is JSON: no NaN)
         if isinstance(v, float) and not math.isfinite(v):
             raise RuntimeError(f"non-finite number in the training summary: {summary}")
-    atomic_write(out / "summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    atomic_write(out / LAYOUT.summary, lambda p: p.write_text(json.dumps(summary, indent=2)))
     return summary
 
 
@@ -331,9 +332,9 @@ def select_torch_checkpoints(config: TorchPPOConfig, checkpoints: Sequence[tuple
     for it, path in checkpoints:
 
         def keep(path: Path = path) -> None:
-            atomic_write(out / "policy.pt", lambda p: shutil.copyfile(path, p))
-            meta = json.loads(path.with_suffix(".json").read_text())
-            atomic_write_text(out / "policy.json", json.dumps({**meta, "config": to_dict(config)}, indent=2))
+            atomic_write(out / LAYOUT.model, lambda p: shutil.copyfile(path, p))
+            meta = json.loads(meta_path(path).read_text())
+            atomic_write_text(out / LAYOUT.config, json.dumps({**meta, "config": to_dict(config)}, indent=2))
 
         selector.consider_policy(TorchScriptPolicy(path), (it + 1) * config.steps_per_iteration, path, keep)
     best = selector.best

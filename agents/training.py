@@ -19,7 +19,6 @@ there; the step count continues (SB3 ``reset_num_timesteps=False``).
 from __future__ import annotations
 
 import json
-import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,8 +27,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..physics.config import ConfigError, atomic_write, to_dict, write_yaml
-from .models import ALGOS, TrainConfig, load_model, model_config_path, model_train_config  # noqa: F401 (re-exported)
-from .models import _algo_class
+from .learners.base import numbered_files
+from .learners.sb3_layout import FINAL_MODEL, LAYOUT, algo_class, is_ppo, load_model, model_config_path  # noqa: F401
+from .learners.sb3_layout import model_train_config  # noqa: F401 (re-exported)
+from .models import TrainConfig
 from .controllers import ModelPolicy, make_policy
 from .evaluation import evaluate_policy
 
@@ -39,18 +40,14 @@ def _save_atomic(model, path: Path) -> Path:
 
 
 def _latest_model(run_dir: Path) -> tuple[Path, int]:
-    ckpts = []
-    for p in (run_dir / "checkpoints").glob("model_*.zip"):
-        m = re.fullmatch(r"model_(\d+)\.zip", p.name)
-        if m:
-            ckpts.append((int(m.group(1)), p))
+    ckpts = numbered_files(run_dir, LAYOUT.checkpoint)
     if ckpts:
         steps, p = max(ckpts)
         return p, steps
-    final = run_dir / "final_model.zip"
+    final = run_dir / FINAL_MODEL
     if final.is_file():
         return final, -1
-    raise ConfigError(f"--resume {run_dir}: no checkpoints/model_<steps>.zip or final_model.zip to resume from")
+    raise ConfigError(f"--resume {run_dir}: no {LAYOUT.checkpoint.format('<steps>')} or {FINAL_MODEL} to resume from")
 
 
 def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
@@ -62,20 +59,20 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
 
     out = Path(out_dir)
     torch.set_num_threads(config.torch_threads)
-    write_yaml(out / "config.yaml", to_dict(config))
+    write_yaml(out / LAYOUT.config, to_dict(config))
     venv = GraspLiftSB3VecEnv(config.n_envs, config.env, seed=config.seed)
-    algo_cls = _algo_class(config.algo)
+    algo_cls = algo_class(config.algo)
     if resume:
         path, _ = _latest_model(out)
         model = algo_cls.load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
     else:
-        kwargs = dict(config.ppo if config.algo == "ppo" else config.sac)
+        kwargs = dict(getattr(config, config.algo))  # (the config's block of the algorithm: ppo or sac)
         if config.lr_schedule == "linear":
             from stable_baselines3.common.utils import LinearSchedule
 
             kwargs["learning_rate"] = LinearSchedule(float(kwargs.get("learning_rate", 3e-4)), 0.0, 1.0)
         policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net)}
-        if config.algo == "ppo":
+        if is_ppo(config.algo):
             policy_kwargs["log_std_init"] = float(config.log_std_init)
             if config.squash_actions:
                 policy_kwargs["squash_output"] = True
@@ -101,13 +98,13 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
 
         def _on_step(self) -> bool:
             if self.num_timesteps >= self.next:
-                path = _save_atomic(self.model, out / "checkpoints" / f"model_{self.num_timesteps}.zip")
+                path = _save_atomic(self.model, out / LAYOUT.checkpoint.format(self.num_timesteps))
                 selector.consider(self.model, path)
                 self.next += self.every
             return True
 
     bc = None
-    if not resume and config.bc_teacher and config.algo == "ppo":
+    if not resume and config.bc_teacher and is_ppo(config.algo):
         bc = behaviour_clone(model, config)
     start_steps = model.num_timesteps
     remaining = config.total_timesteps - start_steps
@@ -118,8 +115,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
             reset_num_timesteps=not resume, tb_log_name="run",
         )
     wall = time.perf_counter() - t0
-    final = _save_atomic(model, out / "final_model.zip")
-    write_yaml(out / "final_model.yaml", to_dict(config))
+    final = _save_atomic(model, out / FINAL_MODEL)
+    write_yaml(final.with_suffix(".yaml"), to_dict(config))
     selector.consider(model, final)
     succ = list(model.ep_success_buffer) if model.ep_success_buffer is not None else []
     summary = {
@@ -131,10 +128,10 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
         "recent_success_rate": round(sum(succ) / len(succ), 3) if succ else None,
         "behaviour_cloning": bc,
         "final_model": str(final),
-        "best_model": str(out / "best_model.zip") if selector.best else None,
+        "best_model": str(out / LAYOUT.model) if selector.best else None,
         "best_validation": selector.best,
     }
-    atomic_write(out / "train_summary.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    atomic_write(out / LAYOUT.summary, lambda p: p.write_text(json.dumps(summary, indent=2)))
     venv.close()
     return summary
 
@@ -206,8 +203,8 @@ class BestModel:
         """Validate the SB3 ``model`` (saved at ``path``); copy it to best_model.zip if it beats the best so far."""
 
         def keep() -> None:
-            _save_atomic(model, self.out / "best_model.zip")
-            write_yaml(self.out / "best_model.yaml", to_dict(self.config))
+            best = _save_atomic(model, self.out / LAYOUT.model)
+            write_yaml(best.with_suffix(".yaml"), to_dict(self.config))
 
         return self.consider_policy(ModelPolicy.from_model(model, "validation"), int(model.num_timesteps), path, keep)
 

@@ -12,16 +12,18 @@ import math
 import os
 from pathlib import Path
 
-DEFAULT_MODEL = Path("logs") / "train" / "best_model.zip"
-#: the models of ``msdgrasp train --seeds`` with the default output folder
-DEFAULT_SEED_MODELS = Path("logs") / "train" / "seed_*" / "best_model.zip"
-
-
 def _default_models() -> list[str]:
-    """logs/train/best_model.zip (one run) or every logs/train/seed_*/best_model.zip (a multi-seed run)."""
-    if DEFAULT_MODEL.is_file():
-        return [str(DEFAULT_MODEL)]
-    return sorted(str(p) for p in Path().glob(str(DEFAULT_SEED_MODELS)))
+    """The model the default learner's run in its default folder (logs/train) ships, else the models of its
+    seed runs there (a multi-seed run)."""
+    from ..agents.learners import default_learner
+    from ..agents.selection import seed_runs
+
+    learner = default_learner(None)
+    one = learner.default_out / learner.layout.model
+    if one.is_file():
+        return [str(one)]
+    return [str(d / learner.layout.model) for _, d in seed_runs(learner.default_out)
+            if (d / learner.layout.model).is_file()]
 
 
 def _usage(message: str) -> Exception:
@@ -70,119 +72,11 @@ def _runner(args: argparse.Namespace, default_workers: int | None = None):
 # ------------------------------------------------------------------------------------------------
 
 
-def torch_config_path(config: Path | None, backend: str | None) -> Path:
-    """The torch PPO's config: the one given, else the CPU-sized one for ``--backend cpu``
-    (configs/train/rsl_ppo_cpu.yaml: 64 envs), else configs/train/rsl_ppo.yaml (the GPU's 4,096 envs)."""
-    from ..physics.config import builtin_config
-
-    if config is not None:
-        return Path(config)
-    return builtin_config("train/rsl_ppo_cpu.yaml" if backend == "cpu" else "train/rsl_ppo.yaml")
-
-
-def _cmd_train_torch(args: argparse.Namespace) -> int:
-    """``train --learner rsl`` (the default of ``--backend cuda``): rsl-rl's PPO on the batched core."""
-    from ..physics.config import from_dict, read_yaml
-    from ..physics.scenario import check_scene_files, resolve_scene_paths
-
-    for flag, given in (("--algo", args.algo), ("--total-timesteps", args.total_timesteps), ("--resume", args.resume)):
-        if given is not None:
-            raise _usage(f"{flag} is an option of the SB3 learner; the torch PPO's run length is 'iterations' in its "
-                         "config (configs/train/rsl_ppo.yaml, rsl_ppo_cpu.yaml)")
-    if _runner_asked(args):
-        raise _usage("--ray, --address and --workers run SB3 seeds in parallel; the torch PPO runs its seeds one "
-                     "after the other on the one GPU")
-    if args.seed is not None and args.seeds is not None:
-        raise _usage("give either --seed or --seeds, not both")
-    if args.n_envs is not None and args.n_envs < 1:
-        raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
-    try:
-        from ..agents.torch_ppo import TorchPPOConfig, _rsl, train_torch
-
-        _rsl()
-    except ImportError as exc:
-        raise _missing_module("train --learner rsl", exc) from None
-    path = torch_config_path(args.config, args.backend)
-    data = read_yaml(path)
-    if "env" in data:  # the env's tissue / grasper configs: relative to this YAML
-        data["env"] = resolve_scene_paths(data["env"], path)
-    if args.backend is not None:  # else the config's (rsl_ppo.yaml: cuda)
-        data["backend"] = args.backend
-    if args.n_envs is not None:
-        data["num_envs"] = args.n_envs
-    config = from_dict(TorchPPOConfig, data, where=Path(path).name)
-    check_scene_files(config.env.tissue_config, config.env.grasper_config, f"{path}:env")  # before any write
-    if config.backend == "cuda":
-        from numba import cuda
-
-        if not cuda.is_available():
-            raise _usage("--backend cuda: no CUDA GPU found (numba.cuda.is_available() is False); run on a machine "
-                         "with an NVIDIA GPU and the gpu extra, or set NUMBA_ENABLE_CUDASIM=1 (numba's simulator: "
-                         "slow, for tests)")
-    if args.seeds is None:
-        seeds = [config.seed if args.seed is None else args.seed]
-    else:
-        from ..agents.seeds import parse_seeds
-
-        seeds = parse_seeds(args.seeds)
-    results = []
-    for seed in seeds:
-        run = from_dict(TorchPPOConfig, {**data, "seed": seed}, where=Path(path).name)
-        out = args.out if args.seeds is None else args.out / f"seed_{seed}"
-        results.append(train_torch(run, out, progress=not args.quiet))
-    if args.seeds is None:
-        print(json.dumps(results[0], indent=2))
-        return 0
-    return _report_seeds(args.out, args.quiet, seeds=seeds)  # (only these: the folder may hold older runs)
-
-
-def _seed_run(d: Path) -> tuple[str, Path, Path] | None:
-    """A finished-or-not seed run's learner, policy and training summary: torch PPO (policy.pt, summary.json)
-    or SB3 (best_model.zip, or final_model.zip of a run without validation, as ``train --seeds`` evaluates;
-    train_summary.json); None where no policy is there."""
-    if (d / "policy.pt").is_file():
-        return "rsl", d / "policy.pt", d / "summary.json"
-    for name in ("best_model.zip", "final_model.zip"):
-        if (d / name).is_file():
-            return "sb3", d / name, d / "train_summary.json"
-    return None
-
-
 def _report_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, seeds=None) -> int:
-    """The multi-seed report of the runs folder/seed_<k>/ of either learner (torch PPO: policy.pt and
-    summary.json; SB3: best_model.zip and train_summary.json), of ``seeds`` (default: every run there):
-    seeds.json / seeds.md as ``train --seeds`` writes them (agents.seeds.report_trained_seeds)."""
-    from ..agents.evaluation import task_of
-    from ..agents.models import model_config_path
-    from ..agents.seeds import report_trained_seeds
-    from ..agents.selection import seed_runs
-    from ..physics.config import read_yaml
+    """The multi-seed report of the runs folder/seed_<k>/ of any learner (agents.seeds.report_seed_runs)."""
+    from ..agents.seeds import report_seed_runs
 
-    runs = [(k, d, found) for k, d in seed_runs(Path(folder)) if (found := _seed_run(d)) is not None]
-    if seeds is not None:
-        runs = [r for r in runs if r[0] in set(seeds)]
-    if not runs:
-        raise _usage(f"{folder}: no seed_<k>/policy.pt or seed_<k>/best_model.zip there (the runs of train --seeds)")
-    if len({learner for _, _, (learner, _, _) in runs}) > 1:
-        raise _usage(f"{folder}: the seed_<k>/ runs mix learners (policy.pt and best_model.zip); report them apart")
-    missing = [str(summary) for _, _, (_, _, summary) in runs if not summary.is_file()]
-    if missing:
-        raise _usage(f"{missing[0]} is missing: the run did not finish (its training summary is written last)")
-    models = []
-    for k, _, (learner, policy, summary_path) in runs:
-        summary = json.loads(summary_path.read_text())
-        if learner == "sb3":  # (SB3's summary, in the torch PPO's names)
-            summary = {"train_s": summary["wall_time_s"], "agent_steps": summary["timesteps"],
-                       "agent_steps_per_s": summary["steps_per_s"]}
-        models.append((k, str(policy), summary))
-    env, _ = task_of([m for _, m, _ in models], None)  # (all from one task, or a one-line error)
-    first = runs[0][2]
-    if first[0] == "rsl":
-        config = json.loads((first[1].with_suffix(".json")).read_text())["config"]
-    else:
-        config = read_yaml(model_config_path(first[1]))
-    config.pop("seed", None)
-    result = report_trained_seeds(models, env, folder, config, episodes=episodes, runner=runner, progress=not quiet)
+    result = report_seed_runs(folder, seeds=seeds, episodes=episodes, runner=runner, progress=not quiet)
     print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
     return 0
 
@@ -199,59 +93,72 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from ..physics.config import builtin_config, from_dict, read_yaml, to_dict
-    from ..physics.scenario import check_scene_files, resolve_scene_paths
-    from ..agents.models import TrainConfig
+    """``msdgrasp train``: any learner by name (agents.learners); one run, a resumed run, or --seeds."""
+    from ..agents.learners import TrainOverrides, default_learner, get_learner, learner_of_config, learner_of_run
+    from ..physics.config import ConfigError
 
-    learner = args.learner or ("rsl" if args.backend == "cuda" else "sb3")
-    if args.out is None:  # the learners' runs are kept apart (evaluate's default reads logs/train)
-        args.out = Path("logs") / ("train_torch" if learner == "rsl" else "train")
-    if learner == "rsl":
-        return _cmd_train_torch(args)
-    if args.backend == "cuda":
-        raise _usage("--backend cuda trains with the torch-native PPO (--learner rsl); SB3 steps host arrays")
-
-    try:
-        from ..agents.seeds import parse_seeds, run_seeds
-        from ..agents.training import train
-    except ImportError as exc:
-        raise _missing_module("train", exc) from None
+    if args.n_envs is not None and args.n_envs < 1:
+        raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
+    if args.seed is not None and args.seeds is not None:
+        raise _usage("give either --seed or --seeds, not both")
     if args.seeds is None and _runner_asked(args):
         raise _usage("--ray, --address and --workers run the seeds of --seeds; give --seeds")
+    overrides = TrainOverrides(learner=args.learner, seed=args.seed, n_envs=args.n_envs,
+                               total_timesteps=args.total_timesteps, backend=args.backend)
     if args.resume is not None:
         if args.seeds is not None:
             raise _usage("--resume continues one run; it cannot be combined with --seeds")
-        run_dir = Path(args.resume)
-        if not (run_dir / "config.yaml").is_file():
-            raise _usage(f"--resume {run_dir}: no config.yaml there (not a training run folder)")
-        config = TrainConfig.load(run_dir / "config.yaml")
-        if args.total_timesteps:
-            config = from_dict(TrainConfig, {**to_dict(config), "total_timesteps": args.total_timesteps})
-        summary = train(config, run_dir, resume=True, progress=not args.quiet)
+        try:
+            learner = learner_of_run(args.resume)
+        except ConfigError as exc:
+            raise _usage(f"--resume: {exc}") from None
+        if args.learner is not None and args.learner != learner.name:
+            raise _usage(f"--resume {args.resume}: a run of learner {learner.name}, not {args.learner}")
+        if not learner.can_resume:
+            raise _usage(f"--resume {args.resume}: learner {learner.name} cannot continue a run; train a new one")
     else:
-        path = args.config or builtin_config("train/ppo.yaml")
-        data = read_yaml(path)
-        if "env" in data:  # the env's tissue / grasper configs: relative to this YAML
-            data["env"] = resolve_scene_paths(data["env"], path)
-        for key, val in (("algo", args.algo), ("total_timesteps", args.total_timesteps), ("n_envs", args.n_envs),
-                         ("seed", args.seed)):
-            if val is not None:
-                data[key] = val
-        if args.algo == "sac":  # the asymmetric critic is PPO's (documented in --algo's help)
-            data["asymmetric_critic"] = False
-        config = from_dict(TrainConfig, data, where=Path(path).name)
-        check_scene_files(config.env.tissue_config, config.env.grasper_config, f"{path}:env")  # before any write
-        if args.seeds is not None:
-            if args.seed is not None:
-                raise _usage("give either --seed or --seeds, not both")
-            seeds = parse_seeds(args.seeds)
-            result = run_seeds(config, seeds, args.out, runner=_runner(args, min(len(seeds), os.cpu_count() or 1)),
-                               progress=not args.quiet)
-            print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
-            return 0
-        summary = train(config, args.out, progress=not args.quiet)
-    print(json.dumps(summary, indent=2))
+        learner = get_learner(args.learner) if args.learner is not None else default_learner(args.backend)
+    if args.backend is not None and args.backend not in learner.backends:
+        able = [n for n in _learner_names() if args.backend in get_learner(n).backends]
+        raise _usage(f"--backend {args.backend}: learner {learner.name} runs on {', '.join(learner.backends)}; "
+                     f"on {args.backend} train with --learner {' or '.join(able)}")
+    if args.seeds is not None and not learner.parallel_seeds and _runner_asked(args):
+        raise _usage(f"--ray, --address and --workers run seeds in parallel; learner {learner.name} trains its seeds "
+                     "one after the other (on the one GPU)")
+    try:
+        learner.check_available()
+    except ImportError as exc:
+        raise _missing_module(f"train --learner {learner.name}", exc) from None
+    if args.resume is not None:
+        config = learner.resume_config(args.resume, overrides)
+        summary = learner.train(config, args.resume, resume=True, progress=not args.quiet)
+        print(json.dumps(summary, indent=2))
+        return 0
+    config = learner.make_config(args.config, overrides)
+    learner = learner_of_config(config)  # (the config's algo where --learner named none)
+    out = args.out if args.out is not None else learner.default_out
+    if args.seeds is None:
+        print(json.dumps(learner.train(config, out, progress=not args.quiet), indent=2))
+        return 0
+    from ..agents.seeds import parse_seeds, run_seeds
+
+    seeds = parse_seeds(args.seeds)
+    if not learner.parallel_seeds:  # one after the other, then the report of exactly these seeds
+        from dataclasses import replace
+
+        for seed in seeds:
+            learner.train(replace(config, seed=seed), out / f"seed_{seed}", progress=not args.quiet)
+        return _report_seeds(out, args.quiet, seeds=seeds)
+    result = run_seeds(config, seeds, out, runner=_runner(args, min(len(seeds), os.cpu_count() or 1)),
+                       progress=not args.quiet)
+    print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
     return 0
+
+
+def _learner_names() -> tuple[str, ...]:
+    from ..agents.learners import learner_names
+
+    return learner_names()
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
@@ -321,7 +228,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         if args.video is None:
             raise _usage(f"--still {args.still}: needs --video (the still is the video's last frame)")
         check_still_path(args.still)
-    spec = args.policy or next(iter(_default_models()), "fixed")
+    spec = args.policy
     check_policy_spec(spec)
     config, _ = task_of([spec], None)  # a model runs on the task it was trained on
     policy = build_policy(spec, config)
@@ -374,10 +281,15 @@ def _cmd_select(args: argparse.Namespace) -> int:
 
 def add_rl_commands(sub) -> None:
     """Add train / evaluate / record / replay / soak to the ``msdgrasp`` subparsers ``sub``."""
-    t = sub.add_parser("train", help="train a PPO/SAC grasp policy (Stable-Baselines3)")
-    t.add_argument("--config", type=Path, default=None, help="training config (default configs/train/ppo.yaml)")
-    t.add_argument("--algo", choices=["ppo", "sac"], default=None,
-                   help="algorithm (default: from the config); sac trains with a symmetric critic (asymmetric_critic: false)")
+    names = _learner_names()
+    t = sub.add_parser("train", help=f"train a grasp policy (learners: {', '.join(names)}; docs/learners.md)")
+    t.add_argument("--config", type=Path, default=None,
+                   help="training config (default: the learner's built-in one, configs/train/ppo.yaml for SB3)")
+    t.add_argument("--learner", "--algo", dest="learner", choices=names, default=None,
+                   help="the learner (default: the config's algo, ppo; rsl with --backend cuda). ppo and sac are "
+                        "Stable-Baselines3's (sac trains with a symmetric critic, asymmetric_critic: false); rsl is "
+                        "rsl-rl's torch-native PPO (config configs/train/rsl_ppo.yaml, whose backend is cuda, or with "
+                        "--backend cpu configs/train/rsl_ppo_cpu.yaml)")
     t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
     t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
     t.add_argument("--seed", type=int, default=None, help="random seed (one run)")
@@ -392,10 +304,6 @@ def add_rl_commands(sub) -> None:
     t.add_argument("--backend", choices=["cpu", "cuda"], default=None,
                    help="where the task runs: cpu (numba; SB3's default) or cuda (the whole agent step on the GPU; "
                         "trains with --learner rsl; pip install 'msdgrasp[gpu]'); default: the config's")
-    t.add_argument("--learner", choices=["sb3", "rsl"], default=None,
-                   help="sb3 (Stable-Baselines3, the default) or rsl (rsl-rl's torch-native PPO, the default with "
-                        "--backend cuda; config configs/train/rsl_ppo.yaml, whose backend is cuda, or with --backend "
-                        "cpu configs/train/rsl_ppo_cpu.yaml)")
     t.set_defaults(func=_cmd_train)
 
     sw = sub.add_parser("sweep", help="hyper-parameter sweep: a grid of training configs, each over several seeds")
@@ -408,8 +316,9 @@ def add_rl_commands(sub) -> None:
 
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
-                   help="PATH (saved model .zip) | fixed | fixed:<N> | reactive | oracle (repeatable; default "
-                        "logs/train/best_model.zip, else every logs/train/seed_*/best_model.zip, else fixed). "
+                   help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
+                        "fixed:<N> | reactive | oracle (repeatable; default: the model of the default learner's run in "
+                        "logs/train, else of every logs/train/seed_*/, else fixed). "
                         "reactive and oracle are always added")
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
@@ -428,7 +337,7 @@ def add_rl_commands(sub) -> None:
 
     rp = sub.add_parser("report", help="the multi-seed report (seeds.json / seeds.md) of the runs DIR/seed_<k>/")
     rp.add_argument("folder", type=Path, metavar="DIR",
-                    help="a folder of train --seeds runs (seed_<k>/best_model.zip, or policy.pt of --learner rsl), "
+                    help="a folder of train --seeds runs (seed_<k>/ of any one learner), "
                          "or of msdgrasp select's picks; the report is written there")
     rp.add_argument("--episodes", type=int, default=10, help="episodes per seed and mu (default 10)")
     _add_runner_args(rp, "every seed's evaluation")
@@ -449,9 +358,9 @@ def add_rl_commands(sub) -> None:
     sl.set_defaults(func=_cmd_select)
 
     r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
-    r.add_argument("--policy", default=None, metavar="SPEC",
-                   help="PATH | fixed | fixed:<N> | reactive | oracle | zero | idle (default "
-                        "logs/train/best_model.zip, else logs/train/seed_0's, else fixed)")
+    r.add_argument("--policy", required=True, metavar="SPEC",
+                   help="PATH (a saved model: it runs on the task it was trained on) | fixed | fixed:<N> | reactive "
+                        "| oracle | zero | idle")
     r.add_argument("--mu", type=float, default=0.5, help="friction coefficient (default 0.5)")
     r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     r.add_argument("--out", type=Path, default=Path("logs") / "record" / "episode.rrd",

@@ -250,13 +250,14 @@ def test_cli_evaluate_bad_input_exits_2_and_writes_nothing(tmp_path, monkeypatch
 def test_rl_subcommands_are_wired():
     parser = build_parser()
     a = parser.parse_args(["train", "--algo", "sac", "--total-timesteps", "100", "--n-envs", "2", "--seed", "3",
-                           "--resume", "runs/x", "--quiet"])
-    assert (a.algo, a.total_timesteps, a.n_envs, a.seed, a.resume, a.quiet) == ("sac", 100, 2, 3, Path("runs/x"), True)
+                           "--resume", "runs/x", "--quiet"])  # (--algo: the old name of --learner)
+    assert (a.learner, a.total_timesteps, a.n_envs, a.seed, a.resume, a.quiet) == ("sac", 100, 2, 3, Path("runs/x"), True)
     # (--out defaults in the handler: logs/train for SB3, logs/train_torch for the torch PPO)
-    assert a.config is None and a.out is None and a.backend is None and a.learner is None
+    assert a.config is None and a.out is None and a.backend is None
+    assert parser.parse_args(["train", "--learner", "rsl"]).learner == "rsl"
     e = parser.parse_args(["evaluate"])
     assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (None, None, 10, 0, Path("logs/evaluate"), False)
-    r = parser.parse_args(["record"])
+    r = parser.parse_args(["record", "--policy", "fixed"])
     assert (r.mu, r.out) == (0.5, Path("logs/record/episode.rrd"))
     s = parser.parse_args(["soak"])
     assert (s.steps, s.n_envs, s.out) == (1_000_000, 16, Path("logs/soak"))

@@ -94,8 +94,8 @@ def test_selecting_an_sb3_run_again_gives_its_best_model(sb3_run, tmp_path):
     again, run = _validation(tmp_path / "again"), _validation(sb3_run)
     assert [h["model"] for h in again["history"]] == [h["model"] for h in run["history"]]  # checkpoints, then final
     assert again["history"] == run["history"] and again["best"] == run["best"]
-    assert result["learner"] == "sb3" and (tmp_path / "again" / "best_model.yaml").is_file()
-    from msdgrasp.agents.models import model_train_config
+    assert result["learner"] == "ppo" and (tmp_path / "again" / "best_model.yaml").is_file()
+    from msdgrasp.agents.learners.sb3_layout import model_train_config
 
     assert model_train_config(tmp_path / "again" / "best_model.zip").validation_episodes == 1
     assert _digest(sb3_run) == before
@@ -120,7 +120,7 @@ def test_bad_selections_are_one_line_errors_before_anything_is_written(torch_run
     empty = tmp_path / "empty"
     shutil.copytree(torch_run, empty)
     shutil.rmtree(empty / "checkpoints")
-    with pytest.raises(ConfigError, match=r"has no checkpoints/policy_<iteration>\.pt to validate"):
+    with pytest.raises(ConfigError, match=r"has no checkpoints/policy_<number>\.pt to validate"):
         plan_selection(empty)
     unfinished = tmp_path / "unfinished"
     shutil.copytree(torch_run, unfinished)

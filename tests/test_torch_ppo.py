@@ -36,7 +36,7 @@ def test_the_shipped_configs_are_the_defaults_and_train_the_sb3_task():
 
 
 def test_the_command_line_picks_the_config_sized_for_where_it_runs():
-    from msdgrasp.cli.rl import torch_config_path
+    from msdgrasp.agents.learners.rsl_layout import config_path as torch_config_path
 
     assert torch_config_path(None, "cpu") == builtin_config("train/rsl_ppo_cpu.yaml")  # 64 envs, not 4,096
     assert torch_config_path(None, "cuda") == builtin_config("train/rsl_ppo.yaml")
@@ -182,9 +182,9 @@ def test_the_command_line_refuses_sb3_options_for_the_torch_learner(tmp_path):
                               capture_output=True, text=True)
 
     r = run("--learner", "rsl", "--total-timesteps", "10")
-    assert r.returncode == 2 and "--total-timesteps is an option of the SB3 learner" in r.stderr
-    r = run("--backend", "cuda", "--learner", "sb3")
-    assert r.returncode == 2 and "--backend cuda trains with the torch-native PPO" in r.stderr
+    assert r.returncode == 2 and "--total-timesteps is an option of the SB3 learners" in r.stderr
+    r = run("--backend", "cuda", "--learner", "ppo")
+    assert r.returncode == 2 and "--backend cuda: learner ppo runs on cpu; on cuda train with --learner rsl" in r.stderr
     r = run("--learner", "rsl", "--n-envs", "0")
     assert r.returncode == 2 and "--n-envs must be >= 1, got 0" in r.stderr
     assert not (tmp_path / "o").exists()

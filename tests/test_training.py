@@ -116,7 +116,7 @@ def test_short_run_saves_models_that_load_and_act(short_run):
         assert (out / name).is_file(), name
     assert sorted(p.name for p in (out / "checkpoints").glob("model_*.zip"))  # periodic checkpoints
     assert not list(out.rglob(".*.zip"))  # no temp files of the atomic writes left behind
-    from msdgrasp.agents.models import model_train_config
+    from msdgrasp.agents.learners.sb3_layout import model_train_config
 
     # a model runs on the task it was trained on (here with the critic's privileged entries)
     task = model_train_config(out / "final_model.zip").env
