@@ -3,7 +3,7 @@
 ``msdgrasp sweep SWEEP.yaml`` (``--ray`` / ``--address`` to run the jobs on Ray, :mod:`.parallel`) reads a
 :class:`SweepConfig`::
 
-    base: train/ppo.yaml            # a built-in training config, or a path to one
+    base: train/ppo.yaml            # a built-in training config, or a file path relative to this sweep file
     set: {total_timesteps: 300000}  # dotted keys applied to every point
     grid:                           # dotted keys -> values; every combination is one point
       ppo.learning_rate: [1.0e-4, 3.0e-4]
@@ -33,6 +33,7 @@ from pydantic import Field
 from ..physics.config import (ConfigError, Int, Real, Str, atomic_write_text, builtin_config, config_dataclass,
                               from_dict, read_yaml, to_dict)
 from .evaluation import nan_to_none
+from .learners.base import read_train_yaml
 from .models import TrainConfig
 from .parallel import Runner
 from .seeds import EVAL_MU, REFERENCE_MU, check_run_args, fmt_value, parse_seeds, train_points, write_seed_report
@@ -76,7 +77,15 @@ class SweepConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> "SweepConfig":
-        return from_dict(cls, read_yaml(path), where=Path(path).name)
+        """The sweep file at ``path``; a relative ``base`` that names a file beside it is read from there (a sweep
+        and its base config move together), else it names a built-in config."""
+        data = read_yaml(path)
+        base = data.get("base")
+        if isinstance(base, str) and base and not Path(base).is_absolute():
+            beside = Path(path).resolve().parent / base
+            if beside.is_file():
+                data["base"] = str(beside)
+        return from_dict(cls, data, where=str(path))
 
 
 def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
@@ -93,13 +102,19 @@ def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
 
 
 def _base_path(base: str) -> Path:
+    """An absolute base is that file; a relative one a built-in config (``SweepConfig.load`` has already made a
+    base beside the sweep file absolute): never a file found through the current directory."""
     path = Path(base)
-    return path if path.is_file() else builtin_config(base)
+    if path.is_absolute():
+        if not path.is_file():
+            raise ConfigError(f"sweep base: config file not found: {path}")
+        return path
+    return builtin_config(base)
 
 
 def sweep_points(sweep: SweepConfig, where: str = "sweep") -> list[tuple[dict[str, Any], TrainConfig]]:
     """Every grid point: (its values by dotted key, its validated TrainConfig)."""
-    base = read_yaml(_base_path(sweep.base))
+    base = read_train_yaml(_base_path(sweep.base))
     for key, value in sweep.set.items():
         _set_dotted(base, key, value)
     keys = list(sweep.grid)

@@ -231,3 +231,23 @@ def test_the_env_grasper_is_the_experiments_grasper():
     """configs/grasper/env.yaml says its values are default.yaml's (the task's grasper must not drift silently)."""
     assert (load_params(builtin_config("grasper/env.yaml"), "grasper", GrasperParams)
             == load_params(builtin_config("grasper/default.yaml"), "grasper", GrasperParams))
+
+
+def test_a_sweep_reads_its_base_config_beside_it_not_through_the_working_directory(tmp_path, monkeypatch):
+    """A sweep and its base training config move together; a relative base is never looked up in the cwd."""
+    from msdgrasp.agents.sweep import SweepConfig, sweep_points
+
+    folder = tmp_path / "study"
+    folder.mkdir()
+    base = read_yaml(builtin_config("train/ppo.yaml"))
+    (folder / "base.yaml").write_text(yaml.safe_dump({**base, "total_timesteps": 4096}))
+    (folder / "sweep.yaml").write_text("base: base.yaml\ngrid: {ppo.learning_rate: [0.001]}\nseeds: '0'\n")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    ((_, config),) = sweep_points(SweepConfig.load(folder / "sweep.yaml"))
+    assert config.total_timesteps == 4096
+    (elsewhere / "base.yaml").write_text((folder / "base.yaml").read_text())  # found only through the cwd: refused
+    (tmp_path / "other.yaml").write_text("base: base.yaml\ngrid: {ppo.learning_rate: [0.001]}\nseeds: '0'\n")
+    with pytest.raises(ConfigError, match="base.yaml"):
+        sweep_points(SweepConfig.load(tmp_path / "other.yaml"))

@@ -58,7 +58,7 @@ class RslLearner(Learner):
         for key, val in (("backend", overrides.backend), ("num_envs", overrides.n_envs), ("seed", overrides.seed)):
             if val is not None:  # (else the config's; rsl_ppo.yaml's backend: cuda)
                 data[key] = val
-        config = check_env_files(self.config_from_dict(data, where=path.name), path)
+        config = check_env_files(self.config_from_dict(data, where=str(path)), path)
         if config.backend == "cuda":
             from numba import cuda
 

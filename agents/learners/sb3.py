@@ -68,7 +68,7 @@ class SB3Learner(Learner):
                          ("seed", overrides.seed)):
             if val is not None:
                 data[key] = val
-        return check_env_files(self.config_from_dict(data, where=path.name), path)
+        return check_env_files(self.config_from_dict(data, where=str(path)), path)
 
     def resume_config(self, run: Path, overrides: TrainOverrides) -> "TrainConfig":
         from ...physics.config import to_dict
