@@ -158,6 +158,33 @@ def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarr
 
 
 @njit(cache=True, error_model="numpy")
+def clear_readouts(b: int, out) -> None:
+    """Zero tissue b's jaw, plate and anchor readouts (SimReadout ``out``) at the start of a call."""
+    for k in range(out.jaw_out.shape[1]):
+        for c in range(out.jaw_out.shape[2]):
+            out.jaw_out[b, k, c] = 0.0
+    for p in range(out.plate_out.shape[1]):
+        for c in range(3):
+            out.plate_out[b, p, c] = 0.0
+    for c in range(3):
+        out.anchor_out[b, c] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def clear_contacts(b: int, model, out, held, last_sub: bool) -> None:
+    """Before a substep's contacts: no surface node of tissue b is held (``held`` (N,) int8, read only by the
+    volume floor) and, in the last substep, its contact readouts restart from zero."""
+    for q in range(model.surface_nodes.shape[0]):
+        i = model.surface_nodes[q]
+        if model.vol_floor > 0.0:
+            held[i] = 0
+        if last_sub:
+            out.contact_state[b, i] = 0
+            for c in range(3):
+                out.contact_force[b, i, c] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def plate_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     model, state, out,  # SimModel, SimState (plate points advanced), SimReadout (plate_out, contacts filled)

@@ -35,7 +35,18 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, floor_reactions, jaw_contacts, jaw_directions, plate_contacts
+from .contact import (
+    G_GAIN,
+    G_PINCH,
+    G_SETPOINT,
+    G_VMAX,
+    clear_contacts,
+    clear_readouts,
+    floor_reactions,
+    jaw_contacts,
+    jaw_directions,
+    plate_contacts,
+)
 from .forces import (
     accumulate_volume_forces,
     accumulate_volume_forces_lanes,
@@ -124,9 +135,8 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     block's state in lanes (lane l is tissue lane0 + l); the rest of the state is read from ``state``."""
     m = model
     mass, b0, b1, fixed = m.mass, m.b0, m.b1, m.fixed
-    tets, rest_volume, kvol, surface_nodes = m.tets, m.rest_volume, m.kvol, m.surface_nodes
-    t, jaw_out, plate_out, anchor_out = state.t, out.jaw_out, out.plate_out, out.anchor_out
-    contact_state, contact_force, g_force, g_vradius = out.contact_state, out.contact_force, state.g_force, state.g_vradius
+    tets, rest_volume, kvol = m.tets, m.rest_volume, m.kvol
+    t, anchor_out, g_force, g_vradius = state.t, out.anchor_out, state.g_force, state.g_vradius
     n_sub = m.n_sub
     n = x.shape[0]
     nl = x.shape[2]
@@ -149,7 +159,6 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
     ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
     res = np.empty(6)
-    ns = surface_nodes.shape[0]
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
     floor_flags = np.empty((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the volume floor
@@ -176,9 +185,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 f0[i, c, lane] = mass[i] * ms[lane] * m.gravity[c] + state.f_ext[b, i, c]
     for lane in range(nl):
         b = lane0 + lane
-        jaw_out[b, :, :] = 0.0
-        plate_out[b, :, :] = 0.0
-        anchor_out[b, :] = 0.0
+        clear_readouts(b, out)
         jaw_directions(state.g_axis[b], state.g_e1[b], u[lane], tj[lane])
     inv_sub = 1.0 / n_sub
     for step in range(n_steps):
@@ -217,21 +224,12 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             for lane in range(nl):
                 b = lane0 + lane
                 t[b] += dt
-                if last_sub:
-                    for q in range(ns):
-                        i = surface_nodes[q]
-                        contact_state[b, i] = 0
-                        contact_force[b, i, 0] = 0.0
-                        contact_force[b, i, 1] = 0.0
-                        contact_force[b, i, 2] = 0.0
                 # (N,3) views of one lane, strided in a lane block: one compiled contact code for both paths
                 xb = x[:, :, lane]
                 vb = v[:, :, lane]
                 mb = meff[:, lane]
                 hb = held[lane]
-                if m.vol_floor > 0.0:  # only the floor reads the holders
-                    for q in range(ns):
-                        hb[surface_nodes[q]] = 0
+                clear_contacts(b, m, out, hb, last_sub)
                 plate_contacts(b, xb, vb, mb, m, state, out, sub_info, res, hb)
                 if m.jaw_active:
                     jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], sub_info, res, hb)
