@@ -64,8 +64,8 @@ class Springs(NamedTuple):
     k1: np.ndarray  # (E,) N/m
     k2: np.ndarray  # (E,) N/m^3
     dlc: np.ndarray  # (E,) m
-    cdash: np.ndarray  # (E,) N s/m, spring dashpot (read only when use_dashpot)
-    kv: np.ndarray  # (E,) N/m Maxwell spring stiffness (read only when use_sls)
+    cdash: np.ndarray  # (E,) N s/m, spring dashpot (used only with use_dashpot)
+    kv: np.ndarray  # (E,) N/m Maxwell spring stiffness (used only with use_sls)
     use_dashpot: bool
     use_sls: bool  # Maxwell branch (physics/viscoelastic.py)
 
@@ -116,9 +116,10 @@ def spring_loop(
     fv: np.ndarray,  # (E,) Maxwell branch force, N (state, updated; unused without the branch)
     dl_prev: np.ndarray,  # (E,) elongation at the previous substep, m (state, updated; likewise)
     f: np.ndarray,  # (N,3) out: forces are ADDED here
-    scratch: np.ndarray,  # (9,E) work space
+    scratch: np.ndarray,  # (9,E) work space; rows 3-5 zero (or finite) when there are no dashpots
 ) -> None:
     """The one-tissue spring loop: springs (+ dashpots, + Maxwell branches) added to ``f``, momentum-exact.
+    ``springs.kv``, ``springs.cdash``, ``fv`` and ``dl_prev`` need E entries even where unused (zeros).
 
     Three passes: gather the edge vectors (indexed loads), compute every spring's force (contiguous
     arrays, no branches: LLVM emits SIMD code), scatter in edge order. ~20% faster than one fused loop,
@@ -138,11 +139,11 @@ def spring_loop(
             scratch[3, e] = v[j, 0] - v[i, 0]
             scratch[4, e] = v[j, 1] - v[i, 1]
             scratch[5, e] = v[j, 2] - v[i, 2]
-    for e in range(ne):
-        dash = (scratch[3, e], scratch[4, e], scratch[5, e], cdash[e]) if use_dashpot else (0.0, 0.0, 0.0, 0.0)
-        mw = (fv[e], dl_prev[e], kv[e], decay, gain) if use_sls else (0.0, 0.0, 0.0, decay, gain)
+    for e in range(ne):  # every input read unconditionally: conditional loads here cost LLVM the SIMD code
         fx, fy, fz, fve, dle = spring_body((scratch[0, e], scratch[1, e], scratch[2, e]),
-                                           (rest_length[e], k1[e], k2[e], dlc[e]), kscale, dash, mw, flags)
+                                           (rest_length[e], k1[e], k2[e], dlc[e]), kscale,
+                                           (scratch[3, e], scratch[4, e], scratch[5, e], cdash[e]),
+                                           (fv[e], dl_prev[e], kv[e], decay, gain), flags)
         if use_sls:
             fv[e] = fve
             dl_prev[e] = dle
@@ -227,9 +228,9 @@ def accumulate_spring_forces(
     f: np.ndarray,
 ) -> None:
     """Add every spring's (and dashpot's) force to ``f`` (no Maxwell branch)."""
-    empty = np.empty(0)
-    spring_loop(x, v, Springs(edges, rest_length, k1, k2, dlc, cdash, empty, use_dashpot, False), kscale, 1.0, 0.0,
-                empty, empty, f, np.empty((9, edges.shape[0])))
+    zero = np.zeros(edges.shape[0])
+    spring_loop(x, v, Springs(edges, rest_length, k1, k2, dlc, cdash, zero, use_dashpot, False), kscale, 1.0, 0.0,
+                zero, zero, f, np.zeros((9, edges.shape[0])))
 
 
 @njit(cache=True, error_model="numpy")

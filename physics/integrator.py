@@ -48,6 +48,7 @@ from .contact import (
     plate_contacts,
 )
 from .forces import (
+    Springs,
     accumulate_volume_forces,
     accumulate_volume_forces_lanes,
     flag_volume_floor,
@@ -155,7 +156,10 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     damp_inv = np.empty((n, nl))
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
-    spring_scratch = np.empty((9, 0 if lanes else ne))
+    spring_scratch = np.zeros((9, 0 if lanes else ne))
+    # the springs with kv of E entries: the one-tissue loop reads it unconditionally (zeros without the branch)
+    springs = Springs(m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash,
+                      m.kv if m.kv.shape[0] == ne else np.zeros(ne), m.use_dashpot, m.use_sls)
     ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
     ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
     res = np.empty(6)
@@ -202,9 +206,9 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
                 f_flat[k] = f0_flat[k]
             if lanes:
-                spring_loop_lanes(x, v, m, ks, decay, gain, fv, dl_prev, f, tmp)
+                spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp)
             else:
-                spring_loop(x_one, v_one, m, ks[0], decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one,
+                spring_loop(x_one, v_one, springs, ks[0], decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one,
                             spring_scratch)
             if kvol.shape[0] > 0:  # (with the volumes of the floor's pass at the end of the last substep if known)
                 if lanes and vols_known:

@@ -40,7 +40,7 @@ def accumulate_spring_forces_sls(
     """Springs + dashpots (as :func:`.forces.accumulate_spring_forces`) plus the Maxwell branch."""
     sp = springs
     with_sls = Springs(sp.edges, sp.rest_length, sp.k1, sp.k2, sp.dlc, sp.cdash, sp.kv, sp.use_dashpot, True)
-    spring_loop(x, v, with_sls, kscale, decay, gain, fv, dl_prev, f, np.empty((9, sp.edges.shape[0])))
+    spring_loop(x, v, with_sls, kscale, decay, gain, fv, dl_prev, f, np.zeros((9, sp.edges.shape[0])))
 
 
 def elongations(x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> np.ndarray:
