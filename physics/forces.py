@@ -196,8 +196,8 @@ def spring_loop_lanes(
             d = (x[j, 0, b] - x[i, 0, b], x[j, 1, b] - x[i, 1, b], x[j, 2, b] - x[i, 2, b])
             dash = (v[j, 0, b] - v[i, 0, b], v[j, 1, b] - v[i, 1, b], v[j, 2, b] - v[i, 2, b], cd) if use_dashpot \
                 else (0.0, 0.0, 0.0, 0.0)
-            mw = (fv[e, b], dl_prev[e, b], kve, decay, gain) if use_sls else (0.0, 0.0, 0.0, decay, gain)
-            fx, fy, fz, fve, dle = spring_body(d, law, kscale[b], dash, mw, flags)
+            fx, fy, fz, fve, dle = spring_body(d, law, kscale[b], dash, (fv[e, b], dl_prev[e, b], kve, decay, gain),
+                                               flags)
             if use_sls:
                 fv[e, b] = fve
                 dl_prev[e, b] = dle
