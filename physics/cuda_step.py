@@ -77,8 +77,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
     tid, nth = cuda.threadIdx.x, cuda.blockDim.x
     x, v, n, ne = s.x, s.v, s.x.shape[1], m.edges.shape[0]
     nt = m.tets.shape[0] if m.kvol.shape[0] > 0 else 0
-    n_sub = m.n_sub
-    dt, inv_sub = m.dt_outer / n_sub, 1.0 / n_sub
+    dt, inv_sub = m.dt_outer / m.n_sub, 1.0 / m.n_sub
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
     ks, ms = s.kscale[b], s.mscale[b]
@@ -92,9 +91,9 @@ def _simulate_kernel(m, s, out, w, n_steps):
         last_step = step == n_steps - 1
         if tid == 0 and m.jaw_active:
             _force_loop(s.g_force, s.g_vradius, b)
-        for sub in range(n_sub):
-            last_sub = last_step and sub == n_sub - 1
-            sub_info = (dt, 1.0 / n_sub if last_step else 0.0, last_sub, inv_sub)
+        for sub in range(m.n_sub):
+            last_sub = last_step and sub == m.n_sub - 1
+            sub_info = (dt, inv_sub if last_step else 0.0, last_sub, inv_sub)
             # ---- 1a. springs: the force on the first node (and the Maxwell state) to the scratch
             for e in range(tid, ne, nth):
                 i, j = m.edges[e, 0], m.edges[e, 1]

@@ -120,7 +120,8 @@ def make_scratch(model: SimModel, batch: int) -> CudaScratch:
         held=np.zeros((batch, n), dtype=np.int8), react=np.zeros((batch, n, 3)), meff=np.zeros((batch, n)),
         fa=np.zeros((batch, n, 3)),
         edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0), tet_ptr=tptr, tet_idx=tidx,
-        tet_col=np.asarray(TET_FORCE_COLUMN, dtype=np.int64)[tcol], u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
+        tet_col=np.asarray(TET_FORCE_COLUMN, dtype=np.int64)[tcol],
+        u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
     )
 
 

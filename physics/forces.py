@@ -22,10 +22,11 @@ damp rigid motion.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+
+from .records import Springs
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -53,21 +54,6 @@ def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.n
     for i in range(dl.size):
         out.flat[i] = spring_force(dl.flat[i], k1, k2, dlc)
     return out
-
-
-class Springs(NamedTuple):
-    """The springs of one mesh, as :func:`spring_loop` reads them. :class:`.records.SimModel` has the same
-    fields, so the step kernel passes its model record where a ``Springs`` is expected."""
-
-    edges: np.ndarray  # (E,2) int
-    rest_length: np.ndarray  # (E,) m
-    k1: np.ndarray  # (E,) N/m
-    k2: np.ndarray  # (E,) N/m^3
-    dlc: np.ndarray  # (E,) m
-    cdash: np.ndarray  # (E,) N s/m, spring dashpot (used only with use_dashpot)
-    kv: np.ndarray  # (E,) N/m Maxwell spring stiffness (used only with use_sls)
-    use_dashpot: bool
-    use_sls: bool  # Maxwell branch (physics/viscoelastic.py)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -109,7 +95,7 @@ def spring_body(d, law, ks, dash, maxwell, flags):
 def spring_loop(
     x: np.ndarray,  # (N,3) positions, m
     v: np.ndarray,  # (N,3) velocities, m/s
-    springs: Springs,  # or a SimModel (same fields)
+    springs: Springs,  # (or a record with its fields, as SimModel)
     kscale: float,  # stiffness multiplier of this tissue (domain randomisation)
     decay: float,  # e^(-dt/tau)
     gain: float,  # (tau/dt) (1 - e^(-dt/tau))
@@ -126,7 +112,8 @@ def spring_loop(
     and bitwise the same (each spring's arithmetic and the order of the additions into f are unchanged).
     """
     edges, use_dashpot, use_sls = springs.edges, springs.use_dashpot, springs.use_sls
-    rest_length, k1, k2, dlc, cdash, kv = springs.rest_length, springs.k1, springs.k2, springs.dlc, springs.cdash, springs.kv
+    rest_length, k1, k2, dlc = springs.rest_length, springs.k1, springs.k2, springs.dlc
+    cdash, kv = springs.cdash, springs.kv
     flags = (use_dashpot, use_sls)
     ne = edges.shape[0]
     for e in range(ne):
@@ -173,7 +160,7 @@ def spring_loop(
 def spring_loop_lanes(
     x: np.ndarray,  # (N,3,L) positions, m
     v: np.ndarray,  # (N,3,L) velocities, m/s
-    springs: Springs,  # or a SimModel (same fields)
+    springs: Springs,  # (or a record with its fields, as SimModel)
     kscale: np.ndarray,  # (L,) stiffness multiplier of each tissue
     decay: float,
     gain: float,

@@ -48,7 +48,6 @@ from .contact import (
     plate_contacts,
 )
 from .forces import (
-    Springs,
     accumulate_volume_forces,
     accumulate_volume_forces_lanes,
     flag_volume_floor,
@@ -58,7 +57,7 @@ from .forces import (
     spring_loop,
     spring_loop_lanes,
 )
-from .records import SimModel, SimReadout, SimState
+from .records import SimModel, SimReadout, SimState, Springs
 
 
 #: batches of at least this many tissues compute springs and tets across tissues (SIMD lanes); smaller

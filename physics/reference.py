@@ -154,7 +154,8 @@ def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10
     ``model`` (default: the anchored spleen at ``resolution``) may be any TissueModel. Returns the largest
     difference relative to the largest magnitude (forces, Maxwell forces, positions' displacement).
     """
-    from .forces import Springs, accumulate_spring_forces, accumulate_volume_forces
+    from .forces import accumulate_spring_forces, accumulate_volume_forces
+    from .records import Springs
     from .simulation import Simulation
     from .viscoelastic import accumulate_spring_forces_sls
 

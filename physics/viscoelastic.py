@@ -22,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .forces import Springs, spring_loop
+from .forces import spring_loop
+from .records import Springs
 
 
 @njit(cache=True, error_model="numpy")
