@@ -51,18 +51,16 @@ def resolve_node_contact(
     v: np.ndarray,  # (N,3) velocities after the explicit prediction (modified)
     i: int,
     m: float,  # effective mass m + dt b (implicit nodal damping), kg
-    nx: float,
-    ny: float,
-    nz: float,  # unit face normal pointing INTO the tissue
+    normal: tuple,  # (nx, ny, nz) unit face normal pointing INTO the tissue
     d: float,  # penetration beyond the face plane, m (> 0)
-    fvx: float,
-    fvy: float,
-    fvz: float,  # face velocity, m/s
-    mu_s: float,
-    mu_k: float,
+    face_v: tuple,  # (vx, vy, vz) face velocity, m/s
+    mu: tuple,  # (mu_s, mu_k) static and kinetic friction coefficients
     dt: float,
     out: np.ndarray,  # (6,) out: [normal force N, ftx, fty, ftz, state, slip speed m/s]
 ) -> None:
+    nx, ny, nz = normal
+    fvx, fvy, fvz = face_v
+    mu_s, mu_k = mu
     dvn = d / dt
     vx = v[i, 0] + dvn * nx
     vy = v[i, 1] + dvn * ny
@@ -110,10 +108,10 @@ def resolve_node_contact(
 
 @njit(cache=True, inline="always", error_model="numpy")
 def jaw_candidate(
-    rx: float, ry: float, rz: float,  # node position relative to the grasper tip (axis point)
-    ax: float, ay: float, az: float,  # grasper axis (unit, pointing from handle to tip)
-    e1x: float, e1y: float, e1z: float,  # azimuth-0 direction (unit, normal to the axis)
-    e2x: float, e2y: float, e2z: float,  # a x e1
+    r: tuple,  # (3 floats) node position relative to the grasper tip (axis point), m
+    axis: tuple,  # (3 floats) grasper axis (unit, pointing from handle to tip)
+    e1: tuple,  # (3 floats) azimuth-0 direction (unit, normal to the axis)
+    e2: tuple,  # (3 floats) a x e1
     radius: float,
     jaw_length: float,
 ) -> int:
@@ -123,6 +121,10 @@ def jaw_candidate(
     all three jaws at once; the axial coordinate must lie on the jaws; the azimuth then picks the jaw
     (jaw k is centred at azimuth 2 pi k / 3).
     """
+    rx, ry, rz = r
+    ax, ay, az = axis
+    e1x, e1y, e1z = e1
+    e2x, e2y, e2z = e2
     s = rx * ax + ry * ay + rz * az
     if s > 0.0 or s < -jaw_length:
         return -1
@@ -156,14 +158,42 @@ def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarr
 
 
 @njit(cache=True, error_model="numpy")
+def clear_readouts(b: int, out) -> None:
+    """Zero tissue b's jaw, plate and anchor readouts (SimReadout ``out``) at the start of a call."""
+    for k in range(out.jaw_out.shape[1]):
+        for c in range(out.jaw_out.shape[2]):
+            out.jaw_out[b, k, c] = 0.0
+    for p in range(out.plate_out.shape[1]):
+        for c in range(3):
+            out.plate_out[b, p, c] = 0.0
+    for c in range(3):
+        out.anchor_out[b, c] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def clear_contacts(b: int, model, out, held, last_sub: bool) -> None:
+    """Before a substep's contacts: no surface node of tissue b is held (``held`` (N,) int8, read only by the
+    volume floor) and, in the last substep, its contact readouts restart from zero."""
+    for q in range(model.surface_nodes.shape[0]):
+        i = model.surface_nodes[q]
+        if model.vol_floor > 0.0:
+            held[i] = 0
+        if last_sub:
+            out.contact_state[b, i] = 0
+            for c in range(3):
+                out.contact_force[b, i, c] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def plate_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     model, state, out,  # SimModel, SimState (plate points advanced), SimReadout (plate_out, contacts filled)
-    dt, avg, last_sub,  # substep, s; weight of this substep in the readouts; fill the last-substep readouts
+    sub,  # (dt s, avg, last_sub, inv_sub): the substep; its weight in the readouts; fill the last-substep readouts
     res,  # (6,) scratch
     held,  # (N,) int8 out: -(p + 1) for the nodes plate p holds this substep (the volume floor reads it)
 ) -> None:
     """Advance tissue b's plates by one substep and resolve every surface node behind one."""
+    dt, avg, last_sub, _ = sub
     fixed, surface_nodes, pl_normal, pl_mu = model.fixed, model.surface_nodes, model.pl_normal, model.pl_mu
     pl_point, pl_vel = state.pl_point, state.pl_vel
     plate_out, contact_state, contact_force = out.plate_out, out.contact_state, out.contact_force
@@ -181,7 +211,7 @@ def plate_contacts(
             d = -((xb[i, 0] - px) * pnx + (xb[i, 1] - py) * pny + (xb[i, 2] - pz) * pnz)
             if d <= 0.0:
                 continue
-            resolve_node_contact(xb, vb, i, meff[i], pnx, pny, pnz, d, pvx, pvy, pvz, pl_mu[p], pl_mu[p], dt, res)
+            resolve_node_contact(xb, vb, i, meff[i], (pnx, pny, pnz), d, (pvx, pvy, pvz), (pl_mu[p], pl_mu[p]), dt, res)
             held[i] = -(p + 1)
             plate_out[b, p, 0] += avg * (res[0] * pnx + res[1])
             plate_out[b, p, 1] += avg * (res[0] * pny + res[2])
@@ -198,12 +228,13 @@ def jaw_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     model, state, out,  # SimModel, SimState (grasper advanced, pinch accumulated), SimReadout (filled)
     u, tj,  # (3,3) jaw outward and lateral directions of tissue b (:func:`jaw_directions`)
-    dt, avg, last_sub,  # substep, s; weight of this substep in the readouts; fill the last-substep readouts
+    sub,  # (dt s, avg, last_sub, inv_sub): the substep; its weight in the readouts; fill the last-substep
+    #       readouts; 1 / n_sub, the weight of the pinch accumulated into state.g_force[b, G_PINCH]
     res,  # (6,) scratch
-    inv_sub,  # 1 / n_sub: the pinch of this outer step is accumulated into state.g_force[b, G_PINCH]
     held,  # (N,) int8 out: k + 1 for the nodes jaw k holds this substep (the volume floor reads it)
 ) -> None:
     """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection)."""
+    dt, avg, last_sub, inv_sub = sub
     fixed, surface_nodes, node_area = model.fixed, model.surface_nodes, model.node_area
     jaw_length, jaw_half_width, jaw_depth = model.jaw_length, model.jaw_half_width, model.jaw_depth
     g_tip, g_axis, g_e1, g_radius, g_vradius = state.g_tip, state.g_axis, state.g_e1, state.g_radius, state.g_vradius
@@ -234,7 +265,7 @@ def jaw_contacts(
         rx = xb[i, 0] - cx
         ry = xb[i, 1] - cy
         rz = xb[i, 2] - cz
-        k = jaw_candidate(rx, ry, rz, ax, ay, az, e1x, e1y, e1z, e2x, e2y, e2z, r_new, jaw_length)
+        k = jaw_candidate((rx, ry, rz), (ax, ay, az), (e1x, e1y, e1z), (e2x, e2y, e2z), r_new, jaw_length)
         if k < 0:
             continue
         d = rx * u[k, 0] + ry * u[k, 1] + rz * u[k, 2] - r_new
@@ -260,9 +291,9 @@ def jaw_contacts(
             nx, ny, nz, pen = -ax, -ay, -az, s_ax + jaw_length
             face = False
         resolve_node_contact(
-            xb, vb, i, meff[i], nx, ny, nz, pen,
-            g_vpull[b, 0] + vr * u[k, 0], g_vpull[b, 1] + vr * u[k, 1], g_vpull[b, 2] + vr * u[k, 2],
-            mu_s[b], mu_k[b], dt, res,
+            xb, vb, i, meff[i], (nx, ny, nz), pen,
+            (g_vpull[b, 0] + vr * u[k, 0], g_vpull[b, 1] + vr * u[k, 1], g_vpull[b, 2] + vr * u[k, 2]),
+            (mu_s[b], mu_k[b]), dt, res,
         )
         held[i] = k + 1
         # contact force on the tissue, split into the jaw face's normal and tangential parts
@@ -314,11 +345,12 @@ def floor_reactions(
     b, held, react,  # tissue index; (N,) int8 holder of each node (:func:`jaw_contacts`, :func:`plate_contacts`);
     #                  (N,3) N force the volume floor needed at held and anchored nodes (cleared here)
     fixed, u, out, state,  # (N,) anchored nodes; (3,3) jaw outward directions; SimReadout, SimState
-    avg, inv_sub, last_sub,  # as in :func:`jaw_contacts`
+    sub,  # (dt, avg, last_sub, inv_sub) as in :func:`jaw_contacts`
 ) -> None:
     """Count the volume floor's reactions in the sensors: a node held by a jaw, a plate or an anchor does
     not move in the floor's correction (:func:`.forces.project_volume_floor`), so the force that moves the
     rest of its tet comes through it from the holder, and the holder's readout must include it."""
+    _, avg, last_sub, inv_sub = sub
     jaw_out, plate_out, anchor_out, contact_force = out.jaw_out, out.plate_out, out.anchor_out, out.contact_force
     for i in range(held.shape[0]):
         fx, fy, fz = react[i, 0], react[i, 1], react[i, 2]

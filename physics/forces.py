@@ -26,6 +26,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .records import Springs
+
 
 @njit(cache=True, inline="always", error_model="numpy")
 def spring_force(dl: float, k1: float, k2: float, dlc: float) -> float:
@@ -54,35 +56,65 @@ def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.n
     return out
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def spring_body(d, law, ks, dash, maxwell, flags):
+    """One spring's force on its first node and its new Maxwell state: the arithmetic every spring loop
+    (one tissue, lanes, the GPU kernel) runs per spring, in one order, so their results are bitwise equal.
+
+    d (dx, dy, dz): x_j - x_i, m; law (rest length m, k1 N/m, k2 N/m^3, dl_c m); ks: stiffness scale;
+    dash (v_j - v_i (3 floats) m/s, c N s/m): read only with dashpots; maxwell (F_v N, dl at the last substep
+    m, k_v N/m, e^(-dt/tau), (tau/dt)(1 - e^(-dt/tau))): read only with the Maxwell branch; flags
+    (use_dashpot, use_sls). Returns (fx, fy, fz, F_v, dl): the force on node i (minus it on node j) and the
+    Maxwell state to store. A spring between coincident nodes (length < 1e-15 m, only in a collapsed mesh)
+    has no direction: it adds nothing and keeps its Maxwell state.
+    """
+    dx, dy, dz = d
+    rest, k1, k2, dlc = law
+    fv, dl_prev, kv, decay, gain = maxwell
+    use_dashpot, use_sls = flags
+    length = math.sqrt(dx * dx + dy * dy + dz * dz)
+    ok = length >= 1e-15
+    inv = 1.0 / length
+    ux = dx * inv
+    uy = dy * inv
+    uz = dz * inv
+    dl = length - rest
+    fs = ks * spring_force(dl, k1, k2, dlc)
+    if use_sls:
+        fve = fv * decay + ks * kv * (dl - dl_prev) * gain
+        fv = fve if ok else fv
+        dl_prev = dl if ok else dl_prev
+        fs += fve
+    if use_dashpot:
+        rel = dash[0] * ux + dash[1] * uy + dash[2] * uz
+        fs += ks * dash[3] * rel
+    return fs * ux if ok else 0.0, fs * uy if ok else 0.0, fs * uz if ok else 0.0, fv, dl_prev
+
+
 @njit(cache=True, error_model="numpy")
 def spring_loop(
     x: np.ndarray,  # (N,3) positions, m
     v: np.ndarray,  # (N,3) velocities, m/s
-    edges: np.ndarray,  # (E,2) int
-    rest_length: np.ndarray,  # (E,) m
-    k1: np.ndarray,  # (E,) N/m
-    k2: np.ndarray,  # (E,) N/m^3
-    dlc: np.ndarray,  # (E,) m
-    cdash: np.ndarray,  # (E,) N s/m, spring dashpot (0 = none)
+    springs: Springs,  # (or a record with its fields, as SimModel)
     kscale: float,  # stiffness multiplier of this tissue (domain randomisation)
-    use_dashpot: bool,
-    use_sls: bool,  # Maxwell branch (physics/viscoelastic.py); the next five are unused when False
-    kv: np.ndarray,  # (E,) Maxwell spring stiffness, N/m
     decay: float,  # e^(-dt/tau)
     gain: float,  # (tau/dt) (1 - e^(-dt/tau))
-    fv: np.ndarray,  # (E,) Maxwell branch force, N (state, updated)
-    dl_prev: np.ndarray,  # (E,) elongation at the previous substep, m (state, updated)
+    fv: np.ndarray,  # (E,) Maxwell branch force, N (state, updated; unused without the branch)
+    dl_prev: np.ndarray,  # (E,) elongation at the previous substep, m (state, updated; likewise)
     f: np.ndarray,  # (N,3) out: forces are ADDED here
-    scratch: np.ndarray,  # (9,E) work space
+    scratch: np.ndarray,  # (9,E) work space; rows 3-5 zero (or finite) when there are no dashpots
 ) -> None:
-    """The one spring loop: springs (+ dashpots, + Maxwell branches) added to ``f``, momentum-exact.
+    """The one-tissue spring loop: springs (+ dashpots, + Maxwell branches) added to ``f``, momentum-exact.
+    ``springs.kv``, ``springs.cdash``, ``fv`` and ``dl_prev`` need E entries even where unused (zeros).
 
     Three passes: gather the edge vectors (indexed loads), compute every spring's force (contiguous
     arrays, no branches: LLVM emits SIMD code), scatter in edge order. ~20% faster than one fused loop,
     and bitwise the same (each spring's arithmetic and the order of the additions into f are unchanged).
-    A spring between coincident nodes (length < 1e-15 m, only in a collapsed mesh) has no direction: it
-    adds nothing and keeps its Maxwell state.
     """
+    edges, use_dashpot, use_sls = springs.edges, springs.use_dashpot, springs.use_sls
+    rest_length, k1, k2, dlc = springs.rest_length, springs.k1, springs.k2, springs.dlc
+    cdash, kv = springs.cdash, springs.kv
+    flags = (use_dashpot, use_sls)
     ne = edges.shape[0]
     for e in range(ne):
         i = edges[e, 0]
@@ -94,29 +126,17 @@ def spring_loop(
             scratch[3, e] = v[j, 0] - v[i, 0]
             scratch[4, e] = v[j, 1] - v[i, 1]
             scratch[5, e] = v[j, 2] - v[i, 2]
-    for e in range(ne):
-        dx = scratch[0, e]
-        dy = scratch[1, e]
-        dz = scratch[2, e]
-        length = np.sqrt(dx * dx + dy * dy + dz * dz)
-        ok = length >= 1e-15
-        inv = 1.0 / length
-        ux = dx * inv
-        uy = dy * inv
-        uz = dz * inv
-        dl = length - rest_length[e]
-        fs = kscale * spring_force(dl, k1[e], k2[e], dlc[e])
+    for e in range(ne):  # every input read unconditionally: conditional loads here cost LLVM the SIMD code
+        fx, fy, fz, fve, dle = spring_body((scratch[0, e], scratch[1, e], scratch[2, e]),
+                                           (rest_length[e], k1[e], k2[e], dlc[e]), kscale,
+                                           (scratch[3, e], scratch[4, e], scratch[5, e], cdash[e]),
+                                           (fv[e], dl_prev[e], kv[e], decay, gain), flags)
         if use_sls:
-            fve = fv[e] * decay + kscale * kv[e] * (dl - dl_prev[e]) * gain
-            fv[e] = fve if ok else fv[e]
-            dl_prev[e] = dl if ok else dl_prev[e]
-            fs += fve
-        if use_dashpot:
-            rel = scratch[3, e] * ux + scratch[4, e] * uy + scratch[5, e] * uz
-            fs += kscale * cdash[e] * rel
-        scratch[6, e] = fs * ux if ok else 0.0
-        scratch[7, e] = fs * uy if ok else 0.0
-        scratch[8, e] = fs * uz if ok else 0.0
+            fv[e] = fve
+            dl_prev[e] = dle
+        scratch[6, e] = fx
+        scratch[7, e] = fy
+        scratch[8, e] = fz
     for e in range(ne):
         i = edges[e, 0]
         j = edges[e, 1]
@@ -140,16 +160,8 @@ def spring_loop(
 def spring_loop_lanes(
     x: np.ndarray,  # (N,3,L) positions, m
     v: np.ndarray,  # (N,3,L) velocities, m/s
-    edges: np.ndarray,
-    rest_length: np.ndarray,
-    k1: np.ndarray,
-    k2: np.ndarray,
-    dlc: np.ndarray,
-    cdash: np.ndarray,
+    springs: Springs,  # (or a record with its fields, as SimModel)
     kscale: np.ndarray,  # (L,) stiffness multiplier of each tissue
-    use_dashpot: bool,
-    use_sls: bool,
-    kv: np.ndarray,
     decay: float,
     gain: float,
     fv: np.ndarray,  # (E,L) Maxwell branch force, N (state, updated)
@@ -158,40 +170,27 @@ def spring_loop_lanes(
     tmp: np.ndarray,  # (3,L) scratch
 ) -> None:
     """:func:`spring_loop` for L tissues at once (lane layout); bitwise equal to it per tissue."""
+    edges, use_dashpot, use_sls = springs.edges, springs.use_dashpot, springs.use_sls
+    flags = (use_dashpot, use_sls)
     nl = x.shape[2]
     for e in range(edges.shape[0]):
         i = edges[e, 0]
         j = edges[e, 1]
-        l0 = rest_length[e]
-        a1 = k1[e]
-        a2 = k2[e]
-        c = dlc[e]
-        kve = kv[e] if use_sls else 0.0
-        cd = cdash[e]
+        law = (springs.rest_length[e], springs.k1[e], springs.k2[e], springs.dlc[e])
+        kve = springs.kv[e] if use_sls else 0.0
+        cd = springs.cdash[e] if use_dashpot else 0.0
         for b in range(nl):
-            dx = x[j, 0, b] - x[i, 0, b]
-            dy = x[j, 1, b] - x[i, 1, b]
-            dz = x[j, 2, b] - x[i, 2, b]
-            length = np.sqrt(dx * dx + dy * dy + dz * dz)
-            ok = length >= 1e-15  # a select, not a branch: spring_loop skips coincident nodes
-            inv = 1.0 / length
-            ux = dx * inv
-            uy = dy * inv
-            uz = dz * inv
-            dl = length - l0
-            ks = kscale[b]
-            fs = ks * spring_force(dl, a1, a2, c)
+            d = (x[j, 0, b] - x[i, 0, b], x[j, 1, b] - x[i, 1, b], x[j, 2, b] - x[i, 2, b])
+            dash = (v[j, 0, b] - v[i, 0, b], v[j, 1, b] - v[i, 1, b], v[j, 2, b] - v[i, 2, b], cd) if use_dashpot \
+                else (0.0, 0.0, 0.0, 0.0)
+            fx, fy, fz, fve, dle = spring_body(d, law, kscale[b], dash, (fv[e, b], dl_prev[e, b], kve, decay, gain),
+                                               flags)
             if use_sls:
-                fve = fv[e, b] * decay + ks * kve * (dl - dl_prev[e, b]) * gain
-                fv[e, b] = fve if ok else fv[e, b]
-                dl_prev[e, b] = dl if ok else dl_prev[e, b]
-                fs += fve
-            if use_dashpot:
-                rel = (v[j, 0, b] - v[i, 0, b]) * ux + (v[j, 1, b] - v[i, 1, b]) * uy + (v[j, 2, b] - v[i, 2, b]) * uz
-                fs += ks * cd * rel
-            tmp[0, b] = fs * ux if ok else 0.0
-            tmp[1, b] = fs * uy if ok else 0.0
-            tmp[2, b] = fs * uz if ok else 0.0
+                fv[e, b] = fve
+                dl_prev[e, b] = dle
+            tmp[0, b] = fx
+            tmp[1, b] = fy
+            tmp[2, b] = fz
         # scatter in separate loops: fewer streams per loop keeps LLVM's runtime alias checks cheap
         for cc in range(3):
             for b in range(nl):
@@ -216,9 +215,9 @@ def accumulate_spring_forces(
     f: np.ndarray,
 ) -> None:
     """Add every spring's (and dashpot's) force to ``f`` (no Maxwell branch)."""
-    empty = np.empty(0)
-    spring_loop(x, v, edges, rest_length, k1, k2, dlc, cdash, kscale, use_dashpot, False, empty, 1.0, 0.0,
-                empty, empty, f, np.empty((9, edges.shape[0])))
+    zero = np.zeros(edges.shape[0])
+    spring_loop(x, v, Springs(edges, rest_length, k1, k2, dlc, cdash, zero, use_dashpot, False), kscale, 1.0, 0.0,
+                zero, zero, f, np.zeros((9, edges.shape[0])))
 
 
 @njit(cache=True, error_model="numpy")
@@ -297,6 +296,22 @@ def _tet_edges_lane(x: np.ndarray, a: int, b: int, c: int, d: int, lane: int):
     return e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def tet_barrier_body(geom, v0, kvol, j_threshold, ks):
+    """The volume barrier's forces on the four nodes of one tet past its threshold: the arithmetic every
+    barrier loop (one tissue, lanes, the GPU kernel) runs per tet.
+
+    geom: the tet's edge vectors and volume (:func:`_tet_edges`); v0: rest volume, m^3; kvol: Pa;
+    j_threshold: J_c; ks: stiffness scale. Returns the forces (N) on nodes b, c, d and a (12 floats)."""
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = geom
+    jac = vol / v0
+    # gradients of V = e1 . (e2 x e3) / 6 with respect to x_b, x_c, x_d
+    gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
+    s = -ks * kvol * (jac - j_threshold)
+    return (s * gbx, s * gby, s * gbz, s * gcx, s * gcy, s * gcz, s * gdx, s * gdy, s * gdz,
+            -(s * (gbx + gcx + gdx)), -(s * (gby + gcy + gdy)), -(s * (gbz + gcz + gdz)))
+
+
 @njit(cache=True, error_model="numpy")
 def accumulate_volume_forces(
     x: np.ndarray,  # (N,3) positions, m
@@ -317,23 +332,14 @@ def accumulate_volume_forces(
             vol = vols[t]
         if vol >= j_threshold * rest_volume[t]:
             continue
-        e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
-        jac = vol / rest_volume[t]
-        # gradients of V = e1 . (e2 x e3) / 6 with respect to x_b, x_c, x_d
-        gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
-        s = -kscale * kvol[t] * (jac - j_threshold)
-        f[b, 0] += s * gbx
-        f[b, 1] += s * gby
-        f[b, 2] += s * gbz
-        f[c, 0] += s * gcx
-        f[c, 1] += s * gcy
-        f[c, 2] += s * gcz
-        f[d, 0] += s * gdx
-        f[d, 1] += s * gdy
-        f[d, 2] += s * gdz
-        f[a, 0] -= s * (gbx + gcx + gdx)
-        f[a, 1] -= s * (gby + gcy + gdy)
-        f[a, 2] -= s * (gbz + gcz + gdz)
+        r = tet_barrier_body(_tet_edges(x, tets, t), rest_volume[t], kvol[t], j_threshold, kscale)
+        # (adding the force on a is bitwise the same as subtracting its negative)
+        for k in range(3):
+            f[b, k] += r[k]
+            f[c, k] += r[3 + k]
+            f[d, k] += r[6 + k]
+        for k in range(3):
+            f[a, k] += r[9 + k]
 
 
 @njit(cache=True, error_model="numpy")
@@ -366,23 +372,14 @@ def accumulate_volume_forces_lanes(
         if active == 0:  # the common case: no tissue has this tet past the threshold
             continue
         for lane in range(nl):
-            if s[lane] < vthr:
-                e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, _ = _tet_edges_lane(x, a, b, c, d, lane)
-                gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y,
-                                                                                e3z)
-                sl = -kscale[lane] * k * (s[lane] / v0 - j_threshold)
-                f[b, 0, lane] += sl * gbx
-                f[b, 1, lane] += sl * gby
-                f[b, 2, lane] += sl * gbz
-                f[c, 0, lane] += sl * gcx
-                f[c, 1, lane] += sl * gcy
-                f[c, 2, lane] += sl * gcz
-                f[d, 0, lane] += sl * gdx
-                f[d, 1, lane] += sl * gdy
-                f[d, 2, lane] += sl * gdz
-                f[a, 0, lane] -= sl * (gbx + gcx + gdx)
-                f[a, 1, lane] -= sl * (gby + gcy + gdy)
-                f[a, 2, lane] -= sl * (gbz + gcz + gdz)
+            if s[lane] < vthr:  # (the volume in the geometry is s[lane]: the same positions, the same operations)
+                r = tet_barrier_body(_tet_edges_lane(x, a, b, c, d, lane), v0, k, j_threshold, kscale[lane])
+                for kk in range(3):
+                    f[b, kk, lane] += r[kk]
+                    f[c, kk, lane] += r[3 + kk]
+                    f[d, kk, lane] += r[6 + kk]
+                for kk in range(3):
+                    f[a, kk, lane] += r[9 + kk]
 
 
 @njit(cache=True, error_model="numpy")

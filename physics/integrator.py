@@ -35,7 +35,18 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, floor_reactions, jaw_contacts, jaw_directions, plate_contacts
+from .contact import (
+    G_GAIN,
+    G_PINCH,
+    G_SETPOINT,
+    G_VMAX,
+    clear_contacts,
+    clear_readouts,
+    floor_reactions,
+    jaw_contacts,
+    jaw_directions,
+    plate_contacts,
+)
 from .forces import (
     accumulate_volume_forces,
     accumulate_volume_forces_lanes,
@@ -46,7 +57,7 @@ from .forces import (
     spring_loop,
     spring_loop_lanes,
 )
-from .records import SimModel, SimReadout, SimState
+from .records import SimModel, SimReadout, SimState, Springs
 
 
 #: batches of at least this many tissues compute springs and tets across tissues (SIMD lanes); smaller
@@ -123,11 +134,9 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     """:func:`simulate` for the L tissues of one lane block: x, v (N,3,L) and fv, dl_prev (E,L) are the
     block's state in lanes (lane l is tissue lane0 + l); the rest of the state is read from ``state``."""
     m = model
-    mass, b0, b1, fixed, x_rest = m.mass, m.b0, m.b1, m.fixed, m.x_rest
-    edges, rest_length, k1, k2, dlc, cdash, kv = m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash, m.kv
-    tets, rest_volume, kvol, surface_nodes = m.tets, m.rest_volume, m.kvol, m.surface_nodes
-    t, jaw_out, plate_out, anchor_out = state.t, out.jaw_out, out.plate_out, out.anchor_out
-    contact_state, contact_force, g_force, g_vradius = out.contact_state, out.contact_force, state.g_force, state.g_vradius
+    mass, b0, b1, fixed = m.mass, m.b0, m.b1, m.fixed
+    tets, rest_volume, kvol = m.tets, m.rest_volume, m.kvol
+    t, anchor_out, g_force, g_vradius = state.t, out.anchor_out, state.g_force, state.g_vradius
     n_sub = m.n_sub
     n = x.shape[0]
     nl = x.shape[2]
@@ -146,11 +155,13 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     damp_inv = np.empty((n, nl))
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
-    spring_scratch = np.empty((9, 0 if lanes else ne))
+    spring_scratch = np.zeros((9, 0 if lanes else ne))
+    # the springs with kv of E entries: the one-tissue loop reads it unconditionally (zeros without the branch)
+    springs = Springs(m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash,
+                      m.kv if m.kv.shape[0] == ne else np.zeros(ne), m.use_dashpot, m.use_sls)
     ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
     ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
     res = np.empty(6)
-    ns = surface_nodes.shape[0]
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
     floor_flags = np.empty((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the volume floor
@@ -166,6 +177,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
     _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv)
+    node_work = (meff, damp_inv, fa)
     f0 = np.empty((n, 3, nl))  # gravity + external forces: constant during the call
     f_flat = f.reshape(n * 3 * nl)
     f0_flat = f0.reshape(n * 3 * nl)
@@ -176,9 +188,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 f0[i, c, lane] = mass[i] * ms[lane] * m.gravity[c] + state.f_ext[b, i, c]
     for lane in range(nl):
         b = lane0 + lane
-        jaw_out[b, :, :] = 0.0
-        plate_out[b, :, :] = 0.0
-        anchor_out[b, :] = 0.0
+        clear_readouts(b, out)
         jaw_directions(state.g_axis[b], state.g_e1[b], u[lane], tj[lane])
     inv_sub = 1.0 / n_sub
     for step in range(n_steps):
@@ -190,15 +200,15 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
         for sub in range(n_sub):
             last_sub = last_step and sub == n_sub - 1
             avg = 1.0 / n_sub if last_step else 0.0
+            sub_info = (dt, avg, last_sub, inv_sub)  # what the contacts and the floor's readouts need
             # ---- 1. forces
             for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
                 f_flat[k] = f0_flat[k]
             if lanes:
-                spring_loop_lanes(x, v, edges, rest_length, k1, k2, dlc, cdash, ks, m.use_dashpot, m.use_sls, kv, decay,
-                                  gain, fv, dl_prev, f, tmp)
+                spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp)
             else:
-                spring_loop(x_one, v_one, edges, rest_length, k1, k2, dlc, cdash, ks[0], m.use_dashpot, m.use_sls, kv,
-                            decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one, spring_scratch)
+                spring_loop(x_one, v_one, springs, ks[0], decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one,
+                            spring_scratch)
             if kvol.shape[0] > 0:  # (with the volumes of the floor's pass at the end of the last substep if known)
                 if lanes and vols_known:
                     accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, m.vol_threshold, ks, f, tmp[0], vols)
@@ -210,33 +220,22 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                     accumulate_volume_forces(x_one, tets, rest_volume, kvol, m.vol_threshold, ks[0], f_one)
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
             if lanes:
-                _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, nl, lane0, last_sub, dt, mass, b0, b1, fixed,
-                              m.anchor_k, m.anchor_offset, x_rest, anchor_out)
-            else:  # literal bounds: once LLVM inlines the call, the lane loops vanish for one tissue
-                _update_nodes(x, v, f, meff, damp_inv, fa, ms, 0, 1, lane0, last_sub, dt, mass, b0, b1, fixed,
-                              m.anchor_k, m.anchor_offset, x_rest, anchor_out)
+                _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, anchor_out)
+            else:  # a literal bound: once LLVM inlines the call, the lane loops vanish for one tissue
+                _update_nodes(m, x, v, f, node_work, ms, 1, lane0, last_sub, dt, anchor_out)
             # ---- 4. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
                 t[b] += dt
-                if last_sub:
-                    for q in range(ns):
-                        i = surface_nodes[q]
-                        contact_state[b, i] = 0
-                        contact_force[b, i, 0] = 0.0
-                        contact_force[b, i, 1] = 0.0
-                        contact_force[b, i, 2] = 0.0
                 # (N,3) views of one lane, strided in a lane block: one compiled contact code for both paths
                 xb = x[:, :, lane]
                 vb = v[:, :, lane]
                 mb = meff[:, lane]
                 hb = held[lane]
-                if m.vol_floor > 0.0:  # only the floor reads the holders
-                    for q in range(ns):
-                        hb[surface_nodes[q]] = 0
-                plate_contacts(b, xb, vb, mb, m, state, out, dt, avg, last_sub, res, hb)
+                clear_contacts(b, m, out, hb, last_sub)
+                plate_contacts(b, xb, vb, mb, m, state, out, sub_info, res, hb)
                 if m.jaw_active:
-                    jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], dt, avg, last_sub, res, inv_sub, hb)
+                    jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], sub_info, res, hb)
             # ---- 5. the volume floor after the contacts: held nodes stay, their holders count its reactions
             if m.vol_floor > 0.0:
                 if lanes:
@@ -256,7 +255,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                             project_volume_floor(x_one, v_one, meff[:, 0], fixed, held[0], tets, rest_volume,
                                                  m.vol_floor, dt, flags_one, react[0])
                             refresh_floor_volumes(x_one, tets, flags_one, mark, vols_one)
-                        floor_reactions(b, held[lane], react[lane], fixed, u[lane], out, state, avg, inv_sub, last_sub)
+                        floor_reactions(b, held[lane], react[lane], fixed, u[lane], out, state, sub_info)
 
 
 @njit(cache=True, error_model="numpy")
@@ -272,29 +271,67 @@ def _force_loop(g_force, g_vradius, b):
     g_force[b, G_PINCH] = 0.0
 
 
+# The node update's bodies: the arithmetic every node loop (one tissue, lanes, the GPU kernel) runs per node.
+# xc, vc, fc: the node's position (m), velocity (m/s), force (N) as 3-tuples; m: its mass x mass scale, kg.
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def anchor_spring_force(xc, xr, ms, ka, offset):
+    """Force (N, 3-tuple) of a compliant anchor of stiffness ka (N/m) on a node at xc whose rest position is
+    xr: a spring to xr + ms offset (its preload scales with the mass scale ms; offset (3,) m)."""
+    return (-ka * (xc[0] - xr[0] - ms * offset[0]), -ka * (xc[1] - xr[1] - ms * offset[1]),
+            -ka * (xc[2] - xr[2] - ms * offset[2]))
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def nodal_damping(xc, xr, b0, b1):
+    """Eq. 7's damping coefficient b0 + b1 |x - x_rest| (N s/m) of a node at xc with rest position xr."""
+    dx = xc[0] - xr[0]
+    dy = xc[1] - xr[1]
+    dz = xc[2] - xr[2]
+    return b0 + b1 * math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def damping_factors(m, damp, dt):
+    """(1 / (1 + dt b / m), m + dt b): implicit damping's velocity factor and the effective mass (kg) that
+    the contacts use (the damper acts on the constrained velocity too)."""
+    return 1.0 / (1.0 + dt * damp / m), m + dt * damp
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def advance_node(xc, vc, fc, m, inv, dt):
+    """Symplectic Euler with implicit damping (velocity factor ``inv``): the node's new (x, v) 3-tuples."""
+    v0 = (vc[0] + dt * fc[0] / m) * inv
+    v1 = (vc[1] + dt * fc[1] / m) * inv
+    v2 = (vc[2] + dt * fc[2] / m) * inv
+    return (xc[0] + dt * v0, xc[1] + dt * v1, xc[2] + dt * v2), (v0, v1, v2)
+
+
 @njit(cache=True, error_model="numpy")
 def _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv):
     """meff = m + dt b0 and damp_inv = 1 / (1 + dt b0 / m) of the nodes whose damping does not vary (b1 = 0)."""
     for i in range(mass.shape[0]):
         if b1[i] == 0.0:
             for lane in range(ms.shape[0]):
-                m = mass[i] * ms[lane]
-                damp_inv[i, lane] = 1.0 / (1.0 + dt * b0[i] / m)  # as _update_nodes computes it with b1 = 0
-                meff[i, lane] = m + dt * b0[i]
+                damp_inv[i, lane], meff[i, lane] = damping_factors(mass[i] * ms[lane], b0[i], dt)
 
 
 @njit(cache=True, error_model="numpy")
-def _update_nodes(x, v, f, meff, damp_inv, fa, ms, lo, hi, lane0, last_sub, dt, mass, b0, b1, fixed, anchor_k,
-                  anchor_offset, x_rest, anchor_out):
-    """Symplectic Euler with implicit nodal damping for lanes lo..hi-1; anchors held or sprung (steps 2-3).
+def _update_nodes(model, x, v, f, work, ms, nl, lane0, last_sub, dt, anchor_out):
+    """Symplectic Euler with implicit nodal damping for lanes 0..nl-1; anchors held or sprung (steps 2-3).
 
-    meff and damp_inv (N,L) are m + dt b and 1 / (1 + dt b / m); for nodes with b1 = 0 they are constant and
-    filled by :func:`_constant_damping`, which saves a square root and two divisions per node and substep.
+    work (meff, damp_inv, fa): meff and damp_inv (N,L) are m + dt b and 1 / (1 + dt b / m); for nodes with
+    b1 = 0 they are constant and filled by :func:`_constant_damping`, which saves a square root and two
+    divisions per node and substep; fa (3,L) scratch.
     """
+    meff, damp_inv, fa = work
+    fixed, anchor_k, off, x_rest, mass, b0, b1 = model.fixed, model.anchor_k, model.anchor_offset, model.x_rest, \
+        model.mass, model.b0, model.b1
     n = x.shape[0]
     for i in range(n):
         if fixed[i]:
-            for lane in range(lo, hi):
+            for lane in range(nl):
                 if last_sub:
                     anchor_out[lane0 + lane, 0] -= f[i, 0, lane]
                     anchor_out[lane0 + lane, 1] -= f[i, 1, lane]
@@ -303,45 +340,33 @@ def _update_nodes(x, v, f, meff, damp_inv, fa, ms, lo, hi, lane0, last_sub, dt, 
                 v[i, 1, lane] = 0.0
                 v[i, 2, lane] = 0.0
             continue
+        xr = (x_rest[i, 0], x_rest[i, 1], x_rest[i, 2])
         ka = anchor_k[i]
         if ka > 0.0:  # compliant anchor: a preloaded spring (its preload scales with the mass)
-            for lane in range(lo, hi):
-                fa[0, lane] = -ka * (x[i, 0, lane] - x_rest[i, 0] - ms[lane] * anchor_offset[0])
-                fa[1, lane] = -ka * (x[i, 1, lane] - x_rest[i, 1] - ms[lane] * anchor_offset[1])
-                fa[2, lane] = -ka * (x[i, 2, lane] - x_rest[i, 2] - ms[lane] * anchor_offset[2])
+            for lane in range(nl):
+                fa[0, lane], fa[1, lane], fa[2, lane] = anchor_spring_force(
+                    (x[i, 0, lane], x[i, 1, lane], x[i, 2, lane]), xr, ms[lane], ka, off)
                 f[i, 0, lane] += fa[0, lane]
                 f[i, 1, lane] += fa[1, lane]
                 f[i, 2, lane] += fa[2, lane]
             if last_sub:
-                for lane in range(lo, hi):
+                for lane in range(nl):
                     anchor_out[lane0 + lane, 0] += fa[0, lane]
                     anchor_out[lane0 + lane, 1] += fa[1, lane]
                     anchor_out[lane0 + lane, 2] += fa[2, lane]
         mi = mass[i]
-        bi0 = b0[i]
-        bi1 = b1[i]
-        xr0, xr1, xr2 = x_rest[i, 0], x_rest[i, 1], x_rest[i, 2]
-        if bi1 != 0.0:  # displacement-dependent damping (Eq. 7); else damp_inv, meff hold for the call
-            for lane in range(lo, hi):
-                m = mi * ms[lane]
-                dx = x[i, 0, lane] - xr0
-                dy = x[i, 1, lane] - xr1
-                dz = x[i, 2, lane] - xr2
-                damp = bi0 + bi1 * math.sqrt(dx * dx + dy * dy + dz * dz)
-                damp_inv[i, lane] = 1.0 / (1.0 + dt * damp / m)
-                meff[i, lane] = m + dt * damp
-        for lane in range(lo, hi):
-            m = mi * ms[lane]
-            inv = damp_inv[i, lane]
-            v0 = (v[i, 0, lane] + dt * f[i, 0, lane] / m) * inv
-            v1 = (v[i, 1, lane] + dt * f[i, 1, lane] / m) * inv
-            v2 = (v[i, 2, lane] + dt * f[i, 2, lane] / m) * inv
-            v[i, 0, lane] = v0
-            v[i, 1, lane] = v1
-            v[i, 2, lane] = v2
-            x[i, 0, lane] += dt * v0
-            x[i, 1, lane] += dt * v1
-            x[i, 2, lane] += dt * v2
+        if b1[i] != 0.0:  # displacement-dependent damping (Eq. 7); else damp_inv, meff hold for the call
+            bi0 = b0[i]
+            bi1 = b1[i]
+            for lane in range(nl):
+                damp = nodal_damping((x[i, 0, lane], x[i, 1, lane], x[i, 2, lane]), xr, bi0, bi1)
+                damp_inv[i, lane], meff[i, lane] = damping_factors(mi * ms[lane], damp, dt)
+        for lane in range(nl):
+            xn, vn = advance_node((x[i, 0, lane], x[i, 1, lane], x[i, 2, lane]),
+                                  (v[i, 0, lane], v[i, 1, lane], v[i, 2, lane]),
+                                  (f[i, 0, lane], f[i, 1, lane], f[i, 2, lane]), mi * ms[lane], damp_inv[i, lane], dt)
+            v[i, 0, lane], v[i, 1, lane], v[i, 2, lane] = vn
+            x[i, 0, lane], x[i, 1, lane], x[i, 2, lane] = xn
 
 
 @njit(cache=True, error_model="numpy")

@@ -7,7 +7,8 @@ NamedTuples of arrays and scalars (a struct of pointers: no copies, field access
 * :class:`SimModel` holds what is constant during a call and shared by the batch (mesh, material
   arrays, grasper geometry, plate normals, time stepping);
 * :class:`SimState` holds the batch's state and per-tissue settings (batch first), advanced in place;
-* :class:`SimReadout` holds the sensor readouts the call fills in.
+* :class:`SimReadout` holds the sensor readouts the call fills in;
+* :class:`Springs` holds one mesh's springs for the spring loops alone.
 
 :class:`.simulation.Simulation` owns the arrays and builds the records for each call.
 """
@@ -100,3 +101,17 @@ class SimReadout(NamedTuple):
     anchor_out: np.ndarray  # (B,3) N force on the tissue by the anchors
     contact_state: np.ndarray  # (B,N) int8: 0 free, 1 stick, 2 slip (last substep)
     contact_force: np.ndarray  # (B,N,3) N force on the tissue at contact nodes (last substep)
+
+
+class Springs(NamedTuple):
+    """The springs of one mesh, as :func:`.forces.spring_loop` reads them (the field names of :class:`SimModel`)."""
+
+    edges: np.ndarray  # (E,2) int
+    rest_length: np.ndarray  # (E,) m
+    k1: np.ndarray  # (E,) N/m
+    k2: np.ndarray  # (E,) N/m^3
+    dlc: np.ndarray  # (E,) m
+    cdash: np.ndarray  # (E,) N s/m, spring dashpot (used only with use_dashpot)
+    kv: np.ndarray  # (E,) N/m Maxwell spring stiffness (used only with use_sls)
+    use_dashpot: bool
+    use_sls: bool  # Maxwell branch (physics/viscoelastic.py)

@@ -155,6 +155,7 @@ def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10
     difference relative to the largest magnitude (forces, Maxwell forces, positions' displacement).
     """
     from .forces import accumulate_spring_forces, accumulate_volume_forces
+    from .records import Springs
     from .simulation import Simulation
     from .viscoelastic import accumulate_spring_forces_sls
 
@@ -175,8 +176,9 @@ def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10
     f_nb = np.zeros_like(x)
     fv_nb, dlp_nb = fv.copy(), dl_prev.copy()
     if ref.use_sls:
-        accumulate_spring_forces_sls(x, v, model.edges, model.rest_length, model.k1, model.k2, model.dlc, model.cdash,
-                                     ks, ref.use_dashpot, model.kv, ref.decay, ref.gain, fv_nb, dlp_nb, f_nb)
+        springs = Springs(model.edges, model.rest_length, model.k1, model.k2, model.dlc, model.cdash, model.kv,
+                          ref.use_dashpot, True)
+        accumulate_spring_forces_sls(x, v, springs, ks, ref.decay, ref.gain, fv_nb, dlp_nb, f_nb)
     else:
         accumulate_spring_forces(x, v, model.edges, model.rest_length, model.k1, model.k2, model.dlc, model.cdash,
                                  ks, ref.use_dashpot, f_nb)

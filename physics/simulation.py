@@ -71,9 +71,6 @@ def _batch(value, batch: int, name: str, shape: tuple[int, ...] = ()) -> np.ndar
 SUBSTEP_SAFETY = 0.6
 #: where the kernel runs (Simulation(backend=...))
 BACKENDS = ("cpu", "cuda")
-#: the rule before session 7, which the env kept until its retraining in session 11; the kernel's golden records
-#: (tests/data/kernel_golden.npz) were made with it
-RECORDED_SUBSTEP_SAFETY = 0.95
 
 
 class Simulation:

@@ -23,21 +23,15 @@ import numpy as np
 from numba import njit
 
 from .forces import spring_loop
+from .records import Springs
 
 
 @njit(cache=True, error_model="numpy")
 def accumulate_spring_forces_sls(
-    x: np.ndarray,
-    v: np.ndarray,
-    edges: np.ndarray,
-    rest_length: np.ndarray,
-    k1: np.ndarray,
-    k2: np.ndarray,
-    dlc: np.ndarray,
-    cdash: np.ndarray,
+    x: np.ndarray,  # (N,3) positions, m
+    v: np.ndarray,  # (N,3) velocities, m/s
+    springs: Springs,  # use_sls is taken as True
     kscale: float,
-    use_dashpot: bool,
-    kv: np.ndarray,  # (E,) Maxwell spring stiffness, N/m
     decay: float,  # e^(-dt/tau)
     gain: float,  # (tau/dt) (1 - e^(-dt/tau))
     fv: np.ndarray,  # (E,) Maxwell branch force, N (state, updated)
@@ -45,8 +39,9 @@ def accumulate_spring_forces_sls(
     f: np.ndarray,  # (N,3) forces are ADDED here
 ) -> None:
     """Springs + dashpots (as :func:`.forces.accumulate_spring_forces`) plus the Maxwell branch."""
-    spring_loop(x, v, edges, rest_length, k1, k2, dlc, cdash, kscale, use_dashpot, True, kv, decay, gain, fv,
-                dl_prev, f, np.empty((9, edges.shape[0])))
+    sp = springs
+    with_sls = Springs(sp.edges, sp.rest_length, sp.k1, sp.k2, sp.dlc, sp.cdash, sp.kv, sp.use_dashpot, True)
+    spring_loop(x, v, with_sls, kscale, decay, gain, fv, dl_prev, f, np.zeros((9, sp.edges.shape[0])))
 
 
 def elongations(x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> np.ndarray:

@@ -203,7 +203,7 @@ def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_s
 
 
 def test_numba_cuda_beside_numpy_2_5_is_refused_with_the_fix_before_any_kernel():
-    from msdgrasp.physics.cuda_step import check_numba_cuda_numpy
+    from msdgrasp.physics.device_layout import check_numba_cuda_numpy
 
     # numba-cuda <= 0.30.4 registers np.row_stack, which numpy 2.5 removed: its first launch would fail deep inside
     with pytest.raises(ImportError, match=r"numba-cuda 0\.30\.4 cannot compile kernels with numpy 2\.5\.2 .*"
