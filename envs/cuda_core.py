@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 from numba import cuda
-from numba.core.registry import CPUDispatcher
 from numba.cuda.random import create_xoroshiro128p_states, xoroshiro128p_normal_float64, xoroshiro128p_uniform_float64
 
 from ..physics.config import ConfigError, check_choice, check_range
@@ -35,13 +34,9 @@ from .task import PINNABLE, TaskState, task_state
 #: what ``reset(options=...)`` may pin (for every later episode)
 GPU_PINNABLE = ("mu", "stiffness_scale", "mass_scale")
 
-_twin: dict = {}  # the GPU twins of task.py's numba functions, each calling the twins of those defined before it
-for _name, _f in vars(task).items():
-    if isinstance(_f, CPUDispatcher) and _f.py_func.__module__ == task.__name__:
-        assert all(n in _twin for n in _f.py_func.__code__.co_names if isinstance(getattr(task, n, 0), CPUDispatcher))
-        _twin[_name] = device_twin(_f, **_twin)
+# the GPU twins of task.py's functions (each calling the twins of the numba functions it calls)
 _command, _update, _restore_settled, _draw_episode, _begin_episode = (
-    _twin[n] for n in ("command", "update", "restore_settled", "draw_episode", "begin_episode"))
+    device_twin(getattr(task, n)) for n in ("command", "update", "restore_settled", "draw_episode", "begin_episode"))
 
 
 @cuda.jit

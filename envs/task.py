@@ -25,8 +25,8 @@ The random numbers are each backend's own: a reset fills ``draws[b]`` with raw v
 or standard normal, :data:`DRAW_IS_NORMAL`) and the sensor noise into ``noise[b]``; the CPU from NumPy's
 per-env generators, the GPU from xoroshiro streams. Everything after the draw is shared.
 
-numba functions here must be defined after the functions they call (the GPU twins are made in that order).
-The last three (``command_batch``, ``update_batch``, ``start_episode``) are the CPU core's loops.
+The GPU twins bind the numba functions each one calls to their own twins (``device_twin``). The last three
+(``command_batch``, ``update_batch``, ``start_episode``) are the CPU core's loops.
 """
 
 from __future__ import annotations
