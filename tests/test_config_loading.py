@@ -88,27 +88,18 @@ def _assert_one_line_error(r: subprocess.CompletedProcess, file: Path, key: str,
     assert not out.exists() or not any(out.iterdir()), f"{out} was written: {list(out.iterdir())}"
 
 
-@pytest.mark.parametrize("case, data, key", TISSUE_CASES, ids=[c[0] for c in TISSUE_CASES])
-def test_a_bad_tissue_config_is_one_line_exit_2_and_nothing_written(tmp_path, case, data, key):
+#: (the command that loads the file, the flag that names it) x the bad files of each kind
+BAD_FILES = ([(("experiment", "grasp", "--config"), *c) for c in TISSUE_CASES]
+             + [(("experiment", "grasp", "--grasper"), *c) for c in GRASPER_CASES]
+             + [(("train", "--config"), *c) for c in TRAIN_CASES])
+
+
+@pytest.mark.parametrize("command, case, data, key", BAD_FILES, ids=[f"{c[0][-1]}-{c[1]}" for c in BAD_FILES])
+def test_a_bad_tissue_grasper_or_training_config_is_one_line_exit_2_and_nothing_written(tmp_path, command, case,
+                                                                                        data, key):
     cfg = _write(tmp_path / f"{case}.yaml", data)
     out = tmp_path / "out"
-    r = _cli("experiment", "grasp", "--config", str(cfg), "--out", str(out), "--quiet")
-    _assert_one_line_error(r, cfg, key, out)
-
-
-@pytest.mark.parametrize("case, data, key", GRASPER_CASES, ids=[c[0] for c in GRASPER_CASES])
-def test_a_bad_grasper_config_is_one_line_exit_2_and_nothing_written(tmp_path, case, data, key):
-    cfg = _write(tmp_path / f"{case}.yaml", data)
-    out = tmp_path / "out"
-    r = _cli("experiment", "grasp", "--grasper", str(cfg), "--out", str(out), "--quiet")
-    _assert_one_line_error(r, cfg, key, out)
-
-
-@pytest.mark.parametrize("case, data, key", TRAIN_CASES, ids=[c[0] for c in TRAIN_CASES])
-def test_a_bad_training_config_is_one_line_exit_2_and_nothing_written(tmp_path, case, data, key):
-    cfg = _write(tmp_path / f"{case}.yaml", data)
-    out = tmp_path / "out"
-    r = _cli("train", "--config", str(cfg), "--out", str(out), "--quiet")
+    r = _cli(*command, str(cfg), "--out", str(out), "--quiet")
     _assert_one_line_error(r, cfg, key, out)
 
 
