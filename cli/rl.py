@@ -12,6 +12,7 @@ import math
 import os
 from pathlib import Path
 
+
 def _default_models() -> list[str]:
     """The model the default learner's run in its default folder (logs/train) ships, else the models of its
     seed runs there (a multi-seed run)."""
@@ -180,7 +181,15 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def _default_policies() -> list[str]:
-    return _default_models() or ["fixed"]
+    """Without --policy: the trained models of the default run folder; none there is an error, not a controller
+    evaluated in their place."""
+    from ..agents.learners import default_learner
+
+    models = _default_models()
+    if not models:
+        raise _usage(f"evaluate: no --policy given and no trained model in {default_learner(None).default_out} "
+                     "(or its seed_<k>/); give --policy PATH|fixed|reactive|oracle")
+    return models
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -318,7 +327,7 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
                         "fixed:<N> | reactive | oracle (repeatable; default: the model of the default learner's run in "
-                        "logs/train, else of every logs/train/seed_*/, else fixed). "
+                        "logs/train, else of every logs/train/seed_*/; none there is an error). "
                         "reactive and oracle are always added")
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "

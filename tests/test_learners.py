@@ -147,6 +147,16 @@ def test_record_needs_a_policy(tmp_path):
     assert not rec.exists()
 
 
+def test_evaluate_without_a_policy_and_without_a_trained_run_is_an_error_not_a_controller(tmp_path):
+    """No --policy and no run in logs/train: one line (exit 2), never a controller evaluated in its place."""
+    out = tmp_path / "eval"
+    r = subprocess.run([sys.executable, "-m", "msdgrasp.cli.main", "evaluate", "--out", str(out), "--quiet"],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert len(r.stderr.strip().splitlines()) == 1 and "--policy" in r.stderr and "logs/train" in r.stderr
+    assert not out.exists()
+
+
 def test_evaluate_runs_a_model_only_on_the_task_it_was_trained_on(tmp_path):
     from msdgrasp.agents.evaluation import task_of
     from msdgrasp.envs.core import GraspLiftConfig
