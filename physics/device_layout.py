@@ -21,7 +21,7 @@ def check_numba_cuda_numpy(numba_cuda_version: str | None, numpy_version: str) -
     Those numba-cuda releases register an overload of ``np.row_stack``, which numpy 2.5 removed, so their
     first kernel launch raises ``AttributeError`` deep inside numba (NVIDIA/numba-cuda#907; numba-cuda is in
     maintenance and will not fix it). The ``gpu`` extra pins ``numpy<2.5``; this catches an environment
-    that has both anyway (the lent GPU image has numpy 2.5.2). ``None``: numba-cuda is not installed
+    that has both anyway (e.g. a GPU image that ships numpy 2.5). ``None``: numba-cuda is not installed
     (numba's built-in CUDA target, or its simulator, which have no such overload)."""
     from packaging.version import Version
 
