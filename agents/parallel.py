@@ -227,11 +227,62 @@ def pack(root: str | Path, paths: Sequence[str | Path]) -> bytes:
     return buf.getvalue()
 
 
-def unpack(archive: bytes, folder: str | Path) -> None:
-    """Unpack a :func:`pack` archive into ``folder`` (made if missing)."""
-    Path(folder).mkdir(parents=True, exist_ok=True)
+def _has_data_filter() -> bool:
+    """Whether this Python's tarfile has extraction filters (3.11.4+, 3.12); 3.11.0-3.11.3 lack them."""
+    return hasattr(tarfile, "data_filter")
+
+
+def _check_member(member: tarfile.TarInfo, dest: Path, where: str) -> None:
+    """A member of a job archive must land inside ``dest``: no absolute path (which the "data" filter would
+    only strip), no ``..``, no link pointing outside, no device or fifo."""
+    name = member.name
+    bad = None
+    if name.startswith(("/", "\\")) or Path(name).is_absolute() or os.path.splitdrive(name)[0]:
+        bad = "an absolute path"
+    elif ".." in Path(name).parts:
+        bad = "a '..' component"
+    elif not (dest / name).resolve().is_relative_to(dest):
+        bad = "a path outside the folder"
+    elif member.isdev():  # character or block device, fifo
+        bad = "a device or fifo"
+    elif member.issym() or member.islnk():
+        link = member.linkname
+        # a symlink's target is relative to its own folder, a hard link's to the archive root
+        base = (dest / name).parent if member.issym() else dest
+        if Path(link).is_absolute() or link.startswith(("/", "\\")):
+            bad = f"a link to the absolute path {link!r}"
+        elif not (base / link).resolve().is_relative_to(dest):
+            bad = f"a link outside the folder ({link!r})"
+    elif not (member.isfile() or member.isdir()):
+        bad = "an unsupported member type"
+    if bad is not None:
+        raise ConfigError(f"{where}: member {name!r} has {bad}; refused")
+
+
+def unpack(archive: bytes, folder: str | Path, source: str = "job archive") -> None:
+    """Unpack a :func:`pack` archive into ``folder`` (made if missing).
+
+    Nothing may land outside ``folder``: absolute paths, ``..`` components, links pointing outside and
+    devices or fifos are refused with a :class:`ConfigError` naming ``source`` (the archive) and the member,
+    before anything is written. Extraction then goes through tarfile's "data" filter where it has one
+    (Python >= 3.11.4); 3.11.0-3.11.3 lack it, and there the members lose set-id bits and write access for
+    group and others as that filter would do."""
+    dest = Path(folder).resolve()
+    where = f"{source} for {folder}"
     with tarfile.open(fileobj=io.BytesIO(archive), mode="r:gz") as tar:
-        tar.extractall(folder, filter="data")  # "data": no absolute paths, links or devices from the archive
+        members = tar.getmembers()
+        for member in members:
+            _check_member(member, dest, where)
+        dest.mkdir(parents=True, exist_ok=True)
+        if _has_data_filter():
+            try:
+                tar.extractall(dest, filter="data")
+            except tarfile.FilterError as exc:  # anything the checks above let through
+                raise ConfigError(f"{where}: member {exc.tarinfo.name!r} refused ({exc})") from None
+        else:
+            for member in members:
+                member.mode &= 0o755
+            tar.extractall(dest, members=members)
 
 
 def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None, *args: Any) -> dict[str, Any]:

@@ -291,6 +291,13 @@ class GraspLiftCore:
         self.state = task_state(B, cfg.obs_history, self.frame_dim)
         self.__dict__.update(self.state._asdict())
 
+    def __getstate__(self) -> dict[str, Any]:
+        """The core's state without the render cache (matplotlib figures and Agg buffers cannot be pickled);
+        a copy or an unpickled core builds its own figure on its first render."""
+        state = self.__dict__.copy()
+        state.pop("_render_cache", None)
+        return state
+
     # ------------------------------------------------------------------------------------------
     def seed(self, index: int, seed: int | None) -> None:
         self.rngs[index] = np.random.default_rng(seed)

@@ -7,6 +7,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from .core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
@@ -22,6 +23,23 @@ def _config(config: GraspLiftConfig | dict | None, **overrides: Any) -> GraspLif
     if overrides:
         config = from_dict(GraspLiftConfig, {**to_dict(config), **overrides}, where="env")
     return config
+
+
+#: the render modes the env classes offer (rgb_array: headless frames, :mod:`.render`)
+RENDER_MODES = ("rgb_array",)
+
+
+def _check_render_mode(render_mode: str | None, env: str) -> str | None:
+    """``render_mode`` if it is one the envs can render (or None); a one-line ValueError otherwise."""
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"{env}: render_mode must be one of {list(RENDER_MODES)} or None, got {render_mode!r}")
+    return render_mode
+
+
+def _require_reset(env: Any) -> None:
+    """Refuse a step before the first reset (the episode state, mu and the random streams are set there)."""
+    if not env._has_reset:
+        raise ResetNeeded(f"{type(env).__name__}: step() before the first reset(); call reset() first")
 
 
 def _check_action(action: Any, batch: int | None) -> np.ndarray:
@@ -129,19 +147,18 @@ class GraspLiftEnv(gym.Env):
     randomisation for evaluation.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30}
 
     def __init__(self, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
         super().__init__()
+        self.render_mode = _check_render_mode(render_mode, type(self).__name__)
         self.config = _config(config, **overrides)
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
-        self.render_mode = render_mode
         self.core = GraspLiftCore(self.config, 1)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.config.agent_dt_s))}
         self._renderer = None
+        self._has_reset = False
 
     @property
     def observation_names(self) -> tuple[str, ...]:
@@ -155,9 +172,11 @@ class GraspLiftEnv(gym.Env):
             self.core.seed(0, int(self.np_random.integers(2**63)))
         self._seeded = True
         draws = self.core.reset(0, options)
+        self._has_reset = True
         return self.core.obs[0].astype(np.float32), self.core.info_at_reset(0, draws)
 
     def step(self, action):
+        _require_reset(self)
         a = _check_action(action, None)
         obs, reward, terminated, truncated, infos = self.core.step(a[None])
         info = {k: (v[0] if not isinstance(v, dict) else {kk: float(vv[0]) for kk, vv in v.items()}) for k, v in infos.items()}
@@ -194,19 +213,20 @@ class GraspLiftVectorEnv(VectorEnv):
     ``info["final_obs"]`` and their last info in ``info["final_info"]`` (Gymnasium's SAME_STEP mode).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 30, "autoreset_mode": AutoresetMode.SAME_STEP}
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30, "autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(self, num_envs: int = 1, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None,
                  **overrides: Any):
+        self.render_mode = _check_render_mode(render_mode, type(self).__name__)
         self.config = _config(config, **overrides)
         self.num_envs = int(num_envs)
         self.core = GraspLiftCore(self.config, self.num_envs)
-        self.render_mode = render_mode
         self.single_action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.single_observation_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (self.num_envs, 2), np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.num_envs, self.core.obs_dim), np.float32)
         self._seeded = False
+        self._has_reset = False
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
         if seed is not None:
@@ -221,9 +241,11 @@ class GraspLiftVectorEnv(VectorEnv):
                 self.core.seed(i, int(base % (2**63)) + i)
         self._seeded = True
         infos = [self.core.info_at_reset(i, self.core.reset(i, options)) for i in range(self.num_envs)]
+        self._has_reset = True
         return self.core.obs.astype(np.float32), {k: np.array([d[k] for d in infos]) for k in infos[0]}
 
     def step(self, actions):
+        _require_reset(self)
         a = _check_action(actions, self.num_envs)
         obs, reward, terminated, truncated, infos = self.core.step(a)
         info = {k: v for k, v in infos.items() if k != "reward_terms"}
