@@ -29,7 +29,7 @@ def _config(config: GraspLiftConfig | dict | None, **overrides: Any) -> GraspLif
 RENDER_MODES = ("rgb_array",)
 
 
-def _check_render_mode(render_mode: str | None, env: str) -> str | None:
+def check_render_mode(render_mode: str | None, env: str) -> str | None:
     """``render_mode`` if it is one the envs can render (or None); a one-line ValueError otherwise."""
     if render_mode is not None and render_mode not in RENDER_MODES:
         raise ValueError(f"{env}: render_mode must be one of {list(RENDER_MODES)} or None, got {render_mode!r}")
@@ -151,7 +151,7 @@ class GraspLiftEnv(gym.Env):
 
     def __init__(self, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
         super().__init__()
-        self.render_mode = _check_render_mode(render_mode, type(self).__name__)
+        self.render_mode = check_render_mode(render_mode, type(self).__name__)
         self.config = _config(config, **overrides)
         self.core = GraspLiftCore(self.config, 1)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -217,7 +217,7 @@ class GraspLiftVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 1, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None,
                  **overrides: Any):
-        self.render_mode = _check_render_mode(render_mode, type(self).__name__)
+        self.render_mode = check_render_mode(render_mode, type(self).__name__)
         self.config = _config(config, **overrides)
         self.num_envs = int(num_envs)
         self.core = GraspLiftCore(self.config, self.num_envs)

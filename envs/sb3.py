@@ -41,7 +41,7 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from .core import GraspLiftConfig, GraspLiftCore
-from .grasp_lift import _check_action, _config
+from .grasp_lift import _check_action, _config, check_render_mode
 
 #: core attributes that hold one entry per sub-env (``get_attr``/``set_attr`` address entry i)
 PER_ENV_ATTRS = (
@@ -68,8 +68,7 @@ class GraspLiftSB3VecEnv(VecEnv):
 
     def __init__(self, num_envs: int, config: GraspLiftConfig | dict | None = None, seed: int | None = None,
                  render_mode: str | None = "rgb_array", **overrides: Any) -> None:
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}")
+        check_render_mode(render_mode, type(self).__name__)
         self.config = _config(config, **overrides)
         self.core = GraspLiftCore(self.config, int(num_envs))
         self._render_mode = render_mode
