@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.set_defaults(func=_cmd_calibrate)
 
     b = sub.add_parser("bench", help="speed benchmarks, printed as JSON")
-    b.add_argument("what", nargs="?", default="physics", choices=["physics", "grasp", "env", "gpu", "precision", "learners", "all"])
+    b.add_argument("what", nargs="?", default="physics", choices=["physics", "grasp", "env", "gpu", "precision", "learners", "profile", "all"])
     b.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
     b.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     b.set_defaults(func=_cmd_bench)

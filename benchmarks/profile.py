@@ -1,0 +1,640 @@
+"""Where the time goes (``msdgrasp bench profile``): per physics substep, per agent step, per training.
+
+substep
+    The coarse spleen with the jaws closed on it (the bench's grasp set-up, contact active), one tissue and a
+    batch of 64 (lane layout, as :func:`~msdgrasp.physics.integrator.simulate` runs it). Each phase of one
+    substep of :func:`~msdgrasp.physics.integrator._advance_block` is timed by calling that phase's own kernel
+    function with the arguments the integrator passes it, repeatedly inside one compiled loop (so Python's
+    dispatch does not count), on the state the phase meets in a substep: force reset (gravity and external
+    forces), spring loop (Maxwell branch as configured), volume barrier, node update, contacts (plates and jaws
+    per tissue, surface nodes restored before each repetition; the restore is timed alone and subtracted),
+    volume floor (flag pass; projection where tets are flagged). The whole ``simulate`` call per substep is
+    timed beside it; ``remainder`` = whole - sum of the phases (loop overhead, readouts, cache effects; it can
+    be negative: a phase timed alone keeps its data in cache).
+agent step
+    Per agent step of the default training env (``TrainConfig().env``): the physics (``sim.step`` of the
+    env's outer steps), the task (``command_batch`` + ``update_batch``), the whole core step (the rest is the
+    env's Python: readouts, sensor noise, the info dict) and the SB3 vector env's whole step (adds autoreset
+    and per-env info dicts); policy inference of the default PPO policy (untrained) on one observation and on
+    a batch of 64.
+training
+    A short SB3 PPO run of the default config (``--quick``: fewer steps): wall time split into rollouts (env
+    stepping and the policy's forward passes), PPO updates and validation, measured with an SB3 callback.
+
+Times are wall clock (``time.perf_counter``), medians of repeated measurements after a warm-up.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numba import njit
+
+from ..physics.contact import clear_contacts, floor_reactions, jaw_contacts, jaw_directions, plate_contacts
+from ..physics.forces import (
+    accumulate_volume_forces,
+    accumulate_volume_forces_lanes,
+    flag_volume_floor,
+    flag_volume_floor_lanes,
+    project_volume_floor,
+    refresh_floor_volumes,
+    spring_loop,
+    spring_loop_lanes,
+)
+from ..physics.integrator import _constant_damping, _to_lanes, _update_nodes
+from ..physics.records import Springs
+from ..physics.reference import DT_OUTER
+from .bench import _clone, _grasped, time_per_unit
+from .report import _r
+
+#: batch of the lane-layout rows (one lane block)
+PROFILE_BATCH = 64
+#: the phases of one substep, in the integrator's order
+PHASES = ("force_reset", "springs", "volume_barrier", "node_update", "contacts", "floor_flag", "floor_project")
+
+# ------------------------------------------------------------------------------------------------
+# compiled repetition loops: each calls one phase's kernel function ``reps`` times, as _advance_block does
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def _rep_force_reset(f_flat, f0_flat, reps):
+    for _ in range(reps):
+        for k in range(f_flat.shape[0]):
+            f_flat[k] = f0_flat[k]
+
+
+@njit(cache=True, error_model="numpy")
+def _rep_springs(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp, scratch, lanes, reps):
+    n = x.shape[0]
+    ne = fv.shape[0]
+    if lanes:
+        for _ in range(reps):
+            spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp)
+    else:
+        x_one = x.reshape((n, 3))
+        v_one = v.reshape((n, 3))
+        f_one = f.reshape((n, 3))
+        fv_one = fv.reshape(ne)
+        dl_one = dl_prev.reshape(ne)
+        for _ in range(reps):
+            spring_loop(x_one, v_one, springs, ks[0], decay, gain, fv_one, dl_one, f_one, scratch)
+
+
+@njit(cache=True, error_model="numpy")
+def _rep_barrier(x, tets, rest_volume, kvol, thr, ks, f, s, vols, use_vols, lanes, reps):
+    n = x.shape[0]
+    nt = tets.shape[0]
+    if lanes:
+        for _ in range(reps):
+            if use_vols:
+                accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, thr, ks, f, s, vols)
+            else:
+                accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, thr, ks, f, s)
+    else:
+        x_one = x.reshape((n, 3))
+        f_one = f.reshape((n, 3))
+        vols_one = vols.reshape(nt)
+        for _ in range(reps):
+            if use_vols:
+                accumulate_volume_forces(x_one, tets, rest_volume, kvol, thr, ks[0], f_one, vols_one)
+            else:
+                accumulate_volume_forces(x_one, tets, rest_volume, kvol, thr, ks[0], f_one)
+
+
+@njit(cache=True, error_model="numpy")
+def _rep_nodes(model, x, v, f, meff, damp_inv, fa, ms, lane0, dt, anchor_out, lanes, reps):
+    # (the node update's cost does not depend on the positions: repeating it on a copy that drifts is fair)
+    work = (meff, damp_inv, fa)
+    nl = x.shape[2]
+    for _ in range(reps):
+        if lanes:
+            _update_nodes(model, x, v, f, work, ms, nl, lane0, False, dt, anchor_out)
+        else:
+            _update_nodes(model, x, v, f, work, ms, 1, lane0, False, dt, anchor_out)
+
+
+@njit(cache=True, error_model="numpy")
+def _restore(x, v, x0, v0, nodes):
+    for q in range(nodes.shape[0]):
+        i = nodes[q]
+        for c in range(3):
+            for lane in range(x.shape[2]):
+                x[i, c, lane] = x0[i, c, lane]
+                v[i, c, lane] = v0[i, c, lane]
+
+
+@njit(cache=True, error_model="numpy")
+def _rep_contacts(model, state, out, x, v, x0, v0, nodes, meff, held, u, tj, sub_info, res, lane0, run, reps):
+    """The contact phase (run False: only the restore of the surface nodes, to be subtracted)."""
+    nl = x.shape[2]
+    dt, _, last_sub, _ = sub_info
+    for _ in range(reps):
+        _restore(x, v, x0, v0, nodes)
+        if not run:
+            continue
+        for lane in range(nl):
+            b = lane0 + lane
+            state.t[b] += dt
+            xb = x[:, :, lane]
+            vb = v[:, :, lane]
+            mb = meff[:, lane]
+            hb = held[lane]
+            clear_contacts(b, model, out, hb, last_sub)
+            plate_contacts(b, xb, vb, mb, model, state, out, sub_info, res, hb)
+            if model.jaw_active:
+                jaw_contacts(b, xb, vb, mb, model, state, out, u[lane], tj[lane], sub_info, res, hb)
+
+
+@njit(cache=True, error_model="numpy")
+def _rep_floor_flag(x, tets, rest_volume, vol_floor, flags, n_floor, vols, lanes, reps):
+    n = x.shape[0]
+    nt = tets.shape[0]
+    if lanes:
+        for _ in range(reps):
+            flag_volume_floor_lanes(x, tets, rest_volume, vol_floor, flags, n_floor, vols)
+    else:
+        x_one = x.reshape((n, 3))
+        flags_one = flags.reshape(nt)
+        vols_one = vols.reshape(nt)
+        for _ in range(reps):
+            n_floor[0] = flag_volume_floor(x_one, tets, rest_volume, vol_floor, flags_one, vols_one)
+
+
+@njit(cache=True, error_model="numpy")
+def _rep_floor_project(model, state, out, x, v, x0, v0, nodes, meff, held, react, flags, n_floor, vols, mark, u,
+                       sub_info, lane0, lanes, run, reps):
+    """The floor's projection of the flagged tets (run False: only the restore of their nodes)."""
+    n = x.shape[0]
+    nl = x.shape[2]
+    nt = model.tets.shape[0]
+    dt = sub_info[0]
+    for _ in range(reps):
+        _restore(x, v, x0, v0, nodes)
+        if not run:
+            continue
+        for lane in range(nl):
+            if n_floor[lane] > 0:
+                b = lane0 + lane
+                if lanes:
+                    project_volume_floor(x[:, :, lane], v[:, :, lane], meff[:, lane], model.fixed, held[lane],
+                                         model.tets, model.rest_volume, model.vol_floor, dt, flags[:, lane],
+                                         react[lane])
+                else:
+                    x_one = x.reshape((n, 3))
+                    v_one = v.reshape((n, 3))
+                    flags_one = flags.reshape(nt)
+                    project_volume_floor(x_one, v_one, meff[:, 0], model.fixed, held[0], model.tets,
+                                         model.rest_volume, model.vol_floor, dt, flags_one, react[0])
+                    refresh_floor_volumes(x_one, model.tets, flags_one, mark, vols.reshape(nt))
+                floor_reactions(b, held[lane], react[lane], model.fixed, u[lane], out, state, sub_info)
+
+
+# ------------------------------------------------------------------------------------------------
+# per substep
+# ------------------------------------------------------------------------------------------------
+
+
+def _us(run: Callable[[int], Any], min_time: float, repeats: int) -> float:
+    run(1)  # compile / load the cache
+    return time_per_unit(run, min_time, repeats, max_units=10**7)["median_s"] * 1e6
+
+
+def profile_substep(sim, min_time: float, repeats: int) -> dict:
+    """us per substep of each phase and of the whole ``simulate`` call for ``sim`` (all tissues in one lane
+    block, or one tissue), on copies of its state: ``sim`` itself is only advanced by the whole-call timing."""
+    model, state, out = sim.kernel_model(), sim.kernel_state(), sim.kernel_readout()
+    nb, n, ne, nt = sim.x.shape[0], sim.x.shape[1], sim.fv.shape[1], model.tets.shape[0]
+    lanes = nb > 1
+    if lanes and nb > 64:
+        raise ValueError(f"profile_substep: batch must fit one lane block (<= 64 tissues), got {nb}")
+    m = model
+    dt = m.dt_outer / m.n_sub
+    # the batch in lanes (x[i, c, lane]), as simulate copies it in
+    x = np.empty((n, 3, nb))
+    v = np.empty((n, 3, nb))
+    fv = np.empty((ne, nb))
+    dl = np.empty((ne, nb))
+    _to_lanes(state.x, state.v, state.fv, state.dl_prev, 0, x, v, fv, dl, True)
+    springs = Springs(m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash,
+                      m.kv if m.kv.shape[0] == ne else np.zeros(ne), m.use_dashpot, m.use_sls)
+    ks = np.ascontiguousarray(state.kscale)
+    ms = np.ascontiguousarray(state.mscale)
+    decay = math.exp(-dt / m.tau)
+    gain = m.tau / dt * (1.0 - decay)
+    tmp = np.empty((3, nb))
+    scratch = np.zeros((9, 0 if lanes else ne))
+    f0 = np.empty((n, 3, nb))
+    for lane in range(nb):
+        f0[:, :, lane] = m.mass[:, None] * ms[lane] * m.gravity[None, :] + state.f_ext[lane]
+    meff = np.empty((n, nb))
+    damp_inv = np.empty((n, nb))
+    fa = np.empty((3, nb))
+    _constant_damping(m.mass, m.b0, m.b1, ms, dt, meff, damp_inv)
+    u = np.empty((nb, 3, 3))
+    tj = np.empty((nb, 3, 3))
+    for lane in range(nb):
+        jaw_directions(state.g_axis[lane], state.g_e1[lane], u[lane], tj[lane])
+    flags = np.empty((nt, nb), dtype=np.int8)
+    n_floor = np.zeros(nb, dtype=np.int64)
+    vols = np.empty((nt, nb))
+    held = np.zeros((nb, n), dtype=np.int8)
+    react = np.zeros((nb, n, 3))
+    mark = np.zeros(n, dtype=np.int8)
+    res = np.empty(6)
+    sub_info = (dt, 0.0, False, 1.0 / m.n_sub)  # a substep before the last one of a call: no readout fill
+    anchor_out = np.zeros_like(out.anchor_out)
+    floor_on = m.vol_floor > 0.0
+    rows: dict[str, float] = {}
+    # the end of the last substep: the floor's flag pass left the volumes, reused by the barrier where it
+    # moved nothing (one tissue: always, refresh_floor_volumes keeps them current)
+    if floor_on:
+        _rep_floor_flag(x, m.tets, m.rest_volume, m.vol_floor, flags, n_floor, vols, lanes, 1)
+    use_vols = bool(floor_on and (not lanes or int(n_floor.sum()) == 0))
+    # ---- 1. forces (on scratch copies: the phase's state changes do not carry into the next phase)
+    f = f0.copy()
+    rows["force_reset"] = _us(lambda k: _rep_force_reset(f.reshape(-1), f0.reshape(-1), k), min_time, repeats)
+    fv_c, dl_c = fv.copy(), dl.copy()
+    rows["springs"] = _us(lambda k: _rep_springs(x, v, springs, ks, decay, gain, fv_c, dl_c, f, tmp, scratch, lanes, k),
+                          min_time, repeats)
+    if m.kvol.shape[0] > 0:
+        rows["volume_barrier"] = _us(lambda k: _rep_barrier(x, m.tets, m.rest_volume, m.kvol, m.vol_threshold, ks, f,
+                                                            tmp[0], vols, use_vols, lanes, k), min_time, repeats)
+    else:
+        rows["volume_barrier"] = 0.0
+    # the substep's real forces, from the real state
+    f = f0.copy()
+    _rep_springs(x, v, springs, ks, decay, gain, fv, dl, f, tmp, scratch, lanes, 1)
+    if m.kvol.shape[0] > 0:
+        _rep_barrier(x, m.tets, m.rest_volume, m.kvol, m.vol_threshold, ks, f, tmp[0], vols, use_vols, lanes, 1)
+    # ---- 2-3. node update (on copies of x, v)
+    xc, vc = x.copy(), v.copy()
+    rows["node_update"] = _us(lambda k: _rep_nodes(m, xc, vc, f, meff, damp_inv, fa, ms, 0,
+                                                   dt, anchor_out, lanes, k), min_time, repeats)
+    meff[:] = 0.0
+    _constant_damping(m.mass, m.b0, m.b1, ms, dt, meff, damp_inv)
+    _rep_nodes(m, x, v, f, meff, damp_inv, fa, ms, 0, dt, anchor_out, lanes, 1)  # the real state moves on
+    # ---- 4. contacts: the nodes that penetrated the jaws in this substep are pushed out; restore them
+    surf = np.ascontiguousarray(m.surface_nodes, dtype=np.int64)
+    x0, v0 = x.copy(), v.copy()
+    t_save = state.t.copy()
+    g_save = state.g_force.copy()
+    jaw_save, cs_save, cf_save = out.jaw_out.copy(), out.contact_state.copy(), out.contact_force.copy()
+
+    def contacts(run: bool) -> Callable[[int], None]:
+        return lambda k: _rep_contacts(m, state, out, x, v, x0, v0, surf, meff, held, u, tj, sub_info, res, 0, run, k)
+
+    with_restore = _us(contacts(True), min_time, repeats)
+    restore = _us(contacts(False), min_time, repeats)
+    rows["contacts"] = max(with_restore - restore, 0.0)
+    x[:], v[:] = x0, v0
+    _rep_contacts(m, state, out, x, v, x0, v0, surf, meff, held, u, tj, sub_info, res, 0, True, 1)
+    contact_nodes = int(np.count_nonzero(held > 0))
+    # (the kernel's time, grasper pinch and readouts were advanced by the repetitions: put them back)
+    state.t[:], state.g_force[:] = t_save, g_save
+    out.jaw_out[:], out.contact_state[:], out.contact_force[:] = jaw_save, cs_save, cf_save
+    # ---- 5. volume floor
+    rows["floor_flag"] = 0.0
+    rows["floor_project"] = 0.0
+    flagged = 0
+    if floor_on:
+        flags_c, n_floor_c, vols_c = flags.copy(), n_floor.copy(), vols.copy()
+        rows["floor_flag"] = _us(lambda k: _rep_floor_flag(x, m.tets, m.rest_volume, m.vol_floor, flags_c, n_floor_c,
+                                                           vols_c, lanes, k), min_time, repeats)
+        _rep_floor_flag(x, m.tets, m.rest_volume, m.vol_floor, flags, n_floor, vols, lanes, 1)
+        flagged = int(n_floor.sum())
+        if flagged:
+            tet_nodes = np.unique(m.tets[np.flatnonzero(flags.any(axis=1))].ravel()).astype(np.int64)
+            x0, v0 = x.copy(), v.copy()
+            react_save = react.copy()
+
+            def project(run: bool) -> Callable[[int], None]:
+                return lambda k: _rep_floor_project(m, state, out, x, v, x0, v0, tet_nodes, meff, held, react, flags,
+                                                    n_floor, vols, mark, u, sub_info, 0,
+                                                    lanes, run, k)
+
+            with_restore = _us(project(True), min_time, repeats)
+            restore = _us(project(False), min_time, repeats)
+            rows["floor_project"] = max(with_restore - restore, 0.0)
+            react[:] = react_save
+            out.jaw_out[:], out.contact_state[:], out.contact_force[:] = jaw_save, cs_save, cf_save
+    # ---- the whole call, per substep (many outer steps per call, as the env's 33 ms agent step)
+    steps = 33
+    whole_ms = _us(lambda k: sim.step(k * steps), min_time, repeats) / steps  # us per outer step
+    whole = whole_ms / sim.n_sub
+    total = sum(rows[p] for p in PHASES)
+    return {
+        "tissues": nb,
+        "layout": "lanes" if lanes else "one tissue",
+        "n_sub": sim.n_sub,
+        "maxwell_branch": bool(m.use_sls),
+        "dashpots": bool(m.use_dashpot),
+        "volume_floor_on": bool(floor_on),
+        "barrier_reuses_floor_volumes": use_vols,
+        "contact_nodes": contact_nodes,
+        "tets_below_floor": flagged,
+        "phases_us_per_substep": {p: _r(rows[p]) for p in PHASES},
+        "phases_share_of_whole": {p: _r(rows[p] / whole) for p in PHASES},
+        "sum_of_phases_us": _r(total),
+        "whole_us_per_substep": _r(whole),
+        "remainder_us": _r(whole - total),
+        "sum_over_whole": _r(total / whole),
+        "per_tissue_whole_us_per_substep": _r(whole / nb),
+    }
+
+
+def profile_substeps(quick: bool, progress: Callable[[str], None] = lambda s: None, resolution="coarse") -> dict:
+    """:func:`profile_substep` of the grasped coarse spleen, one tissue and a batch of :data:`PROFILE_BATCH`."""
+    from ..physics.simulation import Simulation
+
+    min_time = 0.1 if quick else 0.5
+    repeats = 1 if quick else 3
+    settle_s, close_s = (0.5, 1.0) if quick else (2.0, 2.0)
+    progress(f"profile: grasping the {resolution} spleen")
+    scene, sim1 = _grasped(resolution, settle_s, close_s)
+    progress("profile: substep phases, one tissue")
+    one = profile_substep(sim1, min_time, repeats)
+    simb = Simulation(scene.model, PROFILE_BATCH, dt=DT_OUTER, grasper=scene.grasper)
+    _clone(sim1, simb)
+    progress(f"profile: substep phases, batch of {PROFILE_BATCH}")
+    batch = profile_substep(simb, min_time, repeats)
+    return {"resolution": resolution, "nodes": scene.model.n_nodes, "springs": int(len(scene.model.edges)),
+            "tets": int(len(scene.model.tets)), "surface_nodes": int(len(scene.mesh.surface_nodes)),
+            "min_time_per_measurement_s": min_time, "rows": [one, batch]}
+
+
+# ------------------------------------------------------------------------------------------------
+# per agent step
+# ------------------------------------------------------------------------------------------------
+
+
+def _default_train_config():
+    from ..agents.models import TrainConfig
+
+    return TrainConfig()
+
+
+def build_default_ppo(venv, config):
+    """An untrained PPO of ``config``'s policy settings on ``venv``, built as agents/training.py's ``train`` does."""
+    from stable_baselines3 import PPO
+
+    from ..envs.core import OBS_NAMES
+    from ..agents.networks import AsymmetricActorCriticPolicy, actor_mask
+
+    kwargs = dict(config.ppo)
+    policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net),
+                                          "log_std_init": float(config.log_std_init)}
+    if config.squash_actions:
+        policy_kwargs["squash_output"] = True
+    if config.asymmetric_critic:
+        policy = AsymmetricActorCriticPolicy
+        policy_kwargs["actor_mask"] = actor_mask(len(OBS_NAMES), venv.core.frame_dim, config.env.obs_history)
+    return PPO(policy, venv, seed=config.seed, device="cpu", verbose=0, policy_kwargs=policy_kwargs, **kwargs)
+
+
+def profile_agent_step(quick: bool, progress: Callable[[str], None] = lambda s: None) -> dict:
+    """ms per agent step of the default env's parts (batch of 1 and of the default n_envs) and of the policy."""
+    import torch
+
+    from ..envs.task import command_batch, update_batch
+    from ..envs.sb3 import GraspLiftSB3VecEnv
+
+    config = _default_train_config()
+    torch.set_num_threads(config.torch_threads)
+    min_time = 0.2 if quick else 1.0
+    repeats = 1 if quick else 3
+    rows = []
+    for n_envs in (1, config.n_envs):
+        progress(f"profile: agent step, {n_envs} env(s)")
+        venv = GraspLiftSB3VecEnv(n_envs, config.env, seed=config.seed)
+        venv.reset()
+        core = venv.core
+        sim, ts = core.sim, core.state
+        rng = np.random.default_rng(0)
+        actions = rng.uniform(-1.0, 1.0, (n_envs, 2))
+
+        def ms(run: Callable[[int], Any]) -> float:
+            run(1)
+            return time_per_unit(run, min_time, repeats, max_units=10**6)["median_s"] * 1e3
+
+        def vec_step(k: int) -> None:
+            for _ in range(k):
+                venv.step(rng.uniform(-1.0, 1.0, (n_envs, 2)).astype(np.float32))
+
+        vec_step(5)  # into the episode: the jaws move towards the tissue
+        steps = core.config.physics_steps_per_action
+        physics = ms(lambda k: sim.step(k * steps))
+        finite, volume_ratio = sim.finite(), sim.min_volume_ratio()
+
+        def task(k: int) -> None:
+            for _ in range(k):
+                command_batch(core.params, sim.kernel_state(), ts, actions)
+                update_batch(core.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
+
+        task_ms = ms(task)
+        readouts = ms(lambda k: [(sim.finite(), sim.min_volume_ratio()) for _ in range(k)])
+        core_step = ms(lambda k: [core.step(actions) for _ in range(k)])
+        vec = ms(vec_step)
+        rows.append({
+            "n_envs": n_envs,
+            "physics_ms_per_agent_step": steps,
+            "ms": {"physics": _r(physics), "task": _r(task_ms), "readouts_finite_volume": _r(readouts),
+                   "core_step": _r(core_step), "core_python_rest": _r(core_step - physics - task_ms - readouts),
+                   "sb3_vec_env_step": _r(vec), "sb3_wrapper_rest": _r(vec - core_step)},
+            "share_of_sb3_step": {"physics": _r(physics / vec), "task": _r(task_ms / vec),
+                                  "readouts_finite_volume": _r(readouts / vec),
+                                  "python_rest": _r((vec - physics - task_ms - readouts) / vec)},
+            "agent_steps_per_s": _r(n_envs / vec * 1e3),
+        })
+        if n_envs == config.n_envs:
+            progress("profile: policy inference")
+            model = build_default_ppo(venv, config)
+            policy = model.policy
+            obs = venv.reset()
+            inference = {"policy": type(policy).__name__, "net_arch": list(config.policy_net),
+                         "obs_dim": int(obs.shape[1]), "torch_threads": config.torch_threads}
+            for batch in (1, PROFILE_BATCH):
+                o = np.resize(obs, (batch, obs.shape[1])).astype(np.float32)
+                t = torch.as_tensor(o)
+
+                def predict(k: int, o=o) -> None:
+                    for _ in range(k):
+                        policy.predict(o, deterministic=True)
+
+                def forward(k: int, t=t) -> None:
+                    with torch.no_grad():
+                        for _ in range(k):
+                            policy(t)  # what the rollout calls: actions, values, log-probabilities
+
+                inference[f"predict_batch{batch}_ms"] = _r(ms(predict))
+                inference[f"forward_batch{batch}_ms"] = _r(ms(forward))
+            del model
+        venv.close()
+    return {"resolution": config.env.resolution, "min_time_per_measurement_s": min_time, "rows": rows,
+            "policy_inference": inference}
+
+
+# ------------------------------------------------------------------------------------------------
+# per training
+# ------------------------------------------------------------------------------------------------
+
+
+def profile_training(quick: bool, progress: Callable[[str], None] = lambda s: None) -> dict:
+    """A short SB3 PPO run of the default config (default n_envs and rollout length; ``--quick``: one rollout
+    of 4 envs): wall time of rollouts, PPO updates and one validation (:class:`~..agents.training.BestModel`,
+    as at a checkpoint), with an SB3 callback. Nothing is written outside a temporary folder."""
+    import tempfile
+
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from ..agents.training import BestModel
+    from ..envs.sb3 import GraspLiftSB3VecEnv
+    from ..physics.config import replace
+
+    config = _default_train_config()
+    if quick:
+        config = replace(config, n_envs=4, validation_episodes=1, validation_mu=(0.5,),
+                         ppo={**dict(config.ppo), "n_steps": 32, "batch_size": 64, "n_epochs": 2})
+    torch.set_num_threads(config.torch_threads)
+    total = config.n_envs * config.ppo["n_steps"]  # one rollout and one update
+    progress(f"profile: training {total} steps ({config.n_envs} envs)")
+    venv = GraspLiftSB3VecEnv(config.n_envs, config.env, seed=config.seed)
+    model = build_default_ppo(venv, config)
+    times = {"rollout": 0.0, "update": 0.0}
+    marks: dict[str, float] = {}
+
+    class Timer(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            now = time.perf_counter()
+            if "rollout_end" in marks:
+                times["update"] += now - marks["rollout_end"]
+            marks["rollout_start"] = now
+
+        def _on_rollout_end(self) -> None:
+            now = time.perf_counter()
+            times["rollout"] += now - marks["rollout_start"]
+            marks["rollout_end"] = now
+
+        def _on_step(self) -> bool:
+            return True
+
+    t0 = time.perf_counter()
+    model.learn(total, callback=Timer())
+    end = time.perf_counter()
+    learn = end - t0
+    if "rollout_end" in marks:  # the last update runs after the last rollout, before learn returns
+        times["update"] += end - marks["rollout_end"]
+    with tempfile.TemporaryDirectory() as tmp:
+        from pathlib import Path
+
+        selector = BestModel(config, Path(tmp))
+        path = Path(tmp) / "model.zip"
+        model.save(path)
+        progress("profile: one validation")
+        t1 = time.perf_counter()
+        selector.consider(model, path)
+        validation = time.perf_counter() - t1
+    venv.close()
+    checkpoints = config.total_timesteps / config.checkpoint_every
+    full_s = {"rollout": times["rollout"] / total * config.total_timesteps,
+              "update": times["update"] / total * config.total_timesteps, "validation": validation * checkpoints}
+    full_total = sum(full_s.values())
+    return {
+        "n_envs": config.n_envs, "n_steps": config.ppo["n_steps"], "agent_steps": total,
+        "n_epochs": config.ppo["n_epochs"], "batch_size": config.ppo["batch_size"],
+        "validation_episodes": config.validation_episodes, "validation_mu": list(config.validation_mu),
+        "seconds": {"learn": _r(learn), "rollout": _r(times["rollout"]), "update": _r(times["update"]),
+                    "learn_rest": _r(learn - times["rollout"] - times["update"]), "one_validation": _r(validation)},
+        "rollout_agent_steps_per_s": _r(total / times["rollout"]) if times["rollout"] > 0 else None,
+        "extrapolated_default_run": {"total_timesteps": config.total_timesteps, "checkpoints": _r(checkpoints),
+                                     "hours": {k: _r(s / 3600.0) for k, s in full_s.items()},
+                                     "share": {k: _r(s / full_total) for k, s in full_s.items()}},
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# report
+# ------------------------------------------------------------------------------------------------
+
+
+def run_profile(quick: bool = False, progress: Callable[[str], None] = lambda s: None, training: bool = True) -> dict:
+    from .report import machine_info
+
+    t0 = time.perf_counter()
+    report: dict[str, Any] = {"what": "profile", "quick": bool(quick), "machine": machine_info()}
+    report["substep"] = profile_substeps(quick, progress)
+    report["agent_step"] = profile_agent_step(quick, progress)
+    if training:
+        report["training"] = profile_training(quick, progress)
+    report["elapsed_s"] = _r(time.perf_counter() - t0)
+    return report
+
+
+def markdown_table(report: dict) -> str:
+    """The profile's tables (markdown)."""
+    lines = []
+    sub = report["substep"]
+    one, batch = sub["rows"]
+    lines += [f"Per substep, {sub['resolution']} spleen ({sub['nodes']} nodes, {sub['springs']} springs, "
+              f"{sub['tets']} tets), jaws closed (contact nodes: {one['contact_nodes']} one tissue), n_sub "
+              f"{one['n_sub']}, Maxwell branch {'on' if one['maxwell_branch'] else 'off'}:", "",
+              f"| phase | one tissue us | share | batch {batch['tissues']} us | per tissue us | share |",
+              "|---|---|---|---|---|---|"]
+    for p in PHASES:
+        lines.append(f"| {p} | {one['phases_us_per_substep'][p]} | {one['phases_share_of_whole'][p]} | "
+                     f"{batch['phases_us_per_substep'][p]} | {_r(batch['phases_us_per_substep'][p] / batch['tissues'])} "
+                     f"| {batch['phases_share_of_whole'][p]} |")
+    for key, label in (("sum_of_phases_us", "sum of phases"), ("whole_us_per_substep", "whole simulate"),
+                       ("remainder_us", "remainder (whole - sum)")):
+        lines.append(f"| {label} | {one[key]} | {_r(one[key] / one['whole_us_per_substep'])} | {batch[key]} | "
+                     f"{_r(batch[key] / batch['tissues'])} | {_r(batch[key] / batch['whole_us_per_substep'])} |")
+    lines += ["", "Per agent step (ms):", "", "| n_envs | physics | task | finite + volume | core rest | "
+              "SB3 wrapper rest | SB3 vec step | steps/s |", "|---|---|---|---|---|---|---|---|"]
+    for r in report["agent_step"]["rows"]:
+        t = r["ms"]
+        lines.append(f"| {r['n_envs']} | {t['physics']} | {t['task']} | {t['readouts_finite_volume']} | "
+                     f"{t['core_python_rest']} | {t['sb3_wrapper_rest']} | {t['sb3_vec_env_step']} | "
+                     f"{r['agent_steps_per_s']} |")
+    inf = report["agent_step"]["policy_inference"]
+    lines += ["", f"Policy inference ({inf['policy']}, net {inf['net_arch']}, obs {inf['obs_dim']}, torch threads "
+              f"{inf['torch_threads']}), ms: predict 1 obs {inf['predict_batch1_ms']}, predict {PROFILE_BATCH} obs "
+              f"{inf[f'predict_batch{PROFILE_BATCH}_ms']}, forward 1 obs {inf['forward_batch1_ms']}, forward "
+              f"{PROFILE_BATCH} obs {inf[f'forward_batch{PROFILE_BATCH}_ms']}"]
+    if "training" in report:
+        tr = report["training"]
+        s = tr["seconds"]
+        ext = tr["extrapolated_default_run"]
+        lines += ["", f"Training ({tr['agent_steps']} agent steps, {tr['n_envs']} envs, {tr['n_epochs']} epochs): "
+                  f"rollout {s['rollout']} s, PPO update {s['update']} s, one validation {s['one_validation']} s; "
+                  f"extrapolated to the default {ext['total_timesteps']} steps: rollout {ext['hours']['rollout']} h, "
+                  f"update {ext['hours']['update']} h, validation {ext['hours']['validation']} h (shares "
+                  f"{ext['share']['rollout']} / {ext['share']['update']} / {ext['share']['validation']})"]
+    return "\n".join(lines)
+
+
+def profile_cli(quick: bool, out) -> int:
+    """``msdgrasp bench profile``: print the JSON report (and the tables on stderr); ``out`` also writes it
+    (JSON and markdown, atomically)."""
+    from ..physics.config import atomic_write_text
+    from .report import _out_paths
+
+    def progress(msg: str) -> None:
+        print(f"[bench] {msg}", file=sys.stderr, flush=True)
+
+    report = run_profile(quick, progress=progress)
+    table = markdown_table(report)
+    if out is not None:
+        json_path, md_path, _ = _out_paths(out)
+        report["files"] = {"json": str(json_path), "markdown": str(md_path)}
+        atomic_write_text(json_path, json.dumps(report, indent=2) + "\n")
+        atomic_write_text(md_path, table + "\n")
+    print(table, file=sys.stderr)
+    print(json.dumps(report, indent=2))
+    return 0
