@@ -402,8 +402,9 @@ def profile_agent_step(quick: bool, progress: Callable[[str], None] = lambda s: 
     """ms per agent step of the default env's parts (batch of 1 and of the default n_envs) and of the policy."""
     import torch
 
-    from ..envs.task import command_batch, update_batch
+    from ..envs import core as core_module
     from ..envs.sb3 import GraspLiftSB3VecEnv
+    from ..envs.task import command_batch, update_batch
 
     config = _default_train_config()
     torch.set_num_threads(config.torch_threads)
@@ -415,38 +416,47 @@ def profile_agent_step(quick: bool, progress: Callable[[str], None] = lambda s: 
         venv = GraspLiftSB3VecEnv(n_envs, config.env, seed=config.seed)
         venv.reset()
         core = venv.core
-        sim, ts = core.sim, core.state
         rng = np.random.default_rng(0)
-        actions = rng.uniform(-1.0, 1.0, (n_envs, 2))
+        for _ in range(5):  # into the episode: the jaws move towards the tissue
+            venv.step(rng.uniform(-1.0, 1.0, (n_envs, 2)).astype(np.float32))
+        # the parts are timed inside real vector-env steps (random actions, autoreset), by timers around
+        # the physics call, the task's two functions and the blow-up/volume readouts, restored afterwards
+        spent = {"physics": 0.0, "task": 0.0, "readouts": 0.0}
 
-        def ms(run: Callable[[int], Any]) -> float:
-            run(1)
-            return time_per_unit(run, min_time, repeats, max_units=10**6)["median_s"] * 1e3
+        def timed(fn: Callable, part: str) -> Callable:
+            def wrapper(*args: Any, **kwargs: Any) -> Any:
+                t0 = time.perf_counter()
+                try:
+                    return fn(*args, **kwargs)
+                finally:
+                    spent[part] += time.perf_counter() - t0
+            return wrapper
 
-        def vec_step(k: int) -> None:
-            for _ in range(k):
+        sim = core.sim
+        sim.step = timed(sim.step, "physics")
+        sim.finite = timed(sim.finite, "readouts")
+        sim.min_volume_ratio = timed(sim.min_volume_ratio, "readouts")
+        core_module.command_batch = timed(command_batch, "task")
+        core_module.update_batch = timed(update_batch, "task")
+        try:
+            n_steps, t0 = 0, time.perf_counter()
+            while n_steps < 3 or time.perf_counter() - t0 < min_time:
                 venv.step(rng.uniform(-1.0, 1.0, (n_envs, 2)).astype(np.float32))
-
-        vec_step(5)  # into the episode: the jaws move towards the tissue
+                n_steps += 1
+            wall = time.perf_counter() - t0
+        finally:
+            core_module.command_batch, core_module.update_batch = command_batch, update_batch
+            for name in ("step", "finite", "min_volume_ratio"):
+                delattr(sim, name)
+        vec = wall / n_steps * 1e3
+        physics, task_ms, readouts = (spent[k] / n_steps * 1e3 for k in ("physics", "task", "readouts"))
         steps = core.config.physics_steps_per_action
-        physics = ms(lambda k: sim.step(k * steps))
-        finite, volume_ratio = sim.finite(), sim.min_volume_ratio()
-
-        def task(k: int) -> None:
-            for _ in range(k):
-                command_batch(core.params, sim.kernel_state(), ts, actions)
-                update_batch(core.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
-
-        task_ms = ms(task)
-        readouts = ms(lambda k: [(sim.finite(), sim.min_volume_ratio()) for _ in range(k)])
-        core_step = ms(lambda k: [core.step(actions) for _ in range(k)])
-        vec = ms(vec_step)
         rows.append({
             "n_envs": n_envs,
             "physics_ms_per_agent_step": steps,
+            "agent_steps_timed": n_steps,
             "ms": {"physics": _r(physics), "task": _r(task_ms), "readouts_finite_volume": _r(readouts),
-                   "core_step": _r(core_step), "core_python_rest": _r(core_step - physics - task_ms - readouts),
-                   "sb3_vec_env_step": _r(vec), "sb3_wrapper_rest": _r(vec - core_step)},
+                   "python_rest": _r(vec - physics - task_ms - readouts), "sb3_vec_env_step": _r(vec)},
             "share_of_sb3_step": {"physics": _r(physics / vec), "task": _r(task_ms / vec),
                                   "readouts_finite_volume": _r(readouts / vec),
                                   "python_rest": _r((vec - physics - task_ms - readouts) / vec)},
@@ -456,6 +466,11 @@ def profile_agent_step(quick: bool, progress: Callable[[str], None] = lambda s: 
             progress("profile: policy inference")
             model = build_default_ppo(venv, config)
             policy = model.policy
+
+            def ms(run: Callable[[int], Any]) -> float:
+                run(1)
+                return time_per_unit(run, min_time, repeats, max_units=10**6)["median_s"] * 1e3
+
             obs = venv.reset()
             inference = {"policy": type(policy).__name__, "net_arch": list(config.policy_net),
                          "obs_dim": int(obs.shape[1]), "torch_threads": config.torch_threads}
@@ -595,13 +610,14 @@ def markdown_table(report: dict) -> str:
                        ("remainder_us", "remainder (whole - sum)")):
         lines.append(f"| {label} | {one[key]} | {_r(one[key] / one['whole_us_per_substep'])} | {batch[key]} | "
                      f"{_r(batch[key] / batch['tissues'])} | {_r(batch[key] / batch['whole_us_per_substep'])} |")
-    lines += ["", "Per agent step (ms):", "", "| n_envs | physics | task | finite + volume | core rest | "
-              "SB3 wrapper rest | SB3 vec step | steps/s |", "|---|---|---|---|---|---|---|---|"]
+    lines += ["", "Per agent step, ms (share of the SB3 vector env's step):", "",
+              "| n_envs | physics | task | finite + volume | Python rest | SB3 vec step | agent steps/s |",
+              "|---|---|---|---|---|---|---|"]
     for r in report["agent_step"]["rows"]:
-        t = r["ms"]
-        lines.append(f"| {r['n_envs']} | {t['physics']} | {t['task']} | {t['readouts_finite_volume']} | "
-                     f"{t['core_python_rest']} | {t['sb3_wrapper_rest']} | {t['sb3_vec_env_step']} | "
-                     f"{r['agent_steps_per_s']} |")
+        t, sh = r["ms"], r["share_of_sb3_step"]
+        lines.append(f"| {r['n_envs']} | {t['physics']} ({sh['physics']}) | {t['task']} ({sh['task']}) | "
+                     f"{t['readouts_finite_volume']} ({sh['readouts_finite_volume']}) | {t['python_rest']} "
+                     f"({sh['python_rest']}) | {t['sb3_vec_env_step']} | {r['agent_steps_per_s']} |")
     inf = report["agent_step"]["policy_inference"]
     lines += ["", f"Policy inference ({inf['policy']}, net {inf['net_arch']}, obs {inf['obs_dim']}, torch threads "
               f"{inf['torch_threads']}), ms: predict 1 obs {inf['predict_batch1_ms']}, predict {PROFILE_BATCH} obs "
