@@ -216,3 +216,37 @@ def test_soak_clean_exit_zero_and_validation(tmp_path, capsys):
         kw = {"steps": 10, "n_envs": 2, "seed": 0, "out": tmp_path, "quiet": True, **bad}
         with pytest.raises(ConfigError):
             soak.soak_cli(argparse.Namespace(**kw))
+
+
+def test_profile_substep_phases_add_up(tmp_path, monkeypatch, capsys):
+    """`msdgrasp bench profile --quick`'s per-substep part: every phase that runs on the grasped spleen takes
+    time, and the phases, each timed alone, add up to the whole simulate call within a sane factor (a phase
+    left out or counted twice would break it); the command writes its JSON and table (the agent-step and
+    training parts are stubbed here: they need SB3 and take longer)."""
+    from msdgrasp.benchmarks import profile
+
+    sub = profile.profile_substeps(quick=True)
+    assert [r["tissues"] for r in sub["rows"]] == [1, profile.PROFILE_BATCH]
+    for row in sub["rows"]:
+        phases = row["phases_us_per_substep"]
+        assert set(phases) == set(profile.PHASES)
+        for name in ("force_reset", "springs", "node_update", "contacts", "floor_flag"):
+            assert _positive(phases[name]), (row["layout"], name, phases)
+        assert row["contact_nodes"] > 0  # the jaws hold the tissue while the contacts are timed
+        assert _positive(row["whole_us_per_substep"])
+        assert 0.5 < row["sum_of_phases_us"] / row["whole_us_per_substep"] < 2.0, row
+    monkeypatch.setattr(profile, "profile_substeps", lambda quick, progress: sub)
+    monkeypatch.setattr(profile, "profile_agent_step", lambda quick, progress: {
+        "rows": [], "policy_inference": {"policy": "p", "net_arch": [64, 64], "obs_dim": 1, "torch_threads": 1,
+                                         "predict_batch1_ms": 1.0, "forward_batch1_ms": 1.0,
+                                         f"predict_batch{profile.PROFILE_BATCH}_ms": 1.0,
+                                         f"forward_batch{profile.PROFILE_BATCH}_ms": 1.0}})
+    parts = {"rollout": 1.0, "update": 1.0, "validation": 1.0}
+    monkeypatch.setattr(profile, "profile_training", lambda quick, progress: {
+        "agent_steps": 1, "n_envs": 1, "n_epochs": 1, "seconds": {"rollout": 1.0, "update": 1.0, "one_validation": 1.0},
+        "extrapolated_default_run": {"total_timesteps": 1, "hours": parts, "share": parts}})
+    out = tmp_path / "profile.json"
+    assert main(["bench", "profile", "--quick", "--out", str(out)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert json.loads(out.read_text())["substep"] == printed["substep"] == json.loads(json.dumps(sub))
+    assert "springs" in out.with_suffix(".md").read_text()
