@@ -725,8 +725,7 @@ def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_pe
 
 
 #: what ``msdgrasp bench`` measures
-#: (``profile``: where the time goes, per substep phase, agent step and training; benchmarks/profile.py, not in ``all``)
-BENCH_PARTS = ("physics", "grasp", "env", "gpu", "precision", "learners", "profile", "all")
+BENCH_PARTS = ("physics", "grasp", "env", "gpu", "precision", "learners", "all")
 
 
 def bench_precision_run(quick: bool) -> dict:
@@ -747,10 +746,6 @@ def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[st
         from ..physics.config import ConfigError
 
         raise ConfigError(f"bench: what must be one of {', '.join(BENCH_PARTS)}, got {what!r}")
-    if what == "profile":
-        from .profile import run_profile
-
-        return run_profile(quick, progress=progress)
     t0 = time.perf_counter()
     report: dict[str, Any] = {"what": what, "quick": bool(quick), "machine": machine_info()}
     if what in ("physics", "all"):
@@ -790,10 +785,6 @@ def bench_cli(args) -> int:
     def progress(msg: str) -> None:
         print(f"[bench] {msg}", file=sys.stderr, flush=True)
 
-    if what == "profile":
-        from .profile import profile_cli
-
-        return profile_cli(quick, out)
     report = run_bench(what, quick, progress=progress)
     if out is not None:
         json_path, md_path, png_path = _out_paths(out)

@@ -55,6 +55,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "profile":  # (its own module: it builds on bench.py's set-ups)
+        from ..benchmarks.profile import profile_cli
+
+        return profile_cli(bool(args.quick), args.out)
     from ..benchmarks.bench import bench_cli
 
     return bench_cli(args)
