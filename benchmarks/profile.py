@@ -135,6 +135,7 @@ def _rep_contacts(model, state, out, x, v, x0, v0, nodes, meff, held, u, tj, sub
     """The contact phase (run False: only the restore of the surface nodes, to be subtracted)."""
     nl = x.shape[2]
     dt, _, last_sub, _ = sub_info
+    cand = np.empty(model.surface_nodes.shape[0], dtype=np.int8)  # (jaw_contacts' scratch, as the integrator's)
     for _ in range(reps):
         _restore(x, v, x0, v0, nodes)
         if not run:
@@ -149,7 +150,7 @@ def _rep_contacts(model, state, out, x, v, x0, v0, nodes, meff, held, u, tj, sub
             clear_contacts(b, model, out, hb, last_sub)
             plate_contacts(b, xb, vb, mb, model, state, out, sub_info, res, hb)
             if model.jaw_active:
-                jaw_contacts(b, xb, vb, mb, model, state, out, u[lane], tj[lane], sub_info, res, hb)
+                jaw_contacts(b, xb, vb, mb, model, state, out, (u[lane], tj[lane]), sub_info, res, (hb, cand))
 
 
 @njit(cache=True, error_model="numpy")

@@ -170,18 +170,25 @@ def clear_readouts(b: int, out) -> None:
         out.anchor_out[b, c] = 0.0
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def clear_contact_node(b: int, model, out, held, last_sub: bool, q: int) -> None:
+    """Before a substep's contacts: surface node q of tissue b is not held (``held`` (N,) int8, read only by
+    the volume floor) and, in the last substep, its contact readouts restart from zero. Nodes are independent
+    (the GPU clears them in parallel)."""
+    i = model.surface_nodes[q]
+    if model.vol_floor > 0.0:
+        held[i] = 0
+    if last_sub:
+        out.contact_state[b, i] = 0
+        for c in range(3):
+            out.contact_force[b, i, c] = 0.0
+
+
 @njit(cache=True, error_model="numpy")
 def clear_contacts(b: int, model, out, held, last_sub: bool) -> None:
-    """Before a substep's contacts: no surface node of tissue b is held (``held`` (N,) int8, read only by the
-    volume floor) and, in the last substep, its contact readouts restart from zero."""
+    """:func:`clear_contact_node` for every surface node of tissue b."""
     for q in range(model.surface_nodes.shape[0]):
-        i = model.surface_nodes[q]
-        if model.vol_floor > 0.0:
-            held[i] = 0
-        if last_sub:
-            out.contact_state[b, i] = 0
-            for c in range(3):
-                out.contact_force[b, i, c] = 0.0
+        clear_contact_node(b, model, out, held, last_sub, q)
 
 
 @njit(cache=True, error_model="numpy")
@@ -223,35 +230,80 @@ def plate_contacts(
                 contact_force[b, i, 2] += res[0] * pnz + res[3]
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def advance_jaws(b, state, dt):
+    """Advance tissue b's grasper by one substep of ``dt`` s: the jaws' radius (closing stops at its limits)
+    and the tip (the pull). Returns the radial speed the jaws moved at, m/s."""
+    g_radius = state.g_radius
+    r_old = g_radius[b]
+    r_new = min(max(r_old + dt * state.g_vradius[b], state.g_rmin[b]), state.g_rmax[b])
+    g_radius[b] = r_new
+    for c in range(3):
+        state.g_tip[b, c] += dt * state.g_vpull[b, c]
+    return (r_new - r_old) / dt
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def jaw_node_geometry(b, xb, i, model, state, dirs):
+    """Where node i of tissue b lies against the (advanced) jaws: (k, rx, ry, rz, d, lat), k the jaw whose
+    solid holds the node (-1: none; then the rest is meaningless), r = x_i - tip (m), d its outward depth
+    past the jaw's inner face (m), lat its lateral coordinate on the jaw (m). Reads node i only, so nodes can
+    be tested in any order, in parallel (the GPU does), before any is resolved."""
+    u, tj = dirs
+    ax, ay, az = state.g_axis[b, 0], state.g_axis[b, 1], state.g_axis[b, 2]
+    e1x, e1y, e1z = state.g_e1[b, 0], state.g_e1[b, 1], state.g_e1[b, 2]
+    e2x = ay * e1z - az * e1y
+    e2y = az * e1x - ax * e1z
+    e2z = ax * e1y - ay * e1x
+    r_new = state.g_radius[b]
+    rx = xb[i, 0] - state.g_tip[b, 0]
+    ry = xb[i, 1] - state.g_tip[b, 1]
+    rz = xb[i, 2] - state.g_tip[b, 2]
+    k = -1 if model.fixed[i] else jaw_candidate((rx, ry, rz), (ax, ay, az), (e1x, e1y, e1z), (e2x, e2y, e2z), r_new,
+                                                 model.jaw_length)
+    d = 0.0
+    lat = 0.0
+    if k >= 0:
+        d = rx * u[k, 0] + ry * u[k, 1] + rz * u[k, 2] - r_new
+        lat = rx * tj[k, 0] + ry * tj[k, 1] + rz * tj[k, 2]
+        if d <= 0.0 or d > model.jaw_depth or model.jaw_half_width - abs(lat) <= 0.0:
+            k = -1
+    return k, rx, ry, rz, d, lat
+
+
 @njit(cache=True, error_model="numpy")
 def jaw_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     model, state, out,  # SimModel, SimState (grasper advanced, pinch accumulated), SimReadout (filled)
-    u, tj,  # (3,3) jaw outward and lateral directions of tissue b (:func:`jaw_directions`)
+    dirs,  # ((3,3), (3,3)): jaw outward and lateral directions of tissue b (:func:`jaw_directions`)
     sub,  # (dt s, avg, last_sub, inv_sub): the substep; its weight in the readouts; fill the last-substep
     #       readouts; 1 / n_sub, the weight of the pinch accumulated into state.g_force[b, G_PINCH]
     res,  # (6,) scratch
-    held,  # (N,) int8 out: k + 1 for the nodes jaw k holds this substep (the volume floor reads it)
+    marks,  # (held, cand): (N,) int8 out: k + 1 for the nodes jaw k holds this substep (the volume floor reads
+    #         it); (S,) int8 scratch: the jaw each surface node is inside (-1: none)
 ) -> None:
-    """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection)."""
+    """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection): every
+    surface node tested (:func:`jaw_node_geometry`), then the nodes inside a jaw resolved in surface order
+    (:func:`resolve_jaw_contacts`). The GPU runs the same three steps, the tests in parallel."""
+    vr = advance_jaws(b, state, sub[0])
+    cand = marks[1]
+    for q in range(model.surface_nodes.shape[0]):
+        cand[q] = jaw_node_geometry(b, xb, model.surface_nodes[q], model, state, dirs)[0]
+    resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, marks, vr)
+
+
+@njit(cache=True, error_model="numpy")
+def resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, marks, vr) -> None:
+    """Resolve the surface nodes of tissue b inside a jaw (``marks[1]``, from :func:`jaw_node_geometry` after
+    :func:`advance_jaws`, which returned ``vr``), in surface order; the rest as :func:`jaw_contacts`."""
     dt, avg, last_sub, inv_sub = sub
-    fixed, surface_nodes, node_area = model.fixed, model.surface_nodes, model.node_area
-    jaw_length, jaw_half_width, jaw_depth = model.jaw_length, model.jaw_half_width, model.jaw_depth
-    g_tip, g_axis, g_e1, g_radius, g_vradius = state.g_tip, state.g_axis, state.g_e1, state.g_radius, state.g_vradius
-    g_vpull, g_rmin, g_rmax, mu_s, mu_k, g_force = state.g_vpull, state.g_rmin, state.g_rmax, state.mu_s, state.mu_k, state.g_force
+    held, cand = marks
+    u, tj = dirs
+    surface_nodes, node_area = model.surface_nodes, model.node_area
+    jaw_length, jaw_half_width = model.jaw_length, model.jaw_half_width
+    g_axis, g_vpull, mu_s, mu_k, g_force = state.g_axis, state.g_vpull, state.mu_s, state.mu_k, state.g_force
     jaw_out, contact_state, contact_force = out.jaw_out, out.contact_state, out.contact_force
     ax, ay, az = g_axis[b, 0], g_axis[b, 1], g_axis[b, 2]
-    e1x, e1y, e1z = g_e1[b, 0], g_e1[b, 1], g_e1[b, 2]
-    e2x = ay * e1z - az * e1y
-    e2y = az * e1x - ax * e1z
-    e2z = ax * e1y - ay * e1x
-    r_old = g_radius[b]
-    r_new = min(max(r_old + dt * g_vradius[b], g_rmin[b]), g_rmax[b])
-    vr = (r_new - r_old) / dt  # closing stops at the radius limits
-    g_radius[b] = r_new
-    for c in range(3):
-        g_tip[b, c] += dt * g_vpull[b, c]
-    cx, cy, cz = g_tip[b, 0], g_tip[b, 1], g_tip[b, 2]
     n_con0 = 0.0
     n_con1 = 0.0
     n_con2 = 0.0
@@ -259,22 +311,11 @@ def jaw_contacts(
     slip1 = 0.0
     slip2 = 0.0
     for q in range(surface_nodes.shape[0]):
+        if cand[q] < 0:
+            continue
         i = surface_nodes[q]
-        if fixed[i]:
-            continue
-        rx = xb[i, 0] - cx
-        ry = xb[i, 1] - cy
-        rz = xb[i, 2] - cz
-        k = jaw_candidate((rx, ry, rz), (ax, ay, az), (e1x, e1y, e1z), (e2x, e2y, e2z), r_new, jaw_length)
-        if k < 0:
-            continue
-        d = rx * u[k, 0] + ry * u[k, 1] + rz * u[k, 2] - r_new
-        if d <= 0.0 or d > jaw_depth:
-            continue
-        lat = rx * tj[k, 0] + ry * tj[k, 1] + rz * tj[k, 2]
+        k, rx, ry, rz, d, lat = jaw_node_geometry(b, xb, i, model, state, dirs)
         pen_side = jaw_half_width - abs(lat)
-        if pen_side <= 0.0:
-            continue
         # the node is inside jaw k's solid: push it out through the nearest wall (inner face, a side
         # wall, the tip end or the base end), the closest-feature rule of a box
         s_ax = rx * ax + ry * ay + rz * az

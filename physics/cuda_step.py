@@ -62,9 +62,11 @@ _project_volume_floor = device_twin(_forces.project_volume_floor)
 _floor_reactions = device_twin(_contact.floor_reactions)
 _jaw_directions = device_twin(_contact.jaw_directions)
 _clear_readouts = device_twin(_contact.clear_readouts)
-_clear_contacts = device_twin(_contact.clear_contacts)
+_clear_contact_node = device_twin(_contact.clear_contact_node)
 _force_loop = device_twin(_integrator._force_loop)
-_jaw_contacts = device_twin(_contact.jaw_contacts)
+_advance_jaws = device_twin(_contact.advance_jaws)
+_jaw_node_geometry = device_twin(_contact.jaw_node_geometry)
+_resolve_jaw_contacts = device_twin(_contact.resolve_jaw_contacts)
 _plate_contacts = device_twin(_contact.plate_contacts)
 
 
@@ -83,6 +85,8 @@ def _simulate_kernel(m, s, out, w, n_steps):
     ks, ms = s.kscale[b], s.mscale[b]
     flags = (m.use_dashpot, m.use_sls)
     res = cuda.local.array(6, np.float64)
+    n_floor = cuda.shared.array(1, np.int32)  # tets of this tissue below the volume floor in this substep
+    vr = 0.0  # (thread 0) the jaws' radial speed in this substep
     if tid == 0:
         _clear_readouts(b, out)
         _jaw_directions(s.g_axis[b], s.g_e1[b], w.u[b], w.tj[b])
@@ -146,7 +150,10 @@ def _simulate_kernel(m, s, out, w, n_steps):
                 x[b, i, 0], x[b, i, 1], x[b, i, 2] = xn
                 v[b, i, 0], v[b, i, 1], v[b, i, 2] = vn
             cuda.syncthreads()
-            # ---- 4. anchor readout and contacts: thread 0, nodes in the CPU's order
+            # ---- 4. contacts: cleared and tested in parallel, resolved by thread 0 in the CPU's (surface) order
+            for q in range(tid, m.surface_nodes.shape[0], nth):
+                _clear_contact_node(b, m, out, w.held[b], last_sub, q)
+            cuda.syncthreads()
             if tid == 0:
                 if last_sub:
                     for i in range(n):
@@ -154,17 +161,31 @@ def _simulate_kernel(m, s, out, w, n_steps):
                             for c in range(3):
                                 out.anchor_out[b, c] += w.fa[b, i, c]
                 s.t[b] += dt
-                _clear_contacts(b, m, out, w.held[b], last_sub)
                 _plate_contacts(b, x[b], v[b], w.meff[b], m, s, out, sub_info, res, w.held[b])
                 if m.jaw_active:
-                    _jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, w.u[b], w.tj[b], sub_info, res, w.held[b])
+                    vr = _advance_jaws(b, s, dt)
+                n_floor[0] = 0
             cuda.syncthreads()
-            # ---- 5. volume floor: tets flagged in parallel, restored by thread 0 in the CPU's (tet) order
-            if m.vol_floor > 0.0:
-                for t in range(tid, m.tets.shape[0], nth):
-                    w.floor_on[b, t] = 1 if _below_volume_floor(x[b], m.tets, m.rest_volume, m.vol_floor, t) else 0
+            if m.jaw_active:  # (a node's test reads that node only: the order of the tests does not matter)
+                for q in range(tid, m.surface_nodes.shape[0], nth):
+                    w.cand[b, q] = _jaw_node_geometry(b, x[b], m.surface_nodes[q], m, s, (w.u[b], w.tj[b]))[0]
                 cuda.syncthreads()
-                if tid == 0:  # both skip what they need not touch (unflagged tets, nodes without a reaction)
+                if tid == 0:
+                    _resolve_jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, (w.u[b], w.tj[b]), sub_info, res,
+                                          (w.held[b], w.cand[b]), vr)
+                cuda.syncthreads()
+            # ---- 5. volume floor: tets flagged in parallel; only where any is (as on the CPU), thread 0 restores
+            # them in the CPU's (tet) order and counts the reactions
+            if m.vol_floor > 0.0:
+                flagged = 0
+                for t in range(tid, m.tets.shape[0], nth):
+                    on = _below_volume_floor(x[b], m.tets, m.rest_volume, m.vol_floor, t)
+                    w.floor_on[b, t] = 1 if on else 0
+                    flagged += 1 if on else 0
+                if flagged > 0:
+                    cuda.atomic.add(n_floor, 0, flagged)
+                cuda.syncthreads()
+                if tid == 0 and n_floor[0] > 0:
                     _project_volume_floor(x[b], v[b], w.meff[b], m.fixed, w.held[b], m.tets, m.rest_volume,
                                           m.vol_floor, dt, w.floor_on[b], w.react[b])
                     _floor_reactions(b, w.held[b], w.react[b], m.fixed, w.u[b], out, s, sub_info)

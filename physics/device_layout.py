@@ -85,6 +85,7 @@ class CudaScratch(NamedTuple):
     tet_on: np.ndarray  # (B,T) int8: the barrier acts on the tet this substep
     floor_on: np.ndarray  # (B,T) int8: the tet is below the volume floor after the contacts
     held: np.ndarray  # (B,N) int8: the jaw (k + 1) or plate (-(p + 1)) holding each node this substep
+    cand: np.ndarray  # (B,S) int8: the jaw each surface node is inside this substep (-1: none)
     react: np.ndarray  # (B,N,3) N the volume floor's force through held and anchored nodes
     meff: np.ndarray  # (B,N) kg effective mass m + dt b (contacts)
     fa: np.ndarray  # (B,N,3) N anchor force on each node (last substep: the anchor readout)
@@ -111,14 +112,14 @@ def incidence(n_nodes: int, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 def make_scratch(model: SimModel, batch: int) -> CudaScratch:
     """Host arrays of the kernel's scratch for ``batch`` tissues of ``model``."""
-    n, ne, nt = model.x_rest.shape[0], model.edges.shape[0], model.tets.shape[0]
+    n, ne, nt, ns = model.x_rest.shape[0], model.edges.shape[0], model.tets.shape[0], model.surface_nodes.shape[0]
     eptr, eidx, ecol = incidence(n, np.asarray(model.edges))
     tptr, tidx, tcol = incidence(n, np.asarray(model.tets))
     return CudaScratch(
         fe=np.zeros((batch, ne, 3)), ft=np.zeros((batch, max(nt, 1), 12)),
         tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8), floor_on=np.zeros((batch, max(nt, 1)), dtype=np.int8),
-        held=np.zeros((batch, n), dtype=np.int8), react=np.zeros((batch, n, 3)), meff=np.zeros((batch, n)),
-        fa=np.zeros((batch, n, 3)),
+        held=np.zeros((batch, n), dtype=np.int8), cand=np.zeros((batch, max(ns, 1)), dtype=np.int8),
+        react=np.zeros((batch, n, 3)), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
         edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0), tet_ptr=tptr, tet_idx=tidx,
         tet_col=np.asarray(TET_FORCE_COLUMN, dtype=np.int64)[tcol],
         u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),

@@ -176,6 +176,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     react = np.zeros((nl, n, 3))  # per tissue: the volume floor's force through held and anchored nodes
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
+    cand = np.empty(m.surface_nodes.shape[0], dtype=np.int8)  # scratch of jaw_contacts: the jaw around each surface node
     _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv)
     node_work = (meff, damp_inv, fa)
     f0 = np.empty((n, 3, nl))  # gravity + external forces: constant during the call
@@ -235,7 +236,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 clear_contacts(b, m, out, hb, last_sub)
                 plate_contacts(b, xb, vb, mb, m, state, out, sub_info, res, hb)
                 if m.jaw_active:
-                    jaw_contacts(b, xb, vb, mb, m, state, out, u[lane], tj[lane], sub_info, res, hb)
+                    jaw_contacts(b, xb, vb, mb, m, state, out, (u[lane], tj[lane]), sub_info, res, (hb, cand))
             # ---- 5. the volume floor after the contacts: held nodes stay, their holders count its reactions
             if m.vol_floor > 0.0:
                 if lanes:
