@@ -19,6 +19,8 @@ from msdgrasp.physics.scenario import spleen_scene
 
 # the tolerance: positions within 1e-12 m after an episode with contact
 POSITION_TOL_M = 1e-12
+# the sensors (forces, pressures, slip distances) after an episode with contact: 1e-9 relative, as the task's
+SENSOR_RTOL = 1e-9
 
 
 def _pair(threads: int):
@@ -136,7 +138,8 @@ def test_a_device_resident_batch_steps_without_host_round_trips_and_matches_the_
         cpu.step(8)
         batch.step(8)
         batch.download(out=host.kernel_readout()._replace(jaw_out=sensors), fields=("jaw_out",))
-        np.testing.assert_array_equal(sensors, cpu.jaw_out)
+        # bit for bit in the simulator; on a GPU its fused multiply-adds round differently (~1e-13 relative seen)
+        np.testing.assert_allclose(sensors, cpu.jaw_out, rtol=SENSOR_RTOL, atol=0.0)
     assert cpu.pinch_force.min() > 0.2 and np.abs(host.x - cpu.x).max() > 1e-3  # host copy untouched: stale
     batch.download(host.kernel_state(), host.kernel_readout())
     assert np.abs(host.x - cpu.x).max() <= POSITION_TOL_M

