@@ -161,13 +161,16 @@ def _config_for(config: GraspLiftConfig, options: dict[str, float]) -> GraspLift
     return config if rnd is config.randomization else replace(config, randomization=rnd)
 
 
-def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, float] | None = None) -> dict[str, np.ndarray]:
-    """Run ``len(seeds) <= env.num_envs`` episodes at friction ``mu``; per-episode metrics (frozen at the end)."""
+def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
+               options: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+    """Run ``len(seeds) <= env.num_envs`` episodes, episode k at friction ``mus[k]``; per-episode metrics
+    (frozen at the end)."""
     B = env.num_envs
     n = len(seeds)
     # unused slots (a short last chunk) run too, with seeds continuing the sequence, and are ignored
     all_seeds = [int(s) for s in seeds] + [int(seeds[-1]) + 1 + k for k in range(B - n)]
-    obs, info = env.reset(seed=all_seeds, options={"mu": float(mu), **(options or {})})
+    all_mus = [float(m) for m in mus] + [float(mus[-1])] * (B - n)
+    obs, info = env.reset(seed=all_seeds, options={"mu": all_mus, **(options or {})})
     policy.reset([{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in info.items()} for i in range(B)])
     core = env.core
     done = np.zeros(B, dtype=bool)
@@ -185,7 +188,9 @@ def _run_batch(env, policy, mu: float, seeds: Sequence[int], options: dict[str, 
     for _ in range(env.config.max_episode_steps + 1):
         act = np.asarray(policy.act(obs), dtype=np.float64).reshape(B, 2)
         if not np.all(np.isfinite(act[~done])):
-            raise ConfigError(f"policy {getattr(policy, 'name', 'policy')!r} returned a non-finite action at mu={mu:g}")
+            bad = int(np.flatnonzero(~np.all(np.isfinite(act), axis=1) & ~done)[0])
+            raise ConfigError(f"policy {getattr(policy, 'name', 'policy')!r} returned a non-finite action at "
+                              f"mu={all_mus[bad]:g}")
         act = np.where(done[:, None], idle_action(env.config), act)  # finished tissues just rest
         obs, rew, term, trunc, inf = core.step(act)
         live = ~done
@@ -260,8 +265,8 @@ def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: Gr
 
     Episode ``i`` (at every mu) is seeded ``seed + i`` with reset options ``{"mu": mu, **options}``
     (``options`` pins e.g. ``stiffness_scale`` beyond the training range: the env is then built for it,
-    which changes only its stability substeps). ``n_envs`` caps the batch size (default: all episodes of
-    one mu in one batch).
+    which changes only its stability substeps). ``n_envs`` caps the batch size (default: every episode at
+    every mu in one batch; an episode's result does not depend on the batch).
     """
     options = dict(options or {})
     from ..envs.grasp_lift import GraspLiftVectorEnv
@@ -271,25 +276,29 @@ def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: Gr
     if n_envs is not None and (isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or n_envs < 1):
         raise ConfigError(f"n_envs must be an integer >= 1 or None, got {n_envs!r}")
     config = _config_for(config or GraspLiftConfig(), options)
-    batch = int(min(n_envs or episodes, episodes))
+    # every (mu, episode) pair in one batch unless n_envs caps it: one batched env runs the tissues in SIMD lanes
+    # (from 16 up), and each episode's result is the same in any batch (its own seed and random stream)
+    pairs = [(float(mu), seed + i) for mu in mus for i in range(episodes)]
+    batch = int(min(n_envs or len(pairs), len(pairs)))
     envs = _envs if _envs is not None else {}
     key = (config, batch)
     if key not in envs:
         envs[key] = GraspLiftVectorEnv(batch, config)
     env = envs[key]
+    t0 = time.perf_counter()
+    chunks = [_run_batch(env, policy, [mu for mu, _ in part], [s for _, s in part], options)
+              for part in (pairs[k:k + batch] for k in range(0, len(pairs), batch))]
+    ep_all = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     rows = []
-    for mu in mus:
-        t0 = time.perf_counter()
-        chunks = []
-        for start in range(0, episodes, batch):
-            seeds = [seed + i for i in range(start, min(start + batch, episodes))]
-            chunks.append(_run_batch(env, policy, float(mu), seeds, options))
-        ep = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-        row = _summarise(float(mu), ep)
+    for m, mu in enumerate(mus):
+        row = _summarise(float(mu), {k: v[m * episodes:(m + 1) * episodes] for k, v in ep_all.items()})
         rows.append(row)
         if progress:
             print(f"  {getattr(policy, 'name', 'policy')}: mu={float(mu):g} success={row['success_rate']:.2f} "
-                  f"peak pinch={row['mean_peak_pinch_N']:.2f} N ({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+                  f"peak pinch={row['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
+    if progress:
+        print(f"  {getattr(policy, 'name', 'policy')}: {len(pairs)} episodes in {time.perf_counter() - t0:.1f} s",
+              file=sys.stderr)
     return rows
 
 

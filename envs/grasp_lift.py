@@ -10,6 +10,7 @@ from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 
+from ..physics.config import ConfigError
 from .core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
 
 
@@ -205,11 +206,23 @@ class GraspLiftSphereEnv(GraspLiftEnv):
         super().__init__(config, render_mode, **overrides)
 
 
+def _per_env_options(options: dict[str, Any] | None, num_envs: int) -> list[dict[str, Any]]:
+    """Reset options per sub-env: a number applies to every sub-env, a sequence gives one value per sub-env."""
+    options = dict(options or {})
+    for name, value in options.items():
+        if isinstance(value, (list, tuple, np.ndarray)) and len(value) != num_envs:
+            raise ConfigError(f"reset options[{name!r}] must be one number or {num_envs} numbers (one per env), "
+                              f"got {len(value)}")
+    return [{name: (value[i] if isinstance(value, (list, tuple, np.ndarray)) else value)
+             for name, value in options.items()} for i in range(num_envs)]
+
+
 class GraspLiftVectorEnv(VectorEnv):
     """``num_envs`` GraspLift tissues stepped together in ONE numba call per step (same-step autoreset).
 
     Sub-env i reset with seed s behaves exactly like a single :class:`GraspLiftEnv` reset with seed
-    ``s + i``. Finished sub-envs reset within the same ``step`` call; their last observation is in
+    ``s + i``. ``reset(options=...)`` pins a value for every sub-env (``{"mu": 0.4}``) or one per sub-env (a
+    sequence of ``num_envs`` values: ``{"mu": [0.2, 0.4, ...]}``). Finished sub-envs reset within the same ``step`` call; their last observation is in
     ``info["final_obs"]`` and their last info in ``info["final_info"]`` (Gymnasium's SAME_STEP mode).
     """
 
@@ -240,7 +253,8 @@ class GraspLiftVectorEnv(VectorEnv):
             for i in range(self.num_envs):
                 self.core.seed(i, int(base % (2**63)) + i)
         self._seeded = True
-        infos = [self.core.info_at_reset(i, self.core.reset(i, options)) for i in range(self.num_envs)]
+        per_env = _per_env_options(options, self.num_envs)
+        infos = [self.core.info_at_reset(i, self.core.reset(i, per_env[i])) for i in range(self.num_envs)]
         self._has_reset = True
         return self.core.obs.astype(np.float32), {k: np.array([d[k] for d in infos]) for k in infos[0]}
 

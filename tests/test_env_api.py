@@ -56,3 +56,20 @@ def test_an_env_that_has_rendered_deepcopies_and_pickles_and_the_copy_steps_and_
         frame = twin.render()
         assert frame.shape == first.shape and frame.dtype == np.uint8 and frame.std() > 5
     assert env.render().shape == first.shape  # the original's cached figure still renders
+
+
+def test_vector_reset_options_pin_one_value_for_every_env_or_one_per_env():
+    from msdgrasp.physics.config import ConfigError
+
+    env = GraspLiftVectorEnv(3, SHORT)
+    _, info = env.reset(seed=0, options={"mu": 0.45})
+    assert info["mu"].tolist() == [0.45, 0.45, 0.45]
+    _, info = env.reset(seed=0, options={"mu": [0.2, 0.5, 0.8], "stiffness_scale": 1.0})
+    assert info["mu"].tolist() == [0.2, 0.5, 0.8] and info["stiffness_scale"].tolist() == [1.0, 1.0, 1.0]
+    # each env as a single env reset with its own value
+    single = GraspLiftEnv(SHORT)
+    _, one = single.reset(seed=1, options={"mu": 0.5})
+    assert one["mu"] == 0.5 and np.array_equal(single.reset(seed=1, options={"mu": 0.5})[0],
+                                               env.reset(seed=0, options={"mu": [0.2, 0.5, 0.8]})[0][1])
+    with pytest.raises(ConfigError, match=r"^reset options\['mu'\] must be one number or 3 numbers \(one per env\), got 2$"):
+        env.reset(seed=0, options={"mu": [0.2, 0.5]})
