@@ -1,21 +1,19 @@
 #!/usr/bin/env bash
-# The GPU measurements of issue 15 on a lent device machine (../.library/device), in as few calls as its
-# 30 minutes allow. That machine reaches no package registry and its image lacks some of our dependencies,
-# so they travel as wheels (for its Python 3.12), and its numpy 2.5 is replaced by the gpu extra's numpy<2.5
-# (numba-cuda 0.30.4 cannot compile a kernel beside numpy 2.5).
+# The GPU measurements on an offline machine with an NVIDIA GPU: one whose Python 3.12 has torch and numba-cuda
+# but reaches no package registry, so our other dependencies travel as wheels, and whose numpy 2.5 is replaced by
+# the gpu extra's numpy<2.5 (numba-cuda 0.30.4 cannot compile a kernel beside numpy 2.5).
 #
-#   here:   bash benchmarks/gpu_session.sh wheels           # -> .gpu_wheels/ (~21 MB, ignored by git)
-#   there:  run(command="bash benchmarks/gpu_session.sh bench gpu", carry=[".gpu_wheels"])   # one part per call
-#           run(command="bash benchmarks/gpu_session.sh train 0-1", carry=[".gpu_wheels"])   # seeds per call
-#           run(command="bash benchmarks/gpu_session.sh tests", carry=[".gpu_wheels"])
+#   with a registry:  bash benchmarks/gpu_offline.sh wheels     # -> .gpu_wheels/ (~21 MB, ignored by git)
+#   on the GPU:       bash benchmarks/gpu_offline.sh tests      # tests/test_cuda*.py on the GPU itself
+#                     bash benchmarks/gpu_offline.sh bench gpu  # or precision, learners
+#                     bash benchmarks/gpu_offline.sh train 0-1  # seeds
 #
-# Each call stays inside the tool's 10 minutes (timeout 560 s). bench PART: `msdgrasp bench gpu` (physics
-# batches 1..16,384 and the whole task step, float64 and float32, against 200k agent steps/s), `precision`
-# (float32 error, coarse spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS:
-# `msdgrasp train --backend cuda` on rsl_ppo.yaml, timed, each seed evaluated; the runs come back as one
-# archive. tests: tests/test_cuda*.py on the GPU itself (NUMBA_ENABLE_CUDASIM=0): the kernels against the CPU
-# kernel on real hardware, and the timing test of the 200k target. Everything lands in $OUT (the device tool
-# brings back at most 8 files), each stage's log included, so a stage killed at its limit still reports.
+# Each part stays inside 10 minutes (timeout 560 s). bench PART: `msdgrasp bench gpu` (physics batches 1..16,384
+# and the whole task step, float64 and float32, against 200k agent steps/s), `precision` (float32 error, coarse
+# spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS: `msdgrasp train --backend cuda` on
+# rsl_ppo.yaml, timed, each seed evaluated; the runs come back as one archive. tests: the kernels and the task
+# against the CPU on real hardware (NUMBA_ENABLE_CUDASIM=0). Everything lands in $OUT (default logs/gpu), each
+# part's log included, so a part killed at its limit still reports.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PACKAGES=("numpy>=2.0,<2.5" "gymnasium==1.4.0" farama-notifications "stable-baselines3==2.9.2" "pydantic==2.14.4"
@@ -26,7 +24,7 @@ setup() {  # on the device: our wheels over its image (no dependency resolution:
     python3 -m pip install -q --no-index --no-deps .gpu_wheels/*.whl
     python3 -m pip install -q --no-deps --no-build-isolation -e .
     export NUMBA_CACHE_DIR=/tmp/numba_cache RAY_USAGE_STATS_ENABLED=0 PYTHONUNBUFFERED=1
-    : "${OUT:?OUT: the device tool output folder}"
+    OUT="${OUT:-logs/gpu}" && mkdir -p "$OUT"
     nvidia-smi --query-gpu=name,driver_version,clocks.max.sm --format=csv >"$OUT/gpu.txt"
     python3 -m pip list 2>/dev/null | grep -Ei "^(numba|numba-cuda|numpy|torch|rsl-rl-lib|stable.baselines3) " >>"$OUT/gpu.txt"
 }
@@ -50,8 +48,8 @@ case "${1:-}" in
     tests)
         setup
         NUMBA_ENABLE_CUDASIM=0 timeout 560 python3 -m pytest tests/test_cuda_physics.py tests/test_cuda_task.py \
-            tests/test_cuda_timing.py -rs -q 2>&1 | tee "$OUT/tests.log" || true ;;
+            -rs -q 2>&1 | tee "$OUT/tests.log" || true ;;
     *)
-        echo "usage: bash benchmarks/gpu_session.sh wheels | bench gpu|precision|learners | train SEEDS | tests" >&2
+        echo "usage: bash benchmarks/gpu_offline.sh wheels | bench gpu|precision|learners | train SEEDS | tests" >&2
         exit 2 ;;
 esac
