@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from annotated_types import Ge, Gt, Le
+from annotated_types import Ge, Gt, Le, Lt
 
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml, to_dict,
@@ -26,11 +26,12 @@ from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
-    OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, command_batch, draw_episode, perturb_pose, pinch_setpoint,
-    start_episode, task_params, task_state, travel_setpoint, update_batch,
+    MAX_LATENCY_STEPS, OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, column_drawn, command_batch, draw_episode,
+    perturb_pose, pinch_setpoint, start_episode, task_params, task_state, travel_setpoint, update_batch,
 )
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
+LatencySteps = Annotated[Int, Ge(0), Le(MAX_LATENCY_STEPS)]
 
 
 @config_dataclass
@@ -98,9 +99,27 @@ class RandomizationConfig:
     pose_azimuth_deg: NonNegative = 1.5
     #: standard deviation of the force-sensor noise, N
     sensor_noise_N: NonNegative = 0.02
+    # ---- sensing, actuation: the robustness axes (all off by default: the nominal task)
+    #: largest force-sensor bias, N: each jaw's normal-force reading is offset by a constant drawn per episode
+    #: uniformly in [-bias, bias] (a load cell's zero drift)
+    force_bias_N: NonNegative = 0.0
+    #: what the slip sensing reports: "exact" (the slip speed and the share of slipping contact nodes per jaw),
+    #: "binary" (1 where any node of the jaw slips, else 0, in both entries: a slip detector), "absent" (zeros)
+    slip_sensing: Literal["exact", "binary", "absent"] = "exact"
+    #: standard deviation of noise added to the slip-speed entries each step (observation units: the arm's top
+    #: speed); only with slip_sensing "exact"
+    slip_noise: NonNegative = 0.0
+    #: action latency in agent steps, drawn per episode uniformly from lo..hi: an action takes effect that many
+    #: steps after it was sent (the jaw rests and the arm stands still until the first one arrives)
+    latency_steps: tuple[LatencySteps, LatencySteps] = (0, 0)
+    #: largest relative error of the jaw force loop's gain, drawn per episode uniformly in [1 - e, 1 + e]
+    force_loop_gain_error: Annotated[Real, Ge(0), Lt(1)] = 0.0
+    #: the jaw motor's force limit, N: set-points above it are cut to it (None: no limit below
+    #: max_pinch_force_N)
+    pinch_ceiling_N: Positive | None = None
 
     def __post_init__(self) -> None:
-        for name in ("mu_range", "stiffness_scale_range", "mass_scale_range"):
+        for name in ("mu_range", "stiffness_scale_range", "mass_scale_range", "latency_steps"):
             lo, hi = getattr(self, name)
             check_range(f"{name}[1]", hi, lo, None)
         if self.mu_distribution == "log_uniform":
@@ -313,7 +332,10 @@ class GraspLiftCore:
         # always draw every value (keeps the random stream independent of which values are pinned)
         # (random() and standard_normal() are the variates NumPy's uniform() and normal() scale: the same stream)
         for k, normal in enumerate(DRAW_IS_NORMAL):
-            self.draws[index, k] = rng.standard_normal() if normal else rng.random()
+            if column_drawn(self.params.env, k):  # (an axis that is off draws nothing: 0)
+                self.draws[index, k] = rng.standard_normal() if normal else rng.random()
+            else:
+                self.draws[index, k] = 0.0
         draw_episode(self.params, self.state, index)
         drawn = self.draws[index]
         v = {"mu": drawn[D_MU], "stiffness_scale": drawn[D_KS], "mass_scale": drawn[D_MS],
@@ -336,9 +358,11 @@ class GraspLiftCore:
         sim.step(self.config.physics_steps_per_action)
         finite = sim.finite()
         volume_ratio = sim.min_volume_ratio()
-        noise_N = self.config.randomization.sensor_noise_N
+        rnd = self.config.randomization
         for b in range(self.num_envs):
-            ts.noise[b] = self.rngs[b].normal(0.0, noise_N, size=3)
+            ts.noise[b, :3] = self.rngs[b].normal(0.0, rnd.sensor_noise_N, size=3)
+            if rnd.slip_noise > 0.0:  # (drawn only when used: the nominal task's random stream is unchanged)
+                ts.noise[b, 3:] = self.rngs[b].normal(0.0, rnd.slip_noise, size=3)
         update_batch(self.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
         infos = {
             "mu": ts.mu.copy(),

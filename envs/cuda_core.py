@@ -35,8 +35,9 @@ from .task import PINNABLE, TaskState, task_state
 GPU_PINNABLE = ("mu", "stiffness_scale", "mass_scale")
 
 # the GPU twins of task.py's functions (each calling the twins of the numba functions it calls)
-_command, _update, _restore_settled, _draw_episode, _begin_episode = (
-    device_twin(getattr(task, n)) for n in ("command", "update", "restore_settled", "draw_episode", "begin_episode"))
+_command, _update, _restore_settled, _draw_episode, _begin_episode, _column_drawn = (
+    device_twin(getattr(task, n)) for n in ("command", "update", "restore_settled", "draw_episode", "begin_episode",
+                                            "column_drawn"))
 
 
 @cuda.jit
@@ -69,8 +70,12 @@ def _task_kernel(m, s, out, p, ts, rng):
         for k in range(1, cuda.blockDim.x):
             lo = lo_sh[k] if lo_sh[k] < lo else lo
             ok = ok & ok_sh[k]
+        r = p.env.randomization
         for c in range(3):
-            ts.noise[b, c] = p.env.randomization.sensor_noise_N * xoroshiro128p_normal_float64(rng, b)
+            ts.noise[b, c] = r.sensor_noise_N * xoroshiro128p_normal_float64(rng, b)
+        if r.slip_noise > 0.0:  # (drawn only when used, as on the CPU)
+            for c in range(3):
+                ts.noise[b, 3 + c] = r.slip_noise * xoroshiro128p_normal_float64(rng, b)
         _update(p, s, out, ts, b, ok == 1, lo)
 
 
@@ -83,9 +88,13 @@ def _reset_kernel(s, out, p, ts, rng, mask):
     _restore_settled(p, s, out, b, cuda.threadIdx.x, cuda.blockDim.x)
     cuda.syncthreads()
     if cuda.threadIdx.x == 0:
-        for k in range(ts.draws.shape[1]):  # the raw variates, in column order
-            ts.draws[b, k] = (xoroshiro128p_normal_float64(rng, b) if p.draw_is_normal[k]
-                              else xoroshiro128p_uniform_float64(rng, b))
+        for k in range(ts.draws.shape[1]):  # the raw variates, in column order (an axis that is off: 0)
+            if not _column_drawn(p.env, k):
+                ts.draws[b, k] = 0.0
+            elif p.draw_is_normal[k]:
+                ts.draws[b, k] = xoroshiro128p_normal_float64(rng, b)
+            else:
+                ts.draws[b, k] = xoroshiro128p_uniform_float64(rng, b)
         _draw_episode(p, ts, b)
         _begin_episode(p, s, out, ts, b)
 

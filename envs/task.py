@@ -91,12 +91,18 @@ REWARD_TERMS = ("progress", "hold", "grasp", "slip", "force", "peak_force", "dam
 
 #: an episode's random draws, columns of ``TaskState.draws`` (after :func:`draw_episode`: the values)
 DRAW_COLUMNS = ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_dir_y", "offset_dir_z", "offset_r",
-                "tilt_axis_x", "tilt_axis_y", "tilt_axis_z", "tilt", "azimuth")
+                "tilt_axis_x", "tilt_axis_y", "tilt_axis_z", "tilt", "azimuth",
+                "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain")
 #: which raw variate each column starts as: standard normal (True) or uniform on [0, 1) (False), drawn in
-#: column order
+#: column order; the columns of a robustness axis that is off are not drawn (:func:`column_drawn`)
 DRAW_IS_NORMAL = tuple(c.startswith(("offset_dir", "tilt_axis")) for c in DRAW_COLUMNS)
-D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH = (DRAW_COLUMNS.index(n) for n in (
-    "mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_r", "tilt_axis_x", "tilt", "azimuth"))
+D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH, D_BIAS, D_LATENCY, D_GAIN = (
+    DRAW_COLUMNS.index(n) for n in ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_r", "tilt_axis_x",
+                                    "tilt", "azimuth", "force_bias_0", "latency", "force_loop_gain"))
+#: the longest action latency, agent steps (the length of the action queue less one)
+MAX_LATENCY_STEPS = 3
+#: per-step noise columns of ``TaskState.noise``: the three jaws' force readings, then their slip speeds
+N_NOISE = 6
 
 #: what a reset may pin (columns of ``TaskState.pin``; NaN: drawn, or the config's pose jitter)
 PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
@@ -253,7 +259,8 @@ class TaskState(NamedTuple):
     episode_slip: np.ndarray  # (B,) m slip of the episode that ended (where done)
     draws: np.ndarray  # (B,len(DRAW_COLUMNS)) this episode's random draws
     pin: np.ndarray  # (B,len(PINNABLE)) pinned values (NaN: drawn)
-    noise: np.ndarray  # (B,3) N force-sensor noise of this step's frame
+    noise: np.ndarray  # (B,N_NOISE) force-sensor noise (N), then slip-sensing noise, of this step's frame
+    queue: np.ndarray  # (B,MAX_LATENCY_STEPS+1,2) the actions sent, newest first (what a latency delays)
 
 
 def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np.float64) -> TaskState:
@@ -265,7 +272,8 @@ def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np
         "obs": ((batch, obs_history * frame_dim), obs_dtype),
         "terminal_obs": ((batch, obs_history * frame_dim), obs_dtype),
         "terms": ((batch, len(REWARD_TERMS)), f), "episode_length": ((batch,), i),
-        "draws": ((batch, len(DRAW_COLUMNS)), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, 3), f),
+        "draws": ((batch, len(DRAW_COLUMNS)), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, N_NOISE), f),
+        "queue": ((batch, MAX_LATENCY_STEPS + 1, 2), f),
     }
     flags = ("lift_started", "terminated", "truncated", "done", "is_success", "lost_grasp", "slipped", "damaged",
              "numerical_failure")
@@ -340,6 +348,26 @@ def region_mean(p, x, b, c):
 
 
 @njit(cache=True, error_model="numpy")
+def column_drawn(env, k):
+    """Whether draw column k is drawn at a reset: the columns of a robustness axis that is off are not (0), so
+    the nominal task's random stream is what it was before the axis existed."""
+    r = env.randomization
+    if D_BIAS <= k < D_BIAS + 3:
+        return r.force_bias_N > 0.0
+    if k == D_LATENCY:
+        return r.latency_steps[1] > r.latency_steps[0]
+    if k == D_GAIN:
+        return r.force_loop_gain_error > 0.0
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def rest_action(env):
+    """The action that leaves the grasper at rest: zero pinch (force) or no closing (speed), and no pull."""
+    return (-1.0 if env.jaw_action_force else 0.0), (0.0 if env.pull_action_speed else -1.0)
+
+
+@njit(cache=True, error_model="numpy")
 def pinch_setpoint(env, a):
     """Pinch-force set-point (N) of jaw action ``a`` in [-1, 1] (jaw_action = force); ``env``: the config record."""
     return (0.5 * (a + 1.0)) ** env.pinch_action_exponent * env.max_pinch_force_N
@@ -359,9 +387,19 @@ def command(p, s, ts, b, a0, a1):
     a1 = min(max(a1, -1.0), 1.0)
     ts.act[b, 0] = a0
     ts.act[b, 1] = a1
-    if e.jaw_action_force:  # the jaw motor's 1 kHz force loop tracks the set-point
-        s.g_force[b, G_SETPOINT] = pinch_setpoint(e, a0)
-        s.g_force[b, G_GAIN] = e.force_loop_gain_m_s_per_N
+    # the action queue, newest first: with a latency of k steps the action sent k steps ago takes effect
+    q = ts.queue[b]
+    for k in range(q.shape[0] - 1, 0, -1):
+        q[k, 0] = q[k - 1, 0]
+        q[k, 1] = q[k - 1, 1]
+    q[0, 0] = a0
+    q[0, 1] = a1
+    lat = int(ts.draws[b, D_LATENCY])
+    a0 = q[lat, 0]
+    a1 = q[lat, 1]
+    if e.jaw_action_force:  # the jaw motor's 1 kHz force loop tracks the set-point (up to the motor's limit)
+        s.g_force[b, G_SETPOINT] = min(pinch_setpoint(e, a0), pinned(e.randomization.pinch_ceiling_N, math.inf))
+        s.g_force[b, G_GAIN] = e.force_loop_gain_m_s_per_N * ts.draws[b, D_GAIN]
         s.g_force[b, G_VMAX] = p.max_close
     else:
         s.g_vradius[b] = -(a0 * p.max_close)
@@ -401,13 +439,21 @@ def observe(p, s, out, ts, b, fresh):
     for k in range(3):
         jo = out.jaw_out[b, k]
         noise = ts.noise[b, k]
-        o[I_NORMAL + k] = (jo[J_NORMAL] + noise) / ref
+        o[I_NORMAL + k] = (jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]) / ref
         tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
         o[I_TANGENTIAL + k] = (tt + abs(noise)) / ref
         o[I_CONTACT + k] = min(jo[J_CONTACT] / p.nominal[k], 2.0)
-        o[I_SLIP_SPEED + k] = jo[J_SLIP_DIST] / p.agent_dt / p.max_pull
-        # incipient slip (what a tactile array sees): the share of the jaw's contact nodes that slip
-        o[I_SLIPPING + k] = jo[J_SLIP] / max(jo[J_CONTACT], 1.0)
+        r = e.randomization
+        if r.slip_sensing_exact:
+            o[I_SLIP_SPEED + k] = jo[J_SLIP_DIST] / p.agent_dt / p.max_pull + ts.noise[b, 3 + k]
+            # incipient slip (what a tactile array sees): the share of the jaw's contact nodes that slip
+            o[I_SLIPPING + k] = jo[J_SLIP] / max(jo[J_CONTACT], 1.0)
+        elif r.slip_sensing_binary:  # a slip detector: slipping or not
+            o[I_SLIP_SPEED + k] = 1.0 if jo[J_SLIP_DIST] > 0.0 else 0.0
+            o[I_SLIPPING + k] = 1.0 if jo[J_SLIP] > 0.0 else 0.0
+        else:
+            o[I_SLIP_SPEED + k] = 0.0
+            o[I_SLIPPING + k] = 0.0
         # friction utilisation |T| / N (<= mu while the jaw sticks); 0.05 N keeps it finite off contact
         o[I_FRICTION_USE + k] = o[I_TANGENTIAL + k] / max(o[I_NORMAL + k], 0.05 / ref)
     o[I_PREV_ACTION] = ts.prev_action[b, 0]
@@ -590,6 +636,13 @@ def draw_episode(p, ts, b):
     d[D_OFFSET_R] = d[D_OFFSET_R] ** (1.0 / 3.0)
     d[D_TILT] = -1.0 + 2.0 * d[D_TILT]
     d[D_AZIMUTH] = -1.0 + 2.0 * d[D_AZIMUTH]
+    # the robustness axes (an axis that is off has raw 0 and gives: no bias, the lowest latency, gain x 1)
+    for k in range(3):
+        d[D_BIAS + k] = r.force_bias_N * (-1.0 + 2.0 * d[D_BIAS + k]) if r.force_bias_N > 0.0 else 0.0
+    lo_lat = int(r.latency_steps[0])
+    d[D_LATENCY] = min(lo_lat + int(math.floor(d[D_LATENCY] * (int(r.latency_steps[1]) - lo_lat + 1))),
+                       int(r.latency_steps[1]))
+    d[D_GAIN] = 1.0 + r.force_loop_gain_error * (-1.0 + 2.0 * d[D_GAIN]) if r.force_loop_gain_error > 0.0 else 1.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -621,12 +674,17 @@ def begin_episode(p, s, out, ts, b):
         ts.tip0[b, c] = s.g_tip[b, c]
         ts.region0[b, c] = region_mean(p, s.x, b, c)
         ts.noise[b, c] = 0.0  # (no sensor noise in the first frame)
+        ts.noise[b, 3 + c] = 0.0
     s.g_force[b, G_PINCH] = 0.0
     s.g_force[b, G_SETPOINT] = -1.0  # (the force loop off: the closing speed is commanded)
     if e.jaw_action_force:  # the jaw motor starts in force control at zero force (jaws at rest)
         s.g_force[b, G_SETPOINT] = 0.0
-        s.g_force[b, G_GAIN] = e.force_loop_gain_m_s_per_N
+        s.g_force[b, G_GAIN] = e.force_loop_gain_m_s_per_N * d[D_GAIN]
         s.g_force[b, G_VMAX] = p.max_close
+    rest0, rest1 = rest_action(e)
+    for k in range(ts.queue.shape[1]):  # until the first action arrives the grasper rests
+        ts.queue[b, k, 0] = rest0
+        ts.queue[b, k, 1] = rest1
     ts.steps[b] = 0
     ts.prev_action[b, 0] = 0.0
     ts.prev_action[b, 1] = 0.0

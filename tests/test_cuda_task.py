@@ -13,7 +13,7 @@ import pytest
 
 from msdgrasp.envs.core import GraspLiftConfig, GraspLiftCore, perturbed_pose
 from msdgrasp.envs.task import REWARD_TERMS
-from msdgrasp.physics.config import ConfigError, from_dict
+from msdgrasp.physics.config import ConfigError, from_dict, to_dict
 
 # positions within 1e-12 m after an episode with contact (the tolerance); the task's scalars are
 # sums and ratios of them: 1e-9 relative
@@ -54,8 +54,14 @@ def _close(name: str, gpu_value, cpu_value, rtol: float = TASK_RTOL) -> None:
                                err_msg=name)
 
 
-def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core():
+# the deterministic robustness axes (drawn ones are compared by distribution: tests/test_task_backends.py)
+AXES = {"latency_steps": (1, 1), "pinch_ceiling_N": 1.5, "slip_sensing": "binary"}
+
+
+@pytest.mark.parametrize("axes", [{}, AXES], ids=["nominal", "latency_ceiling_binary_slip"])
+def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core(axes):
     config = _config()
+    config = from_dict(GraspLiftConfig, {**to_dict(config), "randomization": {**to_dict(config.randomization), **axes}})
     gpu = _gpu(config)
     cpu = GraspLiftCore(config, 2)
     obs = gpu.reset().copy_to_host()

@@ -1,0 +1,105 @@
+"""The task's robustness axes (RandomizationConfig: force bias, slip sensing, latency, force-loop gain error, pinch
+ceiling) do what their docs say, and are off by default (the nominal task is unchanged)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msdgrasp.envs.core import GraspLiftConfig
+from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+from msdgrasp.envs.task import OBS, obs_group
+from msdgrasp.physics.config import ConfigError, from_dict
+
+QUIET = {"sensor_noise_N": 0.0, "pose_offset_m": 0.0, "pose_tilt_deg": 0.0, "pose_azimuth_deg": 0.0}
+STEPS = 24  # 0.8 s: the jaws close and pinch; the pull starts
+
+
+def _run(actions: np.ndarray, seed: int = 4, mu: float = 0.5, **axes):
+    """Per step: the obs (B,F) and the pinch force (B,), 2 envs from one seed and friction, the given actions."""
+    config = from_dict(GraspLiftConfig, {"time_limit_s": 3.0, "randomization": {**QUIET, **axes}})
+    env = GraspLiftVectorEnv(2, config)
+    obs, _ = env.reset(seed=seed, options={"mu": mu, "stiffness_scale": 1.0, "mass_scale": 1.0})
+    frames, pinch = [obs], []
+    for a in actions:
+        obs, _, _, _, info = env.step(np.tile(a, (2, 1)))
+        frames.append(obs)
+        pinch.append(info["pinch_force_N"])
+    return np.array(frames), np.array(pinch), env
+
+
+def _grasp_and_pull(n: int = STEPS) -> np.ndarray:
+    """A firm pinch from the start (3.5 N), a pull from step 10 on."""
+    return np.array([[0.4, -1.0 if k < 10 else 0.5] for k in range(n)])
+
+
+def test_a_latency_of_k_steps_is_the_same_actions_sent_k_steps_later():
+    actions = _grasp_and_pull()
+    _, late, _ = _run(actions, latency_steps=(2, 2))
+    rest = np.array([[-1.0, -1.0]] * 2)  # zero pinch, no pull: what the grasper does before the first action
+    _, early, _ = _run(np.concatenate([rest, actions[:-2]]))
+    np.testing.assert_array_equal(late, early)
+    assert late[-1].min() > 0.5  # the jaws closed on the tissue
+
+
+def test_a_force_bias_offsets_each_jaws_normal_reading_by_a_constant_within_its_range():
+    actions = _grasp_and_pull()
+    biased, pinch_b, env = _run(actions, force_bias_N=0.1)
+    clean, pinch, _ = _run(actions)
+    np.testing.assert_array_equal(pinch_b, pinch)  # the physics is untouched
+    normal = obs_group("normal_force")
+    offset = (biased[:, :, normal] - clean[:, :, normal]) * env.config.reference_force_N
+    np.testing.assert_allclose(offset[2:], np.broadcast_to(offset[1], offset[2:].shape), atol=1e-6)
+    assert np.all(np.abs(offset[1]) <= 0.1 + 1e-6) and np.abs(offset[1]).max() > 1e-3
+    others = [i for i in range(biased.shape[2]) if i not in range(normal.start, normal.stop)
+              and i != OBS["friction_use_0"] and i not in range(OBS["friction_use_0"], OBS["friction_use_0"] + 3)]
+    np.testing.assert_array_equal(biased[:, :, others], clean[:, :, others])
+
+
+def test_the_pinch_ceiling_cuts_the_set_point_and_the_gain_error_changes_the_force_loop():
+    actions = np.array([[1.0, -1.0]] * 60)  # the largest set-point, 5 N, for 2 s (of the 3 s time limit)
+    _, capped, _ = _run(actions, pinch_ceiling_N=1.5)
+    _, full, _ = _run(actions)
+    assert full[-1].min() > 3.0
+    assert 1.3 < capped[-1].max() <= 1.5 * 1.05  # the force loop holds the ceiling (5 % tracking)
+    settle = np.array([[-0.6, -1.0]] * 60)  # 1 N: the loop reaches its set-point, where its gain matters
+    _, gain, env = _run(settle, force_loop_gain_error=0.5)
+    _, full, _ = _run(settle)
+    factor = env.core.draws[:, -1]
+    assert np.all((0.5 <= factor) & (factor <= 1.5)) and np.abs(factor - 1.0).min() > 1e-3
+    assert not np.array_equal(gain, full)  # a stiffer or softer force loop: another force history
+
+
+@pytest.mark.parametrize("mode", ["binary", "absent"])
+def test_slip_sensing_reports_a_detector_or_nothing(mode):
+    actions = np.array([[-0.2, 1.0]] * STEPS)  # a light grip pulled hard at low friction: the jaws slip
+    exact, _, _ = _run(actions, mu=0.2)
+    seen, _, _ = _run(actions, mu=0.2, slip_sensing=mode)
+    slip = np.r_[obs_group("slip_speed"), obs_group("slipping_fraction")]
+    assert exact[:, :, slip].max() > 0.0  # there was slip to sense
+    if mode == "absent":
+        assert np.all(seen[:, :, slip] == 0.0)
+    else:
+        assert set(np.unique(seen[:, :, slip])) <= {0.0, 1.0}
+        np.testing.assert_array_equal(seen[:, :, slip] > 0, exact[:, :, slip] > 0)
+
+
+def test_slip_noise_has_its_standard_deviation_and_leaves_the_force_readings():
+    actions = _grasp_and_pull()
+    noisy, _, _ = _run(actions, slip_noise=0.05)
+    clean, _, _ = _run(actions)
+    diff = (noisy - clean)[1:, :, obs_group("slip_speed")]
+    assert 0.035 < diff.std() < 0.065  # 144 samples of N(0, 0.05)
+    np.testing.assert_array_equal(noisy[:, :, obs_group("normal_force")], clean[:, :, obs_group("normal_force")])
+
+
+@pytest.mark.parametrize("axes, message", [
+    ({"latency_steps": (0, 4)}, r"latency_steps"),
+    ({"latency_steps": (2, 1)}, r"latency_steps\[1\]"),
+    ({"force_loop_gain_error": 1.0}, r"force_loop_gain_error"),
+    ({"slip_sensing": "tactile"}, r"slip_sensing"),
+    ({"pinch_ceiling_N": 0.0}, r"pinch_ceiling_N"),
+])
+def test_out_of_range_axes_are_one_line_errors_naming_the_field(axes, message):
+    with pytest.raises(ConfigError, match=message):
+        from_dict(GraspLiftConfig, {"randomization": axes})
