@@ -51,6 +51,13 @@ DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
 #: unseen tissue: stiffness and mass scales outside the training ranges (0.8-1.2, 0.9-1.1), at UNSEEN_MU
 UNSEEN_CONDITIONS = ({"stiffness_scale": 0.6}, {"stiffness_scale": 1.5}, {"mass_scale": 0.8}, {"mass_scale": 1.25})
 UNSEEN_MU = 0.5
+#: a published damage threshold for grasped soft tissue, Pa: the safety threshold of compressive stress for human
+#: small bowel and colon under 10 s grasps, 329-330 kPa (logistic regression on histological trauma; 20 samples,
+#: 100-600 kPa; "Tissue stress from laparoscopic grasper use and bowel injury in humans: establishing
+#: intraoperative force boundaries", BMJ Surgery, Interventions & Health Technologies 2021,
+#: doi:10.1136/bmjsit-2021-000084). No such threshold is published for the spleen; the bowel's is the nearest
+#: measured in humans. Evaluations report the time each episode's peak contact pressure spends above it.
+DAMAGE_PRESSURE_PA = 330e3
 #: baselines every evaluation includes (a learned policy is always shown beside them)
 ALWAYS = ("reactive", "oracle")
 MAX_GRID_VALUES = 101
@@ -182,6 +189,7 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         "steps": np.zeros(B, dtype=np.int64),
         "slip_mm": np.zeros(B),
         "peak_stress_kPa": np.zeros(B),
+        "time_above_damage_s": np.zeros(B),
         "time_to_lift_s": np.full(B, np.nan),
         "outcome": np.full(B, "timeout", dtype=object),
     }
@@ -197,6 +205,7 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
         out["return"][live] += rew[live]
         out["steps"][live] += 1
+        out["time_above_damage_s"][live & (inf["peak_stress_pa"] > DAMAGE_PRESSURE_PA)] += env.config.agent_dt_s
         ended = live & (term | trunc)
         if ended.any():
             out["success"][ended] = inf["is_success"][ended]
@@ -241,6 +250,8 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
         "mean_return": float(np.mean(ep["return"])),
         "mean_slip_mm": float(np.mean(ep["slip_mm"])),
         "mean_peak_stress_kPa": float(np.mean(ep["peak_stress_kPa"])),
+        "max_peak_stress_kPa": float(np.max(ep["peak_stress_kPa"])),
+        "mean_time_above_damage_s": float(np.mean(ep["time_above_damage_s"])),
         "mean_time_to_lift_s": float(np.mean(ttl[lifted])) if lifted.any() else float("nan"),
         "episodes": int(len(ep["success"])),
         "outcomes": outcomes,
@@ -251,6 +262,7 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
             "return": [float(v) for v in ep["return"]],
             "slip_mm": [float(v) for v in ep["slip_mm"]],
             "peak_stress_kPa": [float(v) for v in ep["peak_stress_kPa"]],
+            "time_above_damage_s": [float(v) for v in ep["time_above_damage_s"]],
             "time_to_lift_s": [float(v) for v in ttl],
             "steps": [int(v) for v in ep["steps"]],
             "outcome": [str(v) for v in ep["outcome"]],

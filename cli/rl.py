@@ -197,6 +197,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from ..agents.evaluation import DEFAULT_MU_GRID
 
+    if args.suite is not None:
+        return _cmd_suite(args)
     mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
@@ -215,6 +217,27 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     print("oracle minimal force (N): " + ", ".join(
         f"mu={m:g}: {f:.2f}" for m, f in zip(curve["mu"], curve["minimal_force_N"])))
     print(json.dumps({**result["files"], "recordings": result["recordings"]}, indent=2))
+    return 0
+
+
+def _cmd_suite(args: argparse.Namespace) -> int:
+    """``evaluate --suite NAME``: the versioned protocol fixes its conditions, mu and episodes."""
+    from ..agents.robustness import run_suite
+
+    fixed = [flag for flag, given in (("--mu-grid", args.mu_grid), ("--no-unseen", args.no_unseen),
+                                      ("--n-envs", args.n_envs), ("--record", args.record), ("--video", args.video))
+             if given]
+    if fixed:
+        raise _usage(f"evaluate --suite {args.suite}: the suite fixes its conditions, mu and batches; drop "
+                     + ", ".join(fixed))
+    if args.episodes < 1:
+        raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    policies = args.policy or _default_policies()
+    runner = _runner(args) if _runner_asked(args) else None
+    result = run_suite(policies, args.out, args.suite, episodes=args.episodes, seed=args.seed, runner=runner,
+                       progress=not args.quiet)
+    print(Path(result["files"]["markdown"]).read_text())
+    print(json.dumps(result["files"], indent=2))
     return 0
 
 
@@ -332,6 +355,10 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
                         "and the unseen 0.15, 0.2, 1.0, 1.2)")
+    e.add_argument("--suite", choices=("robustness",), default=None,
+                   help="run a versioned protocol instead of the mu grid: robustness (sensing, actuation, placement, "
+                        "friction and tissue outside training; agents/robustness.py): suite_<name>.json and "
+                        "leaderboard_<name>.md in --out")
     e.add_argument("--no-unseen", action="store_true",
                    help="skip the unseen tissues (stiffness 0.6 / 1.5, mass 0.8 / 1.25 at mu 0.5)")
     e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")

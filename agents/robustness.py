@@ -1,0 +1,223 @@
+"""The robustness suite (``msdgrasp evaluate --suite robustness``): a fixed, versioned protocol that runs each policy
+beside the baselines on the task with one thing changed at a time (sensing, actuation, placement, friction and tissue
+outside training) and ranks them.
+
+Protocol ``robustness`` version 1 (:data:`SUITE_VERSION`); a change of conditions, levels, mu, episodes or metrics
+is a new version:
+
+* every condition is the policy's own task (the one its model was trained on; for controllers alone the default
+  training's task) with one change: a :class:`~..envs.core.RandomizationConfig` field set to the level
+  (the perturbation is drawn per episode up to that level where the field is a range), a reset option pinned
+  (stiffness, mass), or the friction grid replaced (friction outside training);
+* :data:`MUS` (0.3, 0.5, 0.8) x :data:`EPISODES` (10) episodes per condition, episode i seeded ``seed + i``: the same
+  episodes for every policy;
+* per policy and condition: the success rate, the mean peak pinch over the oracle's minimal slip-free force at that
+  mu on the nominal task (``force_ratio``; a condition that changes the tissue changes what is needed, the ratio still
+  reads against the nominal need), the largest peak contact pressure of any episode and the mean time per episode
+  above the published damage threshold (:data:`~.evaluation.DAMAGE_PRESSURE_PA`);
+* the score of a policy: its success rate averaged over the conditions (each equally), then the mean force ratio;
+  the worst condition beside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..envs.core import GraspLiftConfig
+from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
+from .evaluation import (
+    ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
+    evaluate_policy, expand_policy_specs, nan_to_none, task_of,
+)
+from .parallel import Runner
+
+SUITE_VERSION = 1
+MUS = (0.3, 0.5, 0.8)
+EPISODES = 10
+#: the suite's baselines (reactive and oracle are added to every evaluation; the fixed force beside them)
+BASELINES = (*ALWAYS, "fixed")
+
+
+@dataclasses.dataclass(frozen=True)
+class Condition:
+    """One condition: the nominal task with one change."""
+
+    axis: str  # sensing, actuation, placement, friction, tissue (or nominal)
+    name: str  # what changed, with its level
+    randomization: dict[str, Any] = dataclasses.field(default_factory=dict)  # RandomizationConfig fields
+    options: dict[str, float] = dataclasses.field(default_factory=dict)  # reset pins
+    mus: tuple[float, ...] = MUS
+
+
+def _placement(offset_mm: float, tilt_deg: float, azimuth_deg: float) -> Condition:
+    return Condition("placement", f"grasp up to {offset_mm:g} mm off, {tilt_deg:g} deg tilt, {azimuth_deg:g} deg turn",
+                     {"pose_offset_m": offset_mm * 1e-3, "pose_tilt_deg": tilt_deg, "pose_azimuth_deg": azimuth_deg})
+
+
+#: the conditions of version 1
+CONDITIONS: tuple[Condition, ...] = (
+    Condition("nominal", "nominal"),
+    *(Condition("sensing", f"force noise {n:g} N", {"sensor_noise_N": n}) for n in (0.05, 0.08, 0.1)),
+    *(Condition("sensing", f"force bias up to {b:g} N", {"force_bias_N": b}) for b in (0.05, 0.1)),
+    Condition("sensing", "slip sensed as a detector (binary)", {"slip_sensing": "binary"}),
+    Condition("sensing", "slip not sensed", {"slip_sensing": "absent"}),
+    Condition("sensing", "slip speed noise 0.1", {"slip_noise": 0.1}),
+    *(Condition("actuation", f"latency {k} step{'s' if k > 1 else ''}", {"latency_steps": (k, k)}) for k in (1, 2, 3)),
+    *(Condition("actuation", f"force-loop gain error up to {e:.0%}", {"force_loop_gain_error": e}) for e in (0.2, 0.4)),
+    Condition("actuation", "pinch ceiling 3 N", {"pinch_ceiling_N": 3.0}),
+    _placement(3.0, 5.0, 5.0),
+    _placement(5.0, 10.0, 10.0),
+    *(Condition("friction", f"mu {m:g}", mus=(m,)) for m in (0.1, 0.15, 1.2, 1.5)),
+    *(Condition("tissue", f"stiffness x{k:g}", options={"stiffness_scale": k}) for k in (0.5, 2.0)),
+    *(Condition("tissue", f"mass x{k:g}", options={"mass_scale": k}) for k in (0.7, 1.5)),
+)
+SUITES = {"robustness": CONDITIONS}
+
+
+def condition_config(config: GraspLiftConfig, condition: Condition) -> GraspLiftConfig:
+    """The task ``config`` with the condition's randomisation fields set."""
+    if not condition.randomization:
+        return config
+    data = to_dict(config)
+    data["randomization"] = {**data["randomization"], **condition.randomization}
+    return from_dict(GraspLiftConfig, data, where="env")
+
+
+def _suite_job(payload, config_dict: dict[str, Any], mus: Sequence[float], episodes: int, seed: int,
+               options: dict[str, float]) -> list[dict[str, Any]]:
+    config = from_dict(GraspLiftConfig, config_dict, where="env")
+    return evaluate_policy(_policy_of(payload, config), list(mus), episodes, config, seed, options=options or None)
+
+
+def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, Any]:
+    """A policy's numbers in one condition, over its mu rows."""
+    ratios = [r["mean_peak_pinch_N"] / minimal[r["mu"]] for r in rows
+              if math.isfinite(minimal.get(r["mu"], math.nan))]
+    return {"success_rate": float(np.mean([r["success_rate"] for r in rows])),
+            "force_ratio": float(np.mean(ratios)) if ratios else math.nan,
+            "max_peak_pressure_kPa": float(max(r["max_peak_stress_kPa"] for r in rows)),
+            "mean_time_above_damage_s": float(np.mean([r["mean_time_above_damage_s"] for r in rows])),
+            "outcomes": {k: sum(r["outcomes"].get(k, 0) for r in rows)
+                         for k in sorted({k for r in rows for k in r["outcomes"]})},
+            "rows": rows}
+
+
+def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int = EPISODES,
+              seed: int = 0, runner: Runner | None = None, progress: bool = True) -> dict[str, Any]:
+    """Run ``suite`` on every policy spec and the baselines; write ``suite_<suite>.json`` and
+    ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and every model loaded before any
+    episode runs. ``runner``: each (policy, condition) a job (local processes or Ray), same numbers as without."""
+    if suite not in SUITES:
+        raise ConfigError(f"suite = {suite!r} is not known; choose one of {', '.join(map(repr, SUITES))}")
+    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
+        raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"output folder {out_dir} exists and is not a folder")
+    specs = expand_policy_specs(policies)
+    for spec in specs:
+        check_policy_spec(spec)
+    specs += [b for b in BASELINES if b not in specs]
+    config, trained_on = task_of(specs, None)
+    if trained_on is None:  # controllers alone: the task of the default training (the task the results are about)
+        from .training import TrainConfig
+
+        config = TrainConfig().env
+    built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
+    names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]
+    conditions = SUITES[suite]
+    payloads = [_payload(spec, name) for spec, name in zip(specs, names)]
+    jobs, where = [], []
+    for p, payload in enumerate(payloads):
+        for c, cond in enumerate(conditions):
+            cfg = to_dict(condition_config(config, cond))
+            jobs.append((_suite_job, (payload, cfg, cond.mus, int(episodes), int(seed), dict(cond.options))))
+            where.append((p, c))
+    all_mus = sorted({m for cond in conditions for m in cond.mus})
+    nominal = to_dict(config)
+    jobs += [(_minimal_force_job, (nominal, m)) for m in all_mus]
+
+    def done(k: int, res: Any) -> None:
+        if progress and k < len(where):
+            p, c = where[k]
+            print(f"  {names[p]}: {conditions[c].name}: success "
+                  f"{np.mean([r['success_rate'] for r in res]):.2f}", file=sys.stderr)
+
+    t0 = time.perf_counter()
+    if runner is None:
+        out = []
+        for k, (fn, args) in enumerate(jobs):
+            out.append(fn(*args))
+            done(k, out[-1])
+    else:
+        with runner:
+            out = runner.run(jobs, on_done=done)
+    # the bisection's cap (twice the reference force) means no fixed force up to it held: no minimal force known
+    cap = 2.0 * config.reference_force_N
+    minimal = {m: (float(f) if f < cap else math.nan) for m, f in zip(all_mus, out[len(where):])}
+    table = [[_cell(out[k], minimal) for k in range(p * len(conditions), (p + 1) * len(conditions))]
+             for p in range(len(specs))]
+    board = []
+    for p, name in enumerate(names):
+        cells = table[p]
+        success = [c["success_rate"] for c in cells]
+        ratios = [c["force_ratio"] for c in cells if math.isfinite(c["force_ratio"])]
+        worst = int(np.argmin(success))
+        board.append({"policy": name, "spec": specs[p], "score": float(np.mean(success)),
+                      "mean_force_ratio": float(np.mean(ratios)) if ratios else math.nan,
+                      "worst_condition": conditions[worst].name, "worst_success_rate": success[worst],
+                      "max_peak_pressure_kPa": max(c["max_peak_pressure_kPa"] for c in cells)})
+    order = sorted(range(len(board)), key=lambda p: (-board[p]["score"], board[p]["mean_force_ratio"]))
+    result = {
+        "suite": suite, "version": SUITE_VERSION, "episodes": int(episodes), "seed": int(seed),
+        "seconds": round(time.perf_counter() - t0, 2), "runner": "this process" if runner is None else runner.label,
+        "task_from": trained_on or "the default training's task (TrainConfig().env)", "config": to_dict(config),
+        "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3, "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
+        "conditions": [dataclasses.asdict(c) for c in conditions],
+        "leaderboard": [board[p] for p in order],
+        "results": [{"policy": names[p], "spec": specs[p],
+                     "cells": [{"axis": cond.axis, "condition": cond.name, **cell}
+                               for cond, cell in zip(conditions, table[p])]} for p in range(len(specs))],
+    }
+    files = {"json": out_dir / f"suite_{suite}.json", "markdown": out_dir / f"leaderboard_{suite}.md"}
+    atomic_write_text(files["json"], json.dumps(nan_to_none(result), indent=2) + "\n")
+    atomic_write_text(files["markdown"], leaderboard_markdown(result))
+    result["files"] = {k: str(v) for k, v in files.items()}
+    return result
+
+
+def _num(x: float, fmt: str) -> str:
+    return "-" if x is None or not math.isfinite(x) else format(x, fmt)
+
+
+def leaderboard_markdown(result: dict[str, Any]) -> str:
+    """The leaderboard and the per-condition table of a suite result."""
+    lines = [f"# Robustness suite `{result['suite']}` v{result['version']}", "",
+             f"{len(result['conditions'])} conditions, {result['episodes']} episodes per mu "
+             f"(mu {', '.join(f'{m:g}' for m in MUS)} unless the condition sets it), seeds {result['seed']}.."
+             f"{result['seed'] + result['episodes'] - 1}; task: {result['task_from']}. Score: success averaged over the "
+             f"conditions. Force ratio: mean peak pinch over the oracle's minimal slip-free force at that mu on the "
+             f"nominal task. Damage threshold: {result['damage_pressure_kPa']:g} kPa (published, human bowel, 10 s "
+             "grasps).", "",
+             "| rank | policy | score | mean force ratio | worst condition (success) | max peak pressure kPa |",
+             "|---|---|---|---|---|---|"]
+    for k, row in enumerate(result["leaderboard"], 1):
+        lines.append(f"| {k} | {row['policy']} | {row['score']:.3f} | {_num(row['mean_force_ratio'], '.2f')} | "
+                     f"{row['worst_condition']} ({row['worst_success_rate']:.2f}) | "
+                     f"{_num(row['max_peak_pressure_kPa'], '.1f')} |")
+    names = [r["policy"] for r in result["results"]]
+    lines += ["", "Success rate / force ratio per condition:", "",
+              "| axis | condition | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    for c, cond in enumerate(result["conditions"]):
+        cells = [r["cells"][c] for r in result["results"]]
+        lines.append(f"| {cond['axis']} | {cond['name']} | " + " | ".join(
+            f"{x['success_rate']:.2f} / {_num(x['force_ratio'], '.2f')}" for x in cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,75 @@
+"""``msdgrasp evaluate --suite robustness``: the versioned protocol, its files and its leaderboard (a two-condition
+stand-in suite and a stubbed minimal-force bisection keep it short; the conditions themselves are the task's axes,
+tests/test_robustness_axes.py)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+
+import pytest
+
+from msdgrasp.agents import robustness
+from msdgrasp.agents.robustness import CONDITIONS, SUITE_VERSION, Condition, condition_config
+from msdgrasp.agents.training import TrainConfig
+from msdgrasp.cli.main import main
+
+
+def _run_main(argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main(argv)
+    return rc, out.getvalue(), err.getvalue()
+
+
+def test_the_protocol_covers_every_axis_at_the_levels_it_names():
+    axes = {c.axis for c in CONDITIONS}
+    assert axes == {"nominal", "sensing", "actuation", "placement", "friction", "tissue"}
+    names = [c.name for c in CONDITIONS]
+    assert len(set(names)) == len(names) and SUITE_VERSION == 1
+    # the levels the protocol promises: force noise up to 0.1 N, latency up to 3 steps, placement up to 5 mm / 10 deg
+    assert max(c.randomization.get("sensor_noise_N", 0) for c in CONDITIONS) == 0.1
+    assert max(c.randomization.get("latency_steps", (0, 0))[1] for c in CONDITIONS) == 3
+    assert max(c.randomization.get("pose_offset_m", 0) for c in CONDITIONS) == 0.005
+    assert {m for c in CONDITIONS if c.axis == "friction" for m in c.mus} == {0.1, 0.15, 1.2, 1.5}
+    base = TrainConfig().env
+    for c in CONDITIONS:  # every condition is a valid task: one change from the base
+        cfg = condition_config(base, c)
+        changed = {k for k, v in vars(cfg.randomization).items() if v != getattr(base.randomization, k)}
+        assert changed == set(c.randomization), c.name
+
+
+def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_grid_options(tmp_path, monkeypatch):
+    stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
+                Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
+    monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
+    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)  # (the bisection: minutes)
+    rc, out, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--episodes", "1",
+                              "--out", str(tmp_path), "--quiet"])
+    assert rc == 0, err
+    data = json.loads((tmp_path / "suite_robustness.json").read_text())
+    assert data["version"] == SUITE_VERSION and data["episodes"] == 1 and data["damage_pressure_kPa"] == 330.0
+    assert {r["spec"] for r in data["leaderboard"]} == {"fixed", "reactive", "oracle"}
+    scores = [r["score"] for r in data["leaderboard"]]
+    assert scores == sorted(scores, reverse=True)
+    for res in data["results"]:
+        for cell in res["cells"]:
+            [row] = cell["rows"]
+            assert cell["success_rate"] == row["success_rate"] and row["mu"] == 0.5
+            assert math.isclose(cell["force_ratio"], row["mean_peak_pinch_N"] / 1.25)
+            assert cell["mean_time_above_damage_s"] >= 0.0 and cell["max_peak_pressure_kPa"] >= 0.0
+    board = (tmp_path / "leaderboard_robustness.md").read_text()
+    assert "| rank | policy | score |" in board and "latency 3 steps" in board and board in out
+    rc, _, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--mu-grid", "0.5",
+                            "--out", str(tmp_path / "x")])
+    assert rc == 2 and "the suite fixes its conditions, mu and batches; drop --mu-grid" in err
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("suite", ["robust", "nominal"])
+def test_an_unknown_suite_is_refused(suite, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["evaluate", "--suite", suite, "--policy", "fixed"])
+    assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err
