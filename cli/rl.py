@@ -241,6 +241,18 @@ def _cmd_suite(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_collect(args: argparse.Namespace) -> int:
+    from ..agents.demonstrations import collect
+
+    if args.episodes < 1:
+        raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    card = collect(args.policy, args.episodes, args.out, dataset_id=args.dataset_id, seed=args.seed,
+                   progress=not args.quiet)
+    print(json.dumps({k: card[k] for k in ("dataset_id", "path", "policy", "episodes", "success_rate", "steps",
+                                           "load")}, indent=2))
+    return 0
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
     from ..envs.grasp_lift import GraspLiftEnv
     from ..agents.evaluation import build_policy, check_policy_spec, record_policy_episode, task_of
@@ -370,6 +382,19 @@ def add_rl_commands(sub) -> None:
     _add_runner_args(e, "every (policy, mu) cell as its own job")
     e.add_argument("--quiet", action="store_true", help="no progress output")
     e.set_defaults(func=_cmd_evaluate)
+
+    co = sub.add_parser("collect", help="record a policy's episodes as a Minari dataset (demonstrations)")
+    co.add_argument("--policy", required=True, metavar="SPEC",
+                    help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | oracle (the default "
+                         "training's task)")
+    co.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
+    co.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i (default 0)")
+    co.add_argument("--dataset-id", default=None,
+                    help="Minari id, (namespace/)name-v<version> (default msdgrasp/grasplift/<policy>-v0)")
+    co.add_argument("--out", type=Path, default=Path("logs") / "datasets",
+                    help="datasets folder (default logs/datasets; load with MINARI_DATASETS_PATH=<it>)")
+    co.add_argument("--quiet", action="store_true", help="no progress output")
+    co.set_defaults(func=_cmd_collect)
 
     rp = sub.add_parser("report", help="the multi-seed report (seeds.json / seeds.md) of the runs DIR/seed_<k>/")
     rp.add_argument("folder", type=Path, metavar="DIR",
