@@ -135,7 +135,7 @@ def _rep_contacts(model, state, out, x, v, x0, v0, nodes, meff, held, u, tj, sub
     """The contact phase (run False: only the restore of the surface nodes, to be subtracted)."""
     nl = x.shape[2]
     dt, _, last_sub, _ = sub_info
-    cand = np.empty(model.surface_nodes.shape[0], dtype=np.int8)  # (jaw_contacts' scratch, as the integrator's)
+    cand = np.empty(0, dtype=np.int8)  # (as the integrator: jaw_contacts tests each node where it resolves it)
     for _ in range(reps):
         _restore(x, v, x0, v0, nodes)
         if not run:

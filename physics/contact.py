@@ -244,31 +244,50 @@ def advance_jaws(b, state, dt):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def jaw_node_geometry(b, xb, i, model, state, dirs):
-    """Where node i of tissue b lies against the (advanced) jaws: (k, rx, ry, rz, d, lat), k the jaw whose
-    solid holds the node (-1: none; then the rest is meaningless), r = x_i - tip (m), d its outward depth
-    past the jaw's inner face (m), lat its lateral coordinate on the jaw (m). Reads node i only, so nodes can
-    be tested in any order, in parallel (the GPU does), before any is resolved."""
-    u, tj = dirs
+def jaw_frame(b, state):
+    """Tissue b's grasper after :func:`advance_jaws`, as scalars: (tip, axis, e1, e2 = axis x e1, radius), the
+    vectors as 3-tuples (m; unit). Read once per substep: per-node code takes it, not the state record."""
     ax, ay, az = state.g_axis[b, 0], state.g_axis[b, 1], state.g_axis[b, 2]
     e1x, e1y, e1z = state.g_e1[b, 0], state.g_e1[b, 1], state.g_e1[b, 2]
-    e2x = ay * e1z - az * e1y
-    e2y = az * e1x - ax * e1z
-    e2z = ax * e1y - ay * e1x
-    r_new = state.g_radius[b]
-    rx = xb[i, 0] - state.g_tip[b, 0]
-    ry = xb[i, 1] - state.g_tip[b, 1]
-    rz = xb[i, 2] - state.g_tip[b, 2]
-    k = -1 if model.fixed[i] else jaw_candidate((rx, ry, rz), (ax, ay, az), (e1x, e1y, e1z), (e2x, e2y, e2z), r_new,
-                                                 model.jaw_length)
+    e2 = (ay * e1z - az * e1y, az * e1x - ax * e1z, ax * e1y - ay * e1x)
+    tip = (state.g_tip[b, 0], state.g_tip[b, 1], state.g_tip[b, 2])
+    return tip, (ax, ay, az), (e1x, e1y, e1z), e2, state.g_radius[b]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def jaw_node_geometry(xb, i, frame, jaw, dirs):
+    """Where (free) node i lies against the jaws: (k, rx, ry, rz, d, lat), k the jaw whose solid holds the node
+    (-1: none; then the rest is meaningless), r = x_i - tip (m), d its outward depth past the jaw's inner face (m),
+    lat its lateral coordinate on the jaw (m). ``frame``: :func:`jaw_frame`; ``jaw``: (length, half width, depth),
+    m; ``dirs``: the jaws' outward and lateral directions. Reads node i only, so nodes can be tested in any order,
+    in parallel (the GPU does), before any is resolved."""
+    u, tj = dirs
+    tip, axis, e1, e2, r_new = frame
+    jaw_length, jaw_half_width, jaw_depth = jaw
+    rx = xb[i, 0] - tip[0]
+    ry = xb[i, 1] - tip[1]
+    rz = xb[i, 2] - tip[2]
+    k = jaw_candidate((rx, ry, rz), axis, e1, e2, r_new, jaw_length)
     d = 0.0
     lat = 0.0
     if k >= 0:
         d = rx * u[k, 0] + ry * u[k, 1] + rz * u[k, 2] - r_new
         lat = rx * tj[k, 0] + ry * tj[k, 1] + rz * tj[k, 2]
-        if d <= 0.0 or d > model.jaw_depth or model.jaw_half_width - abs(lat) <= 0.0:
+        if d <= 0.0 or d > jaw_depth or jaw_half_width - abs(lat) <= 0.0:
             k = -1
     return k, rx, ry, rz, d, lat
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def jaw_candidates(b, xb, model, state, dirs, cand, first, stride):
+    """``cand[q]`` = the jaw around surface node q (-1: none, anchored nodes included) for q = first, first +
+    stride, ... (a GPU block shares the nodes out among its threads), after :func:`advance_jaws`."""
+    frame = jaw_frame(b, state)
+    jaw = (model.jaw_length, model.jaw_half_width, model.jaw_depth)
+    fixed, surface_nodes = model.fixed, model.surface_nodes
+    for q in range(first, surface_nodes.shape[0], stride):
+        i = surface_nodes[q]
+        cand[q] = -1 if fixed[i] else jaw_node_geometry(xb, i, frame, jaw, dirs)[0]
 
 
 @njit(cache=True, error_model="numpy")
@@ -280,41 +299,47 @@ def jaw_contacts(
     #       readouts; 1 / n_sub, the weight of the pinch accumulated into state.g_force[b, G_PINCH]
     res,  # (6,) scratch
     marks,  # (held, cand): (N,) int8 out: k + 1 for the nodes jaw k holds this substep (the volume floor reads
-    #         it); (S,) int8 scratch: the jaw each surface node is inside (-1: none)
+    #         it); (S,) int8: the jaw each surface node is inside (:func:`jaw_candidates`), or empty: test here
 ) -> None:
-    """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection): every
-    surface node tested (:func:`jaw_node_geometry`), then the nodes inside a jaw resolved in surface order
-    (:func:`resolve_jaw_contacts`). The GPU runs the same three steps, the tests in parallel."""
+    """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection): each surface
+    node tested (:func:`jaw_node_geometry`) and, inside a jaw, resolved, in surface order
+    (:func:`resolve_jaw_contacts`). The GPU tests the nodes in parallel first (:func:`jaw_candidates`); the CPU
+    tests each node where it resolves it (one pass: several times faster than a separate test pass)."""
     vr = advance_jaws(b, state, sub[0])
-    cand = marks[1]
-    for q in range(model.surface_nodes.shape[0]):
-        cand[q] = jaw_node_geometry(b, xb, model.surface_nodes[q], model, state, dirs)[0]
     resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, marks, vr)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, marks, vr) -> None:
-    """Resolve the surface nodes of tissue b inside a jaw (``marks[1]``, from :func:`jaw_node_geometry` after
-    :func:`advance_jaws`, which returned ``vr``), in surface order; the rest as :func:`jaw_contacts`."""
+    """Resolve the surface nodes of tissue b inside a jaw, in surface order, after :func:`advance_jaws` (which
+    returned ``vr``): those ``marks[1]`` names (from :func:`jaw_candidates`), or, with ``marks[1]`` empty, those
+    its own test finds; the rest as :func:`jaw_contacts`."""
     dt, avg, last_sub, inv_sub = sub
     held, cand = marks
     u, tj = dirs
-    surface_nodes, node_area = model.surface_nodes, model.node_area
+    surface_nodes, node_area, fixed = model.surface_nodes, model.node_area, model.fixed
     jaw_length, jaw_half_width = model.jaw_length, model.jaw_half_width
     g_axis, g_vpull, mu_s, mu_k, g_force = state.g_axis, state.g_vpull, state.mu_s, state.mu_k, state.g_force
     jaw_out, contact_state, contact_force = out.jaw_out, out.contact_state, out.contact_force
     ax, ay, az = g_axis[b, 0], g_axis[b, 1], g_axis[b, 2]
+    frame = jaw_frame(b, state)
+    jaw = (jaw_length, jaw_half_width, model.jaw_depth)
     n_con0 = 0.0
     n_con1 = 0.0
     n_con2 = 0.0
     slip0 = 0.0
     slip1 = 0.0
     slip2 = 0.0
+    tested = cand.shape[0] > 0
     for q in range(surface_nodes.shape[0]):
-        if cand[q] < 0:
+        if tested and cand[q] < 0:
             continue
         i = surface_nodes[q]
-        k, rx, ry, rz, d, lat = jaw_node_geometry(b, xb, i, model, state, dirs)
+        if not tested and fixed[i]:
+            continue
+        k, rx, ry, rz, d, lat = jaw_node_geometry(xb, i, frame, jaw, dirs)
+        if k < 0:
+            continue
         pen_side = jaw_half_width - abs(lat)
         # the node is inside jaw k's solid: push it out through the nearest wall (inner face, a side
         # wall, the tip end or the base end), the closest-feature rule of a box
