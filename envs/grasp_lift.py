@@ -37,6 +37,17 @@ def check_render_mode(render_mode: str | None, env: str) -> str | None:
     return render_mode
 
 
+def env_info(infos: dict[str, Any], i: int) -> dict[str, Any]:
+    """Env i's step info as a single env reports it (Python scalars; the reward terms as a dict; ``error`` after a
+    numerical failure), from the core's batched infos. The vector env builds its infos from these, so both agree."""
+    info = {k: (v[i] if not isinstance(v, dict) else {kk: float(vv[i]) for kk, vv in v.items()}) for k, v in infos.items()}
+    info = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in info.items()}
+    if info["numerical_failure"]:
+        info["error"] = ("numerical failure: the tissue state became non-finite (blow-up) or a tet inverted "
+                         f"(min volume ratio {info['min_volume_ratio']:.3g}); episode terminated")
+    return info
+
+
 def _require_reset(env: Any) -> None:
     """Refuse a step before the first reset (the episode state, mu and the random streams are set there)."""
     if not env._has_reset:
@@ -180,12 +191,7 @@ class GraspLiftEnv(gym.Env):
         _require_reset(self)
         a = _check_action(action, None)
         obs, reward, terminated, truncated, infos = self.core.step(a[None])
-        info = {k: (v[0] if not isinstance(v, dict) else {kk: float(vv[0]) for kk, vv in v.items()}) for k, v in infos.items()}
-        info = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in info.items()}
-        if info["numerical_failure"]:
-            info["error"] = ("numerical failure: the tissue state became non-finite (blow-up) or a tet inverted "
-                             f"(min volume ratio {info['min_volume_ratio']:.3g}); episode terminated")
-        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), env_info(infos, 0)
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -218,19 +224,31 @@ def _per_env_options(options: dict[str, Any] | None, num_envs: int) -> list[dict
 
 
 class GraspLiftVectorEnv(VectorEnv):
-    """``num_envs`` GraspLift tissues stepped together in ONE numba call per step (same-step autoreset).
+    """``num_envs`` GraspLift tissues stepped together in ONE numba call per step.
 
     Sub-env i reset with seed s behaves exactly like a single :class:`GraspLiftEnv` reset with seed
     ``s + i``. ``reset(options=...)`` pins a value for every sub-env (``{"mu": 0.4}``) or one per sub-env (a
-    sequence of ``num_envs`` values: ``{"mu": [0.2, 0.4, ...]}``). Finished sub-envs reset within the same ``step`` call; their last observation is in
-    ``info["final_obs"]`` and their last info in ``info["final_info"]`` (Gymnasium's SAME_STEP mode).
+    sequence of ``num_envs`` values: ``{"mu": [0.2, 0.4, ...]}``).
+
+    ``autoreset_mode``: Gymnasium's ``NEXT_STEP`` (the default: a sub-env that ended returns its last observation,
+    and is reset by the next ``step``, which ignores its action and returns the new episode's first observation,
+    reward 0 and the reset info) or ``SAME_STEP`` (reset within the step that ended it: its last observation and
+    info in ``info["final_obs"]`` and ``info["final_info"]``). Observations, rewards, flags and infos, with their
+    ``_key`` masks, are exactly those of Gymnasium's ``SyncVectorEnv`` over single :class:`GraspLiftEnv` s in the same
+    mode (tests/test_env_api.py).
     """
 
-    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30, "autoreset_mode": AutoresetMode.SAME_STEP}
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None,
-                 **overrides: Any):
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, **overrides: Any):
         self.render_mode = check_render_mode(render_mode, type(self).__name__)
+        modes = {m.value: m for m in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)}
+        mode = modes.get(getattr(autoreset_mode, "value", autoreset_mode))
+        if mode is None:
+            raise ConfigError(f"autoreset_mode = {autoreset_mode!r} is not supported; choose one of {sorted(modes)}")
+        self.autoreset_mode = mode
+        self.metadata = {**type(self).metadata, "autoreset_mode": mode}
         self.config = _config(config, **overrides)
         self.num_envs = int(num_envs)
         self.core = GraspLiftCore(self.config, self.num_envs)
@@ -240,6 +258,7 @@ class GraspLiftVectorEnv(VectorEnv):
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.num_envs, self.core.obs_dim), np.float32)
         self._seeded = False
         self._has_reset = False
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
         if seed is not None:
@@ -254,26 +273,38 @@ class GraspLiftVectorEnv(VectorEnv):
                 self.core.seed(i, int(base % (2**63)) + i)
         self._seeded = True
         per_env = _per_env_options(options, self.num_envs)
-        infos = [self.core.info_at_reset(i, self.core.reset(i, per_env[i])) for i in range(self.num_envs)]
+        info: dict[str, Any] = {}
+        for i in range(self.num_envs):
+            info = self._add_info(info, self.core.info_at_reset(i, self.core.reset(i, per_env[i])), i)
         self._has_reset = True
-        return self.core.obs.astype(np.float32), {k: np.array([d[k] for d in infos]) for k in infos[0]}
+        self._autoreset[:] = False
+        return self.core.obs.astype(np.float32), info
 
     def step(self, actions):
         _require_reset(self)
         a = _check_action(actions, self.num_envs)
+        # NEXT_STEP: the sub-envs that ended last step are reset now; the physics steps the whole batch in one
+        # call, so theirs is stepped too and then overwritten by the reset (which sets every part of the state),
+        # with their random streams put back first: as if only reset
+        pending = np.flatnonzero(self._autoreset) if self.autoreset_mode == AutoresetMode.NEXT_STEP else ()
+        streams = {i: self.core.rngs[i].bit_generator.state for i in pending}
         obs, reward, terminated, truncated, infos = self.core.step(a)
-        info = {k: v for k, v in infos.items() if k != "reward_terms"}
-        info.update({f"reward_{k}": v for k, v in infos["reward_terms"].items()})
-        done = terminated | truncated
-        if np.any(infos["numerical_failure"]):
-            info["error"] = np.where(infos["numerical_failure"], "numerical failure: non-finite tissue state or an inverted tet", "")
-        if np.any(done):
-            info["final_obs"] = np.where(done[:, None], obs, 0.0).astype(np.float32)
-            info["final_info"] = {k: np.array(v, copy=True) for k, v in info.items() if k not in ("final_obs",)}
-            info["_final_obs"] = done.copy()
-            for i in np.flatnonzero(done):
-                self.core.reset(i)
-            obs = self.core.obs.astype(np.float32)
+        obs, reward = obs.copy(), reward.copy()
+        info: dict[str, Any] = {}
+        for i in range(self.num_envs):
+            if i in streams:
+                self.core.rngs[i].bit_generator.state = streams[i]
+                one = self.core.info_at_reset(i, self.core.reset(i))
+                obs[i] = self.core.obs[i]
+                reward[i], terminated[i], truncated[i] = 0.0, False, False
+            else:
+                one = env_info(infos, i)
+                if self.autoreset_mode == AutoresetMode.SAME_STEP and (terminated[i] or truncated[i]):
+                    info = self._add_info(info, {"final_obs": obs[i].copy(), "final_info": one}, i)
+                    one = self.core.info_at_reset(i, self.core.reset(i))
+                    obs[i] = self.core.obs[i]
+            info = self._add_info(info, one, i)
+        self._autoreset = terminated | truncated
         return obs, reward, terminated, truncated, info
 
     def render(self):

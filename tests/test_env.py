@@ -111,51 +111,82 @@ def test_same_seed_same_trajectory_different_seed_different_mu():
     assert all(lo <= m <= hi for m in mus)
 
 
-def test_make_vec_reproduces_single_envs_exactly():
-    n, seed, steps = 4, 11, 40
-    venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point")
-    assert isinstance(venv, GraspLiftVectorEnv)
-    assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
-    assert venv.action_space.shape == (n, 2) and venv.observation_space.shape == (n, len(OBS_NAMES))
-    acts = np.stack([_actions(steps, rng_seed=100 + i) for i in range(n)], axis=1)  # (steps, n, 2)
+def _compare_infos(got, want, where):
+    """Two vector infos equal key for key: the same keys, ``_key`` masks, dtypes and values (per-env arrays in
+    object arrays compared element by element)."""
+    assert sorted(got) == sorted(want), where
+    for key, w in want.items():
+        g = got[key]
+        if isinstance(w, dict):
+            _compare_infos(g, w, f"{where}/{key}")
+        elif w.dtype == object:
+            assert g.dtype == object and g.shape == w.shape, (where, key)
+            for a, b in zip(g, w):
+                assert (a is None and b is None) or np.array_equal(a, b), (where, key)
+        else:
+            assert g.dtype == w.dtype, (where, key, g.dtype, w.dtype)
+            np.testing.assert_array_equal(g, w, err_msg=f"{where}/{key}")
 
-    obs_v, info_v = venv.reset(seed=seed)
-    obs_vec, rew_vec = [obs_v], []
-    for a in acts:
-        obs_v, r, term, trunc, info = venv.step(a)
-        obs_vec.append(obs_v)
-        rew_vec.append(r)
-    obs_vec, rew_vec = np.array(obs_vec), np.array(rew_vec)
 
-    for i in range(n):
-        env = GraspLiftEnv()
-        obs, info = env.reset(seed=seed + i)
-        assert info["mu"] == info_v["mu"][i]
-        obs_s, rew_s = [obs], []
-        for a in acts[:, i]:
-            obs, r, term, trunc, _ = env.step(a)
-            if term or trunc:  # SAME_STEP: the vector env returns the reset observation
-                obs, _ = env.reset()
-            obs_s.append(obs)
-            rew_s.append(r)
-        np.testing.assert_array_equal(np.array(obs_s), obs_vec[:, i], err_msg=f"sub-env {i} observations")
-        np.testing.assert_array_equal(np.array(rew_s), rew_vec[:, i], err_msg=f"sub-env {i} rewards")
-    venv.close()
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_the_native_vector_env_is_gymnasiums_sync_vector_env_of_single_envs(mode):
+    """Same seeds and actions: observations, rewards, flags and infos (keys, masks, dtypes, values) equal those of
+    Gymnasium's SyncVectorEnv over single envs in the same autoreset mode, through episode ends at different
+    steps (a damage threshold of 100 Pa ends an episode at the first firm contact: the hard pinch first, the lighter
+    one later, the open jaws run to the time limit)."""
+    cfg = {"time_limit_s": 0.6, "damage_stress_pa": 100.0}
+    n, seed = 3, 2
+    native = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point",
+                          autoreset_mode=mode, config=cfg)
+    sync = gym.vector.SyncVectorEnv([lambda: GraspLiftEnv(cfg) for _ in range(n)], autoreset_mode=mode)
+    assert isinstance(native.unwrapped, GraspLiftVectorEnv) and native.metadata["autoreset_mode"] == mode
+    obs_n, info_n = native.reset(seed=seed)
+    obs_s, info_s = sync.reset(seed=seed)
+    np.testing.assert_array_equal(obs_n, obs_s)
+    _compare_infos(info_n, info_s, "reset")
+    actions = np.array([[1.0, -1.0], [0.0, -1.0], [-1.0, -1.0]], np.float32)
+    ended_apart = False
+    for step in range(45):  # two episodes and more
+        got = native.step(actions)
+        want = sync.step(actions)
+        for k in range(4):
+            np.testing.assert_array_equal(got[k], want[k], err_msg=f"step {step} output {k}")
+        _compare_infos(got[4], want[4], f"step {step}")
+        done = want[2] | want[3]
+        ended_apart |= bool(done.any() and not done.all())
+    assert ended_apart  # the masks of a partial end were compared
+    native.close()
+    sync.close()
+
+
+def test_gymnasiums_vector_wrappers_run_on_the_native_vector_env():
+    from gymnasium.wrappers.vector import NormalizeObservation, RecordEpisodeStatistics
+
+    env = RecordEpisodeStatistics(NormalizeObservation(gym.make_vec(
+        ENV_ID, num_envs=2, vectorization_mode="vector_entry_point", config={"time_limit_s": 0.2})))
+    env.reset(seed=0)
+    episodes = 0
+    for _ in range(16):  # past two time limits of 7 steps
+        _, _, term, trunc, info = env.step(np.zeros((2, 2), np.float32))
+        episodes += int(np.sum(term | trunc))
+    assert episodes >= 2 and "episode" in info or episodes >= 2
 
 
 def test_vector_env_autoreset_same_step():
-    venv = GraspLiftVectorEnv(2, time_limit_s=0.1)  # 4 steps
+    venv = GraspLiftVectorEnv(2, time_limit_s=0.1, autoreset_mode=AutoresetMode.SAME_STEP)  # 4 steps
     obs, _ = venv.reset(seed=3)
     zero = np.zeros((2, 2), np.float32)
     for k in range(venv.config.max_episode_steps):
         obs, r, term, trunc, info = venv.step(zero)
     assert np.all(trunc) and not np.any(term)
-    assert "final_obs" in info and info["final_obs"].shape == (2, len(OBS_NAMES))
-    assert np.all(info["_final_obs"])
-    assert np.all(np.isfinite(info["final_obs"]))
+    final = np.stack(info["final_obs"])
+    assert final.shape == (2, len(OBS_NAMES)) and np.all(info["_final_obs"])
+    assert np.all(np.isfinite(final))
     # the returned observation is the first one of the next episode (time fraction 0)
     assert np.all(obs[:, OBS_NAMES.index("time_fraction")] == 0.0)
-    assert np.all(info["final_obs"][:, OBS_NAMES.index("time_fraction")] > 0.99)
+    assert np.all(final[:, OBS_NAMES.index("time_fraction")] > 0.99)
+    with pytest.raises(ConfigError, match=r"autoreset_mode = 'disabled' is not supported"):
+        GraspLiftVectorEnv(2, autoreset_mode="disabled")
 
 
 # -- reset options ---------------------------------------------------------------------------------
@@ -319,10 +350,10 @@ def test_vector_env_numerical_failure_is_isolated():
         warnings.simplefilter("ignore", RuntimeWarning)
         obs, r, term, trunc, info = venv.step(np.zeros((3, 2)))
     assert term.tolist() == [False, True, False]
-    assert info["error"][1] and not info["error"][0]
-    assert np.all(np.isfinite(obs)) and np.all(np.isfinite(r))
-    assert np.all(np.isfinite(info["final_obs"]))
-    assert np.all(np.isfinite(venv.core.sim.x))  # sub-env 1 was autoreset
+    assert info["_error"].tolist() == [False, True, False] and "numerical failure" in info["error"][1]
+    assert np.all(np.isfinite(obs)) and np.all(np.isfinite(r))  # (its last observation: zeros, never NaN)
+    obs, r, term, trunc, info = venv.step(np.zeros((3, 2)))  # NEXT_STEP: the failed env starts over
+    assert r[1] == 0.0 and not term[1] and np.all(np.isfinite(venv.core.sim.x))
 
 
 # -- time limit, rewards -----------------------------------------------------------------------------
