@@ -134,8 +134,8 @@ class TrainConfig:
     #: the training task: the default GraspLift task, with the privileged entries the critic needs,
     #: friction drawn log-uniformly (the low-friction end, where grasps fail, comes up twice as often), a
     #: pinch action that spends more of its range on light grips (action 0: 1.25 N) and a pull-speed action
-    #: (action 0: 10 mm/s) instead of a travel set-point (docs/task-design.md, session 3), and a peak-pinch
-    #: charge scaled by mu / 0.4, which follows the ratio to the minimal slip-free force (session 6)
+    #: (action 0: 10 mm/s) instead of a travel set-point, and a peak-pinch charge scaled by mu / 0.4, which
+    #: follows the ratio to the minimal slip-free force (docs/design.md)
     env: GraspLiftConfig = field(default_factory=lambda: GraspLiftConfig(
         privileged_obs=True, pinch_action_exponent=2.0, pull_action="forward_speed",
         reward=RewardConfig(peak_force_mu_ref=0.4),

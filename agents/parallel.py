@@ -4,7 +4,7 @@ Multi-seed training, hyper-parameter sweeps and evaluation sweeps are bags of in
 training, one (policy, mu) cell). :class:`Runner` runs such a bag and hands back each job's result as it
 finishes; what differs between a laptop and a cluster is only the runner:
 
-* ``Runner.processes(workers)``: a spawn-context process pool on this machine (no extra dependency);
+* ``Runner.processes(workers)``: a spawn-context process pool on the local machine (no extra dependency);
 * ``Runner.ray(address=None, workers=None)``: Ray tasks of one CPU each. Without an address Ray starts a
   local instance with ``workers`` CPUs (default: all cores); with one (``auto``, ``ray://head:10001`` or
   ``head:6379``) the jobs go to that cluster, whose nodes need msdgrasp installed (same version).

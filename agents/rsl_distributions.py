@@ -3,7 +3,7 @@
 rsl-rl's :class:`~rsl_rl.modules.distribution.GaussianDistribution` samples unbounded actions and the env
 clips them to [-1, 1]. A clipped pinch set-point whose mean drifts past +1 acts at full force whatever the
 mean, so nothing pulls the mean back; the SB3 training squashes instead (``squash_output``,
-docs/task-design.md, session 4). This is the same squash for rsl-rl: ``a = tanh(u)``, ``u ~ N(mean, std)``.
+docs/design.md). This is the same squash for rsl-rl: ``a = tanh(u)``, ``u ~ N(mean, std)``.
 
 Actions are stored squashed, as SB3 stores them, so the rollout's and the update's log-probabilities come
 from the same ``a`` (``u = atanh(a)``, clamped 1e-6 inside the bounds); the change-of-variables term,
@@ -11,7 +11,7 @@ from the same ``a`` (``u = atanh(a)``, clamped 1e-6 inside the bounds); the chan
 Gaussian's (the squash is one-to-one, so the KL of the squashed pair is the same). The exported policy
 (``as_deterministic_output_module``) is ``tanh(mean)``.
 
-Tested on four seeds against the clipped Gaussian (docs/task-design.md, session 14): lighter grips at high
+Tested on four seeds against the clipped Gaussian (docs/design.md): lighter grips at high
 friction on two, heavier at low friction on all four; an option, off by default.
 
 Only imported where rsl-rl is installed (the ``gpu`` extra); rsl-rl resolves it by name.

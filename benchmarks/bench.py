@@ -20,9 +20,10 @@ env
     :class:`~msdgrasp.envs.grasp_lift.GraspLiftVectorEnv` with N = 1, 16, 64 (per env and in total),
     random actions from a fixed seed, coarse spleen.
 
-``targets`` holds pass/fail flags against the issue's numbers (coarse <= 10 us per simulated ms, fine
-<= 200 us per ms, contact overhead <= 50 % and coarse-with-contact >= 70x real time, env >= 1000 steps/s
-single and >= 2000 aggregate batched). Machines are noisy: the flags describe this run on this machine.
+``targets`` holds pass/fail flags against the bench's targets (benchmarks/report.py: TARGETS; coarse
+<= 10 us per simulated ms, fine <= 200 us per ms, contact overhead <= 50 % and coarse-with-contact >= 70x
+real time, env >= 1000 steps/s single and >= 2000 aggregate batched). Machines are noisy: the flags
+describe this run on the machine it ran on.
 """
 
 from __future__ import annotations
@@ -429,7 +430,7 @@ def bench_env(quick: bool, seed: int = 0, progress: Callable[[str], None] = lamb
 
 
 # ------------------------------------------------------------------------------------------------
-# GPU (issue 15): agent steps/s of a device-resident batch vs batch size, with and without contact
+# GPU: agent steps/s of a device-resident batch vs batch size, with and without contact
 # ------------------------------------------------------------------------------------------------
 
 #: batch sizes of the GPU rows (quick: the first two)
@@ -556,7 +557,7 @@ CPU_REFERENCE_BATCHES = (1, 64, 1024)
 def bench_cpu_reference(quick: bool, resolution="coarse", batches: tuple[int, ...] = CPU_REFERENCE_BATCHES,
                         settle_s: float = 2.0, close_s: float = 1.5, steps: int = STEPS_PER_AGENT_STEP,
                         min_time: float | None = None, task_warmup_s: float = 0.5) -> dict:
-    """The CPU side of the GPU rows, measured the same way on this machine: agent steps/s (``steps`` physics
+    """The CPU side of the GPU rows, measured the same way on the same machine: agent steps/s (``steps`` physics
     ms each) of the numba kernel on one core for the same grasped tissues (``rows``), and of the CPU task step
     (:class:`~..envs.core.GraspLiftCore`, the bench's 2.5 N pinch without a pull: ``task_rows``)."""
     from ..envs.core import GraspLiftConfig, GraspLiftCore

@@ -1,4 +1,4 @@
-"""The benchmark report of ``msdgrasp bench``: the issue's speed targets, pass/fail flags, the machine, a
+"""The benchmark report of ``msdgrasp bench``: the speed targets (TARGETS), pass/fail flags, the machine, a
 markdown table and the log-log scaling plot (benchmarks/bench.py measures; this module only reads reports).
 """
 
@@ -25,7 +25,7 @@ TARGETS = {
     "mujoco_speedup": 10.0,  # >= 10x faster than MuJoCo flex at equal nodes
     "env_single_steps_per_s": 1000.0,
     "env_batched_steps_per_s": 2000.0,
-    "gpu_agent_steps_per_s": 200_000.0,  # float64, with contact, batch >= 4096 (issue 15)
+    "gpu_agent_steps_per_s": 200_000.0,  # float64, with contact, batch >= 4096
 }
 
 
@@ -55,7 +55,7 @@ def _target(value, limit, kind: str, unit: str, note: str = "", cpu_value=None) 
 
 
 def evaluate_targets(report: dict) -> dict:
-    """Pass/fail flags against the issue's targets (wall-clock medians; CPU-time values alongside)."""
+    """Pass/fail flags against TARGETS (wall-clock medians; CPU-time values alongside)."""
     t: dict[str, dict] = {}
     ph = report.get("physics", {})
     nc = {r["resolution"]: r for r in ph.get("no_contact", [])}
@@ -108,7 +108,7 @@ def evaluate_targets(report: dict) -> dict:
                                                            "aggregate agent steps/s",
                                                            f"best batched vector env (N={best['n_envs']})",
                                                            best.get("cpu_total_steps_per_s"))
-    # judged on the whole task step (physics, observation, reward, autoreset), the issue's "agent step"
+    # judged on the whole task step (physics, observation, reward, autoreset): the target's "agent step"
     gpu = (report.get("gpu") or {}).get("task_rows") or []
     big = [r for r in gpu if r["contact"] and r["batch"] >= 4096 and r["dtype"] == "float64"]
     if report.get("gpu", {}).get("available") and big:
@@ -223,7 +223,7 @@ def markdown(report: dict) -> str:
     if cpu is not None:
         gpu_rows = (gpu or {}).get("rows", []) if (gpu or {}).get("available") else []
         gpu_task = (gpu or {}).get("task_rows", []) if (gpu or {}).get("available") else []
-        lines += [f"Beside it, {cpu['device']} of this machine: the same grasped tissues and task step (GPU / CPU: "
+        lines += [f"Beside it, {cpu['device']} of the same machine: the same grasped tissues and task step (GPU / CPU: "
                   "over the float64 GPU row with contact at the same batch):", "",
                   "| what | batch | agent steps/s | ms per agent step | GPU / CPU |", "|---|---|---|---|---|"]
         for kind, rows, against in (("physics", cpu["rows"], gpu_rows), ("task", cpu["task_rows"], gpu_task)):

@@ -44,7 +44,7 @@ def _add_runner_args(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--address", default=None, metavar="ADDR",
                    help=f"run {what} on this Ray cluster ('auto', host:port or ray://host:10001; implies --ray)")
     p.add_argument("--workers", type=int, default=None,
-                   help="jobs at a time on this machine (default: one per CPU core); with --address the "
+                   help="jobs at a time on the local machine (default: one per CPU core); with --address the "
                         "cluster's CPUs decide")
 
 

@@ -87,7 +87,7 @@ class GraspLiftEnv(gym.Env):
 
     ``msdgrasp train`` uses ``pinch_action_exponent=2`` (action 0: a 1.25 N grip; half of the action range
     covers 0-1.25 N) and ``pull_action="forward_speed"`` (action 0: pull at 10 mm/s): measured, PPO then
-    learns light, friction-dependent grips (docs/task-design.md). Rewards do not depend on the interface.
+    learns light, friction-dependent grips (docs/design.md). Rewards do not depend on the interface.
 
     ## Observation space: ``Box(-inf, inf, (32 x obs_history,), float32)`` (+ privileged, optional)
 

@@ -422,7 +422,7 @@ def min_volume_ratios(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, 
 # It runs after the contacts, and the nodes a jaw or plate holds in this substep (and anchored nodes) do not
 # move in it: the rest of the tet moves, and the force that moves it comes through the held node from its
 # holder, which counts it in its readout (:func:`.contact.floor_reactions`).
-# Measured alternatives (5 N force-loop pinch in the env, 9 stiffness x mu cases; issue 12 note, session 10):
+# Measured alternatives (5 N force-loop pinch in the env, 9 stiffness x mu cases):
 # * before the contacts with every node free: the contact undoes the held node's share, so tets under a
 #   jaw end substeps below J_f (J_f = 0.2: fine mesh down to -0.04; J_f = 0.3 keeps every resolution > 0.04,
 #   but the spleen protocol's T / N at gross slip rises to 1.7 mu);
@@ -461,7 +461,7 @@ def flag_volume_floor(x, tets, rest_volume, j_floor, flagged, vols) -> int:
     """The floor's flag pass for one tissue x (N,3): flagged (T,) int8 and the volumes vols (T,) m^3 out;
     returns how many tets are below the floor. Where the floor then moves nothing, the next substep's barrier
     reuses ``vols`` (the positions are the same), so the floor costs little more than this pass
-    (contiguous arrays: on strided (T,1) views both passes were 1.7x slower; session 11)."""
+    (contiguous arrays: on strided (T,1) views both passes were 1.7x slower)."""
     n_flagged = 0
     for t in range(tets.shape[0]):
         vol = _tet_edges(x, tets, t)[9]
@@ -478,7 +478,7 @@ def refresh_floor_volumes(x, tets, flagged, mark, vols) -> None:
     ``vols`` (T,) m^3 for every tet that shares a node with a flagged tet (only those nodes can have moved), so
     that the next barrier pass can still reuse them. ``mark`` (N,) int8 scratch, zero on entry and on exit.
     On the fine spleen the floor acts at the rigid anchors in every substep, and recomputing all volumes
-    there cost the barrier's whole pass (session 11)."""
+    there cost the barrier's whole pass."""
     nt = tets.shape[0]
     for t in range(nt):
         if flagged[t]:
@@ -497,7 +497,7 @@ def refresh_floor_volumes(x, tets, flagged, mark, vols) -> None:
 def flag_volume_floor_lanes(x, tets, rest_volume, j_floor, flagged, n_flagged, vols) -> None:
     """:func:`flag_volume_floor` for L tissues at once (lane layout x (N,3,L)): flagged (T,L) int8, n_flagged
     (L,) int64 and the volumes vols (T,L) m^3 out. One pass over the tets across lanes (SIMD, as the
-    barrier's): a pass per lane on the strided (N,3) view cost 0.75x the whole batched step (session 11)."""
+    barrier's): a pass per lane on the strided (N,3) view cost 0.75x the whole batched step."""
     nl = x.shape[2]
     n_flagged[:] = 0
     for t in range(tets.shape[0]):

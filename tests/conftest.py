@@ -7,7 +7,7 @@ The environment is set at import time, i.e. before any test module imports rerun
   user's home; removed at exit;
 * MPLBACKEND=Agg (no display needed);
 * NUMBA_ENABLE_CUDASIM=1 unless set: the CUDA kernels run in numba's simulator (CI has no GPU);
-* NUMBA_CACHE_DIR (unless already set) is ``physics/__pycache__/numba-tests`` (kept between sessions, so
+* NUMBA_CACHE_DIR (unless already set) is ``physics/__pycache__/numba-tests`` (kept between runs, so
   the second run is fast) or, when the package folder is not writable, the session's temporary folder.
   Stale kernels are no concern: ``msdgrasp.physics.numba_cache`` keys every physics kernel on all physics
   sources (tests/test_numba_cache.py).

@@ -73,7 +73,7 @@ def test_bench_physics_quick_json(bench_quick):
         assert all(_positive(r["mujoco_us_per_ms"]) for r in mj["rows"] if "error" not in r)
     else:
         assert mj["reason"]
-    # pass/fail flags for the physics targets (values not asserted: noisy machines)
+    # pass/fail flags for the physics targets of benchmarks/report.py: TARGETS (values not asserted: noisy machines)
     for key in ("coarse_physics_le_10us_per_ms", "fine_physics_le_200us_per_ms", "coarse_contact_overhead_le_50pct",
                 "coarse_contact_ge_100x_realtime", f"coarse_contact_ge_100x_realtime_batch{bench.BATCH}"):
         assert isinstance(report["targets"][key]["pass"], bool)

@@ -17,7 +17,7 @@ import pytest
 from msdgrasp.physics.config import ConfigError, replace
 from msdgrasp.physics.scenario import spleen_scene
 
-# the tolerance: positions within 1e-12 m after an episode with contact
+# the GPU port's tolerance: positions within 1e-12 m after an episode with contact
 POSITION_TOL_M = 1e-12
 # the sensors (forces, pressures, slip distances) after an episode with contact: 1e-9 relative, as the task's
 SENSOR_RTOL = 1e-9
@@ -183,7 +183,7 @@ def test_gpu_bench_reports_why_it_cannot_time_here_and_its_harness_runs_in_the_s
                                                                      ("float32", 2)]
     assert all(r["what"] == "task" and 0.0 <= r["contact_fraction"] <= 1.0 for r in res["task_rows"])
     assert "The whole task step" in markdown({**report, "gpu": res, "targets": {}})
-    # beside the GPU rows, the CPU measured the same way (here: real timings of this machine's numba kernel)
+    # beside the GPU rows, the CPU measured the same way (here: real timings of the local numba kernel)
     cpu = report["gpu_cpu_reference"]
     assert [r["batch"] for r in cpu["rows"]] == [r["batch"] for r in cpu["task_rows"]] == [1, 64]
     assert all(r["contact_nodes_mean"] > 0 for r in cpu["rows"])  # grasped, as the GPU rows with contact

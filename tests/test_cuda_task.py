@@ -15,8 +15,8 @@ from msdgrasp.envs.core import GraspLiftConfig, GraspLiftCore, perturbed_pose
 from msdgrasp.envs.task import REWARD_TERMS
 from msdgrasp.physics.config import ConfigError, from_dict, to_dict
 
-# positions within 1e-12 m after an episode with contact (the tolerance); the task's scalars are
-# sums and ratios of them: 1e-9 relative
+# positions within 1e-12 m after an episode with contact (the GPU port's tolerance, as in
+# tests/test_cuda_physics.py); the task's scalars are sums and ratios of them: 1e-9 relative
 POSITION_TOL_M = 1e-12
 TASK_RTOL = 1e-9
 

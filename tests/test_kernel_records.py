@@ -5,7 +5,7 @@ Three short scenarios cover every path of the kernel: the spleen gripped by the 
 (contacts, stick, slip, anchors, an external load), the sphere between two moving plates with friction
 (Maxwell branch, volume barrier), and the optional terms (spring dashpots, displacement-dependent damping,
 sprung anchors, the volume floor). Their final state was recorded in ``tests/data/kernel_golden.npz`` by
-the kernel as it was *before* its arguments became records, and re-recorded in session 11, when the scenes'
+the kernel as it was *before* its arguments became records, and re-recorded when the scenes'
 start states moved to the converged substep rule (3e-8 m) and the floor joined the optional terms (the
 recording matched the old one with the old start states and no floor). Re-record only for a deliberate
 change of the physics:

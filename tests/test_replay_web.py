@@ -32,7 +32,7 @@ except ImportError:  # an optional test tool, not a dependency of the package
 
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.skipif(CHROMIUM is None, reason="no Chromium on this machine (apt-get install chromium)"),
+    pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (apt-get install chromium)"),
     pytest.mark.skipif(sync_playwright is None, reason="Playwright not installed (pip install -e '.[browser-test]')"),
 ]
 

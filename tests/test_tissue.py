@@ -323,7 +323,7 @@ def _undamped_energy_error(model: TissueModel, stretch: float, dt_sub: float, ti
 @pytest.mark.parametrize("tissue", ["sphere", "spleen"])
 def test_undamped_energy_error_is_small_at_the_automatic_substep_count(tissue, sphere_coarse, spleen_coarse,
                                                                         compiled_kernel):
-    """Issue 12 item 4: released from a 25 % stretch with no damping, no Maxwell branch and no gravity, the
+    """Released from a 25 % stretch with no damping, no Maxwell branch and no gravity, the
     energy stays within 2 % of its start for 1 s at the substep count "auto" picks (SUBSTEP_SAFETY = 0.6 of
     the stability limit; measured 1.3 % sphere, 0.65 % spleen). The old rule, 0.95 of the limit, is not
     enough: the stretched network is stiffer than the linearised one at rest (tension adds transverse

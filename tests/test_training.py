@@ -217,7 +217,7 @@ def test_missing_or_corrupt_model_is_a_clear_error(tmp_path):
 
 
 def test_every_shipped_training_config_loads_strictly():
-    """configs/train/*.yaml and the experiment configs behind docs/task-design.md stay valid."""
+    """configs/train/*.yaml and the experiment configs behind docs/design.md stay valid."""
     paths = sorted(builtin_config("train/ppo.yaml").parent.rglob("*.yaml"))
     assert len(paths) >= 11
     from msdgrasp.agents.torch_ppo import TorchPPOConfig
