@@ -65,7 +65,7 @@ _clear_readouts = device_twin(_contact.clear_readouts)
 _clear_contact_node = device_twin(_contact.clear_contact_node)
 _force_loop = device_twin(_integrator._force_loop)
 _advance_jaws = device_twin(_contact.advance_jaws)
-_jaw_node_geometry = device_twin(_contact.jaw_node_geometry)
+_jaw_candidates = device_twin(_contact.jaw_candidates)
 _resolve_jaw_contacts = device_twin(_contact.resolve_jaw_contacts)
 _plate_contacts = device_twin(_contact.plate_contacts)
 
@@ -167,8 +167,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
                 n_floor[0] = 0
             cuda.syncthreads()
             if m.jaw_active:  # (a node's test reads that node only: the order of the tests does not matter)
-                for q in range(tid, m.surface_nodes.shape[0], nth):
-                    w.cand[b, q] = _jaw_node_geometry(b, x[b], m.surface_nodes[q], m, s, (w.u[b], w.tj[b]))[0]
+                _jaw_candidates(b, x[b], m, s, (w.u[b], w.tj[b]), w.cand[b], tid, nth)
                 cuda.syncthreads()
                 if tid == 0:
                     _resolve_jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, (w.u[b], w.tj[b]), sub_info, res,
