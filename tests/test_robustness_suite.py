@@ -46,6 +46,9 @@ def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_gri
                 Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
     monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
     monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)  # (the bisection: minutes)
+    from msdgrasp.agents import controllers
+
+    monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)  # (the oracle's own bisection)
     rc, out, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--episodes", "1",
                               "--out", str(tmp_path), "--quiet"])
     assert rc == 0, err
