@@ -1,14 +1,14 @@
-"""Session-wide test setup: an isolated home, a headless matplotlib, shared meshes, a compiled kernel.
+"""Test-run-wide setup: an isolated home, a headless matplotlib, shared meshes, a compiled kernel.
 
 The environment is set at import time, i.e. before any test module imports rerun, matplotlib or numba:
 
-* HOME and the XDG config/data/cache dirs point into a per-session temporary folder, so nothing a test
+* HOME and the XDG config/data/cache dirs point into a per-run temporary folder, so nothing a test
   triggers (rerun, matplotlib, torch, tensorboard caches or telemetry state) reads or writes the real
   user's home; removed at exit;
 * MPLBACKEND=Agg (no display needed);
 * NUMBA_ENABLE_CUDASIM=1 unless set: the CUDA kernels run in numba's simulator (CI has no GPU);
 * NUMBA_CACHE_DIR (unless already set) is ``physics/__pycache__/numba-tests`` (kept between runs, so
-  the second run is fast) or, when the package folder is not writable, the session's temporary folder.
+  the second run is fast) or, when the package folder is not writable, the run's temporary folder.
   Stale kernels are no concern: ``msdgrasp.physics.numba_cache`` keys every physics kernel on all physics
   sources (tests/test_numba_cache.py).
 """
@@ -21,17 +21,17 @@ import shutil
 import tempfile
 from pathlib import Path
 
-_SESSION_HOME = Path(tempfile.mkdtemp(prefix="msdgrasp-tests-home-"))
-atexit.register(shutil.rmtree, _SESSION_HOME, ignore_errors=True)
+_RUN_HOME = Path(tempfile.mkdtemp(prefix="msdgrasp-tests-home-"))
+atexit.register(shutil.rmtree, _RUN_HOME, ignore_errors=True)
 for _var, _sub in (("XDG_CONFIG_HOME", ".config"), ("XDG_DATA_HOME", ".local/share"), ("XDG_CACHE_HOME", ".cache")):
-    (_SESSION_HOME / _sub).mkdir(parents=True, exist_ok=True)
-    os.environ[_var] = str(_SESSION_HOME / _sub)
-os.environ["HOME"] = str(_SESSION_HOME)
+    (_RUN_HOME / _sub).mkdir(parents=True, exist_ok=True)
+    os.environ[_var] = str(_RUN_HOME / _sub)
+os.environ["HOME"] = str(_RUN_HOME)
 os.environ["MPLBACKEND"] = "Agg"
 # the CUDA backend's tests (tests/test_cuda*.py) run in numba's CUDA simulator unless told otherwise
 # (NUMBA_ENABLE_CUDASIM=0 on a machine with a GPU); numba reads it when first imported
 os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
-os.environ.setdefault("MPLCONFIGDIR", str(_SESSION_HOME / ".config" / "matplotlib"))
+os.environ.setdefault("MPLCONFIGDIR", str(_RUN_HOME / ".config" / "matplotlib"))
 
 _PHYSICS_DIR = Path(__file__).resolve().parent.parent / "physics"
 if "NUMBA_CACHE_DIR" not in os.environ:
@@ -41,7 +41,7 @@ if "NUMBA_CACHE_DIR" not in os.environ:
         if not os.access(_base, os.W_OK):
             raise PermissionError(_base)
     except OSError:
-        _base = _SESSION_HOME / ".cache"
+        _base = _RUN_HOME / ".cache"
     os.environ["NUMBA_CACHE_DIR"] = str(_base / "numba-tests")
 
 import numpy as np  # noqa: E402
@@ -66,7 +66,7 @@ def spleen_coarse():
 
 @pytest.fixture(scope="session")
 def compiled_kernel(sphere_coarse):
-    """Compile (or load from numba's cache) the simulate kernel once per session: one 1 ms step of a
+    """Compile (or load from numba's cache) the simulate kernel once per test run: one 1 ms step of a
     sphere between two plates, so later timings measure physics, not compilation."""
     from msdgrasp.physics.simulation import Plate, Simulation
     from msdgrasp.physics.tissue import TissueModel, TissueParams
