@@ -305,6 +305,8 @@ class GraspLiftCore:
 
         self.rngs = [np.random.default_rng() for _ in range(B)]
         self.params = task_params(self)
+        # which draw columns a reset draws (an axis that is off draws nothing): fixed by the config
+        self._drawn = [bool(column_drawn(self.params.env, k)) for k in range(len(DRAW_COLUMNS))]
         #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
         #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
         self.state = task_state(B, cfg.obs_history, self.frame_dim)
@@ -331,11 +333,8 @@ class GraspLiftCore:
         rng = self.rngs[index]
         # always draw every value (keeps the random stream independent of which values are pinned)
         # (random() and standard_normal() are the variates NumPy's uniform() and normal() scale: the same stream)
-        for k, normal in enumerate(DRAW_IS_NORMAL):
-            if column_drawn(self.params.env, k):  # (an axis that is off draws nothing: 0)
-                self.draws[index, k] = rng.standard_normal() if normal else rng.random()
-            else:
-                self.draws[index, k] = 0.0
+        for k, (normal, drawn) in enumerate(zip(DRAW_IS_NORMAL, self._drawn)):
+            self.draws[index, k] = (rng.standard_normal() if normal else rng.random()) if drawn else 0.0
         draw_episode(self.params, self.state, index)
         drawn = self.draws[index]
         v = {"mu": drawn[D_MU], "stiffness_scale": drawn[D_KS], "mass_scale": drawn[D_MS],
