@@ -318,10 +318,10 @@ def resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, mar
     u, tj = dirs
     surface_nodes, node_area, fixed = model.surface_nodes, model.node_area, model.fixed
     jaw_length, jaw_half_width = model.jaw_length, model.jaw_half_width
-    g_axis, g_vpull, mu_s, mu_k, g_force = state.g_axis, state.g_vpull, state.mu_s, state.mu_k, state.g_force
+    g_vpull, mu_s, mu_k, g_force = state.g_vpull, state.mu_s, state.mu_k, state.g_force
     jaw_out, contact_state, contact_force = out.jaw_out, out.contact_state, out.contact_force
-    ax, ay, az = g_axis[b, 0], g_axis[b, 1], g_axis[b, 2]
     frame = jaw_frame(b, state)
+    ax, ay, az = frame[1]
     jaw = (jaw_length, jaw_half_width, model.jaw_depth)
     n_con0 = 0.0
     n_con1 = 0.0
