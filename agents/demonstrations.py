@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..physics.config import ConfigError, atomic_write_text, to_dict
-from .evaluation import build_policy, check_policy_spec, task_of
+from .evaluation import build_policy, check_policy_spec, trained_task_of
 
 #: the env the datasets are collected on (its version is part of every dataset's card)
 ENV_ID = "msdgrasp/GraspLift-v0"
@@ -64,11 +64,7 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
     check_policy_spec(policy)
-    config, trained_on = task_of([policy], None)
-    if trained_on is None:  # a controller: the default training's task (the task the results are about)
-        from .training import TrainConfig
-
-        config = TrainConfig().env
+    config, trained_on = trained_task_of([policy])
     pol = build_policy(policy, config)
     name = str(getattr(pol, "name", policy))
     dataset_id = dataset_id or default_dataset_id(name)

@@ -548,6 +548,17 @@ def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[Gr
     return envs[0], next(iter(found))
 
 
+def trained_task_of(policies: Sequence[str]) -> tuple[GraspLiftConfig, str | None]:
+    """:func:`task_of` without a given task, except that controllers alone run on the default training's task
+    (``TrainConfig().env``: the task the results are about), not on the env's defaults."""
+    config, trained_on = task_of(policies, None)
+    if trained_on is None:
+        from .models import TrainConfig
+
+        config = TrainConfig().env
+    return config, trained_on
+
+
 def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
              config: GraspLiftConfig | None = None, seed: int = 0, record: bool = False,
              progress: bool = True, n_envs: int | None = None, video: bool = False,

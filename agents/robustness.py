@@ -35,7 +35,7 @@ from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
     ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
-    evaluate_policy, expand_policy_specs, nan_to_none, task_of,
+    evaluate_policy, expand_policy_specs, nan_to_none, trained_task_of,
 )
 from .parallel import Runner
 
@@ -126,11 +126,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     for spec in specs:
         check_policy_spec(spec)
     specs += [b for b in BASELINES if b not in specs]
-    config, trained_on = task_of(specs, None)
-    if trained_on is None:  # controllers alone: the task of the default training (the task the results are about)
-        from .training import TrainConfig
-
-        config = TrainConfig().env
+    config, trained_on = trained_task_of(specs)
     built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
     names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]
     conditions = SUITES[suite]
