@@ -48,6 +48,20 @@ def _cmd_grasp_sphere(args: argparse.Namespace) -> int:
     return grasp_sphere_cli(args)
 
 
+def _cmd_pinch_hold(args: argparse.Namespace) -> int:
+    import json
+
+    from ..experiments.pinch_hold import result_dict, run_pinch_hold
+    from ..physics.config import check_range
+    from .experiments import _resolution
+
+    check_range("--mu", args.mu, 0.0, None, lo_inclusive=False)
+    check_range("--pinch", args.pinch, 0.0, None, lo_inclusive=False)
+    result = run_pinch_hold(_resolution(args.resolution), mu=args.mu, pinch_N=args.pinch)
+    print(json.dumps(result_dict(result), indent=2))
+    return 0
+
+
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from .experiments import calibrate_cli
 
@@ -104,6 +118,13 @@ def build_parser() -> argparse.ArgumentParser:
     gs.add_argument("--quiet", action="store_true")
     _add_out(gs, "grasp_sphere")
     gs.set_defaults(func=_cmd_grasp_sphere)
+
+    ph = exp_sub.add_parser("pinch-hold", help="5 N force-loop pinch, 15 mm/s pull, hold: pinch steadiness, friction "
+                            "cone at every face-held node, smallest tet volume (JSON)")
+    ph.add_argument("--resolution", default="coarse", help="coarse|medium|fine")
+    ph.add_argument("--mu", type=float, default=0.3, help="jaw friction coefficient (default 0.3)")
+    ph.add_argument("--pinch", type=float, default=5.0, help="pinch-force set-point, N (default 5)")
+    ph.set_defaults(func=_cmd_pinch_hold)
 
     cal = sub.add_parser("calibrate", help="fit the tissue's constants to force-deformation curves at several rates")
     cal.add_argument("--data", type=Path, required=True, help="CSV with rate_mm_per_min,deformation_mm,force_N[,time_s]")

@@ -387,7 +387,7 @@ class RerunRecorder(gym.Wrapper):
         """Log the current state of tissue 0 (and the step's info/reward/action) at the current time."""
         import rerun as rr
 
-        from ..physics.contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
+        from ..physics.contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ, SLIP, WALL_SLIP
         from ..physics.grasper import GrasperPose, jaw_face_corners
         from ..physics.stress import surface_normal_stress
 
@@ -431,7 +431,8 @@ class RerunRecorder(gym.Wrapper):
         state = sim.contact_state[0]
         idx = np.flatnonzero(state > 0)
         f = sim.contact_force[0, idx] * self.force_scale
-        cols = np.where((state[idx] == 2)[:, None], np.array(SLIP_COLOR, np.uint8), np.array(STICK_COLOR, np.uint8))
+        cols = np.where(np.isin(state[idx], (SLIP, WALL_SLIP))[:, None], np.array(SLIP_COLOR, np.uint8),
+                        np.array(STICK_COLOR, np.uint8))
         log(f"{p}/world/contacts", rr.Arrows3D(
             origins=(x[idx] - f).astype(np.float32).reshape(-1, 3), vectors=f.astype(np.float32).reshape(-1, 3),
             colors=cols.reshape(-1, 4), radii=0.0003))

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from ..physics.contact import J_NORMAL, J_TX, J_TZ
+from ..physics.contact import J_NORMAL, J_TX, J_TZ, SLIP, STICK, WALL_SLIP, WALL_STICK
 from ..physics.grasper import GrasperPose, jaw_face_corners
 
 #: full scale of each colour map: strain in %, contact pressure in kPa, displacement in mm
@@ -171,8 +171,8 @@ class _Frame:
         self.surf.set_facecolor(colours)
 
         state = np.asarray(sim.contact_state[index])
-        for artist, code in ((self.stick, 1), (self.slip, 2)):
-            p = x[state == code]
+        for artist, codes in ((self.stick, (STICK, WALL_STICK)), (self.slip, (SLIP, WALL_SLIP))):
+            p = x[np.isin(state, codes)]
             artist._offsets3d = (p[:, 0], p[:, 1], p[:, 2])
 
         pose = GrasperPose(np.array(sim.g_tip[index]), np.array(sim.g_axis[index]), np.array(sim.g_e1[index]))

@@ -613,6 +613,7 @@ def restore_settled(p, s, out, b, first, stride):
             s.f_ext[b, i, c] = 0.0
             out.contact_force[b, i, c] = 0.0
         out.contact_state[b, i] = 0
+        s.held[b, i] = 0
     for e in range(first, s.fv.shape[1], stride):
         s.fv[b, e] = p.fv_start[e]
         s.dl_prev[b, e] = p.dl_start[e]

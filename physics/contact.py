@@ -23,8 +23,9 @@ import math
 import numpy as np
 from numba import njit
 
-#: contact state codes stored per node
-FREE, STICK, SLIP = 0, 1, 2
+#: contact state codes stored per node: on a jaw's inner face or a plate (STICK, SLIP), or pushed by a jaw's side
+#: or end wall (WALL_STICK, WALL_SLIP: the jaw's solid, not its gripping face)
+FREE, STICK, SLIP, WALL_STICK, WALL_SLIP = 0, 1, 2, 3, 4
 
 # jaw readout columns (physics.integrator fills jaw_out[b, jaw, col])
 J_NORMAL = 0  # normal force on the tissue, N (>= 0, pushing into the tissue)
@@ -34,7 +35,10 @@ J_STICK = 5  # of which sticking
 J_SLIP = 6  # of which slipping
 J_SLIP_DIST = 7  # slip distance accumulated over the call, m (mean over the jaw's contact nodes)
 J_PEAK_PRESSURE = 8  # peak nodal contact pressure during the call, Pa
-N_JAW_COLS = 9
+J_WALL_X, J_WALL_Y, J_WALL_Z = 9, 10, 11  # the part of the jaw's force on the tissue (N, vector) that its side
+#                                           and end walls exert (included in J_NORMAL and J_T*, which are the
+#                                           whole jaw's force split on its face's normal)
+N_JAW_COLS = 12
 
 # columns of the jaw force loop g_force[b, col] (the 1 kHz pinch-force controller of a torque-driven jaw
 # motor, run by the integrator at every outer step; see physics.integrator)
@@ -172,12 +176,10 @@ def clear_readouts(b: int, out) -> None:
 
 @njit(cache=True, inline="always", error_model="numpy")
 def clear_contact_node(b: int, model, out, held, last_sub: bool, q: int) -> None:
-    """Before a substep's contacts: surface node q of tissue b is not held (``held`` (N,) int8, read only by
-    the volume floor) and, in the last substep, its contact readouts restart from zero. Nodes are independent
-    (the GPU clears them in parallel)."""
+    """Before a substep's contacts: surface node q of tissue b is not held (``held`` (N,) int8) and, in the last
+    substep, its contact readouts restart from zero. Nodes are independent (the GPU clears them in parallel)."""
     i = model.surface_nodes[q]
-    if model.vol_floor > 0.0:
-        held[i] = 0
+    held[i] = 0
     if last_sub:
         out.contact_state[b, i] = 0
         for c in range(3):
@@ -197,7 +199,7 @@ def plate_contacts(
     model, state, out,  # SimModel, SimState (plate points advanced), SimReadout (plate_out, contacts filled)
     sub,  # (dt s, avg, last_sub, inv_sub): the substep; its weight in the readouts; fill the last-substep readouts
     res,  # (6,) scratch
-    held,  # (N,) int8 out: -(p + 1) for the nodes plate p holds this substep (the volume floor reads it)
+    held,  # (N,) int8 out: -(p + 1) for the nodes plate p holds this substep
 ) -> None:
     """Advance tissue b's plates by one substep and resolve every surface node behind one."""
     dt, avg, last_sub, _ = sub
@@ -297,8 +299,8 @@ def jaw_contacts(
     sub,  # (dt s, avg, last_sub, inv_sub): the substep; its weight in the readouts; fill the last-substep
     #       readouts; 1 / n_sub, the weight of the pinch accumulated into state.g_force[b, G_PINCH]
     res,  # (6,) scratch
-    marks,  # (held, cand): (N,) int8 out: k + 1 for the nodes jaw k holds this substep (the volume floor reads
-    #         it); (S,) int8: the jaw each surface node is inside (:func:`jaw_candidates`), or empty: test here
+    marks,  # (held, cand): (N,) int8 out: k + 1 for the nodes jaw k holds this substep;
+    #         (S,) int8: the jaw each surface node is inside (:func:`jaw_candidates`), or empty: test here
 ) -> None:
     """Advance tissue b's grasper by one substep and resolve its three jaws (cylindrical detection): each surface
     node tested (:func:`jaw_node_geometry`) and, inside a jaw, resolved, in surface order
@@ -378,13 +380,17 @@ def resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, mar
         jaw_out[b, k, J_TX] += avg * ftx
         jaw_out[b, k, J_TY] += avg * fty
         jaw_out[b, k, J_TZ] += avg * ftz
+        if not face:
+            jaw_out[b, k, J_WALL_X] += avg * fx
+            jaw_out[b, k, J_WALL_Y] += avg * fy
+            jaw_out[b, k, J_WALL_Z] += avg * fz
         if last_sub:
             jaw_out[b, k, J_CONTACT] += 1.0
             if res[4] == 1.0:
                 jaw_out[b, k, J_STICK] += 1.0
             else:
                 jaw_out[b, k, J_SLIP] += 1.0
-            contact_state[b, i] = np.int8(res[4])
+            contact_state[b, i] = np.int8(res[4] if face else res[4] + 2.0)
             contact_force[b, i, 0] += fx
             contact_force[b, i, 1] += fy
             contact_force[b, i, 2] += fz
@@ -403,48 +409,3 @@ def resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, mar
         jaw_out[b, 1, J_SLIP_DIST] += slip1 / n_con1
     if n_con2 > 0.0:
         jaw_out[b, 2, J_SLIP_DIST] += slip2 / n_con2
-
-
-@njit(cache=True, error_model="numpy")
-def floor_reactions(
-    b, held, react,  # tissue index; (N,) int8 holder of each node (:func:`jaw_contacts`, :func:`plate_contacts`);
-    #                  (N,3) N force the volume floor needed at held and anchored nodes (cleared here)
-    fixed, u, out, state,  # (N,) anchored nodes; (3,3) jaw outward directions; SimReadout, SimState
-    sub,  # (dt, avg, last_sub, inv_sub) as in :func:`jaw_contacts`
-) -> None:
-    """Count the volume floor's reactions in the sensors: a node held by a jaw, a plate or an anchor does
-    not move in the floor's correction (:func:`.forces.project_volume_floor`), so the force that moves the
-    rest of its tet comes through it from the holder, and the holder's readout must include it."""
-    _, avg, last_sub, inv_sub = sub
-    jaw_out, plate_out, anchor_out, contact_force = out.jaw_out, out.plate_out, out.anchor_out, out.contact_force
-    for i in range(held.shape[0]):
-        fx, fy, fz = react[i, 0], react[i, 1], react[i, 2]
-        if fx == 0.0 and fy == 0.0 and fz == 0.0:
-            continue
-        react[i, 0] = 0.0
-        react[i, 1] = 0.0
-        react[i, 2] = 0.0
-        h = held[i]
-        if fixed[i]:
-            if last_sub:
-                anchor_out[b, 0] += fx
-                anchor_out[b, 1] += fy
-                anchor_out[b, 2] += fz
-            continue
-        if h > 0:
-            k = h - 1
-            fn = -(fx * u[k, 0] + fy * u[k, 1] + fz * u[k, 2])
-            jaw_out[b, k, J_NORMAL] += avg * fn
-            state.g_force[b, G_PINCH] += inv_sub * fn
-            jaw_out[b, k, J_TX] += avg * (fx + fn * u[k, 0])
-            jaw_out[b, k, J_TY] += avg * (fy + fn * u[k, 1])
-            jaw_out[b, k, J_TZ] += avg * (fz + fn * u[k, 2])
-        elif h < 0:
-            p = -h - 1
-            plate_out[b, p, 0] += avg * fx
-            plate_out[b, p, 1] += avg * fy
-            plate_out[b, p, 2] += avg * fz
-        if last_sub:
-            contact_force[b, i, 0] += fx
-            contact_force[b, i, 1] += fy
-            contact_force[b, i, 2] += fz

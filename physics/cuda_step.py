@@ -1,10 +1,10 @@
 """The physics step on a CUDA GPU (numba's CUDA target): :func:`.integrator.simulate`'s records, one thread block
 per tissue. Only the loops are written here: springs and tets (a thread each) write their forces to a scratch;
 each node (a thread) *gathers* them in the order in which the CPU kernel scatters them, so its force is the same
-sum term by term (no atomics), and advances; thread 0 resolves the contacts and the volume floor in the CPU's
-order. What a spring, a tet, a node and a contact compute is the CPU kernel's own per-element functions
-(:func:`.forces.spring_body`, :func:`.forces.tet_barrier_body`, the node bodies in :mod:`.integrator`,
-:mod:`.contact`) compiled for the GPU from their source (:func:`device_twin`): one source, two backends.
+sum term by term (no atomics), and advances; tets below the volume barrier's threshold are flagged in parallel
+and thread 0 integrates the barrier on them and resolves the contacts in the CPU's order. What a spring, a tet, a
+node and a contact compute is the CPU kernel's own functions (:func:`.forces.spring_body`,
+:func:`.forces.implicit_volume_barrier`, the node bodies in :mod:`.integrator`, :mod:`.contact`) compiled for the GPU from their source (:func:`device_twin`): one source, two backends.
 The scratch's host-side layout is in :mod:`.device_layout`. Under ``NUMBA_ENABLE_CUDASIM=1`` the kernel runs in
 numba's CUDA simulator (slow: tests only), with the CPU's arithmetic bit for bit; on a GPU, fused multiply-adds
 round differently (~1e-16 relative per operation).
@@ -50,16 +50,13 @@ def device_twin(cpu_function, **callees):
 
 
 # the kernel's per-element functions: the CPU kernel's own
-_tet_edges = device_twin(_forces._tet_edges)
 _spring_body = device_twin(_forces.spring_body)
-_tet_barrier_body = device_twin(_forces.tet_barrier_body)
 _anchor_spring_force = device_twin(_integrator.anchor_spring_force)
 _nodal_damping = device_twin(_integrator.nodal_damping)
 _damping_factors = device_twin(_integrator.damping_factors)
 _advance_node = device_twin(_integrator.advance_node)
-_below_volume_floor = device_twin(_forces.below_volume_floor)
-_project_volume_floor = device_twin(_forces.project_volume_floor)
-_floor_reactions = device_twin(_contact.floor_reactions)
+_below_barrier = device_twin(_forces.below_barrier)
+_implicit_volume_barrier = device_twin(_forces.implicit_volume_barrier)
 _jaw_directions = device_twin(_contact.jaw_directions)
 _clear_readouts = device_twin(_contact.clear_readouts)
 _clear_contact_node = device_twin(_contact.clear_contact_node)
@@ -85,7 +82,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
     ks, ms = s.kscale[b], s.mscale[b]
     flags = (m.use_dashpot, m.use_sls)
     res = cuda.local.array(6, np.float64)
-    n_floor = cuda.shared.array(1, np.int32)  # tets of this tissue below the volume floor in this substep
+    n_flagged = cuda.shared.array(1, np.int32)  # tets of this tissue below the barrier's threshold in this substep
     vr = 0.0  # (thread 0) the jaws' radial speed in this substep
     if tid == 0:
         _clear_readouts(b, out)
@@ -111,15 +108,8 @@ def _simulate_kernel(m, s, out, w, n_steps):
                     (s.fv[b, e], s.dl_prev[b, e], kve, decay, gain), flags)
                 if m.use_sls:
                     s.fv[b, e], s.dl_prev[b, e] = fve, dle
-            # ---- 1b. volume barrier: the forces of each compressed tet on its nodes to the scratch
-            for t in range(tid, nt, nth):
-                geom = _tet_edges(x[b], m.tets, t)
-                on = geom[9] < m.vol_threshold * m.rest_volume[t]
-                w.tet_on[b, t] = 1 if on else 0
-                if on:
-                    r = _tet_barrier_body(geom, m.rest_volume[t], m.kvol[t], m.vol_threshold, ks)
-                    for k in range(12):
-                        w.ft[b, t, k] = r[k]
+            if tid == 0:
+                n_flagged[0] = 0
             cuda.syncthreads()
             # ---- 2-3. nodes: gather in the CPU's order, then symplectic Euler with implicit damping, anchors
             for i in range(tid, n, nth):
@@ -130,10 +120,6 @@ def _simulate_kernel(m, s, out, w, n_steps):
                 for p in range(w.edge_ptr[i], w.edge_ptr[i + 1]):
                     e, sg = w.edge_idx[p], w.edge_sign[p]  # (f + (-1 x g) is f - g, bit for bit)
                     f0, f1, f2 = f0 + sg * w.fe[b, e, 0], f1 + sg * w.fe[b, e, 1], f2 + sg * w.fe[b, e, 2]
-                for p in range(w.tet_ptr[i], w.tet_ptr[i + 1] if nt > 0 else w.tet_ptr[i]):
-                    t, col = w.tet_idx[p], w.tet_col[p]
-                    if w.tet_on[b, t] == 1:
-                        f0, f1, f2 = f0 + w.ft[b, t, col], f1 + w.ft[b, t, col + 1], f2 + w.ft[b, t, col + 2]
                 if m.fixed[i]:  # the anchor holds the node against its whole force
                     w.fa[b, i, 0], w.fa[b, i, 1], w.fa[b, i, 2] = -f0, -f1, -f2
                     v[b, i, 0], v[b, i, 1], v[b, i, 2] = 0.0, 0.0, 0.0
@@ -150,9 +136,26 @@ def _simulate_kernel(m, s, out, w, n_steps):
                 x[b, i, 0], x[b, i, 1], x[b, i, 2] = xn
                 v[b, i, 0], v[b, i, 1], v[b, i, 2] = vn
             cuda.syncthreads()
-            # ---- 4. contacts: cleared and tested in parallel, resolved by thread 0 in the CPU's (surface) order
+            # ---- 4. volume barrier: tets flagged in parallel; only where any is (as on the CPU), thread 0
+            # integrates it on them in the CPU's (tet) order
+            if nt > 0:
+                flagged = 0
+                for t in range(tid, nt, nth):
+                    on = _below_barrier(x[b], m.tets, m.rest_volume, m.vol_threshold, t)
+                    w.tet_on[b, t] = 1 if on else 0
+                    flagged += 1 if on else 0
+                if flagged > 0:
+                    cuda.atomic.add(n_flagged, 0, flagged)
+                cuda.syncthreads()
+                if tid == 0 and n_flagged[0] > 0:
+                    for c in range(3):
+                        w.vol_out[b, c] = 0.0
+                    _implicit_volume_barrier(x[b], v[b], w.meff[b], (m.fixed, s.held[b]), m.tets, m.rest_volume, m.kvol,
+                                             m.vol_threshold, ks, dt, w.tet_on[b], w.vol_out[b])
+                cuda.syncthreads()
+            # ---- 5. contacts: cleared and tested in parallel, resolved by thread 0 in the CPU's (surface) order
             for q in range(tid, m.surface_nodes.shape[0], nth):
-                _clear_contact_node(b, m, out, w.held[b], last_sub, q)
+                _clear_contact_node(b, m, out, s.held[b], last_sub, q)
             cuda.syncthreads()
             if tid == 0:
                 if last_sub:
@@ -160,34 +163,20 @@ def _simulate_kernel(m, s, out, w, n_steps):
                         if m.fixed[i] or m.anchor_k[i] > 0.0:
                             for c in range(3):
                                 out.anchor_out[b, c] += w.fa[b, i, c]
+                    if nt > 0 and n_flagged[0] > 0:  # (after the nodes' share, in the CPU's order)
+                        for c in range(3):
+                            out.anchor_out[b, c] += w.vol_out[b, c]
                 s.t[b] += dt
-                _plate_contacts(b, x[b], v[b], w.meff[b], m, s, out, sub_info, res, w.held[b])
+                _plate_contacts(b, x[b], v[b], w.meff[b], m, s, out, sub_info, res, s.held[b])
                 if m.jaw_active:
                     vr = _advance_jaws(b, s, dt)
-                n_floor[0] = 0
             cuda.syncthreads()
             if m.jaw_active:  # (a node's test reads that node only: the order of the tests does not matter)
                 _jaw_candidates(b, x[b], m, s, (w.u[b], w.tj[b]), w.cand[b], tid, nth)
                 cuda.syncthreads()
                 if tid == 0:
                     _resolve_jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, (w.u[b], w.tj[b]), sub_info, res,
-                                          (w.held[b], w.cand[b]), vr)
-                cuda.syncthreads()
-            # ---- 5. volume floor: tets flagged in parallel; only where any is (as on the CPU), thread 0 restores
-            # them in the CPU's (tet) order and counts the reactions
-            if m.vol_floor > 0.0:
-                flagged = 0
-                for t in range(tid, m.tets.shape[0], nth):
-                    on = _below_volume_floor(x[b], m.tets, m.rest_volume, m.vol_floor, t)
-                    w.floor_on[b, t] = 1 if on else 0
-                    flagged += 1 if on else 0
-                if flagged > 0:
-                    cuda.atomic.add(n_floor, 0, flagged)
-                cuda.syncthreads()
-                if tid == 0 and n_floor[0] > 0:
-                    _project_volume_floor(x[b], v[b], w.meff[b], m.fixed, w.held[b], m.tets, m.rest_volume,
-                                          m.vol_floor, dt, w.floor_on[b], w.react[b])
-                    _floor_reactions(b, w.held[b], w.react[b], m.fixed, w.u[b], out, s, sub_info)
+                                          (s.held[b], w.cand[b]), vr)
                 cuda.syncthreads()
 
 

@@ -59,7 +59,7 @@ FLOAT32_FIELDS = frozenset({
     # SimReadout
     "contact_force",
     # CudaScratch
-    "fe", "ft", "react", "meff", "fa",
+    "fe", "meff", "fa",
 })
 
 
@@ -72,29 +72,18 @@ def with_precision(record: NamedTuple, precision: str) -> NamedTuple:
                               for name in record._fields if name in FLOAT32_FIELDS})
 
 
-#: first column in ``CudaScratch.ft`` of the force on a tet's node in slot 0..3 (a, b, c, d): the order in
-#: which :func:`.forces.tet_barrier_body` returns them (b, c, d, a)
-TET_FORCE_COLUMN = (9, 0, 3, 6)
-
-
 class CudaScratch(NamedTuple):
     """Per-tissue work arrays of the kernel and the mesh's node incidence (CSR, in edge / tet order)."""
 
     fe: np.ndarray  # (B,E,3) N force of each spring on its first node
-    ft: np.ndarray  # (B,T,12) N volume-barrier force of each tet on nodes b, c, d, a (:data:`TET_FORCE_COLUMN`)
-    tet_on: np.ndarray  # (B,T) int8: the barrier acts on the tet this substep
-    floor_on: np.ndarray  # (B,T) int8: the tet is below the volume floor after the contacts
-    held: np.ndarray  # (B,N) int8: the jaw (k + 1) or plate (-(p + 1)) holding each node this substep
+    tet_on: np.ndarray  # (B,T) int8: the tet is below the volume barrier's threshold this substep
+    vol_out: np.ndarray  # (B,3) N: the anchors' force against the volume barrier in a substep
     cand: np.ndarray  # (B,S) int8: the jaw each surface node is inside this substep (-1: none)
-    react: np.ndarray  # (B,N,3) N the volume floor's force through held and anchored nodes
     meff: np.ndarray  # (B,N) kg effective mass m + dt b (contacts)
     fa: np.ndarray  # (B,N,3) N anchor force on each node (last substep: the anchor readout)
     edge_ptr: np.ndarray  # (N+1,) int: node i's springs are edge_idx[edge_ptr[i]:edge_ptr[i+1]]
     edge_idx: np.ndarray  # int, ascending per node
     edge_sign: np.ndarray  # float: +1 where i is the spring's first node, -1 where it is the second
-    tet_ptr: np.ndarray  # (N+1,) int
-    tet_idx: np.ndarray  # int, ascending per node
-    tet_col: np.ndarray  # int: the first column in ft of the node's force (its place in the tet, TET_FORCE_COLUMN)
     u: np.ndarray  # (B,3,3) jaw outward directions
     tj: np.ndarray  # (B,3,3) jaw lateral directions
 
@@ -114,14 +103,10 @@ def make_scratch(model: SimModel, batch: int) -> CudaScratch:
     """Host arrays of the kernel's scratch for ``batch`` tissues of ``model``."""
     n, ne, nt, ns = model.x_rest.shape[0], model.edges.shape[0], model.tets.shape[0], model.surface_nodes.shape[0]
     eptr, eidx, ecol = incidence(n, np.asarray(model.edges))
-    tptr, tidx, tcol = incidence(n, np.asarray(model.tets))
     return CudaScratch(
-        fe=np.zeros((batch, ne, 3)), ft=np.zeros((batch, max(nt, 1), 12)),
-        tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8), floor_on=np.zeros((batch, max(nt, 1)), dtype=np.int8),
-        held=np.zeros((batch, n), dtype=np.int8), cand=np.zeros((batch, max(ns, 1)), dtype=np.int8),
-        react=np.zeros((batch, n, 3)), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
-        edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0), tet_ptr=tptr, tet_idx=tidx,
-        tet_col=np.asarray(TET_FORCE_COLUMN, dtype=np.int64)[tcol],
+        fe=np.zeros((batch, ne, 3)), tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8),
+        vol_out=np.zeros((batch, 3)), cand=np.zeros((batch, max(ns, 1)), dtype=np.int8), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
+        edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0),
         u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
     )
 

@@ -246,17 +246,33 @@ def spring_energy(
 
 
 # -------------------------------------------------------------------------------------------------
-# Volume barrier per tet (TissueParams.volume_modulus_pa). A spring network resists a tet's collapse
-# only through its six edge lengths, so under large local compression (under the jaws, or the sphere
-# between plates beyond ~20 %) tets flatten and invert. With J_t = V_t / V0_t and a threshold J_c, the
-# energy
-#     U_t = (k_t / 2) V0_t (J_c - J_t)^2   for J_t < J_c,   0 otherwise,
-# adds a bulk stiffness k_t (Pa) only to strongly compressed tets (J_c = 0.5 by default: a tet that has
-# lost half its volume), and keeps growing through J = 0: an inverted tet is pushed back. Below the
-# threshold the network is the paper's pure MSD. Forces -dU/dx_a = -k (J - J_c) dV/dx_a, with
-# dV/dx_a = (area vector of the face opposite a, pointing away from a) / 3; they sum to zero
-# (momentum exact) and exert no torque. A threshold > 1 gives a two-sided volume term.
+# Volume barrier per tet (TissueParams.volume_modulus_pa, volume_threshold). A spring network resists a
+# tet's collapse only through its six edge lengths, so under large local compression (under the jaws, or
+# the sphere between plates) tets flatten and invert. With J = V / V0 and a threshold J_c, each tet stores
+#     U = k V0 psi(J),   psi(J) = -(J - J_c)^2 ln(J / J_c)   for J < J_c,   0 otherwise
+# (the barrier of Li et al., "Incremental Potential Contact", SIGGRAPH 2020, applied to the volume ratio):
+# zero with zero slope and curvature at J_c, so below the threshold the network is the paper's pure MSD,
+# and unbounded as J -> 0, so no finite load crushes a tet flat. Its forces -k psi'(J) dV/dx act along the
+# volume gradients dV/dx_a = (area vector of the face opposite a, pointing away from a) / 3; they sum to
+# zero (momentum exact) and exert no torque.
+#
+# An explicit step cannot carry an unbounded stiffness, so the barrier is integrated implicitly, tet by
+# tet: after the explicit node update (springs, gravity, damping) and before the contacts, each tet below
+# J_c takes the backward-Euler impulse of its own force, linearised at its predicted state,
+#     dv_a = -dt p dV/dx_a / m_a,   p = k psi'(J*) / (1 + dt^2 k psi''(J*) W / V0),
+#     W = sum_a |dV/dx_a|^2 / m_a,
+# (and x moves with it, x_new = x_old + dt v_new), one tet after the other in tet order (Gauss-Seidel).
+# For the tet's own mode this is unconditionally stable (p -> the impulse that stops further collapse as
+# psi'' grows), so the barrier costs no substeps and the stability rule does not count it. Because it is a
+# force applied before the contacts, a node a jaw holds receives its share like any other force, and the
+# contact law then keeps that node inside its friction cone and counts the force in the jaw's readout.
+# Measured against the inelastic volume floor it replaces (a position projection after the contacts, which
+# held nodes passed to their jaws outside the friction law), on a 5 N force-loop pinch of the coarse spleen:
+# see docs/design.md.
 # -------------------------------------------------------------------------------------------------
+
+#: below VOLUME_J_MIN x J_c the barrier's slope continues linearly (finite arithmetic through J <= 0)
+VOLUME_J_MIN = 0.02
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -296,102 +312,168 @@ def _tet_edges_lane(x: np.ndarray, a: int, b: int, c: int, d: int, lane: int):
     return e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def tet_barrier_body(geom, v0, kvol, j_threshold, ks):
-    """The volume barrier's forces on the four nodes of one tet past its threshold: the arithmetic every
-    barrier loop (one tissue, lanes, the GPU kernel) runs per tet.
 
-    geom: the tet's edge vectors and volume (:func:`_tet_edges`); v0: rest volume, m^3; kvol: Pa;
-    j_threshold: J_c; ks: stiffness scale. Returns the forces (N) on nodes b, c, d and a (12 floats)."""
-    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = geom
-    jac = vol / v0
-    # gradients of V = e1 . (e2 x e3) / 6 with respect to x_b, x_c, x_d
-    gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
-    s = -ks * kvol * (jac - j_threshold)
-    return (s * gbx, s * gby, s * gbz, s * gcx, s * gcy, s * gcz, s * gdx, s * gdy, s * gdz,
-            -(s * (gbx + gcx + gdx)), -(s * (gby + gcy + gdy)), -(s * (gbz + gcz + gdz)))
+
+@njit(cache=True, inline="always", error_model="numpy")
+def barrier_slopes(jac: float, j_c: float):
+    """(psi'(J), psi''(J)) of the volume barrier per unit modulus at volume ratio ``jac`` (threshold ``j_c``);
+    (0, 0) at and above the threshold."""
+    if jac >= j_c:
+        return 0.0, 0.0
+    j = max(jac, VOLUME_J_MIN * j_c)
+    dj = j - j_c
+    lg = math.log(j / j_c)
+    d1 = -(2.0 * dj * lg + dj * dj / j)
+    d2 = -(2.0 * lg + 4.0 * dj / j - dj * dj / (j * j))
+    return d1 + d2 * (jac - j), d2  # (jac - j is 0 above VOLUME_J_MIN x J_c)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def barrier_psi(jac: float, j_c: float) -> float:
+    """psi(J) of the volume barrier per unit modulus (its energy is k V0 psi); continued as a quadratic below
+    VOLUME_J_MIN x J_c, with the slopes :func:`barrier_slopes` returns there."""
+    if jac >= j_c:
+        return 0.0
+    j = max(jac, VOLUME_J_MIN * j_c)
+    dj = j - j_c
+    psi = -dj * dj * math.log(j / j_c)
+    if jac < j:
+        d1, d2 = barrier_slopes(j, j_c)
+        s = jac - j
+        psi += d1 * s + 0.5 * d2 * s * s
+    return psi
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def below_barrier(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_c: float, t: int) -> bool:
+    """Is tet t of one tissue x (N,3) compressed below the barrier's threshold ``j_c`` x its rest volume?"""
+    return _tet_edges(x, tets, t)[9] < j_c * rest_volume[t]
 
 
 @njit(cache=True, error_model="numpy")
-def accumulate_volume_forces(
-    x: np.ndarray,  # (N,3) positions, m
-    tets: np.ndarray,  # (T,4) int, positively oriented at rest
+def flag_barrier(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_c: float, flagged: np.ndarray) -> int:
+    """The barrier's flag pass for one tissue x (N,3): flagged (T,) int8 out (1: below ``j_c``); returns how
+    many tets are flagged."""
+    n_flagged = 0
+    for t in range(tets.shape[0]):
+        below = _tet_edges(x, tets, t)[9] < j_c * rest_volume[t]
+        flagged[t] = 1 if below else 0
+        n_flagged += 1 if below else 0
+    return n_flagged
+
+
+@njit(cache=True, error_model="numpy")
+def flag_barrier_lanes(x, tets, rest_volume, j_c, flagged, n_flagged) -> None:
+    """:func:`flag_barrier` for L tissues at once (lane layout x (N,3,L)): flagged (T,L) int8 and n_flagged (L,)
+    int64 out. One pass over the tets across lanes (SIMD): a pass per lane on the strided (N,3) view is slower."""
+    nl = x.shape[2]
+    n_flagged[:] = 0
+    for t in range(tets.shape[0]):
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        vmin = j_c * rest_volume[t]
+        for lane in range(nl):
+            below = _tet_edges_lane(x, a, b, c, d, lane)[9] < vmin
+            flagged[t, lane] = 1 if below else 0
+            n_flagged[lane] += 1 if below else 0
+
+
+@njit(cache=True, error_model="numpy")
+def implicit_volume_barrier(
+    x: np.ndarray,  # (N,3) positions of one tissue after the explicit update, m (modified)
+    v: np.ndarray,  # (N,3) velocities, m/s (modified)
+    meff: np.ndarray,  # (N,) effective masses m + dt b, kg (as the contacts use them)
+    pins: tuple,  # (fixed (N,) bool: anchored nodes, which do not move (their anchor takes the force); held (N,)
+    #               int8: != 0 for the nodes a jaw or plate held in the last substep's contacts)
+    tets: np.ndarray,  # (T,4) int
     rest_volume: np.ndarray,  # (T,) m^3
     kvol: np.ndarray,  # (T,) Pa
-    j_threshold: float,  # J_c: the barrier acts on tets with V / V0 < J_c
-    kscale: float,
-    f: np.ndarray,  # (N,3) out: forces are ADDED here
-    vols: np.ndarray | None = None,  # (T,) m^3: the tets' volumes at x when the caller has them (the floor's pass)
+    j_c: float,  # the barrier's threshold J_c
+    ks: float,  # stiffness scale of this tissue
+    dt: float,  # substep, s
+    flagged: np.ndarray,  # (T,) int8: 1 for the tets below J_c (:func:`flag_barrier`)
+    anchor: np.ndarray,  # (3,) N: the force the anchors supply against the barrier is ADDED here
 ) -> None:
+    """The volume barrier's implicit impulses on every flagged tet of one tissue, in tet order (see above)."""
+    fixed, held = pins
     for t in range(tets.shape[0]):
-        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        # most tets are far from the threshold: test J before computing the gradients
-        if vols is None:
-            vol = _tet_edges(x, tets, t)[9]
-        else:
-            vol = vols[t]
-        if vol >= j_threshold * rest_volume[t]:
+        if flagged[t] == 0:
             continue
-        r = tet_barrier_body(_tet_edges(x, tets, t), rest_volume[t], kvol[t], j_threshold, kscale)
-        # (adding the force on a is bitwise the same as subtracting its negative)
-        for k in range(3):
-            f[b, k] += r[k]
-            f[c, k] += r[3 + k]
-            f[d, k] += r[6 + k]
-        for k in range(3):
-            f[a, k] += r[9 + k]
-
-
-@njit(cache=True, error_model="numpy")
-def accumulate_volume_forces_lanes(
-    x: np.ndarray,  # (N,3,L) positions, m
-    tets: np.ndarray,
-    rest_volume: np.ndarray,
-    kvol: np.ndarray,
-    j_threshold: float,
-    kscale: np.ndarray,  # (L,)
-    f: np.ndarray,  # (N,3,L) out: forces are ADDED here
-    s: np.ndarray,  # (L,) scratch
-    vols: np.ndarray | None = None,  # (T,L) m^3: the tets' volumes at x when the caller has them
-) -> None:
-    """:func:`accumulate_volume_forces` for L tissues at once (lane layout); bitwise equal per tissue."""
-    nl = x.shape[2]
-    for t in range(tets.shape[0]):
-        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
         v0 = rest_volume[t]
-        vthr = j_threshold * v0
-        k = kvol[t]
-        active = 0
-        for lane in range(nl):  # no division here: this pass runs for every tet and lane
-            if vols is None:
-                vol = _tet_edges_lane(x, a, b, c, d, lane)[9]
-            else:
-                vol = vols[t, lane]
-            s[lane] = vol
-            active += 1 if vol < vthr else 0
-        if active == 0:  # the common case: no tissue has this tet past the threshold
+        jac = vol / v0
+        d1, d2 = barrier_slopes(jac, j_c)
+        if d1 == 0.0:  # (moved back above the threshold by an earlier tet's impulse)
             continue
-        for lane in range(nl):
-            if s[lane] < vthr:  # (the volume in the geometry is s[lane]: the same positions, the same operations)
-                r = tet_barrier_body(_tet_edges_lane(x, a, b, c, d, lane), v0, k, j_threshold, kscale[lane])
-                for kk in range(3):
-                    f[b, kk, lane] += r[kk]
-                    f[c, kk, lane] += r[3 + kk]
-                    f[d, kk, lane] += r[6 + kk]
-                for kk in range(3):
-                    f[a, kk, lane] += r[9 + kk]
+        k = ks * kvol[t]
+        gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
+        gax, gay, gaz = -(gbx + gcx + gdx), -(gby + gcy + gdy), -(gbz + gcz + gdz)
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        wa = 0.0 if fixed[a] else 1.0 / meff[a]
+        wb = 0.0 if fixed[b] else 1.0 / meff[b]
+        wc = 0.0 if fixed[c] else 1.0 / meff[c]
+        wd = 0.0 if fixed[d] else 1.0 / meff[d]
+        # the mode's mobility W counts only the nodes that can follow the impulse: a node a jaw or plate holds
+        # receives its share (which its contact then reacts to, inside the friction law) but does not move with
+        # it, so counting it would size the impulse as if the tet could open there, and a held apex pressed into
+        # a tet would creep through it (measured: the fine spleen inverted in a 2 s hold under a 5 N pinch)
+        ww = ((0.0 if held[a] != 0 else wa) * (gax * gax + gay * gay + gaz * gaz)
+              + (0.0 if held[b] != 0 else wb) * (gbx * gbx + gby * gby + gbz * gbz)
+              + (0.0 if held[c] != 0 else wc) * (gcx * gcx + gcy * gcy + gcz * gcz)
+              + (0.0 if held[d] != 0 else wd) * (gdx * gdx + gdy * gdy + gdz * gdz))
+        p = k * d1 / (1.0 + dt * dt * k * d2 * ww / v0)
+        s = -dt * p  # impulse along each volume gradient, N s / m^2: dv_i = s w_i g_i
+        _barrier_kick(x, v, a, wa, s, (gax, gay, gaz), dt, anchor)
+        _barrier_kick(x, v, b, wb, s, (gbx, gby, gbz), dt, anchor)
+        _barrier_kick(x, v, c, wc, s, (gcx, gcy, gcz), dt, anchor)
+        _barrier_kick(x, v, d, wd, s, (gdx, gdy, gdz), dt, anchor)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _barrier_kick(x, v, i, w, s, g, dt, anchor) -> None:
+    """Node i's share of a tet's barrier impulse s g (N s): its velocity changes by w s g and its position with
+    it; an anchored node (w = 0) passes the force s g / dt to its anchor."""
+    gx, gy, gz = g
+    if w == 0.0:
+        anchor[0] -= s * gx / dt
+        anchor[1] -= s * gy / dt
+        anchor[2] -= s * gz / dt
+        return
+    dvx, dvy, dvz = w * s * gx, w * s * gy, w * s * gz
+    v[i, 0] += dvx
+    v[i, 1] += dvy
+    v[i, 2] += dvz
+    x[i, 0] += dt * dvx
+    x[i, 1] += dt * dvy
+    x[i, 2] += dt * dvz
 
 
 @njit(cache=True, error_model="numpy")
 def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray, j_threshold: float) -> float:
-    """Energy (J) of the volume barrier: sum over tets with J < J_c of (k / 2) V0 (J_c - J)^2."""
+    """Energy (J) of the volume barrier: sum over tets with J < J_c of k V0 psi(J)."""
     total = 0.0
     for t in range(tets.shape[0]):
-        vol = _tet_edges(x, tets, t)[9]
-        j = j_threshold - vol / rest_volume[t]
-        if j > 0.0:
-            total += 0.5 * kvol[t] * rest_volume[t] * j * j
+        total += kvol[t] * rest_volume[t] * barrier_psi(_tet_edges(x, tets, t)[9] / rest_volume[t], j_threshold)
     return total
+
+
+@njit(cache=True, error_model="numpy")
+def volume_forces(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray, j_threshold: float,
+                  kscale: float, f: np.ndarray) -> None:
+    """The barrier's (explicit) forces -k psi'(J) dV/dx ADDED to f (N,3): what the implicit step integrates; for
+    diagnostics, the static reference and tests."""
+    for t in range(tets.shape[0]):
+        e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
+        d1 = barrier_slopes(vol / rest_volume[t], j_threshold)[0]
+        if d1 == 0.0:
+            continue
+        s = -kscale * kvol[t] * d1
+        gb = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        for kk in range(3):
+            f[b, kk] += s * gb[kk]
+            f[c, kk] += s * gb[3 + kk]
+            f[d, kk] += s * gb[6 + kk]
+            f[a, kk] -= s * (gb[kk] + gb[3 + kk] + gb[6 + kk])
 
 
 @njit(cache=True, error_model="numpy")
@@ -407,175 +489,3 @@ def min_volume_ratios(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, 
                 lo = r
         out[b] = lo
 
-
-# -------------------------------------------------------------------------------------------------
-# Volume floor (TissueParams.volume_floor): an inelastic limit on compression, enforced as a constraint
-# like the contacts (a position correction with the matching velocity change), not as a force. The barrier
-# above is a force of bounded stiffness (the explicit step's stability limit counts it), so a pinch that
-# pushes one surface node past its neighbours can still crush and invert a tet; a stiffer barrier costs
-# substeps and stores the crushing energy, which a slip-off releases as a wave that inverts tets anyway.
-# The floor stores no energy and costs no substeps: at the end of every substep, every tet with J = V / V0
-# below J_f is restored to J_f by moving its nodes along dV/dx, weighted by their inverse effective masses
-# (momentum exact), with x and v changed together (x_new = x_old + dt v_new, as a contact does). The tets
-# are corrected one after the other (Gauss-Seidel: a later tet sees an earlier one's correction), in tet
-# order, for FLOOR_PASSES passes.
-# It runs after the contacts, and the nodes a jaw or plate holds in this substep (and anchored nodes) do not
-# move in it: the rest of the tet moves, and the force that moves it comes through the held node from its
-# holder, which counts it in its readout (:func:`.contact.floor_reactions`).
-# Measured alternatives (5 N force-loop pinch in the env, 9 stiffness x mu cases):
-# * before the contacts with every node free: the contact undoes the held node's share, so tets under a
-#   jaw end substeps below J_f (J_f = 0.2: fine mesh down to -0.04; J_f = 0.3 keeps every resolution > 0.04,
-#   but the spleen protocol's T / N at gross slip rises to 1.7 mu);
-# * after the contacts with every node free: the correction's sideways kick on sticking nodes breaks stick
-#   and the grasp is lost at mu = 0.9;
-# * held nodes moving when the free ones can hardly change the volume: the same slips.
-# This version, J_f = 0.2 (at the env's former 2 substeps): smallest ratio over the 9 cases 0.178 coarse,
-# 0.129 medium, 0.071 fine (the fine mesh's tets end substeps below J_f where one free node sits across a
-# sliver face from held ones and FLOOR_MAX_MOVE limits the correction, but none inverts).
-
-#: Gauss-Seidel passes of the volume floor per substep (tets that share nodes correct each other)
-FLOOR_PASSES = 2
-#: largest move of a node in one correction, in edge lengths of the tet's rest shape (a larger deficit takes
-#: more substeps; a substep crushes a tet by far less)
-FLOOR_MAX_MOVE = 0.05
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def below_volume_floor(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_floor: float, t: int) -> bool:
-    """Is tet t of one tissue x (N,3) compressed below ``j_floor`` x its rest volume?"""
-    return _tet_edges(x, tets, t)[9] < j_floor * rest_volume[t]
-
-
-@njit(cache=True, error_model="numpy")
-def enforce_volume_floor(x, v, meff, fixed, held, tets, rest_volume, j_floor, dt, flagged, react) -> bool:
-    """The volume floor of one tissue for one substep (CPU): flag the tets below it, then restore them.
-    True when it acted (``react`` then holds the reactions at held and anchored nodes)."""
-    if flag_volume_floor(x, tets, rest_volume, j_floor, flagged, np.empty(tets.shape[0])) == 0:
-        return False
-    project_volume_floor(x, v, meff, fixed, held, tets, rest_volume, j_floor, dt, flagged, react)
-    return True
-
-
-@njit(cache=True, error_model="numpy")
-def flag_volume_floor(x, tets, rest_volume, j_floor, flagged, vols) -> int:
-    """The floor's flag pass for one tissue x (N,3): flagged (T,) int8 and the volumes vols (T,) m^3 out;
-    returns how many tets are below the floor. Where the floor then moves nothing, the next substep's barrier
-    reuses ``vols`` (the positions are the same), so the floor costs little more than this pass
-    (contiguous arrays: on strided (T,1) views both passes were 1.7x slower)."""
-    n_flagged = 0
-    for t in range(tets.shape[0]):
-        vol = _tet_edges(x, tets, t)[9]
-        vols[t] = vol
-        below = vol < j_floor * rest_volume[t]
-        flagged[t] = 1 if below else 0
-        n_flagged += 1 if below else 0
-    return n_flagged
-
-
-@njit(cache=True, error_model="numpy")
-def refresh_floor_volumes(x, tets, flagged, mark, vols) -> None:
-    """After :func:`project_volume_floor` moved nodes of the flagged tets of one tissue x (N,3): recompute
-    ``vols`` (T,) m^3 for every tet that shares a node with a flagged tet (only those nodes can have moved), so
-    that the next barrier pass can still reuse them. ``mark`` (N,) int8 scratch, zero on entry and on exit.
-    On the fine spleen the floor acts at the rigid anchors in every substep, and recomputing all volumes
-    there cost the barrier's whole pass."""
-    nt = tets.shape[0]
-    for t in range(nt):
-        if flagged[t]:
-            for k in range(4):
-                mark[tets[t, k]] = 1
-    for t in range(nt):
-        if mark[tets[t, 0]] | mark[tets[t, 1]] | mark[tets[t, 2]] | mark[tets[t, 3]]:
-            vols[t] = _tet_edges(x, tets, t)[9]
-    for t in range(nt):
-        if flagged[t]:
-            for k in range(4):
-                mark[tets[t, k]] = 0
-
-
-@njit(cache=True, error_model="numpy")
-def flag_volume_floor_lanes(x, tets, rest_volume, j_floor, flagged, n_flagged, vols) -> None:
-    """:func:`flag_volume_floor` for L tissues at once (lane layout x (N,3,L)): flagged (T,L) int8, n_flagged
-    (L,) int64 and the volumes vols (T,L) m^3 out. One pass over the tets across lanes (SIMD, as the
-    barrier's): a pass per lane on the strided (N,3) view cost 0.75x the whole batched step."""
-    nl = x.shape[2]
-    n_flagged[:] = 0
-    for t in range(tets.shape[0]):
-        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        vmin = j_floor * rest_volume[t]
-        for lane in range(nl):
-            vol = _tet_edges_lane(x, a, b, c, d, lane)[9]
-            vols[t, lane] = vol
-            below = vol < vmin
-            flagged[t, lane] = 1 if below else 0
-            n_flagged[lane] += 1 if below else 0
-
-
-@njit(cache=True, error_model="numpy")
-def project_volume_floor(
-    x: np.ndarray,  # (N,3) positions of one tissue, m (modified)
-    v: np.ndarray,  # (N,3) velocities, m/s (modified)
-    meff: np.ndarray,  # (N,) effective masses m + dt b, kg (as the contacts use them)
-    fixed: np.ndarray,  # (N,) bool: anchored nodes do not move
-    held: np.ndarray,  # (N,) int8: != 0 for nodes a jaw or plate holds this substep; they do not move either
-    tets: np.ndarray,  # (T,4) int
-    rest_volume: np.ndarray,  # (T,) m^3
-    j_floor: float,  # J_f: the smallest volume ratio a tet may keep
-    dt: float,  # substep, s
-    flagged: np.ndarray,  # (T,) int8: 1 for the tets found below the floor (:func:`flag_volume_floor`)
-    react: np.ndarray,  # (N,3) N: the force through each held or anchored node is ADDED here
-) -> None:
-    """Restore every flagged tet to ``j_floor`` x its rest volume (see the comment above)."""
-    inv_dt = 1.0 / dt
-    for _ in range(FLOOR_PASSES):
-        for t in range(tets.shape[0]):
-            if flagged[t] == 0:
-                continue
-            e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
-            deficit = j_floor * rest_volume[t] - vol
-            if deficit <= 0.0:
-                continue
-            gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
-            gax, gay, gaz = -(gbx + gcx + gdx), -(gby + gcy + gdy), -(gbz + gcz + gdz)
-            a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-            ga2, gb2 = gax * gax + gay * gay + gaz * gaz, gbx * gbx + gby * gby + gbz * gbz
-            gc2, gd2 = gcx * gcx + gcy * gcy + gcz * gcz, gdx * gdx + gdy * gdy + gdz * gdz
-            wa = 0.0 if fixed[a] or held[a] != 0 else 1.0 / meff[a]
-            wb = 0.0 if fixed[b] or held[b] != 0 else 1.0 / meff[b]
-            wc = 0.0 if fixed[c] or held[c] != 0 else 1.0 / meff[c]
-            wd = 0.0 if fixed[d] or held[d] != 0 else 1.0 / meff[d]
-            denom = wa * ga2 + wb * gb2 + wc * gc2 + wd * gd2
-            if denom <= 0.0:  # a degenerate tet (all gradients zero) or four held nodes
-                continue
-            lam = deficit / denom  # linearised: V(x + lam W g) = V + lam g.W g
-            # no node moves more than FLOOR_MAX_MOVE edge lengths per pass: with held nodes, the free one may sit
-            # across a sliver face (tiny g), where the linearised step would throw it far (and blow up)
-            move2 = max(wa * wa * ga2, wb * wb * gb2, wc * wc * gc2, wd * wd * gd2)
-            cap = FLOOR_MAX_MOVE * 2.04 * rest_volume[t] ** (1.0 / 3.0)  # a regular tet's edge is 2.04 V^(1/3)
-            if lam * lam * move2 > cap * cap:
-                lam = cap / math.sqrt(move2)
-            # each moving node gains momentum lam g_i / dt (the four g_i sum to zero), so over the substep a held
-            # node passes the force -lam g / dt^2 from its holder
-            f = -lam * inv_dt * inv_dt
-            _floor_move(x, v, react, a, wa, lam, f, gax, gay, gaz, inv_dt)
-            _floor_move(x, v, react, b, wb, lam, f, gbx, gby, gbz, inv_dt)
-            _floor_move(x, v, react, c, wc, lam, f, gcx, gcy, gcz, inv_dt)
-            _floor_move(x, v, react, d, wd, lam, f, gdx, gdy, gdz, inv_dt)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _floor_move(x, v, react, i, w, lam, f, gx, gy, gz, inv_dt):
-    """Move node i by lam w g and change its velocity by the same displacement over the substep; a held node
-    (w = 0) stays and records the force f g its holder supplies."""
-    if w == 0.0:
-        react[i, 0] += f * gx
-        react[i, 1] += f * gy
-        react[i, 2] += f * gz
-        return
-    s = lam * w
-    x[i, 0] += s * gx
-    x[i, 1] += s * gy
-    x[i, 2] += s * gz
-    v[i, 0] += s * gx * inv_dt
-    v[i, 1] += s * gy * inv_dt
-    v[i, 2] += s * gz * inv_dt

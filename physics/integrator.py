@@ -2,14 +2,14 @@
 
 Scheme (per substep of length dt, for each tissue b of the batch, all on the same mesh):
 
-1. forces: nonlinear springs (+ optional dashpots, Maxwell branches) + the volume barrier of strongly
-   compressed tets + gravity + external nodal forces;
+1. forces: nonlinear springs (+ optional dashpots, Maxwell branches) + gravity + external nodal forces;
 2. symplectic Euler with *implicit* nodal damping (the paper's Eq. 7, diagonal, so unconditionally
    stable): v <- (v + dt f/m) / (1 + dt (b0 + b1 |r - r0|)/m);  x <- x + dt v;
 3. anchors (fixed nodes) are held at their rest positions;
-4. the jaws (and plates) advance; surface nodes that penetrate a face become contact nodes and are
-   resolved with Coulomb stick/slip (:mod:`.contact`);
-5. the volume floor restores tets crushed below it (a constraint, :func:`.forces.project_volume_floor`).
+4. the volume barrier of strongly compressed tets, integrated implicitly tet by tet
+   (:func:`.forces.implicit_volume_barrier`): a force like the springs', so the contacts see it;
+5. the jaws (and plates) advance; surface nodes that penetrate a face become contact nodes and are
+   resolved with Coulomb stick/slip (:mod:`.contact`).
 
 The outer physics step is ``dt_outer`` (1 ms by default, the 1 kHz of the haptics literature); it is
 split into ``n_sub`` equal substeps chosen from the tissue's stability limit (see
@@ -42,21 +42,11 @@ from .contact import (
     G_VMAX,
     clear_contacts,
     clear_readouts,
-    floor_reactions,
     jaw_contacts,
     jaw_directions,
     plate_contacts,
 )
-from .forces import (
-    accumulate_volume_forces,
-    accumulate_volume_forces_lanes,
-    flag_volume_floor,
-    flag_volume_floor_lanes,
-    project_volume_floor,
-    refresh_floor_volumes,
-    spring_loop,
-    spring_loop_lanes,
-)
+from .forces import flag_barrier, flag_barrier_lanes, implicit_volume_barrier, spring_loop, spring_loop_lanes
 from .records import SimModel, SimReadout, SimState, Springs
 
 
@@ -164,16 +154,11 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     res = np.empty(6)
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
-    floor_flags = np.empty((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the volume floor
-    n_floor = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the volume floor
-    vols = np.empty((tets.shape[0], nl))  # per tet and tissue: volume at the end of the last substep, m^3
-    # one tissue: contiguous 1-D views (on the (T,1) views the flag pass and the barrier are 1.7x slower)
-    vols_one = vols.reshape(tets.shape[0] * nl)
-    flags_one = floor_flags.reshape(tets.shape[0] * nl)
-    vols_known = False  # vols holds the volumes at the current positions
-    mark = np.zeros(n, dtype=np.int8)  # scratch of refresh_floor_volumes
-    held = np.zeros((nl, n), dtype=np.int8)  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
-    react = np.zeros((nl, n, 3))  # per tissue: the volume floor's force through held and anchored nodes
+    flags = np.empty((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the barrier's threshold
+    n_flagged = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the barrier's threshold
+    flags_one = flags.reshape(tets.shape[0] * nl)  # one tissue: a contiguous 1-D view (faster than (T,1))
+    anchor_vol = np.zeros(3)  # the anchors' force against the barrier in one tissue's substep, N
+    held = state.held[lane0 : lane0 + nl]  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
     cand = np.empty(0, dtype=np.int8)  # (no separate test pass on the CPU: jaw_contacts tests where it resolves)
@@ -201,7 +186,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
         for sub in range(n_sub):
             last_sub = last_step and sub == n_sub - 1
             avg = 1.0 / n_sub if last_step else 0.0
-            sub_info = (dt, avg, last_sub, inv_sub)  # what the contacts and the floor's readouts need
+            sub_info = (dt, avg, last_sub, inv_sub)  # what the contacts' readouts need
             # ---- 1. forces
             for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
                 f_flat[k] = f0_flat[k]
@@ -210,21 +195,32 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             else:
                 spring_loop(x_one, v_one, springs, ks[0], decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one,
                             spring_scratch)
-            if kvol.shape[0] > 0:  # (with the volumes of the floor's pass at the end of the last substep if known)
-                if lanes and vols_known:
-                    accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, m.vol_threshold, ks, f, tmp[0], vols)
-                elif lanes:
-                    accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, m.vol_threshold, ks, f, tmp[0])
-                elif vols_known:
-                    accumulate_volume_forces(x_one, tets, rest_volume, kvol, m.vol_threshold, ks[0], f_one, vols_one)
-                else:
-                    accumulate_volume_forces(x_one, tets, rest_volume, kvol, m.vol_threshold, ks[0], f_one)
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
             if lanes:
                 _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, anchor_out)
             else:  # a literal bound: once LLVM inlines the call, the lane loops vanish for one tissue
                 _update_nodes(m, x, v, f, node_work, ms, 1, lane0, last_sub, dt, anchor_out)
-            # ---- 4. contacts, one tissue at a time (branchy, few nodes)
+            # ---- 4. the volume barrier, implicit, on the tets below its threshold (flagged across lanes)
+            if kvol.shape[0] > 0:
+                if lanes:
+                    flag_barrier_lanes(x, tets, rest_volume, m.vol_threshold, flags, n_flagged)
+                else:
+                    n_flagged[0] = flag_barrier(x_one, tets, rest_volume, m.vol_threshold, flags_one)
+                for lane in range(nl):
+                    if n_flagged[lane] > 0:
+                        b = lane0 + lane
+                        anchor_vol[:] = 0.0
+                        if lanes:
+                            implicit_volume_barrier(x[:, :, lane], v[:, :, lane], meff[:, lane], (fixed, held[lane]), tets,
+                                                    rest_volume, kvol, m.vol_threshold, ks[lane], dt, flags[:, lane],
+                                                    anchor_vol)
+                        else:
+                            implicit_volume_barrier(x_one, v_one, meff[:, 0], (fixed, held[0]), tets, rest_volume, kvol,
+                                                    m.vol_threshold, ks[0], dt, flags_one, anchor_vol)
+                        if last_sub:
+                            for c in range(3):
+                                anchor_out[b, c] += anchor_vol[c]
+            # ---- 5. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
                 t[b] += dt
@@ -237,26 +233,6 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 plate_contacts(b, xb, vb, mb, m, state, out, sub_info, res, hb)
                 if m.jaw_active:
                     jaw_contacts(b, xb, vb, mb, m, state, out, (u[lane], tj[lane]), sub_info, res, (hb, cand))
-            # ---- 5. the volume floor after the contacts: held nodes stay, their holders count its reactions
-            if m.vol_floor > 0.0:
-                if lanes:
-                    flag_volume_floor_lanes(x, tets, rest_volume, m.vol_floor, floor_flags, n_floor, vols)
-                else:
-                    n_floor[0] = flag_volume_floor(x_one, tets, rest_volume, m.vol_floor, flags_one, vols_one)
-                vols_known = True
-                for lane in range(nl):
-                    if n_floor[lane] > 0:
-                        b = lane0 + lane
-                        if lanes:
-                            project_volume_floor(x[:, :, lane], v[:, :, lane], meff[:, lane], fixed, held[lane], tets,
-                                                 rest_volume, m.vol_floor, dt, floor_flags[:, lane], react[lane])
-                            vols_known = False  # recomputed by the next barrier pass, across lanes (per lane and
-                            # strided, refresh_floor_volumes was slower than that when every lane needed it)
-                        else:
-                            project_volume_floor(x_one, v_one, meff[:, 0], fixed, held[0], tets, rest_volume,
-                                                 m.vol_floor, dt, flags_one, react[0])
-                            refresh_floor_volumes(x_one, tets, flags_one, mark, vols_one)
-                        floor_reactions(b, held[lane], react[lane], fixed, u[lane], out, state, sub_info)
 
 
 @njit(cache=True, error_model="numpy")

@@ -35,12 +35,11 @@ class SimModel(NamedTuple):
     use_sls: bool  # Maxwell branch on
     kv: np.ndarray  # (E,) N/m Maxwell-branch stiffness
     tau: float  # s Maxwell relaxation time
-    # volume barrier of strongly compressed tets (empty kvol: off)
+    # volume barrier of strongly compressed tets, integrated implicitly (empty kvol: off)
     tets: np.ndarray  # (T,4) int
     rest_volume: np.ndarray  # (T,) m^3
     kvol: np.ndarray  # (T,) Pa
     vol_threshold: float  # volume ratio below which the barrier acts
-    vol_floor: float  # smallest volume ratio a tet may keep (a constraint after the contacts; 0: off)
     # nodes
     mass: np.ndarray  # (N,) kg
     b0: np.ndarray  # (N,) N s/m nodal damping
@@ -91,6 +90,9 @@ class SimState(NamedTuple):
     # plates
     pl_point: np.ndarray  # (B,P,3) m, advanced by pl_vel
     pl_vel: np.ndarray  # (B,P,3) m/s
+    # contact memory: the jaw (k + 1) or plate (-(p + 1)) that held each node in the last substep (0: none);
+    # the volume barrier reads it (a held node does not move with the barrier's impulse)
+    held: np.ndarray  # (B,N) int8
 
 
 class SimReadout(NamedTuple):

@@ -56,6 +56,20 @@ def numpy_spring_law(dl: np.ndarray, k1: np.ndarray, k2: np.ndarray, dlc: np.nda
     return np.where(adl <= dlc, k1 * dl + k2 * dl * dl * dl, np.where(dl > 0.0, outer, -outer))
 
 
+def numpy_barrier_slopes(jac: np.ndarray, j_c: float) -> tuple[np.ndarray, np.ndarray]:
+    """psi'(J), psi''(J) of the volume barrier per unit modulus, psi = -(J - J_c)^2 ln(J / J_c) below J_c,
+    continued linearly in psi' below VOLUME_J_MIN x J_c (:func:`.forces.barrier_slopes`, vectorised)."""
+    from .forces import VOLUME_J_MIN
+
+    j = np.maximum(jac, VOLUME_J_MIN * j_c)
+    dj = j - j_c
+    lg = np.log(j / j_c)
+    d2 = -(2.0 * lg + 4.0 * dj / j - dj * dj / (j * j))
+    d1 = -(2.0 * dj * lg + dj * dj / j) + d2 * (jac - j)
+    below = jac < j_c
+    return np.where(below, d1, 0.0), np.where(below, d2, 0.0)
+
+
 class NumpyMSD:
     """Plain NumPy implementation of the same MSD step as the numba kernel (no contact): the reference.
 
@@ -109,21 +123,48 @@ class NumpyMSD:
         return f
 
     def volume_forces(self, x, out=None) -> np.ndarray:
-        """(N,3) forces of the volume barrier (tets compressed below the threshold), vectorised."""
+        """(N,3) forces -k psi'(J) dV/dx of the volume barrier (tets compressed below the threshold), vectorised
+        (what the kernel integrates implicitly; see :meth:`volume_barrier_step`)."""
         mdl = self.model
         f = np.zeros_like(x) if out is None else out
         if not mdl.kvol.size:
             return f
-        p = x[mdl.tets]
+        g, jac = self._volume_gradients(x)
+        s = -self.kscale * mdl.kvol * numpy_barrier_slopes(jac, mdl.volume_threshold)[0]
+        fg = s[:, None, None] * g
+        for k in range(4):
+            np.add.at(f, mdl.tets[:, k], fg[:, k])
+        return f
+
+    def _volume_gradients(self, x) -> tuple[np.ndarray, np.ndarray]:
+        """dV/dx (T,4,3) of every tet at x and its volume ratio J (T,)."""
+        p = x[self.model.tets]
         e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
         g = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=1) / 6.0  # dV/dx_b,c,d
-        jac = np.einsum("ti,ti->t", e1, g[:, 0]) / mdl.rest_volume
-        s = np.where(jac < mdl.volume_threshold, -self.kscale * mdl.kvol * (jac - mdl.volume_threshold), 0.0)
-        fg = s[:, None, None] * g
-        for k in range(3):
-            np.add.at(f, mdl.tets[:, k + 1], fg[:, k])
-        np.add.at(f, mdl.tets[:, 0], -fg.sum(axis=1))
-        return f
+        g = np.concatenate([-g.sum(axis=1, keepdims=True), g], axis=1)
+        return g, np.einsum("ti,ti->t", e1, g[:, 1]) / self.model.rest_volume
+
+    def volume_barrier_step(self, x, v, meff) -> None:
+        """The barrier's backward-Euler impulses, tet after tet in tet order, on the tets below the threshold at
+        x (the kernel's Gauss-Seidel pass, without contacts: no node is held; x, v (N,3) modified; meff (N,)
+        effective masses, kg)."""
+        mdl = self.model
+        if not mdl.kvol.size:
+            return
+        w_node = np.where(self.free, 1.0 / meff, 0.0)
+        for t in np.nonzero(self._volume_gradients(x)[1] < mdl.volume_threshold)[0]:
+            tet = mdl.tets[t]
+            p = x[tet]
+            g = np.cross(p[2] - p[0], p[3] - p[0]), np.cross(p[3] - p[0], p[1] - p[0]), np.cross(p[1] - p[0], p[2] - p[0])
+            g = np.array([-(g[0] + g[1] + g[2]), g[0], g[1], g[2]]) / 6.0
+            jac = float((p[1] - p[0]) @ g[1]) / mdl.rest_volume[t]
+            d1, d2 = numpy_barrier_slopes(np.array([jac]), mdl.volume_threshold)
+            k = self.kscale * mdl.kvol[t]
+            w = w_node[tet]
+            p_t = k * d1[0] / (1.0 + self.dt**2 * k * d2[0] * float(w @ np.einsum("ij,ij->i", g, g)) / mdl.rest_volume[t])
+            dv = -self.dt * p_t * w[:, None] * g
+            v[tet] += dv
+            x[tet] += self.dt * dv
 
     def step(self, n_steps: int = 1) -> None:
         mdl = self.model
@@ -137,7 +178,6 @@ class NumpyMSD:
         for _ in range(int(n_steps) * self.n_sub):
             f = fg.copy()
             self.spring_forces(x, v, self.fv, self.dl_prev, out=f)
-            self.volume_forces(x, out=f)
             disp = x - x0
             if ka is not None:
                 f += -ka * (disp - self.mscale * mdl.anchor_offset[None, :])
@@ -146,6 +186,7 @@ class NumpyMSD:
             v[:] = (v + dt * f / m) * inv[:, None]
             v[fixed] = 0.0
             x += dt * v  # anchored nodes have v = 0: they stay where they are
+            self.volume_barrier_step(x, v, self.m + dt * damp)
 
 
 def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10, model=None) -> dict:
@@ -154,7 +195,7 @@ def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10
     ``model`` (default: the anchored spleen at ``resolution``) may be any TissueModel. Returns the largest
     difference relative to the largest magnitude (forces, Maxwell forces, positions' displacement).
     """
-    from .forces import accumulate_spring_forces, accumulate_volume_forces
+    from .forces import accumulate_spring_forces, volume_forces
     from .records import Springs
     from .simulation import Simulation
     from .viscoelastic import accumulate_spring_forces_sls
@@ -184,7 +225,7 @@ def cross_check(resolution: str | int = "coarse", seed: int = 0, steps: int = 10
                                  ks, ref.use_dashpot, f_nb)
     if model.kvol.size:
         ref.volume_forces(x, out=f_np)
-        accumulate_volume_forces(x, model.tets, model.rest_volume, model.kvol, model.volume_threshold, ks, f_nb)
+        volume_forces(x, model.tets, model.rest_volume, model.kvol, model.volume_threshold, ks, f_nb)
     beyond = float(np.mean(np.abs(np.linalg.norm(x[ref.j] - x[ref.i], axis=1) - model.rest_length) > model.dlc))
     force_rel = float(np.max(np.abs(f_np - f_nb)) / np.max(np.abs(f_nb)))
     fv_rel = float(np.max(np.abs(fv_np - fv_nb)) / max(np.max(np.abs(fv_nb)), 1e-300))

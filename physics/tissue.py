@@ -57,15 +57,12 @@ is stored as :attr:`TissueModel.stiffness_correction`.
 ~20-25 % global compression of the sphere, tets under the plates flatten and invert (finer meshes
 earlier, since they resolve the larger local strains), and the force curve drops; under the env's jaws
 (2.5 N pinch on the coarse spleen) tets reached J = V/V0 = -0.87. The volume barrier
-(``volume_modulus_pa``, ``volume_threshold``; :func:`.forces.accumulate_volume_forces`) adds a bulk
-stiffness to tets that lost more than half their volume: with k = E the same grasp keeps J >= 0.28, the
-medium sphere's force rises monotonically to 40 % compression, and below the threshold (everything up
-to ~20 % global compression) the model is the paper's pure MSD. The stability bound counts the barrier
-as if every tet were active. A 5 N pinch still crushes surface tets under the jaws through zero (J down to
--0.25 coarse, -0.70 medium); a stiffer barrier costs substeps and releases its stored energy violently on
-a slip-off. The volume floor (``volume_floor``, 0.2 for the spleen; :func:`.forces.project_volume_floor`)
-is an inelastic constraint instead: no substeps, no stored energy; at 0.2 the same pinch keeps J >= 0.07
-on every spleen mesh (physics/forces.py has the numbers).
+(``volume_modulus_pa``, ``volume_threshold``; :func:`.forces.implicit_volume_barrier`) stores an energy
+in tets that lost more than ``1 - volume_threshold`` of their volume, zero at the threshold and unbounded
+as the volume goes to zero, so no finite load crushes a tet flat; below the threshold (everything up to
+~20 % global compression of the sphere) the model is the paper's pure MSD. It is integrated implicitly, tet
+by tet, before the contacts: it costs no substeps (the stability rule does not count it) and, being a force,
+passes through a held node under the contact's friction law (physics/forces.py has the design).
 """
 
 from __future__ import annotations
@@ -119,15 +116,12 @@ class TissueParams:
     relaxation_time_s: Positive = 1.0
     #: linear dashpot along each spring, c = tau * K1 (s); 0 disables it
     spring_damping_time_s: NonNegative = 0.0
-    #: volume barrier against tet collapse and inversion (physics/forces.py): bulk stiffness k (Pa) acting
-    #: on tets compressed below ``volume_threshold`` x their rest volume; 0 disables it (the pure MSD)
+    #: volume barrier against tet collapse and inversion (physics/forces.py): modulus k (Pa) of the energy
+    #: k V0 psi(V / V0) of tets compressed below ``volume_threshold`` x their rest volume, psi unbounded as
+    #: the volume goes to zero; 0 disables it (the pure MSD)
     volume_modulus_pa: NonNegative = 0.0
     #: J_c in (0, 1]: the barrier acts where V / V0 < J_c
     volume_threshold: Annotated[Real, Gt(0), Le(1)] = 0.5
-    #: volume floor J_f in [0, 1): no tet is crushed below this fraction of its rest volume; enforced in every
-    #: substep as an inelastic constraint after the contacts (physics/forces.py), so it stores no energy and
-    #: costs no substeps; 0 disables it (the pure MSD; configs/tissue/spleen.yaml sets 0.2)
-    volume_floor: Annotated[Real, Ge(0), Lt(1)] = 0.0
     gravity_m_per_s2: tuple[Real, Real, Real] = (0.0, 0.0, -9.81)
 
 
@@ -169,26 +163,6 @@ def stiffness_matrix(nodes: np.ndarray, edges: np.ndarray, k: np.ndarray) -> sp.
             cols += [3 * i + b, 3 * j + b, 3 * j + b, 3 * i + b]
             vals += [bv, bv, -bv, -bv]
     return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n))
-
-
-def volume_stiffness_matrix(nodes: np.ndarray, tets: np.ndarray, kvol: np.ndarray) -> sp.csr_matrix:
-    """Stiffness (3N x 3N, N/m) of the volume barrier with every tet active, at rest: sum over tets of
-    (k / V0) g g^T, g = dV/dx (12,) (the Gauss-Newton part; at rest J - J_c is small)."""
-    p = nodes[tets]  # (T,4,3)
-    e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-    g = np.empty_like(p)
-    g[:, 1] = np.cross(e2, e3) / 6.0
-    g[:, 2] = np.cross(e3, e1) / 6.0
-    g[:, 3] = np.cross(e1, e2) / 6.0
-    g[:, 0] = -(g[:, 1] + g[:, 2] + g[:, 3])
-    v0 = np.einsum("ti,ti->t", e1, g[:, 1])
-    g = g.reshape(len(tets), 12)
-    blocks = (kvol / v0)[:, None, None] * g[:, :, None] * g[:, None, :]  # (T,12,12)
-    dof = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
-    rows = np.broadcast_to(dof[:, :, None], blocks.shape).ravel()
-    cols = np.broadcast_to(dof[:, None, :], blocks.shape).ravel()
-    n = 3 * len(nodes)
-    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n, n))
 
 
 def plate_compression_force(
@@ -478,8 +452,7 @@ class TissueModel:
         kt = self.tangent_stiffness_max() * stiffness_scale
         n = self.n_nodes
         K = stiffness_matrix(self.mesh.nodes, self.edges, kt)
-        if self.kvol.size:  # the barrier as if every tet were compressed past its threshold (a bound)
-            K = K + volume_stiffness_matrix(self.mesh.nodes, self.tets, self.kvol * stiffness_scale)
+        # (the volume barrier is integrated implicitly, tet by tet: it does not bound the step)
         free = np.repeat(~self.fixed if self.fixed.size else np.ones(n, bool), 3)
         m = np.repeat(self.mass * mass_scale, 3)
         s = 1.0 / np.sqrt(m[free])

@@ -3,7 +3,7 @@
 Every function of the physics kernel (and of the envs that drive it) takes at most MAX_PARAMS parameters:
 beyond that, two arrays of the same type can be swapped silently at a call site, so a kernel receives
 records (SimModel, SimState, SimReadout, small NamedTuples) or tuples instead. The spring, tet-barrier and
-node-update arithmetic is written once (forces.spring_body, forces.tet_barrier_body, integrator's node
+node-update arithmetic is written once (forces.spring_body, forces.implicit_volume_barrier, integrator's node
 bodies) and called by the one-tissue loop, the lane loop and the GPU kernel; the tests below check those
 bodies' physics directly and that the GPU kernel does not repeat it.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msdgrasp.physics.forces import _tet_edges, spring_body, spring_force, tet_barrier_body
+from msdgrasp.physics.forces import spring_body, spring_force
 from msdgrasp.physics.integrator import advance_node, anchor_spring_force, damping_factors, nodal_damping
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -52,7 +52,7 @@ def test_the_gpu_kernel_calls_the_cpu_bodies_instead_of_repeating_them():
     kernel = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "_simulate_kernel")
     called = {n.func.id if isinstance(n.func, ast.Name) else getattr(n.func, "attr", "")
               for n in ast.walk(kernel) if isinstance(n, ast.Call)}
-    assert {"_spring_body", "_tet_barrier_body", "_advance_node", "_damping_factors", "_nodal_damping",
+    assert {"_spring_body", "_implicit_volume_barrier", "_advance_node", "_damping_factors", "_nodal_damping",
             "_anchor_spring_force"} <= called
     assert not called & {"_spring_force", "spring_force", "_volume_gradients", "_volume6", "sqrt"}
 
@@ -75,17 +75,6 @@ def test_spring_body_is_the_spring_law_along_the_spring_with_its_dashpot_and_max
     np.testing.assert_allclose(plain[:3], ks * spring_force(dl_want, *law[1:]) * u, rtol=1e-12)
     assert spring_body((0.0, 0.0, 0.0), law, ks, (0.0,) * 4, (0.1, 0.002, kv, decay, gain), (True, True)) == \
         (0.0, 0.0, 0.0, 0.1, 0.002)
-
-
-def test_tet_barrier_body_is_momentum_and_torque_free_and_pushes_a_crushed_tet_open():
-    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.2, 0.3, 0.1]]) * 0.01
-    tets = np.array([[0, 1, 2, 3]])
-    v0 = 0.01**3 / 6.0  # the rest volume of the unit corner tet: this one is at J = 0.1
-    r = np.array(tet_barrier_body(_tet_edges(x, tets, 0), v0, 1e4, 0.5, 1.0)).reshape(4, 3)  # b, c, d, a
-    f = np.vstack([r[3], r[:3]])  # on a, b, c, d
-    np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-15)
-    np.testing.assert_allclose(np.cross(x, f).sum(axis=0), 0.0, atol=1e-17)
-    assert f[3, 2] > 0.0  # the apex d is pushed away from the base plane: the volume grows
 
 
 def test_node_bodies_are_symplectic_euler_with_implicit_damping_and_a_preloaded_anchor():

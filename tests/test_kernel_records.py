@@ -4,11 +4,11 @@ exactly what it computed before.
 Three short scenarios cover every path of the kernel: the spleen gripped by the force loop and pulled
 (contacts, stick, slip, anchors, an external load), the sphere between two moving plates with friction
 (Maxwell branch, volume barrier), and the optional terms (spring dashpots, displacement-dependent damping,
-sprung anchors, the volume floor). Their final state was recorded in ``tests/data/kernel_golden.npz`` by
-the kernel as it was *before* its arguments became records, and re-recorded when the scenes'
-start states moved to the converged substep rule (3e-8 m) and the floor joined the optional terms (the
-recording matched the old one with the old start states and no floor). Re-record only for a deliberate
-change of the physics:
+sprung anchors, the volume barrier from any volume loss). Their final state was recorded in
+``tests/data/kernel_golden.npz`` by the kernel as it was *before* its arguments became records, and
+re-recorded for deliberate changes of the physics since: the scenes' start states at the converged substep
+rule, and the volume barrier integrated implicitly (replacing the explicit barrier and the volume floor).
+Re-record only for a deliberate change of the physics:
 ``python tests/test_kernel_records.py tests/data/kernel_golden.npz``.
 """
 
@@ -69,7 +69,7 @@ def run_scenarios() -> dict[str, np.ndarray]:
 
     model = reference.spleen_model("coarse")
     params = replace(reference.spleen_params(), spring_damping_time_s=0.002, damping_disp_rate_per_m_s=500.0,
-                     volume_floor=0.98)  # high enough to act on the sag with anchored nodes in tets
+                     volume_threshold=1.0)  # the barrier on the sag, with anchored nodes in tets
     model = TissueModel.from_params(model.mesh, params, fixed_nodes=model.mesh.node_sets["hilum"],
                                     anchor_stiffness_n_per_m=8.0)
     s = Simulation(model, 1, max_stiffness_scale=1.2, min_mass_scale=0.8, safety=RECORDED_SUBSTEP_SAFETY)

@@ -16,11 +16,13 @@ import pytest
 from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, replace
 from msdgrasp.experiments.compression import CompressionConfig, load_tissue_params, run_compression
 from msdgrasp.physics.forces import (
-    accumulate_volume_forces,
-    enforce_volume_floor,
+    barrier_slopes,
+    flag_barrier,
+    implicit_volume_barrier,
     spring_force_array,
     spring_tangent,
     volume_energy,
+    volume_forces,
 )
 from msdgrasp.physics.mesh import tet_signed_volumes
 from msdgrasp.physics.mesh_gen import sphere_mesh
@@ -95,7 +97,7 @@ def test_elastic_energy_is_the_potential_of_the_internal_forces(sphere_coarse):
     f = model.internal_forces(x)
     # plus the volume barrier's forces (part of the elastic energy); the deformation compresses some tets
     assert SPHERE_PARAMS.volume_modulus_pa > 0
-    accumulate_volume_forces(x, model.tets, model.rest_volume, model.kvol, model.volume_threshold, 1.0, f)
+    volume_forces(x, model.tets, model.rest_volume, model.kvol, model.volume_threshold, 1.0, f)
     h = 1e-8 * model.rest_length.mean()
     for i in rng.choice(sphere_coarse.n_nodes, 12, replace=False):
         for c in range(3):
@@ -107,117 +109,125 @@ def test_elastic_energy_is_the_potential_of_the_internal_forces(sphere_coarse):
             assert -dudx == pytest.approx(f[i, c], abs=1e-6 * np.abs(f).max())
 
 
-def test_volume_barrier_kernel_is_conservative_and_resists_inversion(sphere_coarse):
-    """The per-tet volume barrier: exact gradient of its energy, momentum and torque free, zero above J_c."""
+def test_volume_barrier_is_conservative_and_unbounded_as_a_tet_collapses(sphere_coarse):
+    """The barrier's forces: the exact gradient of its energy, momentum and torque free, zero above J_c, and
+    growing without bound as a tet's volume goes to zero (the energy psi = -(J - J_c)^2 ln(J / J_c))."""
     mesh = sphere_coarse
     rng = np.random.default_rng(3)
-    x = mesh.nodes + rng.normal(scale=2e-3, size=mesh.nodes.shape)
+    x = mesh.nodes + rng.normal(scale=1e-3, size=mesh.nodes.shape)
+    jac = tet_signed_volumes(x, mesh.tets) / mesh.tet_volumes
+    assert jac.min() > 0.0 and (jac < 0.5).sum() > 10  # some tets crushed below J_c, none inverted
     k = np.full(mesh.n_tets, 1e4)
     f = np.zeros_like(x)
-    always = 10.0  # a threshold above every J: the barrier acts on every tet (two-sided volume term)
-    accumulate_volume_forces(x, mesh.tets, mesh.tet_volumes, k, always, 1.0, f)
+    volume_forces(x, mesh.tets, mesh.tet_volumes, k, 0.5, 1.0, f)
     scale = np.abs(f).max()
     # translation and rotation invariance of V: no net force, no net torque (round-off only)
     assert np.abs(f.sum(axis=0)).max() < 1e-12 * scale * mesh.n_nodes
     assert np.abs(np.cross(x, f).sum(axis=0)).max() < 1e-12 * scale * mesh.n_nodes * np.ptp(x)
-    h = 1e-9  # U is a polynomial in x: central differences are exact up to round-off
-    for i in rng.choice(mesh.n_nodes, 6, replace=False):
+    h = 1e-9  # central differences: error ~ h^2 psi''' V0 / V0^3, far below the tolerance
+    for i in np.unique(mesh.tets[jac < 0.5])[:8]:
         for c in range(3):
             xp, xm = x.copy(), x.copy()
             xp[i, c] += h
             xm[i, c] -= h
-            dudx = (volume_energy(xp, mesh.tets, mesh.tet_volumes, k, always)
-                    - volume_energy(xm, mesh.tets, mesh.tet_volumes, k, always)) / (2 * h)
+            dudx = (volume_energy(xp, mesh.tets, mesh.tet_volumes, k, 0.5)
+                    - volume_energy(xm, mesh.tets, mesh.tet_volumes, k, 0.5)) / (2 * h)
             assert -dudx == pytest.approx(f[i, c], abs=1e-6 * scale)
-    # with J_c = 0.5 only the tets compressed below half their volume act (this state has some), and a
-    # mildly perturbed mesh (every J > 0.5) feels nothing: the pure MSD above the threshold
-    jac = tet_signed_volumes(x, mesh.tets) / mesh.tet_volumes
-    low = jac < 0.5
-    assert 0 < low.sum() < mesh.n_tets
-    f_all, f_low = np.zeros_like(x), np.zeros_like(x)
-    accumulate_volume_forces(x, mesh.tets, mesh.tet_volumes, k, 0.5, 1.0, f_all)
-    accumulate_volume_forces(x, mesh.tets[low], mesh.tet_volumes[low], k[low], 0.5, 1.0, f_low)
-    assert np.array_equal(f_all, f_low)
+    # a mildly perturbed mesh (every J > 0.5) feels nothing: the pure MSD above the threshold
     x_mild = mesh.nodes + rng.normal(scale=1e-4, size=mesh.nodes.shape)
     assert (tet_signed_volumes(x_mild, mesh.tets) / mesh.tet_volumes).min() > 0.5
     f0 = np.zeros_like(x)
-    accumulate_volume_forces(x_mild, mesh.tets, mesh.tet_volumes, k, 0.5, 1.0, f0)
+    volume_forces(x_mild, mesh.tets, mesh.tet_volumes, k, 0.5, 1.0, f0)
     assert np.all(f0 == 0.0)
-    # one tet, its apex pushed toward and through the base: no force above J_c, then a force pushing the
-    # apex back to the rest side that grows as J falls (compressed, flat, inverted)
+    # one tet, its apex pushed toward and through the base: no force above J_c, then a force pushing the apex
+    # back that grows as J falls, by ~1 / J toward zero, and stays finite and restoring through inversion
     tet = np.array([[0, 1, 2, 3]])
     rest = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float) * 0.01
     v0 = tet_signed_volumes(rest, tet)
     push = []
-    for apex_z in (0.008, 0.004, 0.0, -0.005):  # J = 0.8, 0.4, 0, -0.5
+    for apex_z in (0.008, 0.004, 0.001, 0.0001, 0.0, -0.005):  # J = 0.8, 0.4, 0.1, 0.01, 0, -0.5
         xi = rest.copy()
         xi[3, 2] = apex_z
         fi = np.zeros_like(xi)
-        accumulate_volume_forces(xi, tet, v0, np.array([1e4]), 0.5, 1.0, fi)
+        volume_forces(xi, tet, v0, np.array([1e4]), 0.5, 1.0, fi)
         push.append(fi[3, 2])
     assert push[0] == 0.0
-    assert 0.0 < push[1] < push[2] < push[3]
-    # linear in J below J_c: F = k (J_c - J) |dV/dz| with |dV/dz| = (base area) / 3
-    assert push[1] == pytest.approx(1e4 * (0.5 - 0.4) * (0.5 * 0.01**2) / 3.0, rel=1e-9)
+    assert 0.0 < push[1] < push[2] < push[3] < push[4] < push[5] < np.inf
+    # F = -k psi'(J) |dV/dz|, |dV/dz| = (base area) / 3
+    d1 = -(2 * (0.4 - 0.5) * math.log(0.4 / 0.5) + (0.4 - 0.5) ** 2 / 0.4)
+    assert push[1] == pytest.approx(-1e4 * d1 * (0.5 * 0.01**2) / 3.0, rel=1e-9)
+    assert push[3] / push[2] > 5.0  # 1 / J growth: J 0.1 -> 0.01
 
 
-def test_volume_floor_restores_crushed_tets_and_conserves_momentum(sphere_coarse):
-    """The volume floor is a constraint, not a force: a crushed or inverted tet comes back to J_f (up to the
-    linearisation of the cubic V(x) and the per-pass move limit), the nodes move along dV/dx weighted by 1/m
-    (so the momentum change sums to zero), velocities change by the displacement over the substep
-    (x_new = x_old + dt v_new), a node held by a jaw or an anchor does not move and reports the force its
-    holder supplies (equal to the momentum the others gain per substep), and tets above the floor are untouched.
-    """
-    dt, j_floor = 1e-4, 0.3
+def test_implicit_barrier_step_is_backward_euler_of_the_barrier_force():
+    """The kernel's barrier step on one crushed tet: momentum exact (an anchor takes an anchored node's share),
+    x and v changed together, the explicit impulse dt f / m where the barrier is soft, and where it is stiff the
+    impulse that stops the collapse in one substep without overshooting J_c, releasing less kinetic energy than the
+    barrier energy it spends (numerical damping, never energy from nowhere)."""
+    dt = 1e-4
     tet = np.array([[0, 1, 2, 3]])
     rest = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float) * 0.01
     v0 = tet_signed_volumes(rest, tet)
     mass = np.array([1.0, 2.0, 3.0, 0.5]) * 1e-3
-    # J = 0.28 free; J = 0.28 with the apex held (by a jaw) or node 0 anchored; J = 0.2 in several passes
-    for apex_z, held_node, fixed_node, calls in ((0.0028, -1, -1, 1), (0.0028, 3, -1, 1), (0.0028, -1, 0, 1),
-                                                 (0.002, -1, -1, 4)):
-        x = rest.copy()
-        x[3, 2] = apex_z
-        held = (np.arange(4) == held_node).astype(np.int8)
+    x = rest.copy()
+    x[3, 2] = 0.002  # J = 0.2
+    v_in = np.zeros((4, 3))
+    v_in[3, 2] = -0.5  # the apex still falling
+    for k, fixed_node in ((1e-3, -1), (1e-3, 0), (1e12, -1), (1e12, 0)):
         fixed = np.arange(4) == fixed_node
-        x_before, v, react = x.copy(), np.zeros_like(x), np.zeros_like(x)
-        acted = [enforce_volume_floor(x, v, mass, fixed, held, tet, v0, j_floor, dt, np.zeros(1, dtype=np.int8), react)
-                 for _ in range(calls)]  # a larger deficit takes several substeps (FLOOR_MAX_MOVE per pass)
-        assert acted[0]
-        j = tet_signed_volumes(x, tet)[0] / v0[0]
-        # restored: V is cubic in x, so the linearised step overshoots a little
-        assert j_floor - 1e-9 <= j <= j_floor + 5e-3, (held_node, fixed_node, j)
-        dx = x - x_before
-        np.testing.assert_allclose(v, dx / dt, rtol=1e-12, atol=1e-15)  # x and v change together
-        momentum = (mass[:, None] * v).sum(axis=0)
-        still = held_node if held_node >= 0 else fixed_node
-        if still < 0:
-            np.testing.assert_allclose(momentum, 0.0, atol=1e-12)  # momentum exact
-            assert not np.any(react)
-        else:
-            assert np.all(dx[still] == 0.0)
-            np.testing.assert_allclose(react[still] * dt, momentum, rtol=1e-9, atol=1e-12 * np.abs(momentum).max())
-            assert not np.any(np.delete(react, still, axis=0))
-    # a deformed sphere: only the tets below the floor (and their nodes) are changed, and all end at or above it
+        xs, v, anchor = x.copy(), v_in.copy(), np.zeros(3)
+        flags = np.zeros(1, dtype=np.int8)
+        assert flag_barrier(xs, tet, v0, 0.5, flags) == 1
+        implicit_volume_barrier(xs, v, mass, (fixed, np.zeros(4, np.int8)), tet, v0, np.array([k]), 0.5, 1.0, dt,
+                                flags, anchor)
+        dv = v - v_in
+        np.testing.assert_allclose(xs - x, dt * dv, rtol=1e-12, atol=1e-18)  # x and v change together
+        impulse = mass[:, None] * dv
+        if fixed_node >= 0:
+            assert np.all(dv[fixed_node] == 0.0)
+            impulse = impulse + np.where(np.arange(4)[:, None] == fixed_node, -anchor * dt, 0.0)
+        # (round-off: of the impulses, and of v - v_in at the falling apex's 0.5 m/s)
+        np.testing.assert_allclose(impulse.sum(axis=0), 0.0, atol=1e-12 * np.abs(impulse).max() + 1e-15 * 0.5 * mass.max())
+        f = np.zeros((4, 3))
+        volume_forces(x, tet, v0, np.array([k]), 0.5, 1.0, f)
+        w = np.where(fixed, 0.0, 1.0 / mass)[:, None]
+        if k < 1.0:  # soft: the explicit impulse (the implicit correction is dt^2 k psi'' W / V0 ~ 1e-9)
+            np.testing.assert_allclose(dv, dt * f * w, rtol=1e-6, atol=1e-12 * np.abs(dt * f * w).max())
+        else:  # stiff: the apex's fall is stopped (the volume no longer shrinks), J stays below J_c
+            j_new = tet_signed_volumes(xs, tet)[0] / v0[0]
+            vol_rate = (tet_signed_volumes(xs + 1e-6 * v, tet)[0] - tet_signed_volumes(xs, tet)[0]) / 1e-6
+            assert vol_rate >= -1e-9 * v0[0] / dt
+            assert 0.2 < j_new < 0.5
+            # backward Euler on a convex energy: kinetic energy gained < barrier energy released
+            released = volume_energy(x, tet, v0, np.array([k]), 0.5) - volume_energy(xs, tet, v0, np.array([k]), 0.5)
+            gained = 0.5 * float(np.sum(mass[:, None] * (v**2 - v_in**2)))
+            assert 0.0 < gained < released
+
+
+def test_implicit_barrier_touches_only_tets_below_the_threshold(sphere_coarse):
+    """On a deformed sphere the barrier moves only nodes of tets below J_c, and substeps of it (at rest, no other
+    force) bring every crushed and inverted tet back above a clear margin."""
     rng = np.random.default_rng(3)
-    x = sphere_coarse.nodes + rng.normal(0.0, 0.0015, sphere_coarse.nodes.shape)  # 31 of 750 tets below J_f
-    jac = tet_signed_volumes(x, sphere_coarse.tets) / sphere_coarse.tet_volumes
-    assert 0 < (jac < j_floor).sum() < 0.2 * len(jac) and jac.min() < 0.0  # some crushed, some inverted
-    untouched = np.setdiff1d(np.arange(len(x)), sphere_coarse.tets[jac < j_floor].ravel())
+    mesh = sphere_coarse
+    x = mesh.nodes + rng.normal(0.0, 0.0015, mesh.nodes.shape)
+    jac = tet_signed_volumes(x, mesh.tets) / mesh.tet_volumes
+    assert 0 < (jac < 0.5).sum() < 0.3 * len(jac) and jac.min() < 0.0  # some crushed, some inverted
+    untouched = np.setdiff1d(np.arange(len(x)), mesh.tets[jac < 0.5].ravel())
     x_new, v = x.copy(), np.zeros_like(x)
-    masses, free = np.full(len(x), 1e-3), np.zeros(len(x), dtype=bool)
-    for _ in range(10):
-        enforce_volume_floor(x_new, v, masses, free, free.astype(np.int8), sphere_coarse.tets, sphere_coarse.tet_volumes,
-                             j_floor, dt, np.zeros(len(jac), dtype=np.int8), np.zeros_like(x))
-    np.testing.assert_array_equal(x_new[untouched], x[untouched])
-    jac_new = tet_signed_volumes(x_new, sphere_coarse.tets) / sphere_coarse.tet_volumes
-    # neighbouring corrections interact; a few substeps' Gauss-Seidel passes bring every tet back
-    assert jac_new.min() >= j_floor - 0.01
-
-
-# =================================================================================================
-# lumped masses
-# =================================================================================================
+    masses, free = np.full(len(x), 1e-4), np.zeros(len(x), dtype=bool)
+    kvol = np.full(mesh.n_tets, 6e4)
+    flags = np.zeros(mesh.n_tets, dtype=np.int8)
+    for _ in range(200):
+        if flag_barrier(x_new, mesh.tets, mesh.tet_volumes, 0.5, flags) == 0:
+            break
+        implicit_volume_barrier(x_new, v, masses, (free, free.astype(np.int8)), mesh.tets, mesh.tet_volumes, kvol,
+                                0.5, 1.0, 1e-4, flags, np.zeros(3))
+        x_new += 1e-4 * v  # (the node update's x += dt v, with no force)
+        if _ == 0:
+            np.testing.assert_array_equal(x_new[untouched], x[untouched])
+    jac_new = tet_signed_volumes(x_new, mesh.tets) / mesh.tet_volumes
+    assert jac_new.min() > 0.2, jac_new.min()
+    assert barrier_slopes(0.6, 0.5) == (0.0, 0.0)
 
 
 def test_lumped_mass_is_exact(sphere_coarse, spleen_coarse):
@@ -241,10 +251,12 @@ def test_lumped_mass_is_exact(sphere_coarse, spleen_coarse):
 
 
 def test_free_flight_conserves_momentum_and_energy(spleen_coarse, compiled_kernel):
-    """No damping, no gravity, no anchors: random velocities (non-zero mean) plus a smooth stretch."""
+    """No damping, no gravity, no anchors: random velocities (non-zero mean) plus a smooth stretch. The springs
+    alone: the volume barrier's implicit step damps by design (tested on its own above; here the random
+    velocities squeeze a few tets below its threshold and it removed 2.9 % of the energy in 10 s)."""
     params = replace(
         SPLEEN_PARAMS, damping_rate_per_s=0.0, damping_disp_rate_per_m_s=0.0, relaxation_strength=0.0,
-        spring_damping_time_s=0.0, gravity_m_per_s2=(0.0, 0.0, 0.0),
+        spring_damping_time_s=0.0, gravity_m_per_s2=(0.0, 0.0, 0.0), volume_modulus_pa=0.0,
     )
     model = TissueModel.from_params(spleen_coarse, params)
     # symplectic Euler's measured energy oscillates by ~(omega dt)^2 / 4 per mode; omega_max dt = 0.2
@@ -324,16 +336,14 @@ def _undamped_energy_error(model: TissueModel, stretch: float, dt_sub: float, ti
 def test_undamped_energy_error_is_small_at_the_automatic_substep_count(tissue, sphere_coarse, spleen_coarse,
                                                                         compiled_kernel):
     """Released from a 25 % stretch with no damping, no Maxwell branch and no gravity, the
-    energy stays within 2 % of its start for 1 s at the substep count "auto" picks (SUBSTEP_SAFETY = 0.6 of
-    the stability limit; measured 1.3 % sphere, 0.65 % spleen). The old rule, 0.95 of the limit, is not
-    enough: the stretched network is stiffer than the linearised one at rest (tension adds transverse
-    stiffness), and there the coarse sphere diverges and the spleen is off by 68 %."""
+    energy stays within 2 % of its start for 1 s at the substep count "auto" picks (SUBSTEP_SAFETY of the
+    stability limit). A looser rule, 0.95 of the limit, is not enough: the stretched network is stiffer than
+    the linearised one at rest (tension adds transverse stiffness). The springs alone: the volume barrier's
+    implicit step damps by design (with it, the sphere's rebound into its barrier removes a third of the energy)."""
     mesh, params = (sphere_coarse, SPHERE_PARAMS) if tissue == "sphere" else (spleen_coarse, SPLEEN_PARAMS)
     params = replace(params, damping_rate_per_s=0.0, damping_disp_rate_per_m_s=0.0, relaxation_strength=0.0,
-                     spring_damping_time_s=0.0, gravity_m_per_s2=(0.0, 0.0, 0.0),
-                     volume_floor=0.0)  # the floor is inelastic: it takes energy out where it acts
+                     spring_damping_time_s=0.0, gravity_m_per_s2=(0.0, 0.0, 0.0), volume_modulus_pa=0.0)
     model = TissueModel.from_params(mesh, params)
-    assert model.kvol.size  # the volume barrier is part of the energy
     sim = Simulation(model)
     err = _undamped_energy_error(model, 0.25, 1e-3 / sim.n_sub)
     err_loose = _undamped_energy_error(model, 0.25, 0.95 * sim.dt_crit)
@@ -601,8 +611,8 @@ def test_forced_step_beyond_critical_dt_is_refused(sphere_coarse, compiled_kerne
         ("contact_calibration", "maybe"),
         ("stiffening", -1.0),
         ("damping_rate_per_s", float("nan")),
-        ("volume_floor", 1.0),
-        ("volume_floor", -0.1),
+        ("volume_threshold", 0.0),
+        ("volume_threshold", 1.5),
     ],
 )
 def test_bad_parameter_is_refused_naming_the_field(field, value):
