@@ -6,11 +6,11 @@ substep
     substep of :func:`~msdgrasp.physics.integrator._advance_block` is timed by calling that phase's own kernel
     function with the arguments the integrator passes it, repeatedly inside one compiled loop (so Python's
     dispatch does not count), on the state the phase meets in a substep: force reset (gravity and external
-    forces), spring loop (Maxwell branch as configured), volume barrier, node update, contacts (plates and jaws
-    per tissue, surface nodes restored before each repetition; the restore is timed alone and subtracted),
-    volume floor (flag pass; projection where tets are flagged). The whole ``simulate`` call per substep is
-    timed beside it; ``remainder`` = whole - sum of the phases (loop overhead, readouts, cache effects; it can
-    be negative: a phase timed alone keeps its data in cache).
+    forces), spring loop (Maxwell branch as configured), node update, volume barrier (flag pass; implicit step
+    where tets are flagged, their nodes restored before each repetition), contacts (plates and jaws per tissue,
+    surface nodes restored before each repetition); a restore is timed alone and subtracted. The whole
+    ``simulate`` call per substep is timed beside it; ``remainder`` = whole - sum of the phases (loop overhead,
+    readouts, cache effects; it can be negative: a phase timed alone keeps its data in cache).
 agent step
     Per agent step of the default training env (``TrainConfig().env``): the physics (``sim.step`` of the
     env's outer steps), the task (``command_batch`` + ``update_batch``), the whole core step (the rest is the
@@ -36,14 +36,11 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from ..physics.contact import clear_contacts, floor_reactions, jaw_contacts, jaw_directions, plate_contacts
+from ..physics.contact import clear_contacts, jaw_contacts, jaw_directions, plate_contacts
 from ..physics.forces import (
-    accumulate_volume_forces,
-    accumulate_volume_forces_lanes,
-    flag_volume_floor,
-    flag_volume_floor_lanes,
-    project_volume_floor,
-    refresh_floor_volumes,
+    flag_barrier,
+    flag_barrier_lanes,
+    implicit_volume_barrier,
     spring_loop,
     spring_loop_lanes,
 )
@@ -56,7 +53,7 @@ from .report import _r
 #: batch of the lane-layout rows (one lane block)
 PROFILE_BATCH = 64
 #: the phases of one substep, in the integrator's order
-PHASES = ("force_reset", "springs", "volume_barrier", "node_update", "contacts", "floor_flag", "floor_project")
+PHASES = ("force_reset", "springs", "node_update", "barrier_flag", "barrier_step", "contacts")
 
 # ------------------------------------------------------------------------------------------------
 # compiled repetition loops: each calls one phase's kernel function ``reps`` times, as _advance_block does
@@ -85,27 +82,6 @@ def _rep_springs(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp, scratch, l
         dl_one = dl_prev.reshape(ne)
         for _ in range(reps):
             spring_loop(x_one, v_one, springs, ks[0], decay, gain, fv_one, dl_one, f_one, scratch)
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_barrier(x, tets, rest_volume, kvol, thr, ks, f, s, vols, use_vols, lanes, reps):
-    n = x.shape[0]
-    nt = tets.shape[0]
-    if lanes:
-        for _ in range(reps):
-            if use_vols:
-                accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, thr, ks, f, s, vols)
-            else:
-                accumulate_volume_forces_lanes(x, tets, rest_volume, kvol, thr, ks, f, s)
-    else:
-        x_one = x.reshape((n, 3))
-        f_one = f.reshape((n, 3))
-        vols_one = vols.reshape(nt)
-        for _ in range(reps):
-            if use_vols:
-                accumulate_volume_forces(x_one, tets, rest_volume, kvol, thr, ks[0], f_one, vols_one)
-            else:
-                accumulate_volume_forces(x_one, tets, rest_volume, kvol, thr, ks[0], f_one)
 
 
 @njit(cache=True, error_model="numpy")
@@ -154,47 +130,40 @@ def _rep_contacts(model, state, out, x, v, x0, v0, nodes, meff, held, u, tj, sub
 
 
 @njit(cache=True, error_model="numpy")
-def _rep_floor_flag(x, tets, rest_volume, vol_floor, flags, n_floor, vols, lanes, reps):
+def _rep_barrier_flag(x, tets, rest_volume, thr, flags, n_flagged, lanes, reps):
     n = x.shape[0]
     nt = tets.shape[0]
     if lanes:
         for _ in range(reps):
-            flag_volume_floor_lanes(x, tets, rest_volume, vol_floor, flags, n_floor, vols)
+            flag_barrier_lanes(x, tets, rest_volume, thr, flags, n_flagged)
     else:
         x_one = x.reshape((n, 3))
         flags_one = flags.reshape(nt)
-        vols_one = vols.reshape(nt)
         for _ in range(reps):
-            n_floor[0] = flag_volume_floor(x_one, tets, rest_volume, vol_floor, flags_one, vols_one)
+            n_flagged[0] = flag_barrier(x_one, tets, rest_volume, thr, flags_one)
 
 
 @njit(cache=True, error_model="numpy")
-def _rep_floor_project(model, state, out, x, v, x0, v0, nodes, meff, held, react, flags, n_floor, vols, mark, u,
-                       sub_info, lane0, lanes, run, reps):
-    """The floor's projection of the flagged tets (run False: only the restore of their nodes)."""
+def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, flags, n_flagged, anchor_vol, lanes, run, reps):
+    """The barrier's implicit step on the flagged tets (run False: only the restore of their nodes)."""
     n = x.shape[0]
     nl = x.shape[2]
     nt = model.tets.shape[0]
-    dt = sub_info[0]
     for _ in range(reps):
         _restore(x, v, x0, v0, nodes)
         if not run:
             continue
         for lane in range(nl):
-            if n_floor[lane] > 0:
-                b = lane0 + lane
+            if n_flagged[lane] > 0:
+                anchor_vol[:] = 0.0
                 if lanes:
-                    project_volume_floor(x[:, :, lane], v[:, :, lane], meff[:, lane], model.fixed, held[lane],
-                                         model.tets, model.rest_volume, model.vol_floor, dt, flags[:, lane],
-                                         react[lane])
+                    implicit_volume_barrier(x[:, :, lane], v[:, :, lane], meff[:, lane], (model.fixed, held[lane]),
+                                            model.tets, model.rest_volume, model.kvol, model.vol_threshold, ks[lane],
+                                            dt, flags[:, lane], anchor_vol)
                 else:
-                    x_one = x.reshape((n, 3))
-                    v_one = v.reshape((n, 3))
-                    flags_one = flags.reshape(nt)
-                    project_volume_floor(x_one, v_one, meff[:, 0], model.fixed, held[0], model.tets,
-                                         model.rest_volume, model.vol_floor, dt, flags_one, react[0])
-                    refresh_floor_volumes(x_one, model.tets, flags_one, mark, vols.reshape(nt))
-                floor_reactions(b, held[lane], react[lane], model.fixed, u[lane], out, state, sub_info)
+                    implicit_volume_barrier(x.reshape((n, 3)), v.reshape((n, 3)), meff[:, 0], (model.fixed, held[0]),
+                                            model.tets, model.rest_volume, model.kvol, model.vol_threshold, ks[0], dt,
+                                            flags.reshape(nt), anchor_vol)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -243,37 +212,24 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
     for lane in range(nb):
         jaw_directions(state.g_axis[lane], state.g_e1[lane], u[lane], tj[lane])
     flags = np.empty((nt, nb), dtype=np.int8)
-    n_floor = np.zeros(nb, dtype=np.int64)
-    vols = np.empty((nt, nb))
-    held = np.zeros((nb, n), dtype=np.int8)
-    react = np.zeros((nb, n, 3))
-    mark = np.zeros(n, dtype=np.int8)
+    n_flagged = np.zeros(nb, dtype=np.int64)
+    anchor_vol = np.zeros(3)
+    # the contacts' memory of the last substep: the barrier's step reads it (a copy: the contacts rewrite it)
+    held = np.ascontiguousarray(state.held, dtype=np.int8).copy()
     res = np.empty(6)
     sub_info = (dt, 0.0, False, 1.0 / m.n_sub)  # a substep before the last one of a call: no readout fill
     anchor_out = np.zeros_like(out.anchor_out)
-    floor_on = m.vol_floor > 0.0
+    barrier_on = m.kvol.shape[0] > 0
     rows: dict[str, float] = {}
-    # the end of the last substep: the floor's flag pass left the volumes, reused by the barrier where it
-    # moved nothing (one tissue: always, refresh_floor_volumes keeps them current)
-    if floor_on:
-        _rep_floor_flag(x, m.tets, m.rest_volume, m.vol_floor, flags, n_floor, vols, lanes, 1)
-    use_vols = bool(floor_on and (not lanes or int(n_floor.sum()) == 0))
     # ---- 1. forces (on scratch copies: the phase's state changes do not carry into the next phase)
     f = f0.copy()
     rows["force_reset"] = _us(lambda k: _rep_force_reset(f.reshape(-1), f0.reshape(-1), k), min_time, repeats)
     fv_c, dl_c = fv.copy(), dl.copy()
     rows["springs"] = _us(lambda k: _rep_springs(x, v, springs, ks, decay, gain, fv_c, dl_c, f, tmp, scratch, lanes, k),
                           min_time, repeats)
-    if m.kvol.shape[0] > 0:
-        rows["volume_barrier"] = _us(lambda k: _rep_barrier(x, m.tets, m.rest_volume, m.kvol, m.vol_threshold, ks, f,
-                                                            tmp[0], vols, use_vols, lanes, k), min_time, repeats)
-    else:
-        rows["volume_barrier"] = 0.0
     # the substep's real forces, from the real state
     f = f0.copy()
     _rep_springs(x, v, springs, ks, decay, gain, fv, dl, f, tmp, scratch, lanes, 1)
-    if m.kvol.shape[0] > 0:
-        _rep_barrier(x, m.tets, m.rest_volume, m.kvol, m.vol_threshold, ks, f, tmp[0], vols, use_vols, lanes, 1)
     # ---- 2-3. node update (on copies of x, v)
     xc, vc = x.copy(), v.copy()
     rows["node_update"] = _us(lambda k: _rep_nodes(m, xc, vc, f, meff, damp_inv, fa, ms, 0,
@@ -281,7 +237,31 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
     meff[:] = 0.0
     _constant_damping(m.mass, m.b0, m.b1, ms, dt, meff, damp_inv)
     _rep_nodes(m, x, v, f, meff, damp_inv, fa, ms, 0, dt, anchor_out, lanes, 1)  # the real state moves on
-    # ---- 4. contacts: the nodes that penetrated the jaws in this substep are pushed out; restore them
+    # ---- 4. volume barrier: flag pass, then the implicit step on the flagged tets (their nodes restored)
+    rows["barrier_flag"] = 0.0
+    rows["barrier_step"] = 0.0
+    flagged = 0
+    if barrier_on:
+        flags_c, n_flagged_c = flags.copy(), n_flagged.copy()
+        rows["barrier_flag"] = _us(lambda k: _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, flags_c,
+                                                               n_flagged_c, lanes, k), min_time, repeats)
+        _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, flags, n_flagged, lanes, 1)
+        flagged = int(n_flagged.sum())
+        if flagged:
+            tet_nodes = np.unique(m.tets[np.flatnonzero(flags.any(axis=1))].ravel()).astype(np.int64)
+            x0, v0 = x.copy(), v.copy()
+
+            def step(run: bool) -> Callable[[int], None]:
+                return lambda k: _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, flags, n_flagged,
+                                                   anchor_vol, lanes, run, k)
+
+            with_restore = _us(step(True), min_time, repeats)
+            restore = _us(step(False), min_time, repeats)
+            rows["barrier_step"] = max(with_restore - restore, 0.0)
+            x[:], v[:] = x0, v0
+            _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, flags, n_flagged, anchor_vol, lanes,
+                              True, 1)  # the real state moves on
+    # ---- 5. contacts: the nodes that penetrated the jaws in this substep are pushed out; restore them
     surf = np.ascontiguousarray(m.surface_nodes, dtype=np.int64)
     x0, v0 = x.copy(), v.copy()
     t_save = state.t.copy()
@@ -300,31 +280,6 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
     # (the kernel's time, grasper pinch and readouts were advanced by the repetitions: put them back)
     state.t[:], state.g_force[:] = t_save, g_save
     out.jaw_out[:], out.contact_state[:], out.contact_force[:] = jaw_save, cs_save, cf_save
-    # ---- 5. volume floor
-    rows["floor_flag"] = 0.0
-    rows["floor_project"] = 0.0
-    flagged = 0
-    if floor_on:
-        flags_c, n_floor_c, vols_c = flags.copy(), n_floor.copy(), vols.copy()
-        rows["floor_flag"] = _us(lambda k: _rep_floor_flag(x, m.tets, m.rest_volume, m.vol_floor, flags_c, n_floor_c,
-                                                           vols_c, lanes, k), min_time, repeats)
-        _rep_floor_flag(x, m.tets, m.rest_volume, m.vol_floor, flags, n_floor, vols, lanes, 1)
-        flagged = int(n_floor.sum())
-        if flagged:
-            tet_nodes = np.unique(m.tets[np.flatnonzero(flags.any(axis=1))].ravel()).astype(np.int64)
-            x0, v0 = x.copy(), v.copy()
-            react_save = react.copy()
-
-            def project(run: bool) -> Callable[[int], None]:
-                return lambda k: _rep_floor_project(m, state, out, x, v, x0, v0, tet_nodes, meff, held, react, flags,
-                                                    n_floor, vols, mark, u, sub_info, 0,
-                                                    lanes, run, k)
-
-            with_restore = _us(project(True), min_time, repeats)
-            restore = _us(project(False), min_time, repeats)
-            rows["floor_project"] = max(with_restore - restore, 0.0)
-            react[:] = react_save
-            out.jaw_out[:], out.contact_state[:], out.contact_force[:] = jaw_save, cs_save, cf_save
     # ---- the whole call, per substep (many outer steps per call, as the env's 33 ms agent step)
     steps = 33
     whole_ms = _us(lambda k: sim.step(k * steps), min_time, repeats) / steps  # us per outer step
@@ -336,10 +291,8 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
         "n_sub": sim.n_sub,
         "maxwell_branch": bool(m.use_sls),
         "dashpots": bool(m.use_dashpot),
-        "volume_floor_on": bool(floor_on),
-        "barrier_reuses_floor_volumes": use_vols,
         "contact_nodes": contact_nodes,
-        "tets_below_floor": flagged,
+        "tets_below_barrier_threshold": flagged,
         "phases_us_per_substep": {p: _r(rows[p]) for p in PHASES},
         "phases_share_of_whole": {p: _r(rows[p] / whole) for p in PHASES},
         "sum_of_phases_us": _r(total),

@@ -230,7 +230,7 @@ def test_profile_substep_phases_add_up(tmp_path, monkeypatch, capsys):
     for row in sub["rows"]:
         phases = row["phases_us_per_substep"]
         assert set(phases) == set(profile.PHASES)
-        for name in ("force_reset", "springs", "node_update", "contacts", "floor_flag"):
+        for name in ("force_reset", "springs", "node_update", "barrier_flag", "contacts"):
             assert _positive(phases[name]), (row["layout"], name, phases)
         assert row["contact_nodes"] > 0  # the jaws hold the tissue while the contacts are timed
         assert _positive(row["whole_us_per_substep"])
