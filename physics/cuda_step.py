@@ -50,6 +50,7 @@ def device_twin(cpu_function, **callees):
 
 
 # the kernel's per-element functions: the CPU kernel's own
+_tet_edges = device_twin(_forces._tet_edges)  # (the task kernel's volume-ratio check, envs/cuda_core.py)
 _spring_body = device_twin(_forces.spring_body)
 _anchor_spring_force = device_twin(_integrator.anchor_spring_force)
 _nodal_damping = device_twin(_integrator.nodal_damping)

@@ -65,7 +65,7 @@ def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
     assert worst <= POSITION_TOL_M
     assert cpu.pinch_force.min() > 0.2  # the jaws held the tissue
     assert cpu.min_volume_ratio().min() < 1.0 and cpu.model.kvol.max() > 0  # the barrier acted
-    assert 0.94 < lowest < 0.951, lowest  # the floor acted: tets were squeezed to 0.95 and held there
+    assert 0.5 < lowest < 0.99, lowest  # the barrier acted on squeezed tets (from any volume loss) and held them
     for name in ("v", "fv", "dl_prev", "g_radius", "g_tip", "t"):
         np.testing.assert_allclose(getattr(gpu, name), getattr(cpu, name), rtol=0, atol=1e-9 * max(1.0, np.abs(getattr(cpu, name)).max()))
     for name in ("jaw_out", "anchor_out", "contact_force", "g_force"):  # the sensors read the same
@@ -84,7 +84,7 @@ def test_unknown_backends_name_the_choice():
 def test_plates_on_the_gpu_press_and_shear_the_sphere_as_on_the_cpu():
     """The compression experiment's physics on the GPU: a small sphere between a fixed and a moving plate
     (friction 0.3 below and 0.1 on the top plate, which also slides sideways: nodes stick and slip), the
-    volume floor acting under the plates. Positions within 1e-12 m, identical contact states, the plate
+    volume barrier acting under the plates. Positions within 1e-12 m, identical contact states, the plate
     forces the same."""
     from msdgrasp.physics.config import builtin_config
     from msdgrasp.physics.mesh_gen import sphere_mesh
@@ -115,7 +115,7 @@ def test_plates_on_the_gpu_press_and_shear_the_sphere_as_on_the_cpu():
     assert np.abs(gpu.x - cpu.x).max() <= POSITION_TOL_M
     assert seen[1] > 0 and seen[2] > 0, seen  # stick and slip
     assert np.abs(cpu.plate_out).max() > 0.1  # the plates press
-    assert lowest < 0.905, lowest  # the floor acted under the plates
+    assert lowest < 0.905, lowest  # the barrier (from any volume loss) acted under the plates
     np.testing.assert_allclose(gpu.pl_point, cpu.pl_point, rtol=0, atol=1e-15)
     for name in ("plate_out", "contact_force"):
         scale = np.abs(getattr(cpu, name)).max()
