@@ -141,9 +141,9 @@ class GraspLiftConfig:
     #: physics steps (1 ms) per agent step: 33 -> 30.3 Hz agent rate
     physics_steps_per_action: Annotated[Int, Ge(1), Le(1000)] = 33
     #: fraction (0-1] of the stability limit a physics substep uses: the library's rule
-    #: (physics.simulation.SUBSTEP_SAFETY, 0.6: 3 substeps on the coarse spleen), where the grasp readouts are
-    #: converged (pull force within 0.01 N and slip within 0.003 mm of 15 substeps under a 2.5 N pinch; 0.95,
-    #: the earlier rule, gave 2 substeps and errors of 0.05 N of 0.24 N and 0.95 mm)
+    #: (physics.simulation.SUBSTEP_SAFETY, 0.5: 3 substeps on the coarse spleen), where the grasp readouts are
+    #: converged (pull force within 0.01 N and slip within 0.003 mm of 15 substeps under a 2.5 N pinch; 2
+    #: substeps gave errors of 0.05 N of 0.24 N and 0.95 mm)
     substep_safety: Annotated[Real, Gt(0), Le(1)] = SUBSTEP_SAFETY
     #: end an episode as a numerical failure when a tet inverts (info["min_volume_ratio"] <= 0; it is reported
     #: either way). With the spleen's volume floor (configs/tissue/spleen.yaml) no tet inverts under the

@@ -28,7 +28,10 @@ from .contact import (
     J_STICK,
     J_TX,
     J_TZ,
+    J_WALL_X,
+    J_WALL_Z,
     N_JAW_COLS,
+    jaw_directions,
 )
 from .grasper import GrasperParams, GrasperPose
 from .integrator import all_finite, simulate
@@ -360,6 +363,20 @@ class Simulation:
     def jaw_tangential_force(self) -> np.ndarray:
         """(B,3,3) friction force vector of each jaw on the tissue, N."""
         return self.jaw_out[:, :, J_TX : J_TZ + 1].copy()
+
+    def jaw_face_forces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each jaw's force on the tissue split by where it acts: (normal (B,3) N and friction (B,3,3) N of its
+        gripping face, force (B,3,3) N of its side and end walls). The face's share is the jaw's readout less the
+        walls' (the walls push nodes that reach round a jaw's edges: a geometric hook, not friction)."""
+        wall = self.jaw_out[:, :, J_WALL_X : J_WALL_Z + 1].copy()
+        u = np.empty((self.batch_size, 3, 3))
+        tj = np.empty((3, 3))
+        for b in range(self.batch_size):
+            jaw_directions(self.g_axis[b], self.g_e1[b], u[b], tj)
+        wall_normal = -np.einsum("bkc,bkc->bk", wall, u)
+        normal = self.jaw_out[:, :, J_NORMAL] - wall_normal
+        friction = self.jaw_out[:, :, J_TX : J_TZ + 1] - (wall + wall_normal[:, :, None] * u)
+        return normal, friction, wall
 
     @property
     def pinch_force(self) -> np.ndarray:
