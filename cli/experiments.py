@@ -57,6 +57,7 @@ def compress_cli(args: argparse.Namespace) -> int:
             "rates_mm_per_min": list(args.rate or (6.0, 60.0)),
             "deformation_fraction": args.deformation,
             "samples": args.samples,
+            **({} if args.plate_mu is None else {"plate_mu": args.plate_mu}),
         },
         where="compress",
     )
@@ -65,7 +66,7 @@ def compress_cli(args: argparse.Namespace) -> int:
     csv = write_compression_csv(curves, out / "compress.csv")
     png = plot_compression(curves, out / "compress.png", title=f"Compression of {mesh.name} ({mesh.n_nodes} nodes)")
     height_mm = float(np.ptp(mesh.nodes[:, 2])) * 1e3
-    verdicts = compression_verdicts(curves, height_mm)
+    verdicts = compression_verdicts(curves, height_mm, (params.relaxation_strength, params.relaxation_time_s))
     summary = {
         "csv": str(csv),
         "png": str(png),

@@ -97,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--samples", type=int, default=150, help="force samples per curve")
     c.add_argument("--resolution", default=None, help="coarse|medium|fine|xfine or a node count")
     c.add_argument("--diameter-mm", type=float, default=None, help="sphere diameter in mm (default 50)")
+    c.add_argument("--plate-mu", type=float, default=None, help="plate/sample friction (default 0.5: the plates hold "
+                   "the sample upright; 0: lubricated plates)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_out(c, "compress")
     c.set_defaults(func=_cmd_compress)

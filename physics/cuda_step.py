@@ -58,6 +58,7 @@ _damping_factors = device_twin(_integrator.damping_factors)
 _advance_node = device_twin(_integrator.advance_node)
 _below_barrier = device_twin(_forces.below_barrier)
 _implicit_volume_barrier = device_twin(_forces.implicit_volume_barrier)
+_implicit_spring_dashpots = device_twin(_forces.implicit_spring_dashpots)
 _jaw_directions = device_twin(_contact.jaw_directions)
 _clear_readouts = device_twin(_contact.clear_readouts)
 _clear_contact_node = device_twin(_contact.clear_contact_node)
@@ -81,7 +82,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
     ks, ms = s.kscale[b], s.mscale[b]
-    flags = (m.use_dashpot, m.use_sls)
+    flags = (False, m.use_sls)  # (the dashpots act in their own implicit pass)
     res = cuda.local.array(6, np.float64)
     n_flagged = cuda.shared.array(1, np.int32)  # tets of this tissue below the barrier's threshold in this substep
     vr = 0.0  # (thread 0) the jaws' radial speed in this substep
@@ -100,8 +101,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
             for e in range(tid, ne, nth):
                 i, j = m.edges[e, 0], m.edges[e, 1]
                 d = (x[b, j, 0] - x[b, i, 0], x[b, j, 1] - x[b, i, 1], x[b, j, 2] - x[b, i, 2])
-                dash = (v[b, j, 0] - v[b, i, 0], v[b, j, 1] - v[b, i, 1], v[b, j, 2] - v[b, i, 2], m.cdash[e]) \
-                    if m.use_dashpot else (0.0, 0.0, 0.0, 0.0)
+                dash = (0.0, 0.0, 0.0, 0.0)
                 kve = m.kv[e] if m.use_sls else m.k1[e]  # (kv may be empty without the branch, which ignores it;
                 # fv, dl_prev and kv read as their own types, so float32 storage keeps float32 arithmetic)
                 w.fe[b, e, 0], w.fe[b, e, 1], w.fe[b, e, 2], fve, dle = _spring_body(
@@ -137,6 +137,13 @@ def _simulate_kernel(m, s, out, w, n_steps):
                 x[b, i, 0], x[b, i, 1], x[b, i, 2] = xn
                 v[b, i, 0], v[b, i, 1], v[b, i, 2] = vn
             cuda.syncthreads()
+            # ---- 3b. spring dashpots, implicit: thread 0 in the CPU's (edge) order
+            if m.use_dashpot:
+                if tid == 0:
+                    for c in range(3):
+                        w.dash_out[b, c] = 0.0
+                    _implicit_spring_dashpots(x[b], v[b], w.meff[b], m.fixed, m.edges, m.cdash, ks, dt, w.dash_out[b])
+                cuda.syncthreads()
             # ---- 4. volume barrier: tets flagged in parallel; only where any is (as on the CPU), thread 0
             # integrates it on them in the CPU's (tet) order
             if nt > 0:
@@ -164,7 +171,10 @@ def _simulate_kernel(m, s, out, w, n_steps):
                         if m.fixed[i] or m.anchor_k[i] > 0.0:
                             for c in range(3):
                                 out.anchor_out[b, c] += w.fa[b, i, c]
-                    if nt > 0 and n_flagged[0] > 0:  # (after the nodes' share, in the CPU's order)
+                    if m.use_dashpot:  # (after the nodes' share, in the CPU's order)
+                        for c in range(3):
+                            out.anchor_out[b, c] += w.dash_out[b, c]
+                    if nt > 0 and n_flagged[0] > 0:
                         for c in range(3):
                             out.anchor_out[b, c] += w.vol_out[b, c]
                 s.t[b] += dt

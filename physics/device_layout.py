@@ -78,6 +78,7 @@ class CudaScratch(NamedTuple):
     fe: np.ndarray  # (B,E,3) N force of each spring on its first node
     tet_on: np.ndarray  # (B,T) int8: the tet is below the volume barrier's threshold this substep
     vol_out: np.ndarray  # (B,3) N: the anchors' force against the volume barrier in a substep
+    dash_out: np.ndarray  # (B,3) N: the anchors' force against the spring dashpots in a substep
     cand: np.ndarray  # (B,S) int8: the jaw each surface node is inside this substep (-1: none)
     meff: np.ndarray  # (B,N) kg effective mass m + dt b (contacts)
     fa: np.ndarray  # (B,N,3) N anchor force on each node (last substep: the anchor readout)
@@ -105,7 +106,7 @@ def make_scratch(model: SimModel, batch: int) -> CudaScratch:
     eptr, eidx, ecol = incidence(n, np.asarray(model.edges))
     return CudaScratch(
         fe=np.zeros((batch, ne, 3)), tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8),
-        vol_out=np.zeros((batch, 3)), cand=np.zeros((batch, max(ns, 1)), dtype=np.int8), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
+        vol_out=np.zeros((batch, 3)), dash_out=np.zeros((batch, 3)), cand=np.zeros((batch, max(ns, 1)), dtype=np.int8), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
         edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0),
         u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
     )

@@ -2,10 +2,11 @@
 
 Scheme (per substep of length dt, for each tissue b of the batch, all on the same mesh):
 
-1. forces: nonlinear springs (+ optional dashpots, Maxwell branches) + gravity + external nodal forces;
+1. forces: nonlinear springs (+ Maxwell branches) + gravity + external nodal forces;
 2. symplectic Euler with *implicit* nodal damping (the paper's Eq. 7, diagonal, so unconditionally
    stable): v <- (v + dt f/m) / (1 + dt (b0 + b1 |r - r0|)/m);  x <- x + dt v;
-3. anchors (fixed nodes) are held at their rest positions;
+3. anchors (fixed nodes) are held at their rest positions; the optional spring dashpots act implicitly,
+   spring by spring (:func:`.forces.implicit_spring_dashpots`);
 4. the volume barrier of strongly compressed tets, integrated implicitly tet by tet
    (:func:`.forces.implicit_volume_barrier`): a force like the springs', so the contacts see it;
 5. the jaws (and plates) advance; surface nodes that penetrate a face become contact nodes and are
@@ -46,7 +47,14 @@ from .contact import (
     jaw_directions,
     plate_contacts,
 )
-from .forces import flag_barrier, flag_barrier_lanes, implicit_volume_barrier, spring_loop, spring_loop_lanes
+from .forces import (
+    flag_barrier,
+    flag_barrier_lanes,
+    implicit_spring_dashpots,
+    implicit_volume_barrier,
+    spring_loop,
+    spring_loop_lanes,
+)
 from .records import SimModel, SimReadout, SimState, Springs
 
 
@@ -146,9 +154,10 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     fa = np.empty((3, nl))  # anchor spring force of one node
     tmp = np.empty((3, nl))
     spring_scratch = np.zeros((9, 0 if lanes else ne))
-    # the springs with kv of E entries: the one-tissue loop reads it unconditionally (zeros without the branch)
+    # the springs with kv of E entries: the one-tissue loop reads it unconditionally (zeros without the branch);
+    # their dashpots act in their own implicit pass after the node update, not in the force loop
     springs = Springs(m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash,
-                      m.kv if m.kv.shape[0] == ne else np.zeros(ne), m.use_dashpot, m.use_sls)
+                      m.kv if m.kv.shape[0] == ne else np.zeros(ne), False, m.use_sls)
     ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
     ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
     res = np.empty(6)
@@ -200,6 +209,19 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, anchor_out)
             else:  # a literal bound: once LLVM inlines the call, the lane loops vanish for one tissue
                 _update_nodes(m, x, v, f, node_work, ms, 1, lane0, last_sub, dt, anchor_out)
+            # ---- 3b. the spring dashpots, implicit
+            if m.use_dashpot:
+                for lane in range(nl):
+                    anchor_vol[:] = 0.0
+                    if lanes:
+                        implicit_spring_dashpots(x[:, :, lane], v[:, :, lane], meff[:, lane], fixed, m.edges, m.cdash,
+                                                 ks[lane], dt, anchor_vol)
+                    else:
+                        implicit_spring_dashpots(x_one, v_one, meff[:, 0], fixed, m.edges, m.cdash, ks[0], dt,
+                                                 anchor_vol)
+                    if last_sub:
+                        for c in range(3):
+                            anchor_out[lane0 + lane, c] += anchor_vol[c]
             # ---- 4. the volume barrier, implicit, on the tets below its threshold (flagged across lanes)
             if kvol.shape[0] > 0:
                 if lanes:

@@ -98,8 +98,9 @@ class NumpyMSD:
         self.fv = np.zeros(len(model.edges))
         self.dl_prev = np.zeros(len(model.edges))
 
-    def spring_forces(self, x, v, fv, dl_prev, out=None, update=True) -> np.ndarray:
-        """(N,3) spring (+ dashpot + Maxwell) forces; updates ``fv``/``dl_prev`` in place if ``update``."""
+    def spring_forces(self, x, v, fv, dl_prev, out=None, update=True, dashpot=True) -> np.ndarray:
+        """(N,3) spring (+ dashpot + Maxwell) forces; updates ``fv``/``dl_prev`` in place if ``update``. The
+        step integrates the dashpots implicitly (:meth:`dashpot_step`) and leaves them out here (``dashpot``)."""
         mdl = self.model
         d = x[self.j] - x[self.i]
         length = np.sqrt(np.einsum("ij,ij->i", d, d))
@@ -113,7 +114,7 @@ class NumpyMSD:
                 fv[ok] = fve[ok]
                 dl_prev[ok] = dl[ok]
             fs = fs + fve
-        if self.use_dashpot:
+        if self.use_dashpot and dashpot:
             rel = np.einsum("ij,ij->i", v[self.j] - v[self.i], u)
             fs = fs + self.kscale * mdl.cdash * rel
         fu = np.where(ok, fs, 0.0)[:, None] * u
@@ -143,6 +144,22 @@ class NumpyMSD:
         g = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=1) / 6.0  # dV/dx_b,c,d
         g = np.concatenate([-g.sum(axis=1, keepdims=True), g], axis=1)
         return g, np.einsum("ti,ti->t", e1, g[:, 1]) / self.model.rest_volume
+
+    def dashpot_step(self, x, v, meff) -> None:
+        """The spring dashpots' backward-Euler impulses, spring after spring in edge order (the kernel's pass;
+        x, v (N,3) modified; meff (N,) effective masses, kg)."""
+        if not self.use_dashpot:
+            return
+        w = np.where(self.free, 1.0 / meff, 0.0)
+        for e, (i, j) in enumerate(self.model.edges):
+            c = self.kscale * self.model.cdash[e]
+            d = x[j] - x[i]
+            u = d / np.linalg.norm(d)
+            lam = c * self.dt * float((v[j] - v[i]) @ u) / (1.0 + c * self.dt * (w[i] + w[j]))
+            v[i] += w[i] * lam * u
+            v[j] -= w[j] * lam * u
+            x[i] += self.dt * w[i] * lam * u
+            x[j] -= self.dt * w[j] * lam * u
 
     def volume_barrier_step(self, x, v, meff) -> None:
         """The barrier's backward-Euler impulses, tet after tet in tet order, on the tets below the threshold at
@@ -177,7 +194,7 @@ class NumpyMSD:
         ka = mdl.anchor_k[:, None] if mdl.anchor_k.size else None
         for _ in range(int(n_steps) * self.n_sub):
             f = fg.copy()
-            self.spring_forces(x, v, self.fv, self.dl_prev, out=f)
+            self.spring_forces(x, v, self.fv, self.dl_prev, out=f, dashpot=False)
             disp = x - x0
             if ka is not None:
                 f += -ka * (disp - self.mscale * mdl.anchor_offset[None, :])
@@ -186,6 +203,7 @@ class NumpyMSD:
             v[:] = (v + dt * f / m) * inv[:, None]
             v[fixed] = 0.0
             x += dt * v  # anchored nodes have v = 0: they stay where they are
+            self.dashpot_step(x, v, self.m + dt * damp)
             self.volume_barrier_step(x, v, self.m + dt * damp)
 
 

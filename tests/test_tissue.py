@@ -542,9 +542,10 @@ def test_volume_barrier_carries_large_compression():
     sel = f_bar > 0.02
     assert np.all(np.diff(F_bar[sel]) > -0.02 * F_bar[sel][1:])  # monotonic up to node-contact steps
     assert np.min(np.diff(F_msd[f_msd > 0.02])) < -0.2  # the network without it collapses (a drop > 0.2 N)
-    # idle below the threshold: identical up to 15 %, then stiffer (measured 7.9 vs 5.9 N at 30 %)
+    # idle below the threshold: identical up to 15 %, then stiffer (measured 8.6 vs 7.6 N at 30 % between plates
+    # of friction 0.5, which hold the sample upright; 7.9 vs 5.9 N between frictionless ones)
     assert np.interp(0.15, f_bar, F_bar) == pytest.approx(np.interp(0.15, f_msd, F_msd), rel=1e-6)
-    assert np.interp(0.3, f_bar, F_bar) > 1.2 * np.interp(0.3, f_msd, F_msd)
+    assert np.interp(0.3, f_bar, F_bar) > 1.08 * np.interp(0.3, f_msd, F_msd)
 
 
 # =================================================================================================
