@@ -156,12 +156,14 @@ def run_compression(
 
 def write_compression_csv(curves: Sequence[CompressionCurve], path: str | Path) -> Path:
     """Columns: rate, time, deformation, ``force_N`` (mean of the plates), and for simulated curves
-    ``force_top_N``, ``force_bottom_N`` and ``min_volume_ratio``."""
-    full = all(c.force_top_N is not None for c in curves)
-    lines = ["rate_mm_per_min,time_s,deformation_mm,force_N" + (",force_top_N,force_bottom_N,min_volume_ratio" if full else "")]
+    ``force_top_N``, ``force_bottom_N``, ``min_volume_ratio`` and ``tilt_deg``."""
+    full = all(c.force_top_N is not None and c.tilt_deg is not None for c in curves)
+    lines = ["rate_mm_per_min,time_s,deformation_mm,force_N"
+             + (",force_top_N,force_bottom_N,min_volume_ratio,tilt_deg" if full else "")]
     for c in curves:
         for k, (t, d, f) in enumerate(zip(c.time_s, c.deformation_mm, c.force_N)):
-            extra = f",{c.force_top_N[k]:.6f},{c.force_bottom_N[k]:.6f},{c.min_volume_ratio[k]:.6f}" if full else ""
+            extra = (f",{c.force_top_N[k]:.6f},{c.force_bottom_N[k]:.6f},{c.min_volume_ratio[k]:.6f},{c.tilt_deg[k]:.4f}"
+                     if full else "")
             lines.append(f"{c.rate_mm_per_min:g},{t:.6f},{d:.6f},{f:.6f}{extra}")
     return atomic_write(path, lambda p: p.write_text("\n".join(lines) + "\n"))
 
