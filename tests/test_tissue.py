@@ -627,3 +627,18 @@ def test_unknown_config_key_is_refused_naming_it():
     with pytest.raises(ConfigError, match="youngs_modulus'") as exc:
         from_dict(TissueParams, {"youngs_modulus": 12e3})
     assert "youngs_modulus_pa" in str(exc.value)  # the allowed keys are listed
+
+
+def test_the_readme_states_the_substep_counts_the_code_picks():
+    """The README's substep figures are the automatic counts of the env's spleen and the sphere scene."""
+    import re
+    from pathlib import Path
+
+    from msdgrasp.envs.core import GraspLiftCore, GraspLiftConfig
+    from msdgrasp.physics.scenario import sphere_scene
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    m = re.search(r"(\d+) per ms on the env's coarse spleen, (\d+) on the coarse sphere", text)
+    assert m, "the README states the substep counts"
+    assert int(m.group(1)) == GraspLiftCore(GraspLiftConfig()).sim.n_sub
+    assert int(m.group(2)) == sphere_scene(resolution="coarse").simulation(1).n_sub
