@@ -15,9 +15,10 @@ from annotated_types import Ge, Gt, Le, MinLen
 from pydantic import with_config
 from typing_extensions import TypedDict
 
-from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig
+from ..envs.core import GraspLiftConfig, benchmark_config
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, config_dataclass, from_dict, read_yaml,
+    replace,
 )
 
 PositiveInt = Annotated[Int, Ge(1)]
@@ -131,15 +132,10 @@ class TrainConfig:
         learning_rate=3e-4, buffer_size=200_000, batch_size=256, gamma=0.99, tau=0.005, learning_starts=2000,
         train_freq=1, gradient_steps=1,
     ))
-    #: the training task: the default GraspLift task, with the privileged entries the critic needs,
-    #: friction drawn log-uniformly (the low-friction end, where grasps fail, comes up twice as often), a
-    #: pinch action that spends more of its range on light grips (action 0: 1.25 N) and a pull-speed action
-    #: (action 0: 10 mm/s) instead of a travel set-point, and a peak-pinch charge scaled by mu / 0.4, which
-    #: follows the ratio to the minimal slip-free force (docs/design.md)
-    env: GraspLiftConfig = field(default_factory=lambda: GraspLiftConfig(
-        privileged_obs=True, pinch_action_exponent=2.0, pull_action="forward_speed",
-        reward=RewardConfig(peak_force_mu_ref=0.4),
-        randomization=RandomizationConfig(mu_distribution="log_uniform")))
+    #: the training task: the benchmark task msdgrasp/GraspLift-v1 (envs.core.benchmark_config: friction drawn
+    #: log-uniformly, a pinch action that spends more of its range on light grips, a pull-speed action, a
+    #: peak-pinch charge scaled by mu / 0.4; docs/design.md), plus the privileged entries the critic reads
+    env: GraspLiftConfig = field(default_factory=lambda: replace(benchmark_config(), privileged_obs=True))
 
     def __post_init__(self) -> None:
         if self.asymmetric_critic and self.algo != "ppo":

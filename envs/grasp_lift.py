@@ -1,4 +1,5 @@
-"""Gymnasium environments: ``msdgrasp/GraspLift-v0`` (spleen) and ``msdgrasp/GraspLiftSphere-v0``."""
+"""Gymnasium environments: ``msdgrasp/GraspLift-v1`` (spleen) and ``msdgrasp/GraspLiftSphere-v1``, the benchmark
+task; ``-v0``, the first interface."""
 
 from __future__ import annotations
 
@@ -152,6 +153,17 @@ class GraspLiftEnv(gym.Env):
     began, on tissue damage, or on a numerical failure (a non-finite state, or with ``inverted_tet_is_failure``
     an inverted tet, min_volume_ratio <= 0; ``info["error"]`` says so; the observation
     is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
+
+    ## Version history
+    * v1 (``msdgrasp/GraspLift-v1``, ``GraspLiftSphere-v1``; :func:`.core.benchmark_config`): the benchmark task,
+      the one the default training trains on and every result is about: pinch action exponent 2, pull-speed
+      action, a peak-pinch charge scaled by mu / 0.4, friction drawn log-uniformly from 0.2-0.9 (the measurements
+      behind each are in docs/design.md); the spec states ``max_episode_steps`` (304). Physics: the volume barrier
+      integrated implicitly before the contacts (no tet inverts under a 5 N pinch and held nodes stay in their
+      friction cone), 3 substeps per ms on the coarse spleen.
+    * v0: the first interface (GraspLiftConfig's defaults: linear pinch action, pull-distance set-point, plain
+      peak-pinch charge, uniform friction); it runs the current physics, which changed under it (3 substeps
+      instead of 2, the volume floor, then the implicit barrier).
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,
     peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure (non-finite state or an
@@ -313,3 +325,30 @@ class GraspLiftVectorEnv(VectorEnv):
         from .render import render_rgb
 
         return np.stack([render_rgb(self.core, i) for i in range(self.num_envs)])
+
+
+def _benchmark(scene: str, overrides: dict[str, Any]) -> GraspLiftConfig:
+    from .core import benchmark_config
+
+    if "config" in overrides:
+        raise ValueError("the v1 ids are a fixed task: change its fields by name (gym.make(id, time_limit_s=5.0)), "
+                         "or build GraspLiftEnv(config=...) for another task")
+    return _config(benchmark_config(scene), **overrides)
+
+
+def make_benchmark_env(scene: str = "spleen", render_mode: str | None = None, **overrides: Any) -> GraspLiftEnv:
+    """``msdgrasp/GraspLift-v1`` / ``GraspLiftSphere-v1``: :class:`GraspLiftEnv` on the benchmark task
+    (:func:`.core.benchmark_config`); keyword arguments change its fields by name."""
+    return GraspLiftEnv(_benchmark(scene, overrides), render_mode)
+
+
+def make_benchmark_vector_env(num_envs: int = 1, scene: str = "spleen", render_mode: str | None = None,
+                              autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+                              max_episode_steps: int | None = None, **overrides: Any) -> GraspLiftVectorEnv:
+    """The v1 ids' vector entry point: :class:`GraspLiftVectorEnv` on the benchmark task. ``max_episode_steps``
+    (which ``gym.make_vec`` passes from the spec) must be the task's own limit: change ``time_limit_s`` instead."""
+    env = GraspLiftVectorEnv(num_envs, _benchmark(scene, overrides), render_mode, autoreset_mode)
+    if max_episode_steps is not None and int(max_episode_steps) != env.config.max_episode_steps:
+        raise ValueError(f"max_episode_steps = {max_episode_steps} differs from the task's {env.config.max_episode_steps}"
+                         f" (time_limit_s = {env.config.time_limit_s} s); set time_limit_s instead")
+    return env

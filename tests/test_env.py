@@ -59,10 +59,12 @@ def test_gym_make_both_ids():
         env.close()
 
 
-def test_gymnasium_env_checker_passes():
+@pytest.mark.parametrize("env_id", ["msdgrasp/GraspLift-v0", "msdgrasp/GraspLiftSphere-v0", "msdgrasp/GraspLift-v1",
+                                    "msdgrasp/GraspLiftSphere-v1"])
+def test_gymnasium_env_checker_passes(env_id):
     from gymnasium.utils.env_checker import check_env
 
-    env = gym.make(ENV_ID)
+    env = gym.make(env_id)
     with warnings.catch_warnings():
         # unbounded observations are by design (forces); every other checker warning is an error
         warnings.simplefilter("error", UserWarning)
@@ -157,6 +159,39 @@ def test_the_native_vector_env_is_gymnasiums_sync_vector_env_of_single_envs(mode
     assert ended_apart  # the masks of a partial end were compared
     native.close()
     sync.close()
+
+
+def test_v1_is_the_default_trainings_task_with_its_episode_limit_in_the_spec():
+    """gym.make("msdgrasp/GraspLift-v1") is the task the default training trains on (which adds only the
+    privileged entries its critic reads), and its spec states the limit at which the env truncates."""
+    from msdgrasp.agents.models import TrainConfig
+    from msdgrasp.envs.core import benchmark_config
+    from msdgrasp.envs.registration import V1_MAX_EPISODE_STEPS
+    from msdgrasp.physics.config import replace
+
+    env = gym.make("msdgrasp/GraspLift-v1")
+    assert env.unwrapped.config == benchmark_config()
+    assert replace(env.unwrapped.config, privileged_obs=True) == TrainConfig().env
+    assert env.spec.max_episode_steps == env.unwrapped.config.max_episode_steps == V1_MAX_EPISODE_STEPS
+    assert gym.make("msdgrasp/GraspLiftSphere-v1").unwrapped.config == benchmark_config("sphere")
+    with pytest.raises(ValueError, match="fixed task"):
+        gym.make("msdgrasp/GraspLift-v1", config={})
+    # fields change by name, as for the other ids
+    assert gym.make("msdgrasp/GraspLift-v1", time_limit_s=1.0).unwrapped.config.pull_action == "forward_speed"
+
+
+def test_normalize_observation_steps_the_v1_vector_env_through_episode_ends():
+    from gymnasium.wrappers.vector import NormalizeObservation
+
+    env = NormalizeObservation(gym.make_vec("msdgrasp/GraspLift-v1", num_envs=4, vectorization_mode="vector_entry_point",
+                                            time_limit_s=0.2, max_episode_steps=7))
+    env.reset(seed=0)
+    ends = 0
+    for _ in range(16):
+        obs, _, term, trunc, _ = env.step(np.zeros((4, 2), np.float32))
+        ends += int(np.sum(term | trunc))
+        assert np.all(np.isfinite(obs))
+    assert ends >= 8
 
 
 def test_gymnasiums_vector_wrappers_run_on_the_native_vector_env():
