@@ -8,6 +8,7 @@ them all.
 from __future__ import annotations
 
 import ast
+import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -107,3 +108,12 @@ def test_the_graph_sees_imports_inside_functions():
     # cli.rl imports its handlers' modules lazily (inside functions) to keep --help fast
     assert "msdgrasp.agents.seeds" in graph["msdgrasp.cli.rl"]
     assert "msdgrasp.physics.integrator" in graph["msdgrasp.physics.simulation"]
+
+
+def test_the_wheel_lists_every_subpackage():
+    """setuptools installs the packages pyproject.toml names, no others: a folder with an ``__init__.py`` missing
+    there is missing from every non-editable install."""
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(("msdgrasp",) + p.parent.relative_to(ROOT).parts)
+             for layer in LAYERS for p in (ROOT / layer).rglob("__init__.py")} | {"msdgrasp"}
+    assert listed == found
