@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
+from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
@@ -458,8 +458,8 @@ def _finish(ax, fig, xlabel: str, ylabel: str, title: str, results, intervals: s
 
 
 def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
-    import matplotlib
-
+    with needs_extra("train", "the evaluation's plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -473,8 +473,8 @@ def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
 
 
 def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
-    import matplotlib
-
+    with needs_extra("train", "the evaluation's plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

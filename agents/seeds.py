@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
+from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
 from .controllers import make_policy
 from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve, task_of
 from .learners.base import get_learner, learner_of_config, learner_of_run
@@ -360,8 +360,8 @@ def format_markdown(result: dict[str, Any]) -> str:
 
 def plot_learning_curves(seed_recs: list[dict[str, Any]], path: Path) -> Path:
     """Validation success and mean peak pinch vs steps, one line per seed."""
-    import matplotlib
-
+    with needs_extra("train", "the learning-curve plot"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -31,7 +31,7 @@ from typing import Annotated, Any, Literal, Sequence
 import numpy as np
 from annotated_types import Ge, Le
 
-from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
+from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, actor_mask
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, atomic_write, atomic_write_text, config_dataclass, from_dict,
     read_yaml, to_dict,
@@ -39,7 +39,6 @@ from ..physics.config import (
 from .controllers import TorchScriptPolicy
 from .learners.rsl_layout import LAYOUT, NAME, RUNNER_CHECKPOINT, meta_path
 from .models import TrainConfig
-from .networks import actor_mask
 
 Unit = Annotated[Real, Ge(0), Le(1)]
 

@@ -684,16 +684,18 @@ def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_pe
     reason = gpu_unavailable_reason()
     if reason is not None and not force:
         return {"available": False, "reason": reason}
-    import torch
     from numba import cuda
-    from stable_baselines3 import PPO
 
     from ..agents.torch_ppo import TorchPPOConfig, train_torch
     from ..envs.core import GraspLiftConfig
     from ..envs.cuda_core import CudaGraspLiftCore
     from ..envs.sb3 import CudaSB3VecEnv
-    from ..physics.config import replace
+    from ..physics.config import needs_extra, replace
     from ..physics.cuda_step import THREADS_PER_BLOCK
+
+    with needs_extra("train", "the learners benchmark"):
+        import torch
+        from stable_baselines3 import PPO
 
     config = config or GraspLiftConfig()
     threads = threads or THREADS_PER_BLOCK

@@ -281,12 +281,12 @@ def plot_gpu(report: dict, path: Path) -> Path | None:
     cpu = report.get("gpu_cpu_reference") or {}
     if not gpu_rows and not cpu.get("rows"):
         return None
-    import matplotlib
+    from ..physics.config import needs_extra, save_figure
 
+    with needs_extra("viz", "the benchmark plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..physics.config import save_figure
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
 
@@ -318,12 +318,12 @@ def plot_scaling(report: dict, path: Path) -> Path | None:
     ph = report.get("physics", {})
     if not ph.get("no_contact") and not ph.get("contact"):
         return None
-    import matplotlib
+    from ..physics.config import needs_extra, save_figure
 
+    with needs_extra("viz", "the benchmark plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..physics.config import save_figure
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     b = BATCH

@@ -159,13 +159,14 @@ def _add_rl_commands(sub) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from ..physics.config import ConfigError
+    from ..physics.config import ConfigError, MissingExtraError
     from ..physics.mesh import MeshError
     from ..envs.recording import RecordingError
 
     try:
         return int(args.func(args) or 0)
-    except (UsageError, ConfigError, MeshError, RecordingError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+    except (UsageError, ConfigError, MissingExtraError, MeshError, RecordingError, FileNotFoundError, PermissionError,
+            IsADirectoryError) as exc:
         print(f"msdgrasp {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -245,6 +245,14 @@ def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, ti
     return GrasperPose(tip, axis, e1)
 
 
+def actor_mask(n_task: int, frame_dim: int, history: int) -> list[bool]:
+    """True for the ``n_task`` task entries of each of ``history`` frames of ``frame_dim`` entries (a frame is
+    the task entries, then the privileged ones an asymmetric critic sees and the actor does not)."""
+    if not 0 < n_task <= frame_dim:
+        raise ValueError(f"n_task must be in (0, frame_dim={frame_dim}], got {n_task}")
+    return ([True] * n_task + [False] * (frame_dim - n_task)) * history
+
+
 def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> None:
     """A value pinned by ``reset(options=...)`` (PINNABLE) in its range, or a one-line ConfigError; ``mu``:
     the episode's friction, the bound of mu_kinetic."""

@@ -10,7 +10,7 @@ from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from ..physics.config import ConfigError
+from ..physics.config import ConfigError, require_extra
 from .core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
 
 
@@ -34,6 +34,8 @@ def check_render_mode(render_mode: str | None, env: str) -> str | None:
     """``render_mode`` if it is one the envs can render (or None); a one-line ValueError otherwise."""
     if render_mode is not None and render_mode not in RENDER_MODES:
         raise ValueError(f"{env}: render_mode must be one of {list(RENDER_MODES)} or None, got {render_mode!r}")
+    if render_mode == "rgb_array":  # a missing renderer fails at construction, not at the first render()
+        require_extra("viz", f"{env}: render_mode='rgb_array'", "matplotlib")
     return render_mode
 
 

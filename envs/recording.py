@@ -69,6 +69,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from ..physics.config import require_extra
 from .rrd_file import RecordingError, RecordingWarning, RrdSink, check_destination, recording_error
 
 __all__ = ["RecordingError", "RecordingWarning", "RerunRecorder", "record_episode", "stress_colors"]
@@ -157,6 +158,8 @@ class RerunRecorder(gym.Wrapper):
         name: str | None = None,
     ) -> None:
         super().__init__(env)
+        # a missing rerun is an error here, never a recording dropped with on_error="warn"
+        require_extra("viz", "RerunRecorder", "rerun")
         if on_error not in ("raise", "warn"):
             raise ValueError(f"on_error must be 'raise' or 'warn', got {on_error!r}")
         if color_by not in ("stress", "contact_pressure"):

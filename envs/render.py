@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ..physics.config import needs_extra
 from ..physics.contact import J_NORMAL, J_TX, J_TZ, SLIP, STICK, WALL_SLIP, WALL_STICK
 from ..physics.grasper import GrasperPose, jaw_face_corners
 
@@ -48,10 +49,11 @@ class _Frame:
     """The cached figure of one core and image size."""
 
     def __init__(self, core: Any, width: int, height: int) -> None:
-        from matplotlib import colormaps
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+        with needs_extra("viz", "rendering"):
+            from matplotlib import colormaps
+            from matplotlib.backends.backend_agg import FigureCanvasAgg
+            from matplotlib.figure import Figure
+            from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
         dpi = 100
         self.width, self.height = width, height

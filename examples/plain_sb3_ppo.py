@@ -1,5 +1,6 @@
 """A user's own plain Stable-Baselines3 PPO on the registered env: default hyper-parameters, one env.
 
+    pip install 'msdgrasp[train]'
     python examples/plain_sb3_ppo.py --steps 300000 --seed 0
 
 Prints, every 16384 steps, the success rate and mean peak pinch of the last 100 training episodes

@@ -19,7 +19,7 @@ import numpy as np
 from annotated_types import Ge, Gt, Le, MinLen
 
 from ..physics.config import (
-    Bool, ConfigError, Int, NonNegative, Real, atomic_write, config_dataclass, from_dict, save_figure,
+    Bool, ConfigError, Int, NonNegative, Real, atomic_write, config_dataclass, from_dict, needs_extra, save_figure,
 )
 from ..physics.mesh import TetMesh
 from ..physics.scenario import load_params
@@ -32,8 +32,8 @@ ProgressFactory = Callable[[int, str], object] | None
 def _progress(total: int, desc: str, enabled: bool):
     if not enabled:
         return None
-    from tqdm.auto import tqdm
-
+    with needs_extra("viz", "the progress bar"):
+        from tqdm.auto import tqdm
     return tqdm(total=total, desc=desc, unit="ms", mininterval=0.5, leave=False)
 
 
@@ -198,8 +198,8 @@ def read_compression_csv(path: str | Path) -> list[CompressionCurve]:
 
 
 def plot_compression(curves: Sequence[CompressionCurve], path: str | Path, title: str = "") -> Path:
-    import matplotlib
-
+    with needs_extra("viz", "the compression plot"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

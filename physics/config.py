@@ -10,14 +10,16 @@ interrupted or failed write never leaves a half-written file behind.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import importlib
 import math
 import os
 import tempfile
 import types
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -34,12 +36,37 @@ __all__ = [
     "RECORD_CONFIG", "Bool", "ConfigError", "Int", "NonNegative", "Positive", "Real", "Str", "atomic_write",
     "ConfigFile", "GRASPER_FILE", "TISSUE_FILE", "atomic_write_text", "builtin_config", "check_choice", "check_range",
     "config_dataclass", "from_dict", "load_config", "read_config_file", "read_yaml", "replace",
-    "save_figure", "to_dict", "write_yaml",
+    "save_figure", "to_dict", "write_yaml", "MissingExtraError", "needs_extra", "require_extra",
 ]
 
 
 class ConfigError(ValueError):
     """A configuration value is missing, unknown, of the wrong type or out of range."""
+
+
+class MissingExtraError(ImportError):
+    """An optional dependency is not installed; the message names the extra of msdgrasp that installs it."""
+
+
+@contextlib.contextmanager
+def needs_extra(extra: str, purpose: str) -> Iterator[None]:
+    """Wrap the imports of an optional dependency (the core install is the env and the physics only).
+
+    A module missing inside the block raises :class:`MissingExtraError`, one line naming ``purpose``, the
+    module and the command that installs it: ``pip install 'msdgrasp[<extra>]'``.
+    """
+    try:
+        yield
+    except ModuleNotFoundError as exc:
+        raise MissingExtraError(f"{purpose}: {exc.name or 'a module'} is not installed; "
+                                f"pip install 'msdgrasp[{extra}]'") from None
+
+
+def require_extra(extra: str, purpose: str, *modules: str) -> None:
+    """Import ``modules`` now: a command that uses them only at its end (plots after a run) fails before the run."""
+    with needs_extra(extra, purpose):
+        for name in modules:
+            importlib.import_module(name)
 
 
 # ----------------------------------------------------------------------------------------------
