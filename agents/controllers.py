@@ -26,7 +26,7 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig, pinch_action
 from ..envs.task import OBS, obs_group
-from ..physics.config import ConfigError, needs_extra
+from ..physics.config import needs_extra
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")

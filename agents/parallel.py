@@ -285,7 +285,8 @@ def unpack(archive: bytes, folder: str | Path, source: str = "job archive") -> N
             tar.extractall(dest, members=members)
 
 
-def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None, *args: Any) -> dict[str, Any]:
+def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None,
+                  *args: Any) -> dict[str, Any]:
     """Run ``fn(folder, *args)`` (a job body that writes into ``folder`` and returns a dict).
 
     On the driver's node (or outside Ray) it writes ``folder`` directly. On another node it writes a

@@ -154,7 +154,8 @@ def train_points(configs: Sequence[Any], folders: Sequence[Path], seeds: Sequenc
     per-seed records, their aggregate, the baselines and the oracle's minimal-force curve."""
     mus = [float(m) for m in mus]
     learners = [learner_of_config(c).name for c in configs]
-    cfg_dicts = [to_dict(learner_of_config(c).one_core(c)) for c in configs]  # one core per job: jobs are the parallelism
+    # one core per job: the jobs are the parallelism
+    cfg_dicts = [to_dict(learner_of_config(c).one_core(c)) for c in configs]
     tasks: list[str] = []  # distinct env configs (a sweep over training settings shares one baseline)
     task_of_point = []
     for c in cfg_dicts:
@@ -203,7 +204,8 @@ def _point_result(base: dict[str, Any], recs: list[dict[str, Any]]) -> dict[str,
     return {
         "per_seed": seed_recs,
         "aggregate": {k: aggregate([r[k] for r in seed_recs]) for k in AGGREGATED},
-        "baselines": {name: _row_metrics(base[name], minimal) | {"rows": base[name]} for name in ("reactive", "oracle")},
+        "baselines": {name: _row_metrics(base[name], minimal) | {"rows": base[name]}
+                      for name in ("reactive", "oracle")},
         "oracle_minimal_force": base["oracle_minimal_force"],
     }
 
@@ -352,8 +354,8 @@ def format_markdown(result: dict[str, Any]) -> str:
               "## Aggregate over seeds", "",
               "| metric | mean | IQM | min | max | bootstrap 95% CI of the mean |", "|---|---|---|---|---|---|"]
     for key, agg in result["aggregate"].items():
-        lines.append(f"| {key} | {fmt_value(agg['mean'])} | {fmt_value(agg['iqm'])} | {fmt_value(agg['min'])} | {fmt_value(agg['max'])} "
-                     f"| [{fmt_value(agg['ci95'][0])}, {fmt_value(agg['ci95'][1])}] |")
+        lines.append(f"| {key} | {fmt_value(agg['mean'])} | {fmt_value(agg['iqm'])} | {fmt_value(agg['min'])} "
+                     f"| {fmt_value(agg['max'])} | [{fmt_value(agg['ci95'][0])}, {fmt_value(agg['ci95'][1])}] |")
     lines += ["", f"Wall time {result['wall_s']:.0f} s, {result['workers']} jobs at a time ({result['runner']})."]
     return "\n".join(lines) + "\n"
 

@@ -562,7 +562,8 @@ def markdown_table(report: dict) -> str:
               "|---|---|---|---|---|---|"]
     for p in PHASES:
         lines.append(f"| {p} | {one['phases_us_per_substep'][p]} | {one['phases_share_of_whole'][p]} | "
-                     f"{batch['phases_us_per_substep'][p]} | {_r(batch['phases_us_per_substep'][p] / batch['tissues'])} "
+                     f"{batch['phases_us_per_substep'][p]} | "
+                     f"{_r(batch['phases_us_per_substep'][p] / batch['tissues'])} "
                      f"| {batch['phases_share_of_whole'][p]} |")
     for key, label in (("sum_of_phases_us", "sum of phases"), ("whole_us_per_substep", "whole simulate"),
                        ("remainder_us", "remainder (whole - sum)")):

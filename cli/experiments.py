@@ -104,7 +104,8 @@ def grasp_cli(args: argparse.Namespace) -> int:
     for r in runs:
         files.append(str(write_grasp_csv(r, out / f"grasp_mu{r.mu:g}.csv")))
     files.append(str(plot_grasp(runs, out / "grasp.png", protocol)))
-    verdicts = grasp_verdicts(runs, scene.model.params.relaxation_time_s if scene.model.params.relaxation_strength > 0 else None)
+    verdicts = grasp_verdicts(
+        runs, scene.model.params.relaxation_time_s if scene.model.params.relaxation_strength > 0 else None)
     summary = {"files": files, "runs": [r.summary for r in runs], "verdicts": verdicts}
     _print_verdicts(verdicts)
     atomic_write_text(out / "grasp_summary.json", json.dumps(summary, indent=2))

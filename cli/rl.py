@@ -329,7 +329,8 @@ def _cmd_select(args: argparse.Namespace) -> int:
         best = r["best"]
         shown.append({"run": r["run"], "learner": r["learner"], "validation_episodes": r["validation_episodes"],
                       "checkpoints_validated": r["checkpoints_validated"], "selection_s": r["selection_s"],
-                      "best": best["model"], "success_rate": best["success_rate"], "force_cost_N": best["force_cost_N"]})
+                      "best": best["model"], "success_rate": best["success_rate"],
+                      "force_cost_N": best["force_cost_N"]})
     print(json.dumps(shown, indent=2))
     return 0
 
@@ -425,7 +426,8 @@ def add_rl_commands(sub) -> None:
     sl.add_argument("--validation-episodes", type=int, default=None,
                     help="episodes per mu and checkpoint (default: the run's own, 6 in the shipped configs)")
     sl.add_argument("--validation-mu", default=None,
-                    help="friction coefficients to validate at: a comma list or start:stop:step (default: the run's own)")
+                    help="friction coefficients to validate at: a comma list or start:stop:step "
+                         "(default: the run's own)")
     _add_runner_args(sl, "the seeds' selections")
     sl.set_defaults(func=_cmd_select)
 

@@ -19,7 +19,8 @@ import numpy as np
 from annotated_types import Ge, Gt, Le, Lt
 
 from ..physics.config import (
-    Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml, to_dict,
+    Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml,
+    to_dict,
 )
 from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
@@ -273,7 +274,8 @@ class GraspLiftCore:
         if cfg.grasper_config is None:
             from ..physics.config import builtin_config
 
-            cfg = self.config = from_dict(GraspLiftConfig, {**to_dict(cfg), "grasper_config": str(builtin_config("grasper/env.yaml"))})
+            cfg = self.config = from_dict(GraspLiftConfig, {**to_dict(cfg),
+                                                            "grasper_config": str(builtin_config("grasper/env.yaml"))})
         if cfg.scene == "spleen":
             self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution,
                                                   insert_depth_m=cfg.grasp_depth_m,
@@ -306,7 +308,8 @@ class GraspLiftCore:
         on &= np.isin(np.arange(mesh.n_nodes), mesh.surface_nodes)[:, None]
         self.nominal_contacts = np.maximum(on.sum(axis=0), 1).astype(np.float64)
         rng0 = np.random.default_rng(0)
-        self.priv_nodes = np.sort(rng0.choice(mesh.n_nodes, size=min(cfg.privileged_nodes, mesh.n_nodes), replace=False))
+        self.priv_nodes = np.sort(rng0.choice(mesh.n_nodes, size=min(cfg.privileged_nodes, mesh.n_nodes),
+                                              replace=False))
         #: one observation frame; the observation is the last ``obs_history`` frames, oldest first
         self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0)
         self.obs_dim = self.frame_dim * cfg.obs_history

@@ -40,7 +40,8 @@ STICK_COLOUR = "#00e000"
 SLIP_COLOUR = "#ff0000"
 #: force arrows: metres of arrow per newton
 ARROW_M_PER_N = 0.025
-_COLOUR_LABELS = {"strain": ("strain (%)", STRAIN_FULL_SCALE_PCT), "pressure": ("contact pressure (kPa)", STRESS_FULL_SCALE_KPA),
+_COLOUR_LABELS = {"strain": ("strain (%)", STRAIN_FULL_SCALE_PCT),
+                  "pressure": ("contact pressure (kPa)", STRESS_FULL_SCALE_KPA),
                   "displacement": ("displacement (mm)", DISP_FULL_SCALE_MM)}
 _CMAPS = {"strain": "viridis", "pressure": "inferno", "displacement": "cividis"}
 

@@ -151,7 +151,8 @@ def run_grasp(
     runs = []
     for b, mu in enumerate(mus):
         cols = list(zip(*rows[b])) if rows[b] else [[] for _ in COLUMNS]
-        data = {name: np.array(col) if name != "phase" else np.array(col, dtype=object) for name, col in zip(COLUMNS, cols)}
+        data = {name: np.array(col) if name != "phase" else np.array(col, dtype=object)
+                for name, col in zip(COLUMNS, cols)}
         run = GraspRun(mu, data)
         run.summary = summarize_grasp(run, protocol, outcome[b], end_time[b])
         runs.append(run)

@@ -203,7 +203,8 @@ def describe_validation_error(exc: pydantic.ValidationError, cls: Any, where: st
         text = (f"{path} = {value!r} is out of range; allowed "
                 f"{interval_text(lo, hi, 'gt' not in bounds, 'lt' not in bounds)}")
     elif kind == "too_short":
-        text = f"{path} must have at least {ctx['min_length']} entr{'y' if ctx['min_length'] == 1 else 'ies'}, got {value!r}"
+        text = (f"{path} must have at least {ctx['min_length']} entr{'y' if ctx['min_length'] == 1 else 'ies'}, "
+                f"got {value!r}")
     elif kind == "too_long":
         text = f"{path} must have at most {ctx['max_length']} entries, got {value!r}"
     elif kind == "literal_error":
@@ -243,7 +244,8 @@ def check_range(
     lo_ok = lo is None or (value >= lo if lo_inclusive else value > lo)
     hi_ok = hi is None or (value <= hi if hi_inclusive else value < hi)
     if not (lo_ok and hi_ok):
-        raise ConfigError(f"{name} = {value!r} is out of range; allowed {interval_text(lo, hi, lo_inclusive, hi_inclusive)}")
+        raise ConfigError(f"{name} = {value!r} is out of range; "
+                          f"allowed {interval_text(lo, hi, lo_inclusive, hi_inclusive)}")
 
 
 def check_choice(name: str, value: Any, choices: typing.Iterable[Any]) -> None:
@@ -335,7 +337,8 @@ TISSUE_FILE = ConfigFile(
 #: a grasper config (configs/grasper/*.yaml)
 GRASPER_FILE = ConfigFile(
     "grasper config", ("grasper",), ("grasper",),
-    (("grasper", "grasper: {jaw_length_m: 0.03, jaw_width_m: 0.014, mu: 0.6, ...} (see configs/grasper/default.yaml)"),),
+    (("grasper",
+      "grasper: {jaw_length_m: 0.03, jaw_width_m: 0.014, mu: 0.6, ...} (see configs/grasper/default.yaml)"),),
 )
 
 

@@ -18,7 +18,8 @@ import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-LAYERS = ("configs", "meshes", "physics", "experiments", "envs", "agents", "benchmarks", "cli")  # a module may import only its own layer and lower ones
+# a module may import only its own layer and lower ones
+LAYERS = ("configs", "meshes", "physics", "experiments", "envs", "agents", "benchmarks", "cli")
 
 
 def _modules() -> dict[str, Path]:

@@ -165,7 +165,8 @@ def test_select_on_ray_ships_each_runs_checkpoints_and_picks_as_local_processes(
         # the history names the run's own checkpoints, not the copy the job validated
         run = sb3_seeds / f"seed_{k}"
         assert [h["model"] for h in b["validation"]["history"]] == [
-            str(run / "checkpoints" / "model_256.zip"), str(run / "checkpoints" / "model_512.zip"), str(run / "final_model.zip")]
+            str(run / "checkpoints" / "model_256.zip"), str(run / "checkpoints" / "model_512.zip"),
+            str(run / "final_model.zip")]
     # a node that cannot read the run: the job validates the archive alone, its pick lands in the driver's folder
     plan = plan_selection(sb3_seeds / "seed_0", validation_episodes=2)
     archive = pack_run(plan)
@@ -181,7 +182,8 @@ def test_select_on_ray_ships_each_runs_checkpoints_and_picks_as_local_processes(
         away.rename(sb3_seeds)
     assert _picked(target) == _picked(tmp_path / "local" / "seed_0")
     summary = json.loads((target / "train_summary.json").read_text())
-    assert summary["best_model"] == str(target / "best_model.zip") and summary["selected_from"] == str(sb3_seeds / "seed_0")
+    assert (summary["best_model"] == str(target / "best_model.zip")
+            and summary["selected_from"] == str(sb3_seeds / "seed_0"))
 
 
 def _sweep(**extra) -> SweepConfig:
@@ -226,7 +228,8 @@ def test_ray_evaluation_equals_the_in_process_evaluation(tmp_path, local_ray):
     kw = dict(mus=[0.3, 0.6], episodes=2, progress=False, conditions=({"stiffness_scale": 1.5},))
     seq = evaluate(["fixed"], out_dir=tmp_path / "seq", **kw)
     par = evaluate(["fixed"], out_dir=tmp_path / "ray", runner=Runner.ray(), **kw)
-    assert [r["name"] for r in par["results"]] == [r["name"] for r in seq["results"]] == ["fixed2.5N", "reactive", "oracle"]
+    assert ([r["name"] for r in par["results"]] == [r["name"] for r in seq["results"]]
+            == ["fixed2.5N", "reactive", "oracle"])
     for a, b in zip(seq["results"], par["results"]):
         assert a["rows"] == b["rows"]
     assert seq["oracle_minimal_force"] == par["oracle_minimal_force"]
