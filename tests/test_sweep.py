@@ -85,50 +85,6 @@ def test_a_job_on_another_node_lands_its_folder_in_the_drivers_output(tmp_path, 
     assert land(res, tmp_path / "here") == res and (tmp_path / "here" / "model.txt").read_text() == "w2"
 
 
-def _tar(*members: tuple[str, bytes | None, str | None]) -> bytes:
-    """A tar.gz of (name, file bytes or None, symlink target or None) members, names taken as given."""
-    import tarfile
-
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
-        for name, data, link in members:
-            info = tarfile.TarInfo(name)
-            if link is not None:
-                info.type, info.linkname = tarfile.SYMTYPE, link
-                tar.addfile(info)
-            else:
-                info.size = len(data)
-                tar.addfile(info, io.BytesIO(data))
-    return buf.getvalue()
-
-
-@pytest.mark.parametrize("filters", [True, False], ids=["data_filter", "own_checks"])
-def test_unpack_extracts_a_packed_folder_and_refuses_members_that_leave_it(tmp_path, monkeypatch, filters):
-    """With tarfile's "data" filter (Python >= 3.11.4) and with the member checks used where it is missing
-    (3.11.0-3.11.3): a packed folder comes back byte for byte; an archive with a member that would land
-    outside the folder is refused, naming the member, before anything is written."""
-    if filters and not parallel._has_data_filter():
-        pytest.skip("this Python's tarfile has no extraction filters")
-    monkeypatch.setattr(parallel, "_has_data_filter", lambda: filters)
-    src = tmp_path / "src"
-    (src / "sub").mkdir(parents=True)
-    (src / "a.txt").write_text("alpha")
-    (src / "sub" / "b.bin").write_bytes(bytes(range(256)))
-    out = tmp_path / "out"
-    parallel.unpack(parallel.pack(src, [src / "a.txt", src / "sub"]), out)
-    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["a.txt", "sub", "sub/b.bin"]
-    assert (out / "a.txt").read_text() == "alpha" and (out / "sub" / "b.bin").read_bytes() == bytes(range(256))
-    bad = {"../evil": _tar(("ok.txt", b"ok", None), ("../evil", b"x", None)),
-           str(tmp_path / "abs_evil"): _tar(("ok.txt", b"ok", None), (str(tmp_path / "abs_evil"), b"x", None)),
-           "up": _tar(("ok.txt", b"ok", None), ("up", None, "../../outside"))}
-    for member, archive in bad.items():
-        dest = tmp_path / "bad"
-        with pytest.raises(ConfigError, match=f"job archive for {dest}: member '{member}' has ") as err:
-            parallel.unpack(archive, dest)
-        assert "\n" not in str(err.value)
-        assert not dest.exists() and not (tmp_path / "evil").exists() and not (tmp_path / "abs_evil").exists()
-
-
 @pytest.fixture(scope="module")
 def sb3_seeds(tmp_path_factory) -> Path:
     """Two seeds of a TINY finished SB3 run (copies: the same checkpoints) on 0.2 s episodes."""
