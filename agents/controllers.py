@@ -26,7 +26,7 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig, pinch_action
 from ..envs.task import OBS, obs_group
-from ..physics.config import ConfigError
+from ..physics.config import needs_extra
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -237,7 +237,8 @@ class TorchScriptPolicy:
     observation columns and the training config)."""
 
     def __init__(self, path: str | Path, name: str | None = None) -> None:
-        import torch
+        with needs_extra("train", "a TorchScript policy"):
+            import torch
 
         from .learners.rsl_layout import read_meta
 

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
+from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
@@ -322,7 +322,8 @@ def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: Gr
 def check_policy_spec(spec: str) -> None:
     """Raise ConfigError for an unusable spec (bad ``fixed:<N>``, unknown name, missing model file)."""
     if not isinstance(spec, str) or not spec.strip():
-        raise ConfigError(f"policy {spec!r}: empty policy spec; use one of {', '.join(BUILTIN_POLICIES)} or a model path")
+        raise ConfigError(f"policy {spec!r}: empty policy spec; use one of {', '.join(BUILTIN_POLICIES)} "
+                          "or a model path")
     if spec in _NAMED:
         return
     if spec.startswith("fixed:"):
@@ -344,7 +345,8 @@ def check_policy_spec(spec: str) -> None:
     if looks_like_path:
         raise ConfigError(f"policy {spec!r}: model file not found: {path}")
     raise ConfigError(
-        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model ({model_kinds()})"
+        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model "
+        f"({model_kinds()})"
     )
 
 
@@ -458,8 +460,8 @@ def _finish(ax, fig, xlabel: str, ylabel: str, title: str, results, intervals: s
 
 
 def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
-    import matplotlib
-
+    with needs_extra("train", "the evaluation's plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -473,8 +475,8 @@ def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
 
 
 def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
-    import matplotlib
-
+    with needs_extra("train", "the evaluation's plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -562,7 +564,8 @@ def trained_task_of(policies: Sequence[str]) -> tuple[GraspLiftConfig, str | Non
 def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
              config: GraspLiftConfig | None = None, seed: int = 0, record: bool = False,
              progress: bool = True, n_envs: int | None = None, video: bool = False,
-             conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS, runner: Runner | None = None) -> dict[str, Any]:
+             conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS,
+             runner: Runner | None = None) -> dict[str, Any]:
     """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
 
     Every spec is validated (and every model loaded) before any episode runs or anything is written.
@@ -800,7 +803,8 @@ def _record_all(names, built, mus, config, seed, folder: Path, progress: bool, s
                 summary = record_policy_episode(pol, env, path, mu, seed)
                 paths.append(summary["path"])
                 if progress:
-                    print(f"  recorded {path} ({summary['steps']} steps, success={summary['success']})", file=sys.stderr)
+                    print(f"  recorded {path} ({summary['steps']} steps, success={summary['success']})",
+                          file=sys.stderr)
     finally:
         env.close()
     return paths
@@ -826,7 +830,8 @@ def format_table(results: list[dict[str, Any]]) -> str:
             ttl_s = "-" if ttl is None or not math.isfinite(ttl) else f"{ttl:.2f}"
             lines.append(
                 f"{pol['name'][:16]:<16} {r['mu']:>5.2f} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f} "
-                f"{r.get('peak_pinch_over_oracle_min', float('nan')):>7.2f} {r['max_peak_pinch_N']:>6.2f} {r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
+                f"{r.get('peak_pinch_over_oracle_min', float('nan')):>7.2f} {r['max_peak_pinch_N']:>6.2f} "
+                f"{r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
                 f"{r['mean_peak_stress_kPa']:>10.1f} {ttl_s:>8}"
             )
     return "\n".join(lines)

@@ -15,10 +15,14 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import numpy as np
-import torch
 from gymnasium import spaces
-from stable_baselines3.common.policies import ActorCriticPolicy
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, get_flattened_obs_dim
+
+from ..physics.config import needs_extra
+
+with needs_extra("train", "the SB3 policy networks"):
+    import torch
+    from stable_baselines3.common.policies import ActorCriticPolicy
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, get_flattened_obs_dim
 
 
 class MaskedFlatten(BaseFeaturesExtractor):
@@ -38,8 +42,8 @@ class MaskedFlatten(BaseFeaturesExtractor):
 class AsymmetricActorCriticPolicy(ActorCriticPolicy):
     """``MlpPolicy`` whose actor sees only the entries where ``actor_mask`` is True; the critic sees all.
 
-    Pass ``policy_kwargs={"actor_mask": mask, "net_arch": [...]}``; :func:`actor_mask` builds the mask of a
-    GraspLift observation. Actor and critic get separate networks (``share_features_extractor`` is off).
+    Pass ``policy_kwargs={"actor_mask": mask, "net_arch": [...]}``; :func:`~msdgrasp.envs.core.actor_mask` builds the
+    mask of a GraspLift observation. Actor and critic get separate networks (``share_features_extractor`` is off).
     """
 
     def __init__(self, *args: Any, actor_mask: Sequence[bool], **kwargs: Any) -> None:
@@ -55,10 +59,3 @@ class AsymmetricActorCriticPolicy(ActorCriticPolicy):
         data = super()._get_constructor_parameters()
         data["actor_mask"] = self.actor_mask
         return data
-
-
-def actor_mask(n_task: int, frame_dim: int, history: int) -> list[bool]:
-    """True for the ``n_task`` task entries of each of ``history`` frames of ``frame_dim`` entries."""
-    if not 0 < n_task <= frame_dim:
-        raise ValueError(f"n_task must be in (0, frame_dim={frame_dim}], got {n_task}")
-    return ([True] * n_task + [False] * (frame_dim - n_task)) * history

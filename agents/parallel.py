@@ -219,9 +219,10 @@ def move_paths(result: Any, folder: str | Path, old: str, new: str) -> Any:
 
 
 def pack(root: str | Path, paths: Sequence[str | Path]) -> bytes:
-    """``paths`` (files or folders under ``root``) as a tar.gz archive, named relative to ``root``."""
+    """``paths`` (files or folders under ``root``) as a tar.gz archive, named relative to ``root``. Links are
+    stored as what they point to: an archive holds regular files and folders only, all :func:`unpack` takes."""
     buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
+    with tarfile.open(fileobj=buf, mode="w:gz", dereference=True) as tar:
         for path in paths:
             tar.add(path, arcname=str(Path(path).relative_to(root)))
     return buf.getvalue()
@@ -233,8 +234,11 @@ def _has_data_filter() -> bool:
 
 
 def _check_member(member: tarfile.TarInfo, dest: Path, where: str) -> None:
-    """A member of a job archive must land inside ``dest``: no absolute path (which the "data" filter would
-    only strip), no ``..``, no link pointing outside, no device or fifo."""
+    """A member of a job archive is a regular file or a folder that lands inside ``dest``: no absolute path
+    (which the "data" filter would only strip), no ``..``, no path through a link already in ``dest``, and no
+    link, device or fifo. Links are refused outright, not checked for where they point: a target judged
+    before extraction can change meaning once an earlier member is a link itself (``b -> .``, then
+    ``a -> b/..`` leaves the folder), and :func:`pack` stores none."""
     name = member.name
     bad = None
     if name.startswith(("/", "\\")) or Path(name).is_absolute() or os.path.splitdrive(name)[0]:
@@ -243,30 +247,38 @@ def _check_member(member: tarfile.TarInfo, dest: Path, where: str) -> None:
         bad = "a '..' component"
     elif not (dest / name).resolve().is_relative_to(dest):
         bad = "a path outside the folder"
+    elif member.issym() or member.islnk():
+        bad = f"a link (to {member.linkname!r})"
     elif member.isdev():  # character or block device, fifo
         bad = "a device or fifo"
-    elif member.issym() or member.islnk():
-        link = member.linkname
-        # a symlink's target is relative to its own folder, a hard link's to the archive root
-        base = (dest / name).parent if member.issym() else dest
-        if Path(link).is_absolute() or link.startswith(("/", "\\")):
-            bad = f"a link to the absolute path {link!r}"
-        elif not (base / link).resolve().is_relative_to(dest):
-            bad = f"a link outside the folder ({link!r})"
     elif not (member.isfile() or member.isdir()):
         bad = "an unsupported member type"
     if bad is not None:
         raise ConfigError(f"{where}: member {name!r} has {bad}; refused")
 
 
+def _as_data(member: tarfile.TarInfo) -> None:
+    """What tarfile's "data" filter changes on a checked member, for Pythons without it: no set-id or sticky
+    bits and no write access for group and others; a file readable and writable by its owner, executable by
+    the others only where by its owner; owned by the user who unpacks (the archive's owner is ignored)."""
+    mode = member.mode & 0o755
+    if member.isfile():
+        if not mode & 0o100:
+            mode &= ~0o111
+        mode |= 0o600
+    member.mode = mode
+    if hasattr(os, "getuid"):  # (tarfile sets owners only on POSIX, as root)
+        member.uid, member.gid, member.uname, member.gname = os.getuid(), os.getgid(), "", ""
+
+
 def unpack(archive: bytes, folder: str | Path, source: str = "job archive") -> None:
     """Unpack a :func:`pack` archive into ``folder`` (made if missing).
 
-    Nothing may land outside ``folder``: absolute paths, ``..`` components, links pointing outside and
-    devices or fifos are refused with a :class:`ConfigError` naming ``source`` (the archive) and the member,
+    Nothing may land outside ``folder``: absolute paths, ``..`` components, paths through a link, links,
+    devices and fifos are refused with a :class:`ConfigError` naming ``source`` (the archive) and the member,
     before anything is written. Extraction then goes through tarfile's "data" filter where it has one
-    (Python >= 3.11.4); 3.11.0-3.11.3 lack it, and there the members lose set-id bits and write access for
-    group and others as that filter would do."""
+    (Python >= 3.11.4); 3.11.0-3.11.3 lack it, and there :func:`_as_data` sets the modes and owners as that
+    filter would."""
     dest = Path(folder).resolve()
     where = f"{source} for {folder}"
     with tarfile.open(fileobj=io.BytesIO(archive), mode="r:gz") as tar:
@@ -281,11 +293,12 @@ def unpack(archive: bytes, folder: str | Path, source: str = "job archive") -> N
                 raise ConfigError(f"{where}: member {exc.tarinfo.name!r} refused ({exc})") from None
         else:
             for member in members:
-                member.mode &= 0o755
+                _as_data(member)
             tar.extractall(dest, members=members)
 
 
-def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None, *args: Any) -> dict[str, Any]:
+def run_in_folder(fn: Callable[..., dict[str, Any]], folder: str, driver_node: str | None,
+                  *args: Any) -> dict[str, Any]:
     """Run ``fn(folder, *args)`` (a job body that writes into ``folder`` and returns a dict).
 
     On the driver's node (or outside Ray) it writes ``folder`` directly. On another node it writes a

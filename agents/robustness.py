@@ -176,7 +176,8 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         "suite": suite, "version": SUITE_VERSION, "episodes": int(episodes), "seed": int(seed),
         "seconds": round(time.perf_counter() - t0, 2), "runner": "this process" if runner is None else runner.label,
         "task_from": trained_on or "the default training's task (TrainConfig().env)", "config": to_dict(config),
-        "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3, "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
+        "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
+        "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
         "conditions": [dataclasses.asdict(c) for c in conditions],
         "leaderboard": [board[p] for p in order],
         "results": [{"policy": names[p], "spec": specs[p],
@@ -199,10 +200,10 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
     lines = [f"# Robustness suite `{result['suite']}` v{result['version']}", "",
              f"{len(result['conditions'])} conditions, {result['episodes']} episodes per mu "
              f"(mu {', '.join(f'{m:g}' for m in MUS)} unless the condition sets it), seeds {result['seed']}.."
-             f"{result['seed'] + result['episodes'] - 1}; task: {result['task_from']}. Score: success averaged over the "
-             f"conditions. Force ratio: mean peak pinch over the oracle's minimal slip-free force at that mu on the "
-             f"nominal task. Damage threshold: {result['damage_pressure_kPa']:g} kPa (published, human bowel, 10 s "
-             "grasps).", "",
+             f"{result['seed'] + result['episodes'] - 1}; task: {result['task_from']}. "
+             f"Score: success averaged over the conditions. Force ratio: mean peak pinch over the oracle's "
+             f"minimal slip-free force at that mu on the nominal task. "
+             f"Damage threshold: {result['damage_pressure_kPa']:g} kPa (published, human bowel, 10 s grasps).", "",
              "| rank | policy | score | mean force ratio | worst condition (success) | max peak pressure kPa |",
              "|---|---|---|---|---|---|"]
     for k, row in enumerate(result["leaderboard"], 1):

@@ -19,9 +19,12 @@ Only imported where rsl-rl is installed (the ``gpu`` extra); rsl-rl resolves it 
 
 from __future__ import annotations
 
-import torch
-from rsl_rl.modules.distribution import GaussianDistribution
-from torch import nn
+from ..physics.config import needs_extra
+
+with needs_extra("gpu", "the torch-native PPO's squashed actions"):
+    import torch
+    from rsl_rl.modules.distribution import GaussianDistribution
+    from torch import nn
 
 #: distance kept from the bounds where squashed actions are mapped back (float32 tanh reaches 1.0 at |u| ~ 9)
 EPS = 1e-6

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..physics.config import ConfigError, atomic_write_text, from_dict, save_figure, to_dict
+from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
 from .controllers import make_policy
 from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve, task_of
 from .learners.base import get_learner, learner_of_config, learner_of_run
@@ -154,7 +154,8 @@ def train_points(configs: Sequence[Any], folders: Sequence[Path], seeds: Sequenc
     per-seed records, their aggregate, the baselines and the oracle's minimal-force curve."""
     mus = [float(m) for m in mus]
     learners = [learner_of_config(c).name for c in configs]
-    cfg_dicts = [to_dict(learner_of_config(c).one_core(c)) for c in configs]  # one core per job: jobs are the parallelism
+    # one core per job: the jobs are the parallelism
+    cfg_dicts = [to_dict(learner_of_config(c).one_core(c)) for c in configs]
     tasks: list[str] = []  # distinct env configs (a sweep over training settings shares one baseline)
     task_of_point = []
     for c in cfg_dicts:
@@ -203,7 +204,8 @@ def _point_result(base: dict[str, Any], recs: list[dict[str, Any]]) -> dict[str,
     return {
         "per_seed": seed_recs,
         "aggregate": {k: aggregate([r[k] for r in seed_recs]) for k in AGGREGATED},
-        "baselines": {name: _row_metrics(base[name], minimal) | {"rows": base[name]} for name in ("reactive", "oracle")},
+        "baselines": {name: _row_metrics(base[name], minimal) | {"rows": base[name]}
+                      for name in ("reactive", "oracle")},
         "oracle_minimal_force": base["oracle_minimal_force"],
     }
 
@@ -352,16 +354,16 @@ def format_markdown(result: dict[str, Any]) -> str:
               "## Aggregate over seeds", "",
               "| metric | mean | IQM | min | max | bootstrap 95% CI of the mean |", "|---|---|---|---|---|---|"]
     for key, agg in result["aggregate"].items():
-        lines.append(f"| {key} | {fmt_value(agg['mean'])} | {fmt_value(agg['iqm'])} | {fmt_value(agg['min'])} | {fmt_value(agg['max'])} "
-                     f"| [{fmt_value(agg['ci95'][0])}, {fmt_value(agg['ci95'][1])}] |")
+        lines.append(f"| {key} | {fmt_value(agg['mean'])} | {fmt_value(agg['iqm'])} | {fmt_value(agg['min'])} "
+                     f"| {fmt_value(agg['max'])} | [{fmt_value(agg['ci95'][0])}, {fmt_value(agg['ci95'][1])}] |")
     lines += ["", f"Wall time {result['wall_s']:.0f} s, {result['workers']} jobs at a time ({result['runner']})."]
     return "\n".join(lines) + "\n"
 
 
 def plot_learning_curves(seed_recs: list[dict[str, Any]], path: Path) -> Path:
     """Validation success and mean peak pinch vs steps, one line per seed."""
-    import matplotlib
-
+    with needs_extra("train", "the learning-curve plot"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -82,7 +82,8 @@ def plan_selection(run: str | Path, validation_episodes: int | None = None,
         raise ConfigError(f"select: {run} was trained without validation; give validation_episodes >= 1")
     summary = run / layout.summary
     if not summary.is_file():
-        raise ConfigError(f"select: {summary} is missing: the run did not finish (its training summary is written last)")
+        raise ConfigError(f"select: {summary} is missing: the run did not finish "
+                          "(its training summary is written last)")
     return SelectionPlan(run, learner.name, config, tuple(checkpoints), summary)
 
 
@@ -90,7 +91,8 @@ def _check_out(plan: SelectionPlan, out: Path) -> None:
     if out.resolve() == plan.run.resolve():
         raise ConfigError(f"select: --out {out} is the run itself; the run's own pick is kept, give another folder")
     if (out / "checkpoints").is_dir():  # (its pick would be overwritten by another run's)
-        raise ConfigError(f"select: --out {out} is a training run of its own (it has checkpoints/); give another folder")
+        raise ConfigError(f"select: --out {out} is a training run of its own (it has checkpoints/); "
+                          "give another folder")
 
 
 def select_run(plan: SelectionPlan, out: str | Path) -> dict[str, Any]:
@@ -164,7 +166,8 @@ def select(run: str | Path, out: str | Path, validation_episodes: int | None = N
         return [select_run(plans[0], out)]
     with runner or Runner.processes(workers) as live:
         # a Ray task may land on a node without the run's files: it gets them with the job
-        jobs = [(run_in_folder, (_select_job, str(folder), live.driver_node, plan, pack_run(plan) if live.is_ray else None))
+        jobs = [(run_in_folder,
+                 (_select_job, str(folder), live.driver_node, plan, pack_run(plan) if live.is_ray else None))
                 for plan, folder in zip(plans, outs)]
         return [land(res, folder) for res, folder in zip(live.run(jobs), outs)]
 

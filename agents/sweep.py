@@ -190,14 +190,16 @@ def format_sweep_markdown(result: dict[str, Any]) -> str:
 
         def cell(name: str, digits: int = 3) -> str:
             a = agg[name]
-            return f"{fmt_value(a['mean'], digits)} [{fmt_value(a['ci95'][0], digits)}, {fmt_value(a['ci95'][1], digits)}]"
+            return (f"{fmt_value(a['mean'], digits)} "
+                    f"[{fmt_value(a['ci95'][0], digits)}, {fmt_value(a['ci95'][1], digits)}]")
 
         lines.append(f"| {rank} | {k} | " + " | ".join(str(rec["params"][key]) for key in keys)
                      + f" | {cell('success_ref')} | {fmt_value(agg['success_ref']['min'])} | {cell('success_mu0.2')} "
                        f"| {cell('peak_pinch_ref_N', 2)} | {cell('peak_pinch_over_oracle_min', 2)} |")
     if points:
         base = points[0]["baselines"]
-        lines += ["", "Baselines on the task (point 0's; points that change the task have their own in point_<k>/seeds.md):",
+        lines += ["", "Baselines on the task (point 0's; points that change the task have their own in "
+                      "point_<k>/seeds.md):",
                   "", "| policy | success 0.3-0.9 | peak pinch (N) | ratio to oracle min |", "|---|---|---|---|"]
         for name in ("reactive", "oracle"):
             b = base[name]

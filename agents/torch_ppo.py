@@ -31,7 +31,7 @@ from typing import Annotated, Any, Literal, Sequence
 import numpy as np
 from annotated_types import Ge, Le
 
-from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
+from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, actor_mask
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, atomic_write, atomic_write_text, config_dataclass, from_dict,
     read_yaml, to_dict,
@@ -39,7 +39,6 @@ from ..physics.config import (
 from .controllers import TorchScriptPolicy
 from .learners.rsl_layout import LAYOUT, NAME, RUNNER_CHECKPOINT, meta_path
 from .models import TrainConfig
-from .networks import actor_mask
 
 Unit = Annotated[Real, Ge(0), Le(1)]
 
@@ -219,7 +218,8 @@ def make_torch_env(core, device: str, seed: int = 0):
                     for i in np.flatnonzero(done_np):
                         self.core.reset(int(i))
                     obs = self.core.obs
-                term, trunc = torch.as_tensor(term_np, device=self.device), torch.as_tensor(trunc_np, device=self.device)
+                term, trunc = (torch.as_tensor(term_np, device=self.device),
+                               torch.as_tensor(trunc_np, device=self.device))
                 done = term | trunc
             self.episode_length_buf += 1
             self.episode_length_buf[done] = 0
@@ -265,7 +265,8 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
     t0 = time.perf_counter()
     runner.learn(config.iterations)
     train_s = time.perf_counter() - t0
-    meta = {"learner": NAME, "name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(), "config": to_dict(config)}
+    meta = {"learner": NAME, "name": f"PPO-torch (seed {config.seed})", "actor_columns": env.columns.tolist(),
+            "config": to_dict(config)}
 
     def export(path: Path, iteration: int) -> None:
         """The runner's actor as TorchScript at ``path``, its observation layout and iteration beside it."""
@@ -314,7 +315,8 @@ def anneal_learning_rate(alg: Any, initial: float, updates: int) -> None:
     alg.update = annealed_update
 
 
-def select_torch_checkpoints(config: TorchPPOConfig, checkpoints: Sequence[tuple[int, Path]], out: Path) -> dict[str, Any]:
+def select_torch_checkpoints(config: TorchPPOConfig, checkpoints: Sequence[tuple[int, Path]],
+                             out: Path) -> dict[str, Any]:
     """Validate the exported ``checkpoints`` ((iteration, policy_<iteration>.pt), in order) with ``config``'s
     validation settings and ship the best (:class:`~.training.BestModel`'s key: success, then the reward's
     force charge) as ``out/policy.pt`` (+ ``policy.json``, whose config is ``config``); the history is

@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..physics.config import ConfigError, atomic_write, to_dict, write_yaml
+from ..physics.config import ConfigError, atomic_write, needs_extra, to_dict, write_yaml
 from .learners.base import numbered_files
 from .learners.sb3_layout import FINAL_MODEL, LAYOUT, algo_class, is_ppo, load_model, model_config_path  # noqa: F401
 from .learners.sb3_layout import model_train_config  # noqa: F401 (re-exported)
@@ -52,8 +52,9 @@ def _latest_model(run_dir: Path) -> tuple[Path, int]:
 
 def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) and return a summary; all outputs in ``out_dir`` (see module docstring)."""
-    import torch
-    from stable_baselines3.common.callbacks import BaseCallback
+    with needs_extra("train", "training"):
+        import torch
+        from stable_baselines3.common.callbacks import BaseCallback
 
     from ..envs.sb3 import GraspLiftSB3VecEnv
 
@@ -77,8 +78,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
             if config.squash_actions:
                 policy_kwargs["squash_output"] = True
         if config.asymmetric_critic:
-            from ..envs.core import OBS_NAMES
-            from .networks import AsymmetricActorCriticPolicy, actor_mask
+            from ..envs.core import OBS_NAMES, actor_mask
+            from .networks import AsymmetricActorCriticPolicy
 
             core = venv.core
             policy = AsymmetricActorCriticPolicy

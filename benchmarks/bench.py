@@ -11,8 +11,8 @@ physics
     held, so contact is active while timing). Timed with ``time.perf_counter`` over >= 0.5 s per
     measurement (``--quick``: 0.1 s) after a warm-up call, so numba compilation is excluded. Also: the
     fitted log-log exponent of cost vs node count; a plain NumPy implementation of the same MSD step
-    (:class:`~msdgrasp.physics.reference.NumpyMSD`, the reference) with its speed and a force/state cross-check against the numba
-    kernel; and MuJoCo's flex soft body on the same tet mesh at 1 kHz when ``mujoco`` is importable.
+    (:class:`~msdgrasp.physics.reference.NumpyMSD`, the reference) with its speed and a force/state cross-check
+    against the numba kernel; and MuJoCo's flex soft body on the same tet mesh at 1 kHz when ``mujoco`` is importable.
 grasp
     Only the with-contact part of ``physics``.
 env
@@ -222,7 +222,8 @@ def mujoco_flex_xml(model, timestep: float = DT_OUTER, poisson: float = 0.3) -> 
     g = " ".join(f"{c:g}" for c in model.gravity)
     pin = f'<pin id="{pins}"/>' if pins else ""
     # mass-proportional nodal damping ~ the MSD's b0 = damping_rate * m (MuJoCo: joint damping per dof)
-    damping = p.damping_rate_per_s * model.total_mass / model.n_nodes if p.stiffness_mode == "modulus" else p.b0_n_s_per_m
+    damping = (p.damping_rate_per_s * model.total_mass / model.n_nodes if p.stiffness_mode == "modulus"
+               else p.b0_n_s_per_m)
     return f"""<mujoco model="spleen_flex">
   <option timestep="{timestep:g}" gravity="{g}"/>
   <worldbody>
@@ -285,7 +286,8 @@ def _mujoco_rows(mujoco, resolutions, min_time: float, repeats: int, ours: dict,
         ours_us = ours.get(res)
         ours_batch = (ours_batched or {}).get(res)
         vert = data.flexvert_xpos if hasattr(data, "flexvert_xpos") else None
-        sag = float(np.max(np.abs(vert - model.rest_positions))) if vert is not None and vert.shape == model.rest_positions.shape else None
+        sag = (float(np.max(np.abs(vert - model.rest_positions)))
+               if vert is not None and vert.shape == model.rest_positions.shape else None)
         rows.append({
             "resolution": res,
             "nodes": int(mj.flex_vertnum[0]),
@@ -349,7 +351,8 @@ def bench_physics(quick: bool, include_contact: bool = True, include_no_contact:
             for r in rows:
                 b = base[r["resolution"]]
                 r["overhead_single"] = _r(r["single_us_per_ms"] / b["single_us_per_ms"] - 1.0)
-                r[f"overhead_batch{BATCH}"] = _r(r[f"batch{BATCH}_total_us_per_ms"] / b[f"batch{BATCH}_total_us_per_ms"] - 1.0)
+                r[f"overhead_batch{BATCH}"] = _r(r[f"batch{BATCH}_total_us_per_ms"]
+                                                 / b[f"batch{BATCH}_total_us_per_ms"] - 1.0)
         out["contact"] = rows
         if "scaling" in out:
             out["scaling"]["exponent_contact_us_per_ms_vs_nodes"] = _r(
@@ -614,8 +617,8 @@ def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: in
     observation differences and the largest relative pinch difference; at the ends: how many envs ended on a
     different step or with a different outcome (success, lost grasp, slip, time limit). On a GPU these are
     the GPU's numbers; in numba's simulator (an error is no timing: it runs there too) NumPy's promotion rules
-    apply, which keep more of the arithmetic in float32 than numba's compiled typing does. ``jaws_in_m``: the jaws start this much
-    closer than the task's start radius (contact within a short episode)."""
+    apply, which keep more of the arithmetic in float32 than numba's compiled typing does. ``jaws_in_m``: the jaws
+    start this much closer than the task's start radius (contact within a short episode)."""
     from numba import config as numba_config
 
     reason = gpu_unavailable_reason()
@@ -684,16 +687,18 @@ def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_pe
     reason = gpu_unavailable_reason()
     if reason is not None and not force:
         return {"available": False, "reason": reason}
-    import torch
     from numba import cuda
-    from stable_baselines3 import PPO
 
     from ..agents.torch_ppo import TorchPPOConfig, train_torch
     from ..envs.core import GraspLiftConfig
     from ..envs.cuda_core import CudaGraspLiftCore
     from ..envs.sb3 import CudaSB3VecEnv
-    from ..physics.config import replace
+    from ..physics.config import needs_extra, replace
     from ..physics.cuda_step import THREADS_PER_BLOCK
+
+    with needs_extra("train", "the learners benchmark"):
+        import torch
+        from stable_baselines3 import PPO
 
     config = config or GraspLiftConfig()
     threads = threads or THREADS_PER_BLOCK

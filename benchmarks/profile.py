@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from ..physics.config import needs_extra
 from ..physics.contact import clear_contacts, jaw_contacts, jaw_directions, plate_contacts
 from ..physics.forces import (
     flag_barrier,
@@ -336,10 +337,11 @@ def _default_train_config():
 
 def build_default_ppo(venv, config):
     """An untrained PPO of ``config``'s policy settings on ``venv``, built as agents/training.py's ``train`` does."""
-    from stable_baselines3 import PPO
+    from ..agents.networks import AsymmetricActorCriticPolicy
+    from ..envs.core import OBS_NAMES, actor_mask
 
-    from ..envs.core import OBS_NAMES
-    from ..agents.networks import AsymmetricActorCriticPolicy, actor_mask
+    with needs_extra("train", "the PPO profile"):
+        from stable_baselines3 import PPO
 
     kwargs = dict(config.ppo)
     policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net),
@@ -354,7 +356,8 @@ def build_default_ppo(venv, config):
 
 def profile_agent_step(quick: bool, progress: Callable[[str], None] = lambda s: None) -> dict:
     """ms per agent step of the default env's parts (batch of 1 and of the default n_envs) and of the policy."""
-    import torch
+    with needs_extra("train", "the agent-step profile"):
+        import torch
 
     from ..envs import core as core_module
     from ..envs.sb3 import GraspLiftSB3VecEnv
@@ -460,8 +463,9 @@ def profile_training(quick: bool, progress: Callable[[str], None] = lambda s: No
     as at a checkpoint), with an SB3 callback. Nothing is written outside a temporary folder."""
     import tempfile
 
-    import torch
-    from stable_baselines3.common.callbacks import BaseCallback
+    with needs_extra("train", "the training profile"):
+        import torch
+        from stable_baselines3.common.callbacks import BaseCallback
 
     from ..agents.training import BestModel
     from ..envs.sb3 import GraspLiftSB3VecEnv
@@ -558,7 +562,8 @@ def markdown_table(report: dict) -> str:
               "|---|---|---|---|---|---|"]
     for p in PHASES:
         lines.append(f"| {p} | {one['phases_us_per_substep'][p]} | {one['phases_share_of_whole'][p]} | "
-                     f"{batch['phases_us_per_substep'][p]} | {_r(batch['phases_us_per_substep'][p] / batch['tissues'])} "
+                     f"{batch['phases_us_per_substep'][p]} | "
+                     f"{_r(batch['phases_us_per_substep'][p] / batch['tissues'])} "
                      f"| {batch['phases_share_of_whole'][p]} |")
     for key, label in (("sum_of_phases_us", "sum of phases"), ("whole_us_per_substep", "whole simulate"),
                        ("remainder_us", "remainder (whole - sum)")):

@@ -150,7 +150,8 @@ def markdown(report: dict) -> str:
                   f"| ns per spring and substep: single / batch {b} |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in ph["no_contact"]:
-            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['springs']} | {r['n_sub']} | {r['single_us_per_ms']} | "
+            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['springs']} | {r['n_sub']} | "
+                         f"{r['single_us_per_ms']} | "
                          f"{r['single_realtime_factor']} | {r[f'batch{b}_total_us_per_ms']} | "
                          f"{r[f'batch{b}_per_tissue_us_per_ms']} | {r.get('single_ns_per_spring_substep', '-')} / "
                          f"{r.get(f'batch{b}_ns_per_spring_substep', '-')} |")
@@ -159,7 +160,8 @@ def markdown(report: dict) -> str:
                       f"{s['exponent_us_per_substep_vs_nodes']} per substep.", ""]
     if ph.get("contact"):
         lines += ["## Physics with contact (jaws closed on the inferior pole)", "",
-                  f"| resolution | nodes | n_sub | contact nodes | single | x real time | overhead | batch {b} total | per tissue |",
+                  f"| resolution | nodes | n_sub | contact nodes | single | x real time | overhead "
+                  f"| batch {b} total | per tissue |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in ph["contact"]:
             lines.append(f"| {r['resolution']} | {r['nodes']} | {r['n_sub']} | {r['contact_nodes']} | "
@@ -191,8 +193,9 @@ def markdown(report: dict) -> str:
                 if "error" in r:
                     lines.append(f"| {r['resolution']} | - | error: {r['error']} | | | | | |")
                 else:
-                    lines.append(f"| {r['resolution']} | {r['nodes']} | {r['mujoco_us_per_ms']} | {r['ours_us_per_ms']} | "
-                                 f"{r['ratio_ours_over_mujoco']} | {r.get(f'ours_batch{b}_per_tissue_us_per_ms', '-')} | "
+                    lines.append(f"| {r['resolution']} | {r['nodes']} | {r['mujoco_us_per_ms']} | "
+                                 f"{r['ours_us_per_ms']} | {r['ratio_ours_over_mujoco']} | "
+                                 f"{r.get(f'ours_batch{b}_per_tissue_us_per_ms', '-')} | "
                                  f"{r.get('speedup_batch_per_tissue', '-')} | {r['finite']} |")
             lines.append("")
     env = report.get("env")
@@ -201,7 +204,8 @@ def markdown(report: dict) -> str:
                   "| env | N | total steps/s | per env steps/s |", "|---|---|---|---|",
                   f"| GraspLiftEnv | 1 | {env['single']['steps_per_s']} | {env['single']['steps_per_s']} |"]
         for r in env["vector"]:
-            lines.append(f"| GraspLiftVectorEnv | {r['n_envs']} | {r['total_steps_per_s']} | {r['per_env_steps_per_s']} |")
+            lines.append(f"| GraspLiftVectorEnv | {r['n_envs']} | {r['total_steps_per_s']} | "
+                         f"{r['per_env_steps_per_s']} |")
         lines.append("")
     gpu = report.get("gpu")
     if gpu is not None:
@@ -215,7 +219,8 @@ def markdown(report: dict) -> str:
             lines.append("")
         if gpu.get("task_rows"):
             lines += ["The whole task step (CudaGraspLiftCore: physics, observation, reward, autoreset):", "",
-                      "| batch | envs in contact | dtype | agent steps/s | ms per agent step |", "|---|---|---|---|---|"]
+                      "| batch | envs in contact | dtype | agent steps/s | ms per agent step |",
+                      "|---|---|---|---|---|"]
             lines += [f"| {r['batch']} | {r['contact_fraction']} | {r['dtype']} | {r['agent_steps_per_s']} "
                       f"| {r['ms_per_agent_step']} |" for r in gpu["task_rows"]]
             lines.append("")
@@ -238,10 +243,11 @@ def markdown(report: dict) -> str:
         if "env_steps_per_s" not in learners:
             lines += [f"Not measured: {learners['reason']}.", ""]
         else:
-            lines += [f"Batch {learners['batch']}, {learners['agent_steps']} agent steps, torch on {learners['torch_device']}.",
+            lines += [f"Batch {learners['batch']}, {learners['agent_steps']} agent steps, "
+                      f"torch on {learners['torch_device']}.",
                       "", "| env alone | rsl-rl PPO | SB3 PPO | SB3 / rsl-rl |", "|---|---|---|---|",
-                      f"| {learners['env_steps_per_s']} | {learners['rsl_steps_per_s']} | {learners['sb3_steps_per_s']} "
-                      f"| {learners['sb3_over_rsl']} |", ""]
+                      f"| {learners['env_steps_per_s']} | {learners['rsl_steps_per_s']} | "
+                      f"{learners['sb3_steps_per_s']} | {learners['sb3_over_rsl']} |", ""]
     prec = report.get("precision")
     if prec is not None:
         lines += ["## float32 against float64 (the GPU task, same seed and scripted grasp, one episode)", ""]
@@ -249,8 +255,8 @@ def markdown(report: dict) -> str:
             lines += [f"Not measured: {prec['reason']}.", ""]
         else:
             where = "a GPU" if prec["available"] else f"numba's CUDA simulator ({prec['reason'].split(':')[0]})"
-            lines += [f"On {where}: spleen resolution {prec['resolution']}, {prec['num_envs']} envs, {prec['agent_steps']} "
-                      f"agent steps, {prec['env_steps_in_contact']} env steps with contact.",
+            lines += [f"On {where}: spleen resolution {prec['resolution']}, {prec['num_envs']} envs, "
+                      f"{prec['agent_steps']} agent steps, {prec['env_steps_in_contact']} env steps with contact.",
                       "", "| measure | value |", "|---|---|"]
             lines += [f"| {k} | {prec[k]:.3g} |" for k in ("max_position_diff_m", "max_reward_diff", "max_obs_diff",
                                                           "max_pinch_rel_diff", "contact_state_agreement")]
@@ -281,12 +287,12 @@ def plot_gpu(report: dict, path: Path) -> Path | None:
     cpu = report.get("gpu_cpu_reference") or {}
     if not gpu_rows and not cpu.get("rows"):
         return None
-    import matplotlib
+    from ..physics.config import needs_extra, save_figure
 
+    with needs_extra("viz", "the benchmark plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..physics.config import save_figure
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
 
@@ -304,7 +310,8 @@ def plot_gpu(report: dict, path: Path) -> Path | None:
     series(cpu.get("rows", []), "CPU physics (one core), contact", "ko-")
     series(cpu.get("task_rows", []), "CPU task step (one core)", "ks:")
     ax.axhline(TARGETS["gpu_agent_steps_per_s"], color="0.5", lw=0.8, ls=":")
-    ax.text(1, TARGETS["gpu_agent_steps_per_s"], " target 200k (float64, contact, batch >= 4096)", va="bottom", fontsize=8)
+    ax.text(1, TARGETS["gpu_agent_steps_per_s"], " target 200k (float64, contact, batch >= 4096)", va="bottom",
+            fontsize=8)
     ax.set_xlabel("batch (tissues)")
     ax.set_ylabel("agent steps/s (33 physics ms each)")
     ax.set_title(f"{gpu.get('resolution') or cpu.get('resolution')} spleen: throughput vs batch"
@@ -318,12 +325,12 @@ def plot_scaling(report: dict, path: Path) -> Path | None:
     ph = report.get("physics", {})
     if not ph.get("no_contact") and not ph.get("contact"):
         return None
-    import matplotlib
+    from ..physics.config import needs_extra, save_figure
 
+    with needs_extra("viz", "the benchmark plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..physics.config import save_figure
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     b = BATCH

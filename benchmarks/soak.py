@@ -204,8 +204,10 @@ def run_soak(steps: int = 1_000_000, n_envs: int = 16, seed: int = 0, progress: 
     obs = full_reset()
     bar = None
     if progress:
-        from tqdm import tqdm
+        from ..physics.config import needs_extra
 
+        with needs_extra("viz", "the progress bar"):
+            from tqdm import tqdm
         bar = tqdm(total=vsteps * N, unit="step", desc="soak", file=sys.stderr, mininterval=1.0)
     aborted = None
     for k in range(vsteps):

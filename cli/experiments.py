@@ -14,7 +14,7 @@ import numpy as np
 
 from ..experiments.calibration import fit_compression, tissue_config_dict, validate_curves
 from ..physics.config import (TISSUE_FILE, ConfigError, atomic_write_text, builtin_config, from_dict, read_config_file,
-                              write_yaml)
+                              require_extra, write_yaml)
 from ..experiments.compression import (
     CompressionConfig,
     compression_verdicts,
@@ -45,8 +45,14 @@ def _resolution(value: str | int | None) -> str | int | None:
     return int(value) if str(value).isdigit() else value
 
 
+def _require_viz(what: str, progress: bool) -> None:
+    """The plot and the progress bar of an experiment: a missing one stops it before the run, not after."""
+    require_extra("viz", f"msdgrasp experiment {what}", "matplotlib", *(("tqdm",) if progress else ()))
+
+
 def compress_cli(args: argparse.Namespace) -> int:
     """``msdgrasp experiment compress``: sphere between plates at each rate (CSV + PNG)."""
+    _require_viz("compress", progress=not args.quiet)
     cfg_path = args.config or builtin_config("tissue/sphere.yaml")
     params = load_tissue_params(cfg_path)
     overrides = {} if args.diameter_mm is None else {"diameter_m": args.diameter_mm * 1e-3}
@@ -88,6 +94,7 @@ def _print_verdicts(verdicts: list[dict]) -> None:
 
 def grasp_cli(args: argparse.Namespace) -> int:
     """``msdgrasp experiment grasp``: the spleen protocol per mu (CSV each, one PNG, a summary JSON)."""
+    _require_viz("grasp", progress=not args.quiet)
     protocol = GraspProtocol(**({"pull_time_s": args.pull_time} if args.pull_time is not None else {}))
     mus = args.mu or [0.4, 0.6, 0.8]
     scene = spleen_scene(args.config, args.grasper, _resolution(args.resolution))
@@ -97,7 +104,8 @@ def grasp_cli(args: argparse.Namespace) -> int:
     for r in runs:
         files.append(str(write_grasp_csv(r, out / f"grasp_mu{r.mu:g}.csv")))
     files.append(str(plot_grasp(runs, out / "grasp.png", protocol)))
-    verdicts = grasp_verdicts(runs, scene.model.params.relaxation_time_s if scene.model.params.relaxation_strength > 0 else None)
+    verdicts = grasp_verdicts(
+        runs, scene.model.params.relaxation_time_s if scene.model.params.relaxation_strength > 0 else None)
     summary = {"files": files, "runs": [r.summary for r in runs], "verdicts": verdicts}
     _print_verdicts(verdicts)
     atomic_write_text(out / "grasp_summary.json", json.dumps(summary, indent=2))
@@ -107,6 +115,7 @@ def grasp_cli(args: argparse.Namespace) -> int:
 
 def grasp_sphere_cli(args: argparse.Namespace) -> int:
     """``msdgrasp experiment grasp-sphere``: pinch force vs jaw displacement on the sphere (CSV + PNG)."""
+    _require_viz("grasp-sphere", progress=False)
     scene = sphere_scene(args.config, args.grasper, _resolution(args.resolution))
     data = run_sphere_grasp(scene)
     out = Path(args.out)

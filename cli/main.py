@@ -129,9 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
     ph.set_defaults(func=_cmd_pinch_hold)
 
     cal = sub.add_parser("calibrate", help="fit the tissue's constants to force-deformation curves at several rates")
-    cal.add_argument("--data", type=Path, required=True, help="CSV with rate_mm_per_min,deformation_mm,force_N[,time_s]")
-    cal.add_argument("--config", type=Path, default=None, help="config giving the mesh (default configs/tissue/sphere.yaml)")
-    cal.add_argument("--out", type=Path, default=DEFAULT_LOGS / "calibrate" / "tissue.yaml", help="tissue config to write")
+    cal.add_argument("--data", type=Path, required=True,
+                     help="CSV with rate_mm_per_min,deformation_mm,force_N[,time_s]")
+    cal.add_argument("--config", type=Path, default=None,
+                     help="config giving the mesh (default configs/tissue/sphere.yaml)")
+    cal.add_argument("--out", type=Path, default=DEFAULT_LOGS / "calibrate" / "tissue.yaml",
+                     help="tissue config to write")
     cal.add_argument("--max-evals", type=int, default=200, help="largest number of simulations of the fit")
     cal.add_argument("--fit", choices=("viscoelastic", "paper"), default="viscoelastic",
                      help="viscoelastic (default): K1, K2, dl_c and the springs' Maxwell branch (g, tau); "
@@ -140,7 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
     cal.set_defaults(func=_cmd_calibrate)
 
     b = sub.add_parser("bench", help="speed benchmarks, printed as JSON")
-    b.add_argument("what", nargs="?", default="physics", choices=["physics", "grasp", "env", "gpu", "precision", "learners", "profile", "all"])
+    b.add_argument("what", nargs="?", default="physics",
+                   choices=["physics", "grasp", "env", "gpu", "precision", "learners", "profile", "all"])
     b.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
     b.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     b.set_defaults(func=_cmd_bench)
@@ -159,13 +163,14 @@ def _add_rl_commands(sub) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from ..physics.config import ConfigError
+    from ..physics.config import ConfigError, MissingExtraError
     from ..physics.mesh import MeshError
     from ..envs.recording import RecordingError
 
     try:
         return int(args.func(args) or 0)
-    except (UsageError, ConfigError, MeshError, RecordingError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
+    except (UsageError, ConfigError, MissingExtraError, MeshError, RecordingError, FileNotFoundError, PermissionError,
+            IsADirectoryError) as exc:
         print(f"msdgrasp {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -39,7 +39,7 @@ def rerun_executable() -> str:
         pass
     found = shutil.which("rerun")
     if found is None:
-        raise _usage_error("the rerun viewer is not installed: pip install rerun-sdk")
+        raise _usage_error("the rerun viewer is not installed: pip install 'msdgrasp[viz]'")
     return found
 
 

@@ -38,6 +38,13 @@ def _missing_module(command: str, exc: ImportError) -> Exception:
     return _usage(f"the {command} command is unavailable: {exc}")
 
 
+def _require_plots(command: str) -> None:
+    """Plots are drawn at the end of a run: a missing matplotlib stops the command before the run starts."""
+    from ..physics.config import require_extra
+
+    require_extra("train", f"msdgrasp {command} (its plots)", "matplotlib")
+
+
 def _add_runner_args(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--ray", action="store_true",
                    help=f"run {what} as Ray tasks on a local Ray instance (pip install 'msdgrasp[ray]')")
@@ -90,6 +97,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if not Path(args.folder).is_dir():
         raise _usage(f"{args.folder}: not a folder")
     runner = _runner(args, os.cpu_count() or 1) if _runner_asked(args) else None
+    _require_plots("report")
     return _report_seeds(Path(args.folder), args.quiet, args.episodes, runner)
 
 
@@ -130,6 +138,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         learner.check_available()
     except ImportError as exc:
         raise _missing_module(f"train --learner {learner.name}", exc) from None
+    if args.seeds is not None:
+        _require_plots("train --seeds")
     if args.resume is not None:
         config = learner.resume_config(args.resume, overrides)
         summary = learner.train(config, args.resume, resume=True, progress=not args.quiet)
@@ -205,6 +215,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.n_envs is not None and args.n_envs < 1:
         raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
+    _require_plots("evaluate")
     # without --ray / --address / --workers the evaluation runs in this process, as it always did
     runner = _runner(args) if _runner_asked(args) else None
     result = evaluate(policies, mus, args.episodes, args.out, seed=args.seed, record=args.record,
@@ -318,7 +329,8 @@ def _cmd_select(args: argparse.Namespace) -> int:
         best = r["best"]
         shown.append({"run": r["run"], "learner": r["learner"], "validation_episodes": r["validation_episodes"],
                       "checkpoints_validated": r["checkpoints_validated"], "selection_s": r["selection_s"],
-                      "best": best["model"], "success_rate": best["success_rate"], "force_cost_N": best["force_cost_N"]})
+                      "best": best["model"], "success_rate": best["success_rate"],
+                      "force_cost_N": best["force_cost_N"]})
     print(json.dumps(shown, indent=2))
     return 0
 
@@ -414,7 +426,8 @@ def add_rl_commands(sub) -> None:
     sl.add_argument("--validation-episodes", type=int, default=None,
                     help="episodes per mu and checkpoint (default: the run's own, 6 in the shipped configs)")
     sl.add_argument("--validation-mu", default=None,
-                    help="friction coefficients to validate at: a comma list or start:stop:step (default: the run's own)")
+                    help="friction coefficients to validate at: a comma list or start:stop:step "
+                         "(default: the run's own)")
     _add_runner_args(sl, "the seeds' selections")
     sl.set_defaults(func=_cmd_select)
 

@@ -19,7 +19,8 @@ import numpy as np
 from annotated_types import Ge, Gt, Le, Lt
 
 from ..physics.config import (
-    Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml, to_dict,
+    Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml,
+    to_dict,
 )
 from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
@@ -259,6 +260,14 @@ def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, ti
     return GrasperPose(tip, axis, e1)
 
 
+def actor_mask(n_task: int, frame_dim: int, history: int) -> list[bool]:
+    """True for the ``n_task`` task entries of each of ``history`` frames of ``frame_dim`` entries (a frame is
+    the task entries, then the privileged ones an asymmetric critic sees and the actor does not)."""
+    if not 0 < n_task <= frame_dim:
+        raise ValueError(f"n_task must be in (0, frame_dim={frame_dim}], got {n_task}")
+    return ([True] * n_task + [False] * (frame_dim - n_task)) * history
+
+
 def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> None:
     """A value pinned by ``reset(options=...)`` (PINNABLE) in its range, or a one-line ConfigError; ``mu``:
     the episode's friction, the bound of mu_kinetic."""
@@ -279,7 +288,8 @@ class GraspLiftCore:
         if cfg.grasper_config is None:
             from ..physics.config import builtin_config
 
-            cfg = self.config = from_dict(GraspLiftConfig, {**to_dict(cfg), "grasper_config": str(builtin_config("grasper/env.yaml"))})
+            cfg = self.config = from_dict(GraspLiftConfig, {**to_dict(cfg),
+                                                            "grasper_config": str(builtin_config("grasper/env.yaml"))})
         if cfg.scene == "spleen":
             self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution,
                                                   insert_depth_m=cfg.grasp_depth_m,
@@ -312,7 +322,8 @@ class GraspLiftCore:
         on &= np.isin(np.arange(mesh.n_nodes), mesh.surface_nodes)[:, None]
         self.nominal_contacts = np.maximum(on.sum(axis=0), 1).astype(np.float64)
         rng0 = np.random.default_rng(0)
-        self.priv_nodes = np.sort(rng0.choice(mesh.n_nodes, size=min(cfg.privileged_nodes, mesh.n_nodes), replace=False))
+        self.priv_nodes = np.sort(rng0.choice(mesh.n_nodes, size=min(cfg.privileged_nodes, mesh.n_nodes),
+                                              replace=False))
         #: one observation frame; the observation is the last ``obs_history`` frames, oldest first
         self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0)
         self.obs_dim = self.frame_dim * cfg.obs_history

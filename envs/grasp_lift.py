@@ -11,7 +11,7 @@ from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 
-from ..physics.config import ConfigError
+from ..physics.config import ConfigError, require_extra
 from .core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
 
 
@@ -35,13 +35,16 @@ def check_render_mode(render_mode: str | None, env: str) -> str | None:
     """``render_mode`` if it is one the envs can render (or None); a one-line ValueError otherwise."""
     if render_mode is not None and render_mode not in RENDER_MODES:
         raise ValueError(f"{env}: render_mode must be one of {list(RENDER_MODES)} or None, got {render_mode!r}")
+    if render_mode == "rgb_array":  # a missing renderer fails at construction, not at the first render()
+        require_extra("viz", f"{env}: render_mode='rgb_array'", "matplotlib")
     return render_mode
 
 
 def env_info(infos: dict[str, Any], i: int) -> dict[str, Any]:
     """Env i's step info as a single env reports it (Python scalars; the reward terms as a dict; ``error`` after a
     numerical failure), from the core's batched infos. The vector env builds its infos from these, so both agree."""
-    info = {k: (v[i] if not isinstance(v, dict) else {kk: float(vv[i]) for kk, vv in v.items()}) for k, v in infos.items()}
+    info = {k: (v[i] if not isinstance(v, dict) else {kk: float(vv[i]) for kk, vv in v.items()})
+            for k, v in infos.items()}
     info = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in info.items()}
     if info["numerical_failure"]:
         info["error"] = ("numerical failure: the tissue state became non-finite (blow-up) or a tet inverted "
@@ -80,8 +83,13 @@ class GraspLiftEnv(gym.Env):
 
     | index | default (``jaw_action="force"``, ``pull_action="travel"``) | alternative (``"speed"``) |
     |---|---|---|
-    | 0 | pinch-force set-point ((a + 1) / 2) ** p x ``max_pinch_force_N`` (0-5 N; p = ``pinch_action_exponent``), tracked by the jaw motor's 1 kHz force loop (closing speed = 0.02 m/s per N of error, at most ``max_closing_speed_m_s``) | jaw closing speed a x 4 mm/s (> 0 closes) |
-    | 1 | pull-distance set-point (a + 1) / 2 x ``max_travel_m`` (0-60 mm), tracked by the arm at up to ``max_pull_speed_m_s`` (20 mm/s) | pull speed a x 20 mm/s (``"forward_speed"``: (a + 1) / 2 x 20 mm/s) |
+    | 0 | pinch-force set-point ((a + 1) / 2) ** p x ``max_pinch_force_N`` (0-5 N) | jaw closing speed a x 4 mm/s |
+    | 1 | pull-distance set-point (a + 1) / 2 x ``max_travel_m`` (0-60 mm) | pull speed a x 20 mm/s |
+
+    p = ``pinch_action_exponent``. The jaw motor's 1 kHz force loop tracks the pinch-force set-point (closing
+    speed = 0.02 m/s per N of error, at most ``max_closing_speed_m_s``), the arm the pull-distance set-point at up
+    to ``max_pull_speed_m_s`` (20 mm/s). With ``jaw_action="speed"`` a > 0 closes; ``pull_action="forward_speed"``
+    pulls at (a + 1) / 2 x 20 mm/s.
 
     Values outside [-1, 1] are clipped; NaN/inf or a wrong shape raises ``ValueError``. So action 0 is a
     2.5 N grip and a 30 mm lift target, and -1 is "jaws relaxed, grasper at its start".
@@ -115,7 +123,9 @@ class GraspLiftEnv(gym.Env):
     | 27 | highest lift so far (what progress has paid) | / lift target |
     | 28-30 | friction utilisation abs(T) / N of jaw 0, 1, 2 (<= mu while sticking) | ratio |
     | 31 | slip since lifting began | / lift_slip_tolerance_m (above 1 no success is possible) |
-    | 32- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, displacements of 16 nodes / lift target | |
+    | 32- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, 16 node displacements | (1) |
+
+    (1) as they are; the node displacements / lift target.
 
     ## Rewards (each term in ``info["reward_terms"]``, weights in ``RewardConfig``)
 
@@ -124,11 +134,15 @@ class GraspLiftEnv(gym.Env):
     | progress | +10 x increase of min(highest lift so far / target, 1) | 0 ... +10 (once) |
     | hold | +10 x change of the hold progress (potential-based: a hold that is lost is paid back) | 0 ... +10 |
     | slip | -0.1 per mm of jaw/tissue slip | ~0 (held) ... -4 (slid off) |
-    | peak_force | on success: -50 x episode peak pinch / 5 N (``peak_force_timing="as_made"``: the same total, charged as the peak rises, refunded without success; ``peak_force_mu_ref``: times mu / mu_ref, so the charge follows the ratio to the minimal slip-free force ~ 1 / mu) | -2 (0.2 N) ... -50 (5 N) |
+    | peak_force | on success: -50 x episode peak pinch / 5 N (options below) | -2 (0.2 N) ... -50 (5 N) |
     | success | +50 once, on success | +50 |
     | failure | -10 once, when the episode ends without success (lost grasp, damage, blow-up, time limit) | -10 |
     | damage | -5 per step with peak nodal stress above ``damage_stress_pa`` (terminates) | |
-    | grasp, force | off by default (shaping toward a first grip for ``jaw_action="speed"``; cost per N s of pinch) | 0 |
+    | grasp, force | off by default (shaping to a first grip for ``jaw_action="speed"``; cost per N s of pinch) | 0 |
+
+    peak_force with ``peak_force_timing="as_made"``: the same total, charged as the peak rises, refunded without
+    success; with ``peak_force_mu_ref``: times mu / mu_ref, so the charge follows the ratio to the minimal slip-free
+    force ~ 1 / mu.
 
     Returns (``msdgrasp evaluate --policy zero --policy idle --policy fixed --mu-grid 0.3:0.9:0.1``, 10
     episodes per mu, mean over mu; the reactive and oracle rows come with every evaluation):
@@ -136,14 +150,14 @@ class GraspLiftEnv(gym.Env):
     | policy | success | mean peak pinch | mean return (range over mu) |
     |---|---|---|---|
     | idle (never touch: action (-1, -1)) | 0% | 0 N | -10.0 |
-    | zero (action (0, 0): 2.5 N and 30 mm from the first step, so it pulls away before it grips) | 0% | 0.06 N | -10.1 (-10.4 ... -9.8) |
+    | zero (action (0, 0): 2.5 N and 30 mm from the first step) | 0% | 0.06 N | -10.1 (-10.4 ... -9.8) |
     | fixed 2.5 N (close, then pull at 10 mm/s) | 100% | 2.49 N | 45.0 (44.9 ... 45.1) |
     | slip-reactive (1.2 N, +0.3 N per sensed slip) | 100% | 1.70 N | 53.0 (41.3 ... 58.1) |
     | oracle (knows mu: minimal slip-free force + 10%) | 97% | 1.00 N | 58.5 (50.2 ... 62.9) |
 
-    Success therefore dominates: any success earns more than any failure, never touching the tissue
-    earns the failure penalty like every other failure, and at equal success each newton of peak pinch
-    costs 10 points.
+    The zero action pulls away before it grips. Success therefore dominates: any success earns more than any
+    failure, never touching the tissue earns the failure penalty like every other failure, and at equal success
+    each newton of peak pinch costs 10 points.
 
     ## Episode end
     Terminated on success (grasped region lifted ``lift_target_m`` and held ``hold_time_s`` while it
@@ -167,8 +181,8 @@ class GraspLiftEnv(gym.Env):
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,
     peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure (non-finite state or an
-    inverted tet), min_volume_ratio (smallest tet volume / rest volume), reward_terms. ``reset(options=...)`` pins mu, mu_kinetic, stiffness_scale, mass_scale and the pose
-    randomisation for evaluation.
+    inverted tet), min_volume_ratio (smallest tet volume / rest volume), reward_terms. ``reset(options=...)`` pins
+    mu, mu_kinetic, stiffness_scale, mass_scale and the pose randomisation for evaluation.
     """
 
     metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30}

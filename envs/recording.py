@@ -69,6 +69,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from ..physics.config import require_extra
 from .rrd_file import RecordingError, RecordingWarning, RrdSink, check_destination, recording_error
 
 __all__ = ["RecordingError", "RecordingWarning", "RerunRecorder", "record_episode", "stress_colors"]
@@ -157,13 +158,16 @@ class RerunRecorder(gym.Wrapper):
         name: str | None = None,
     ) -> None:
         super().__init__(env)
+        # a missing rerun is an error here, never a recording dropped with on_error="warn"
+        require_extra("viz", "RerunRecorder", "rerun")
         if on_error not in ("raise", "warn"):
             raise ValueError(f"on_error must be 'raise' or 'warn', got {on_error!r}")
         if color_by not in ("stress", "contact_pressure"):
             raise ValueError(f"color_by must be 'stress' or 'contact_pressure', got {color_by!r}")
         core = getattr(env.unwrapped, "core", None)
         if core is None or not hasattr(core, "sim") or getattr(core, "num_envs", None) != 1:
-            raise TypeError("RerunRecorder wraps a single GraspLift env (one tissue); got " + type(env.unwrapped).__name__)
+            raise TypeError("RerunRecorder wraps a single GraspLift env (one tissue); got "
+                            + type(env.unwrapped).__name__)
         self.core = core
         self.on_error = on_error
         self.episode_trigger = episode_trigger
@@ -419,14 +423,16 @@ class RerunRecorder(gym.Wrapper):
 
         pose = GrasperPose(sim.g_tip[0].copy(), sim.g_axis[0].copy(), sim.g_e1[0].copy())
         corners = jaw_face_corners(pose, float(sim.g_radius[0]), scene.grasper)  # (3,4,3)
-        log(f"{p}/world/grasper/jaws", rr.Mesh3D.from_fields(vertex_positions=corners.reshape(12, 3).astype(np.float32)))
+        log(f"{p}/world/grasper/jaws",
+            rr.Mesh3D.from_fields(vertex_positions=corners.reshape(12, 3).astype(np.float32)))
         loops = np.concatenate([corners, corners[:, :1]], axis=1)
         log(f"{p}/world/grasper/outline", rr.LineStrips3D(loops.astype(np.float32), colors=JAW_COLORS, radii=0.0003))
         back = pose.tip - scene.grasper.jaw_length_m * pose.axis
         log(f"{p}/world/grasper/shaft", rr.LineStrips3D(
             [np.stack([back, back - 0.08 * pose.axis]).astype(np.float32)], colors=(120, 120, 130), radii=0.002))
         if self._anchors.size:
-            log(f"{p}/world/anchors", rr.Points3D(x[self._anchors].astype(np.float32), colors=ANCHOR_COLOR, radii=0.0012))
+            log(f"{p}/world/anchors",
+                rr.Points3D(x[self._anchors].astype(np.float32), colors=ANCHOR_COLOR, radii=0.0012))
 
         state = sim.contact_state[0]
         idx = np.flatnonzero(state > 0)
@@ -512,8 +518,10 @@ class RerunRecorder(gym.Wrapper):
         tabs = [tab(p) for p in episodes]
         if len(episodes) > 1:
             tabs.append(rrb.Vertical(
-                rrb.TimeSeriesView(origin="/", contents=[f"/{p}/forces/pinch" for p in episodes], name="pinch force, all episodes (N)"),
-                rrb.TimeSeriesView(origin="/", contents=[f"/{p}/grasp/lift_m" for p in episodes], name="lift, all episodes (m)"),
+                rrb.TimeSeriesView(origin="/", contents=[f"/{p}/forces/pinch" for p in episodes],
+                                   name="pinch force, all episodes (N)"),
+                rrb.TimeSeriesView(origin="/", contents=[f"/{p}/grasp/lift_m" for p in episodes],
+                                   name="lift, all episodes (m)"),
                 name="all episodes",
             ))
         return rrb.Blueprint(rrb.Tabs(*tabs), rrb.TimePanel(timeline=TIMELINE_TIME), collapse_panels=False)
@@ -539,7 +547,8 @@ def record_episode(
     "size_bytes", "lifted_m", "slip_distance_m", "peak_stress_pa"}``. On an exception (policy, env or
     recording) nothing is written and the exception propagates.
     """
-    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1):
+    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer))
+                                  or max_steps < 1):
         raise ValueError(f"max_steps must be an integer >= 1 or None, got {max_steps!r}")
     if "{episode" in os.fspath(path):
         raise ValueError("record_episode writes one file: path must not contain {episode}")

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ..physics.config import needs_extra
 from ..physics.contact import J_NORMAL, J_TX, J_TZ, SLIP, STICK, WALL_SLIP, WALL_STICK
 from ..physics.grasper import GrasperPose, jaw_face_corners
 
@@ -39,7 +40,8 @@ STICK_COLOUR = "#00e000"
 SLIP_COLOUR = "#ff0000"
 #: force arrows: metres of arrow per newton
 ARROW_M_PER_N = 0.025
-_COLOUR_LABELS = {"strain": ("strain (%)", STRAIN_FULL_SCALE_PCT), "pressure": ("contact pressure (kPa)", STRESS_FULL_SCALE_KPA),
+_COLOUR_LABELS = {"strain": ("strain (%)", STRAIN_FULL_SCALE_PCT),
+                  "pressure": ("contact pressure (kPa)", STRESS_FULL_SCALE_KPA),
                   "displacement": ("displacement (mm)", DISP_FULL_SCALE_MM)}
 _CMAPS = {"strain": "viridis", "pressure": "inferno", "displacement": "cividis"}
 
@@ -48,10 +50,11 @@ class _Frame:
     """The cached figure of one core and image size."""
 
     def __init__(self, core: Any, width: int, height: int) -> None:
-        from matplotlib import colormaps
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+        with needs_extra("viz", "rendering"):
+            from matplotlib import colormaps
+            from matplotlib.backends.backend_agg import FigureCanvasAgg
+            from matplotlib.figure import Figure
+            from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
         dpi = 100
         self.width, self.height = width, height

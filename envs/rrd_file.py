@@ -13,7 +13,7 @@ import weakref
 from pathlib import Path
 from typing import Any
 
-from ..physics.config import publish, temp_beside
+from ..physics.config import needs_extra, publish, temp_beside
 
 APPLICATION_ID = "msdgrasp"
 
@@ -73,7 +73,8 @@ class RrdSink:
     """A RecordingStream writing to a temp file that becomes ``path`` on :meth:`commit`."""
 
     def __init__(self, path: Path, name: str) -> None:
-        import rerun as rr
+        with needs_extra("viz", "rerun recordings"):
+            import rerun as rr
 
         self.path = path
         _prepare_destination(path)

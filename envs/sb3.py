@@ -38,10 +38,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
+from ..physics.config import needs_extra
 from .core import GraspLiftConfig, GraspLiftCore
 from .grasp_lift import _check_action, _config, check_render_mode
+
+with needs_extra("train", "the Stable-Baselines3 adapter"):
+    from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 #: core attributes that hold one entry per sub-env (``get_attr``/``set_attr`` address entry i)
 PER_ENV_ATTRS = (

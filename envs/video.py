@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..physics.config import ConfigError, atomic_write, publish, temp_beside
+from ..physics.config import ConfigError, atomic_write, needs_extra, publish, temp_beside
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
@@ -46,9 +46,12 @@ def write_video(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: floa
     Frames are streamed to the encoder as they come (a 10 s episode at 640 x 480 is ~280 MB of raw frames):
     pass a generator to render while encoding. On any error the partial file is removed.
     """
-    import imageio.v2 as imageio
-
     p = check_video_path(path)
+    with needs_extra("viz", "writing videos"):
+        import imageio.v2 as imageio
+
+        if p.suffix.lower() == ".mp4":
+            import imageio_ffmpeg  # noqa: F401  (the ffmpeg binary imageio's FFMPEG plugin runs)
     if not 0 < fps <= 240:
         raise ConfigError(f"video fps must be in (0, 240], got {fps}")
     p.parent.mkdir(parents=True, exist_ok=True)
@@ -119,16 +122,16 @@ def record_video(env: Any, policy_fn: Callable[[np.ndarray], np.ndarray], path: 
     summary = {"path": str(p), "frames": run["frames"], "steps": run["steps"], "fps": agent_fps / every,
                "success": bool(run["info"].get("is_success", False))}
     if still is not None:
-        import imageio.v3 as iio
-
+        with needs_extra("viz", "writing stills"):
+            import imageio.v3 as iio
         summary["still"] = str(atomic_write(still, lambda tmp: iio.imwrite(tmp, run["last"], extension=".png")))
     return summary
 
 
 def read_video(path: str | os.PathLike) -> np.ndarray:
     """(n_frames, H, W, 3) uint8 frames of an mp4 or GIF (for tests and notebooks)."""
-    import imageio.v2 as imageio
-
+    with needs_extra("viz", "reading videos"):
+        import imageio.v2 as imageio
     p = Path(path)
     if p.suffix.lower() == ".gif":
         frames = imageio.mimread(p, memtest=False)

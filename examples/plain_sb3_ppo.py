@@ -1,5 +1,6 @@
 """A user's own plain Stable-Baselines3 PPO on the registered env: default hyper-parameters, one env.
 
+    pip install 'msdgrasp[train]'
     python examples/plain_sb3_ppo.py --steps 300000 --seed 0
 
 Prints, every 16384 steps, the success rate and mean peak pinch of the last 100 training episodes
@@ -34,7 +35,8 @@ class Progress(BaseCallback):
         if self.num_timesteps >= self.next:
             self.next += self.every
             last = np.array(self.episodes[-100:], dtype=float).reshape(-1, 2)
-            print(f"{self.num_timesteps:>7} steps  {time.perf_counter() - self.t0:6.0f} s  episodes {len(self.episodes):>5}  "
+            print(f"{self.num_timesteps:>7} steps  {time.perf_counter() - self.t0:6.0f} s  "
+                  f"episodes {len(self.episodes):>5}  "
                   f"success(last 100) {last[:, 0].mean() if len(last) else float('nan'):.2f}  "
                   f"peak pinch {last[:, 1].mean() if len(last) else float('nan'):.2f} N", flush=True)
         return True

@@ -207,7 +207,8 @@ def fit_names(fit: str | Sequence[str]) -> tuple[str, ...]:
     """The constants a fit adjusts: a name of :data:`FIT_SETS` or a list of :data:`ALL_NAMES`."""
     if isinstance(fit, str):
         if fit not in FIT_SETS:
-            raise ConfigError(f"fit = {fit!r} is not allowed; choose one of {sorted(FIT_SETS)} or a list of {list(ALL_NAMES)}")
+            raise ConfigError(f"fit = {fit!r} is not allowed; choose one of {sorted(FIT_SETS)} "
+                              f"or a list of {list(ALL_NAMES)}")
         return FIT_SETS[fit]
     names = tuple(fit)
     bad = [k for k in names if k not in ALL_NAMES]

@@ -19,7 +19,7 @@ import numpy as np
 from annotated_types import Ge, Gt, Le, MinLen
 
 from ..physics.config import (
-    Bool, ConfigError, Int, NonNegative, Real, atomic_write, config_dataclass, from_dict, save_figure,
+    Bool, ConfigError, Int, NonNegative, Real, atomic_write, config_dataclass, from_dict, needs_extra, save_figure,
 )
 from ..physics.mesh import TetMesh
 from ..physics.scenario import load_params
@@ -32,8 +32,8 @@ ProgressFactory = Callable[[int, str], object] | None
 def _progress(total: int, desc: str, enabled: bool):
     if not enabled:
         return None
-    from tqdm.auto import tqdm
-
+    with needs_extra("viz", "the progress bar"):
+        from tqdm.auto import tqdm
     return tqdm(total=total, desc=desc, unit="ms", mininterval=0.5, leave=False)
 
 
@@ -162,8 +162,8 @@ def write_compression_csv(curves: Sequence[CompressionCurve], path: str | Path) 
              + (",force_top_N,force_bottom_N,min_volume_ratio,tilt_deg" if full else "")]
     for c in curves:
         for k, (t, d, f) in enumerate(zip(c.time_s, c.deformation_mm, c.force_N)):
-            extra = (f",{c.force_top_N[k]:.6f},{c.force_bottom_N[k]:.6f},{c.min_volume_ratio[k]:.6f},{c.tilt_deg[k]:.4f}"
-                     if full else "")
+            extra = (f",{c.force_top_N[k]:.6f},{c.force_bottom_N[k]:.6f},{c.min_volume_ratio[k]:.6f},"
+                     f"{c.tilt_deg[k]:.4f}" if full else "")
             lines.append(f"{c.rate_mm_per_min:g},{t:.6f},{d:.6f},{f:.6f}{extra}")
     return atomic_write(path, lambda p: p.write_text("\n".join(lines) + "\n"))
 
@@ -198,8 +198,8 @@ def read_compression_csv(path: str | Path) -> list[CompressionCurve]:
 
 
 def plot_compression(curves: Sequence[CompressionCurve], path: str | Path, title: str = "") -> Path:
-    import matplotlib
-
+    with needs_extra("viz", "the compression plot"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -253,14 +253,16 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float,
     small = [d for d in RATE_SMALL_MM if d <= reach + 1e-9]
 
     def rate_ratio(d_mm: float) -> float:
-        return float(np.interp(d_mm, fast.deformation_mm, fast.force_N) / np.interp(d_mm, slow.deformation_mm, slow.force_N))
+        return float(np.interp(d_mm, fast.deformation_mm, fast.force_N)
+                     / np.interp(d_mm, slow.deformation_mm, slow.force_N))
 
     if fast is not slow and small:
         ratios = [rate_ratio(d) for d in small]
         out.append(verdict(
             f"rate dependence (Fig. 5): {fast.rate_mm_per_min:g} mm/min stiffer than {slow.rate_mm_per_min:g} from "
             f"small strain", min(ratios) >= RATE_SMALL_MIN,
-            "force ratio " + ", ".join(f"{r:.2f} at {d:g} mm" for d, r in zip(small, ratios)) + f" (>= {RATE_SMALL_MIN})"))
+            "force ratio " + ", ".join(f"{r:.2f} at {d:g} mm" for d, r in zip(small, ratios))
+            + f" (>= {RATE_SMALL_MIN})"))
     if fast is not slow and marks and relaxation is not None and relaxation[0] > 0:
         g, tau = relaxation
         ratios = [rate_ratio(f * height_mm) for f in marks]
@@ -284,7 +286,8 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float,
             if np.any(sel):
                 worst = max(worst, float(np.max(np.abs(c.force_top_N[sel] - c.force_bottom_N[sel]) / c.force_N[sel])))
         out.append(verdict("quasi-static: both plates carry the same force (rate effect from the material)",
-                            worst < 0.05, f"largest |top - bottom| / mean {worst:.1%} (forces above 5% of the largest)"))
+                            worst < 0.05,
+                            f"largest |top - bottom| / mean {worst:.1%} (forces above 5% of the largest)"))
         vmin = min(float(np.min(c.min_volume_ratio)) for c in curves)
         out.append(verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
     d, f = slow.deformation_mm, slow.force_N
@@ -296,7 +299,8 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float,
     if np.count_nonzero(sel) >= 3:
         n = float(np.polyfit(np.log(d[sel]), np.log(f[sel]), 1)[0])
         out.append(verdict("Hertz-like contact: force ~ deformation^1.5 at small strain (1-7 mm)",
-                            abs(n - 1.5) <= 0.15, f"exponent {n:.2f} at {slow.rate_mm_per_min:g} mm/min (Hertz 1.5 +/- 0.15)"))
+                            abs(n - 1.5) <= 0.15,
+                            f"exponent {n:.2f} at {slow.rate_mm_per_min:g} mm/min (Hertz 1.5 +/- 0.15)"))
     return out
 
 

@@ -15,7 +15,9 @@ from typing import Annotated
 import numpy as np
 from annotated_types import Ge
 
-from ..physics.config import ConfigError, Int, NonNegative, Positive, atomic_write_text, check_range, config_dataclass, save_figure
+from ..physics.config import (
+    ConfigError, Int, NonNegative, Positive, atomic_write_text, check_range, config_dataclass, needs_extra, save_figure,
+)
 from ..physics.contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ
 from .compression import verdict
 from ..physics.scenario import GraspScene
@@ -92,8 +94,8 @@ def run_grasp(
     had_contact = np.zeros(B, dtype=bool)
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
+        with needs_extra("viz", "the progress bar"):
+            from tqdm.auto import tqdm
         bar = tqdm(total=total, desc=f"grasp mu={mus}", unit="ms", mininterval=0.5, leave=False)
     step = 0
     while step < total and np.any(active):
@@ -149,7 +151,8 @@ def run_grasp(
     runs = []
     for b, mu in enumerate(mus):
         cols = list(zip(*rows[b])) if rows[b] else [[] for _ in COLUMNS]
-        data = {name: np.array(col) if name != "phase" else np.array(col, dtype=object) for name, col in zip(COLUMNS, cols)}
+        data = {name: np.array(col) if name != "phase" else np.array(col, dtype=object)
+                for name, col in zip(COLUMNS, cols)}
         run = GraspRun(mu, data)
         run.summary = summarize_grasp(run, protocol, outcome[b], end_time[b])
         runs.append(run)
@@ -269,8 +272,8 @@ def write_grasp_csv(run: GraspRun, path: str | Path) -> Path:
 
 
 def plot_grasp(runs: list[GraspRun], path: str | Path, protocol: GraspProtocol) -> Path:
-    import matplotlib
-
+    with needs_extra("viz", "the grasp plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -319,8 +322,8 @@ def run_sphere_grasp(
 
 def plot_sphere_grasp(data: dict[str, np.ndarray], path: str | Path, title: str) -> Path:
     """Pinch force vs jaw displacement of :func:`run_sphere_grasp` (paper Fig. 7)."""
-    import matplotlib
-
+    with needs_extra("viz", "the grasp plots"):
+        import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -27,9 +27,18 @@ SIZES: dict[str, float] = {"coarse": 0.0075, "medium": 0.0042, "fine": 0.0027}
 RADIUS_M = 0.025
 
 
+def _gmsh():
+    try:
+        import gmsh
+    except ModuleNotFoundError:
+        raise ImportError("regenerating the meshes needs gmsh, which is not installed: "
+                          "pip install 'msdgrasp[meshing]'") from None
+    return gmsh
+
+
 def sphere_points_and_tets(size_m: float, radius_m: float = RADIUS_M) -> tuple[np.ndarray, np.ndarray]:
     """(nodes (N, 3) m, tets (T, 4)) of a gmsh-meshed solid sphere centred at the origin."""
-    import gmsh
+    gmsh = _gmsh()
 
     gmsh.initialize(readConfigFiles=False)
     try:
@@ -68,9 +77,9 @@ def _orient(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import gmsh
     import meshio
 
+    gmsh = _gmsh()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--check", action="store_true", help="compare with the shipped files instead of writing")
     args = ap.parse_args(argv)

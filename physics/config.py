@@ -10,14 +10,16 @@ interrupted or failed write never leaves a half-written file behind.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import importlib
 import math
 import os
 import tempfile
 import types
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -34,12 +36,37 @@ __all__ = [
     "RECORD_CONFIG", "Bool", "ConfigError", "Int", "NonNegative", "Positive", "Real", "Str", "atomic_write",
     "ConfigFile", "GRASPER_FILE", "TISSUE_FILE", "atomic_write_text", "builtin_config", "check_choice", "check_range",
     "config_dataclass", "from_dict", "load_config", "read_config_file", "read_yaml", "replace",
-    "save_figure", "to_dict", "write_yaml",
+    "save_figure", "to_dict", "write_yaml", "MissingExtraError", "needs_extra", "require_extra",
 ]
 
 
 class ConfigError(ValueError):
     """A configuration value is missing, unknown, of the wrong type or out of range."""
+
+
+class MissingExtraError(ImportError):
+    """An optional dependency is not installed; the message names the extra of msdgrasp that installs it."""
+
+
+@contextlib.contextmanager
+def needs_extra(extra: str, purpose: str) -> Iterator[None]:
+    """Wrap the imports of an optional dependency (the core install is the env and the physics only).
+
+    A module missing inside the block raises :class:`MissingExtraError`, one line naming ``purpose``, the
+    module and the command that installs it: ``pip install 'msdgrasp[<extra>]'``.
+    """
+    try:
+        yield
+    except ModuleNotFoundError as exc:
+        raise MissingExtraError(f"{purpose}: {exc.name or 'a module'} is not installed; "
+                                f"pip install 'msdgrasp[{extra}]'") from None
+
+
+def require_extra(extra: str, purpose: str, *modules: str) -> None:
+    """Import ``modules`` now: a command that uses them only at its end (plots after a run) fails before the run."""
+    with needs_extra(extra, purpose):
+        for name in modules:
+            importlib.import_module(name)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -176,7 +203,8 @@ def describe_validation_error(exc: pydantic.ValidationError, cls: Any, where: st
         text = (f"{path} = {value!r} is out of range; allowed "
                 f"{interval_text(lo, hi, 'gt' not in bounds, 'lt' not in bounds)}")
     elif kind == "too_short":
-        text = f"{path} must have at least {ctx['min_length']} entr{'y' if ctx['min_length'] == 1 else 'ies'}, got {value!r}"
+        text = (f"{path} must have at least {ctx['min_length']} entr{'y' if ctx['min_length'] == 1 else 'ies'}, "
+                f"got {value!r}")
     elif kind == "too_long":
         text = f"{path} must have at most {ctx['max_length']} entries, got {value!r}"
     elif kind == "literal_error":
@@ -216,7 +244,8 @@ def check_range(
     lo_ok = lo is None or (value >= lo if lo_inclusive else value > lo)
     hi_ok = hi is None or (value <= hi if hi_inclusive else value < hi)
     if not (lo_ok and hi_ok):
-        raise ConfigError(f"{name} = {value!r} is out of range; allowed {interval_text(lo, hi, lo_inclusive, hi_inclusive)}")
+        raise ConfigError(f"{name} = {value!r} is out of range; "
+                          f"allowed {interval_text(lo, hi, lo_inclusive, hi_inclusive)}")
 
 
 def check_choice(name: str, value: Any, choices: typing.Iterable[Any]) -> None:
@@ -308,7 +337,8 @@ TISSUE_FILE = ConfigFile(
 #: a grasper config (configs/grasper/*.yaml)
 GRASPER_FILE = ConfigFile(
     "grasper config", ("grasper",), ("grasper",),
-    (("grasper", "grasper: {jaw_length_m: 0.03, jaw_width_m: 0.014, mu: 0.6, ...} (see configs/grasper/default.yaml)"),),
+    (("grasper",
+      "grasper: {jaw_length_m: 0.03, jaw_width_m: 0.014, mu: 0.6, ...} (see configs/grasper/default.yaml)"),),
 )
 
 

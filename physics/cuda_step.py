@@ -4,7 +4,8 @@ each node (a thread) *gathers* them in the order in which the CPU kernel scatter
 sum term by term (no atomics), and advances; tets below the volume barrier's threshold are flagged in parallel
 and thread 0 integrates the barrier on them and resolves the contacts in the CPU's order. What a spring, a tet, a
 node and a contact compute is the CPU kernel's own functions (:func:`.forces.spring_body`,
-:func:`.forces.implicit_volume_barrier`, the node bodies in :mod:`.integrator`, :mod:`.contact`) compiled for the GPU from their source (:func:`device_twin`): one source, two backends.
+:func:`.forces.implicit_volume_barrier`, the node bodies in :mod:`.integrator`, :mod:`.contact`) compiled for the GPU
+from their source (:func:`device_twin`): one source, two backends.
 The scratch's host-side layout is in :mod:`.device_layout`. Under ``NUMBA_ENABLE_CUDASIM=1`` the kernel runs in
 numba's CUDA simulator (slow: tests only), with the CPU's arithmetic bit for bit; on a GPU, fused multiply-adds
 round differently (~1e-16 relative per operation).

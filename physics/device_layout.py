@@ -47,8 +47,8 @@ PRECISIONS = ("float64", "float32")
 #: the arrays stored in float32 when ``precision="float32"``: those of one entry per node, spring or tet,
 #: the memory the step streams through. Per-tissue values (time, friction, scales, the grasper and its force
 #: loop, the jaw, plate and anchor sums) stay float64: a clock summed at every substep would drift in float32,
-#: and a friction coefficient gains nothing from 4 bytes. Arithmetic follows numba's typing: float32 operands give float32,
-#: a float64 constant or per-tissue value promotes the operation to float64. The error against float64 is
+#: and a friction coefficient gains nothing from 4 bytes. Arithmetic follows numba's typing: float32 operands give
+#: float32, a float64 constant or per-tissue value promotes the operation to float64. The error against float64 is
 #: measured, not assumed (``msdgrasp bench precision``).
 FLOAT32_FIELDS = frozenset({
     # SimModel
@@ -106,7 +106,8 @@ def make_scratch(model: SimModel, batch: int) -> CudaScratch:
     eptr, eidx, ecol = incidence(n, np.asarray(model.edges))
     return CudaScratch(
         fe=np.zeros((batch, ne, 3)), tet_on=np.zeros((batch, max(nt, 1)), dtype=np.int8),
-        vol_out=np.zeros((batch, 3)), dash_out=np.zeros((batch, 3)), cand=np.zeros((batch, max(ns, 1)), dtype=np.int8), meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
+        vol_out=np.zeros((batch, 3)), dash_out=np.zeros((batch, 3)), cand=np.zeros((batch, max(ns, 1)), dtype=np.int8),
+        meff=np.zeros((batch, n)), fa=np.zeros((batch, n, 3)),
         edge_ptr=eptr, edge_idx=eidx, edge_sign=np.where(ecol == 0, 1.0, -1.0),
         u=np.zeros((batch, 3, 3)), tj=np.zeros((batch, 3, 3)),
     )

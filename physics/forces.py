@@ -499,7 +499,8 @@ def _barrier_kick(x, v, i, w, s, g, dt, anchor) -> None:
 
 
 @njit(cache=True, error_model="numpy")
-def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray, j_threshold: float) -> float:
+def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray,
+                  j_threshold: float) -> float:
     """Energy (J) of the volume barrier: sum over tets with J < J_c of k V0 psi(J)."""
     total = 0.0
     for t in range(tets.shape[0]):

@@ -114,7 +114,8 @@ def jaw_face_corners(pose: GrasperPose, radius: float, params: GrasperParams) ->
         lat = np.cross(pose.axis, u[k])
         centre_tip = pose.tip + radius * u[k]
         back = -params.jaw_length_m * pose.axis
-        out[k] = [centre_tip - hw * lat, centre_tip + hw * lat, centre_tip + back + hw * lat, centre_tip + back - hw * lat]
+        out[k] = [centre_tip - hw * lat, centre_tip + hw * lat,
+                  centre_tip + back + hw * lat, centre_tip + back - hw * lat]
     return out
 
 

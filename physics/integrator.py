@@ -233,9 +233,9 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                         b = lane0 + lane
                         anchor_vol[:] = 0.0
                         if lanes:
-                            implicit_volume_barrier(x[:, :, lane], v[:, :, lane], meff[:, lane], (fixed, held[lane]), tets,
-                                                    rest_volume, kvol, m.vol_threshold, ks[lane], dt, flags[:, lane],
-                                                    anchor_vol)
+                            implicit_volume_barrier(x[:, :, lane], v[:, :, lane], meff[:, lane], (fixed, held[lane]),
+                                                    tets, rest_volume, kvol, m.vol_threshold, ks[lane], dt,
+                                                    flags[:, lane], anchor_vol)
                         else:
                             implicit_volume_barrier(x_one, v_one, meff[:, 0], (fixed, held[0]), tets, rest_volume, kvol,
                                                     m.vol_threshold, ks[0], dt, flags_one, anchor_vol)

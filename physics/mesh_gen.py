@@ -208,7 +208,8 @@ def spleen_mesh(
             and pole_length_m > 0 and 0.0 <= bluntness <= 1.0):
         raise MeshError(
             f"spleen needs 0 <= bend <= 1, 0 <= core < 1, hilum_width > 0, hilum_height > 0, "
-            f"pole_length_m > 0, 0 <= bluntness <= 1; got bluntness={bluntness!r}, bend={bend!r}, core={core!r}, hilum_width={hilum_width!r}, "
+            f"pole_length_m > 0, 0 <= bluntness <= 1; got bluntness={bluntness!r}, bend={bend!r}, core={core!r}, "
+            f"hilum_width={hilum_width!r}, "
             f"hilum_height={hilum_height!r}, pole_length_m={pole_length_m!r}"
         )
     target = _target_nodes(resolution)

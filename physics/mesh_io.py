@@ -198,7 +198,8 @@ def mesh_spec(path: str | os.PathLike) -> MeshSpec:
         allowed = sorted(["shape", *params])
         for name in section:
             if name not in params:
-                raise ConfigError(f"{where}: unknown key {name!r} for shape {key!r}; allowed keys: {', '.join(allowed)}")
+                raise ConfigError(f"{where}: unknown key {name!r} for shape {key!r}; "
+                                  f"allowed keys: {', '.join(allowed)}")
         resolution = section.pop("resolution", None)
         return MeshSpec(key, resolution, section)
     if section:

@@ -74,8 +74,8 @@ class NumpyMSD:
     """Plain NumPy implementation of the same MSD step as the numba kernel (no contact): the reference.
 
     Springs (the paper's law, optional spring dashpot, the Maxwell branch) and the volume barrier are
-    evaluated for all edges / tets at once and scattered to the nodes with ``np.add.at``; symplectic Euler with implicit nodal damping;
-    rigid anchors held, compliant anchors as springs. ``x, v`` are (N,3), ``fv, dl_prev`` (E,).
+    evaluated for all edges / tets at once and scattered to the nodes with ``np.add.at``; symplectic Euler with
+    implicit nodal damping; rigid anchors held, compliant anchors as springs. ``x, v`` are (N,3), ``fv, dl_prev`` (E,).
     """
 
     def __init__(self, model, n_sub: int, dt_outer: float = DT_OUTER, kscale: float = 1.0, mscale: float = 1.0):
@@ -172,13 +172,15 @@ class NumpyMSD:
         for t in np.nonzero(self._volume_gradients(x)[1] < mdl.volume_threshold)[0]:
             tet = mdl.tets[t]
             p = x[tet]
-            g = np.cross(p[2] - p[0], p[3] - p[0]), np.cross(p[3] - p[0], p[1] - p[0]), np.cross(p[1] - p[0], p[2] - p[0])
+            g = (np.cross(p[2] - p[0], p[3] - p[0]), np.cross(p[3] - p[0], p[1] - p[0]),
+                 np.cross(p[1] - p[0], p[2] - p[0]))
             g = np.array([-(g[0] + g[1] + g[2]), g[0], g[1], g[2]]) / 6.0
             jac = float((p[1] - p[0]) @ g[1]) / mdl.rest_volume[t]
             d1, d2 = numpy_barrier_slopes(np.array([jac]), mdl.volume_threshold)
             k = self.kscale * mdl.kvol[t]
             w = w_node[tet]
-            p_t = k * d1[0] / (1.0 + self.dt**2 * k * d2[0] * float(w @ np.einsum("ij,ij->i", g, g)) / mdl.rest_volume[t])
+            p_t = k * d1[0] / (1.0 + self.dt**2 * k * d2[0] * float(w @ np.einsum("ij,ij->i", g, g))
+                               / mdl.rest_volume[t])
             dv = -self.dt * p_t * w[:, None] * g
             v[tet] += dv
             x[tet] += self.dt * dv

@@ -74,7 +74,7 @@ from typing import Annotated, Literal
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from annotated_types import Ge, Gt, Le, Lt
+from annotated_types import Gt, Le
 
 from .config import ConfigError, NonNegative, Positive, Real, check_range, config_dataclass
 from .forces import accumulate_spring_forces, spring_energy, volume_energy
@@ -245,7 +245,8 @@ def plate_compression_force(
     return float(-r[top].sum()), int(top.sum())
 
 
-def hertz_sphere_force(youngs_modulus: float, radius: float, depth: float, poisson: float = NETWORK_POISSON_RATIO) -> float:
+def hertz_sphere_force(youngs_modulus: float, radius: float, depth: float,
+                       poisson: float = NETWORK_POISSON_RATIO) -> float:
     """Hertz force (N) of an elastic sphere squeezed between rigid plates by a total travel ``depth``:
     F = (sqrt(2)/3) E* sqrt(R) D^(3/2), E* = E / (1 - nu^2) (two Hertz contacts in series)."""
     e_star = youngs_modulus / (1.0 - poisson**2)
@@ -422,7 +423,8 @@ class TissueModel:
             anchor_offset=anchor_offset,
             stiffness_correction=correction,
             # the barrier is scaled with the springs by the contact calibration, like the modulus it adds to
-            kvol=np.full(mesh.n_tets, params.volume_modulus_pa * correction) if params.volume_modulus_pa > 0 else np.zeros(0),
+            kvol=(np.full(mesh.n_tets, params.volume_modulus_pa * correction) if params.volume_modulus_pa > 0
+                  else np.zeros(0)),
         )
 
     # ------------------------------------------------------------------------------------------

@@ -74,7 +74,8 @@ def compiled_kernel(sphere_coarse):
     model = TissueModel.from_params(sphere_coarse, TissueParams(youngs_modulus_pa=60e3))
     z = sphere_coarse.nodes[:, 2]
     sim = Simulation(
-        model, 1, plates=[Plate((0.0, 0.0, float(z.min())), (0.0, 0.0, 1.0)), Plate((0.0, 0.0, float(z.max())), (0.0, 0.0, -1.0))]
+        model, 1, plates=[Plate((0.0, 0.0, float(z.min())), (0.0, 0.0, 1.0)),
+                          Plate((0.0, 0.0, float(z.max())), (0.0, 0.0, -1.0))]
     )
     sim.step(1)
     assert np.all(sim.finite())

@@ -175,7 +175,8 @@ def test_round_trip_recovers_k1_and_b0(fit: CalibrationResult):
     assert p["b0_n_s_per_m"] == pytest.approx(TRUE["b0_n_s_per_m"], rel=0.10)
     # the start was 40 % off in both
     assert abs(p["k1_n_per_m"] / TRUE["k1_n_per_m"] - 1) < 0.5 * abs(GUESS["k1_n_per_m"] / TRUE["k1_n_per_m"] - 1)
-    assert abs(p["b0_n_s_per_m"] / TRUE["b0_n_s_per_m"] - 1) < 0.5 * abs(GUESS["b0_n_s_per_m"] / TRUE["b0_n_s_per_m"] - 1)
+    assert (abs(p["b0_n_s_per_m"] / TRUE["b0_n_s_per_m"] - 1)
+            < 0.5 * abs(GUESS["b0_n_s_per_m"] / TRUE["b0_n_s_per_m"] - 1))
     # the weakly identified constants at least stay within a factor of 2 of the truth
     for k in ("k2_n_per_m3", "dl_c_m", "b1_n_s_per_m2"):
         assert 0.5 < p[k] / TRUE[k] < 2.0, (k, p[k])
@@ -339,7 +340,8 @@ def test_cli_fits_the_maxwell_branch_by_default(tmp_path, ve_curves, capsys):
     cfg = tmp_path / "start.yaml"
     _write_config(cfg, {"stiffness_mode": "uniform", "density_kg_m3": 1050.0, **GUESS_VE, **VE_FIXED})
     out = tmp_path / "t.yaml"
-    rc = main(["calibrate", "--data", str(csv), "--config", str(cfg), "--out", str(out), "--quiet", "--max-evals", "12"])
+    rc = main(["calibrate", "--data", str(csv), "--config", str(cfg), "--out", str(out), "--quiet",
+               "--max-evals", "12"])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     summary = json.loads(captured.out)

@@ -67,7 +67,8 @@ def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
     assert cpu.min_volume_ratio().min() < 1.0 and cpu.model.kvol.max() > 0  # the barrier acted
     assert 0.5 < lowest < 0.99, lowest  # the barrier acted on squeezed tets (from any volume loss) and held them
     for name in ("v", "fv", "dl_prev", "g_radius", "g_tip", "t"):
-        np.testing.assert_allclose(getattr(gpu, name), getattr(cpu, name), rtol=0, atol=1e-9 * max(1.0, np.abs(getattr(cpu, name)).max()))
+        np.testing.assert_allclose(getattr(gpu, name), getattr(cpu, name), rtol=0,
+                                   atol=1e-9 * max(1.0, np.abs(getattr(cpu, name)).max()))
     for name in ("jaw_out", "anchor_out", "contact_force", "g_force"):  # the sensors read the same
         scale = max(1e-9, np.abs(getattr(cpu, name)).max())
         np.testing.assert_allclose(getattr(gpu, name), getattr(cpu, name), rtol=0, atol=1e-9 * scale)

@@ -357,7 +357,8 @@ def test_the_volume_barrier_keeps_every_tet_upright_under_a_5N_pinch(tmp_path):
     lowest = {}
     for name, tissue in (("pure MSD", str(tmp_path / "spleen_pure_msd.yaml")), ("barrier", None)):
         # the pure-MSD run goes on past the inversion, to show how far it goes
-        config = GraspLiftConfig(tissue_config=tissue, terminate_on_damage=False, inverted_tet_is_failure=name == "barrier")
+        config = GraspLiftConfig(tissue_config=tissue, terminate_on_damage=False,
+                                 inverted_tet_is_failure=name == "barrier")
         env = GraspLiftEnv(config=config)
         obs, info = env.reset(seed=0, options=dict(mu=0.3, stiffness_scale=0.8, mass_scale=1.0))
         policy = FixedForcePolicy(config, force_N=5.0)

@@ -30,14 +30,16 @@ def test_step_before_the_first_reset_is_refused(make):
 @pytest.mark.parametrize("cls", [GraspLiftEnv, GraspLiftVectorEnv])
 @pytest.mark.parametrize("mode", ["human", "rgb", "ansi"])
 def test_unsupported_render_modes_are_refused_by_both_envs(cls, mode):
-    with pytest.raises(ValueError, match=rf"^{cls.__name__}: render_mode must be one of \['rgb_array'\] or None, got '{mode}'$"):
+    with pytest.raises(ValueError,
+                       match=rf"^{cls.__name__}: render_mode must be one of \['rgb_array'\] or None, got '{mode}'$"):
         cls(SHORT, render_mode=mode) if cls is GraspLiftEnv else cls(1, SHORT, render_mode=mode)
     assert cls.metadata["render_modes"] == ["rgb_array"]
 
 
 @pytest.mark.parametrize("vector", [False, True], ids=["single", "vector"])
 def test_an_env_that_has_rendered_deepcopies_and_pickles_and_the_copy_steps_and_renders(vector):
-    env = GraspLiftVectorEnv(2, SHORT, render_mode="rgb_array") if vector else GraspLiftEnv(SHORT, render_mode="rgb_array")
+    env = (GraspLiftVectorEnv(2, SHORT, render_mode="rgb_array") if vector
+           else GraspLiftEnv(SHORT, render_mode="rgb_array"))
     env.reset(seed=3)
     action = np.tile(np.float32([0.5, -1.0]), (2, 1)) if vector else np.float32([0.5, -1.0])
     for _ in range(4):
@@ -71,5 +73,6 @@ def test_vector_reset_options_pin_one_value_for_every_env_or_one_per_env():
     _, one = single.reset(seed=1, options={"mu": 0.5})
     assert one["mu"] == 0.5 and np.array_equal(single.reset(seed=1, options={"mu": 0.5})[0],
                                                env.reset(seed=0, options={"mu": [0.2, 0.5, 0.8]})[0][1])
-    with pytest.raises(ConfigError, match=r"^reset options\['mu'\] must be one number or 3 numbers \(one per env\), got 2$"):
+    with pytest.raises(ConfigError,
+                       match=r"^reset options\['mu'\] must be one number or 3 numbers \(one per env\), got 2$"):
         env.reset(seed=0, options={"mu": [0.2, 0.5]})

@@ -109,7 +109,8 @@ def fixed_default_rows(envs):
 
 
 def test_fixed_high_force_succeeds_at_high_friction(envs):
-    (row,) = evaluate_policy(FixedForcePolicy(CONFIG, force_N=2.5), [0.8], episodes=4, config=CONFIG, seed=0, _envs=envs)
+    (row,) = evaluate_policy(FixedForcePolicy(CONFIG, force_N=2.5), [0.8], episodes=4, config=CONFIG, seed=0,
+                             _envs=envs)
     assert row["episodes"] == 4 and row["mu"] == 0.8
     assert row["success_rate"] >= 0.75, row
     # the controller regulates the pinch force at its set-point
@@ -251,12 +252,14 @@ def test_rl_subcommands_are_wired():
     parser = build_parser()
     a = parser.parse_args(["train", "--algo", "sac", "--total-timesteps", "100", "--n-envs", "2", "--seed", "3",
                            "--resume", "runs/x", "--quiet"])  # (--algo: the old name of --learner)
-    assert (a.learner, a.total_timesteps, a.n_envs, a.seed, a.resume, a.quiet) == ("sac", 100, 2, 3, Path("runs/x"), True)
+    assert (a.learner, a.total_timesteps, a.n_envs, a.seed, a.resume, a.quiet) == (
+        "sac", 100, 2, 3, Path("runs/x"), True)
     # (--out defaults in the handler: logs/train for SB3, logs/train_torch for the torch PPO)
     assert a.config is None and a.out is None and a.backend is None
     assert parser.parse_args(["train", "--learner", "rsl"]).learner == "rsl"
     e = parser.parse_args(["evaluate"])
-    assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (None, None, 10, 0, Path("logs/evaluate"), False)
+    assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (
+        None, None, 10, 0, Path("logs/evaluate"), False)
     r = parser.parse_args(["record", "--policy", "fixed"])
     assert (r.mu, r.out) == (0.5, Path("logs/record/episode.rrd"))
     s = parser.parse_args(["soak"])
@@ -278,7 +281,8 @@ def test_cli_record_writes_a_recording(tmp_path, monkeypatch):
     for var in ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME", "XDG_STATE_HOME"):
         monkeypatch.setenv(var, str(home / var.lower()))
     path = tmp_path / "rec" / "episode.rrd"
-    rc, stdout, stderr = _run_main(["record", "--policy", "fixed:2.5", "--mu", "0.8", "--seed", "1", "--out", str(path)])
+    rc, stdout, stderr = _run_main(["record", "--policy", "fixed:2.5", "--mu", "0.8", "--seed", "1",
+                                    "--out", str(path)])
     assert rc == 0, stderr
     assert path.is_file() and path.stat().st_size > 1000
     assert path.read_bytes()[:3] == b"RRF"

@@ -8,9 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msdgrasp.agents.networks import actor_mask
 from msdgrasp.agents.training import TrainConfig, load_model, train
-from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
+from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, actor_mask
 from msdgrasp.physics.config import ConfigError, from_dict
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import rerun as rr  # noqa: E402  (a dependency: a missing rerun fails, never skips)
+import rerun as rr  # noqa: E402,F401  (a dependency: a missing rerun fails, never skips)
 from rerun.chunk import RrdReader  # noqa: E402
 
 from msdgrasp.envs.grasp_lift import GraspLiftEnv  # noqa: E402
@@ -262,7 +262,8 @@ def test_replay_web_ports_are_passed_to_rerun_and_checked_before_anything_starts
         viewer_command("ep.rrd", port=8123)
 
 
-@pytest.mark.parametrize("launcher", [["-m", "msdgrasp.cli.main"], ["-c", "import sys; from msdgrasp.cli.main import main; sys.exit(main())"]])
+@pytest.mark.parametrize("launcher", [["-m", "msdgrasp.cli.main"],
+                                      ["-c", "import sys; from msdgrasp.cli.main import main; sys.exit(main())"]])
 def test_a_missing_recording_is_one_line_and_exit_2_however_the_cli_is_started(launcher, tmp_path):
     """``python -m msdgrasp.cli.main`` runs cli.py as __main__; the error class must still be caught."""
     import subprocess

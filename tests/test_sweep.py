@@ -85,50 +85,6 @@ def test_a_job_on_another_node_lands_its_folder_in_the_drivers_output(tmp_path, 
     assert land(res, tmp_path / "here") == res and (tmp_path / "here" / "model.txt").read_text() == "w2"
 
 
-def _tar(*members: tuple[str, bytes | None, str | None]) -> bytes:
-    """A tar.gz of (name, file bytes or None, symlink target or None) members, names taken as given."""
-    import tarfile
-
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz") as tar:
-        for name, data, link in members:
-            info = tarfile.TarInfo(name)
-            if link is not None:
-                info.type, info.linkname = tarfile.SYMTYPE, link
-                tar.addfile(info)
-            else:
-                info.size = len(data)
-                tar.addfile(info, io.BytesIO(data))
-    return buf.getvalue()
-
-
-@pytest.mark.parametrize("filters", [True, False], ids=["data_filter", "own_checks"])
-def test_unpack_extracts_a_packed_folder_and_refuses_members_that_leave_it(tmp_path, monkeypatch, filters):
-    """With tarfile's "data" filter (Python >= 3.11.4) and with the member checks used where it is missing
-    (3.11.0-3.11.3): a packed folder comes back byte for byte; an archive with a member that would land
-    outside the folder is refused, naming the member, before anything is written."""
-    if filters and not parallel._has_data_filter():
-        pytest.skip("this Python's tarfile has no extraction filters")
-    monkeypatch.setattr(parallel, "_has_data_filter", lambda: filters)
-    src = tmp_path / "src"
-    (src / "sub").mkdir(parents=True)
-    (src / "a.txt").write_text("alpha")
-    (src / "sub" / "b.bin").write_bytes(bytes(range(256)))
-    out = tmp_path / "out"
-    parallel.unpack(parallel.pack(src, [src / "a.txt", src / "sub"]), out)
-    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["a.txt", "sub", "sub/b.bin"]
-    assert (out / "a.txt").read_text() == "alpha" and (out / "sub" / "b.bin").read_bytes() == bytes(range(256))
-    bad = {"../evil": _tar(("ok.txt", b"ok", None), ("../evil", b"x", None)),
-           str(tmp_path / "abs_evil"): _tar(("ok.txt", b"ok", None), (str(tmp_path / "abs_evil"), b"x", None)),
-           "up": _tar(("ok.txt", b"ok", None), ("up", None, "../../outside"))}
-    for member, archive in bad.items():
-        dest = tmp_path / "bad"
-        with pytest.raises(ConfigError, match=f"job archive for {dest}: member '{member}' has ") as err:
-            parallel.unpack(archive, dest)
-        assert "\n" not in str(err.value)
-        assert not dest.exists() and not (tmp_path / "evil").exists() and not (tmp_path / "abs_evil").exists()
-
-
 @pytest.fixture(scope="module")
 def sb3_seeds(tmp_path_factory) -> Path:
     """Two seeds of a TINY finished SB3 run (copies: the same checkpoints) on 0.2 s episodes."""
@@ -165,7 +121,8 @@ def test_select_on_ray_ships_each_runs_checkpoints_and_picks_as_local_processes(
         # the history names the run's own checkpoints, not the copy the job validated
         run = sb3_seeds / f"seed_{k}"
         assert [h["model"] for h in b["validation"]["history"]] == [
-            str(run / "checkpoints" / "model_256.zip"), str(run / "checkpoints" / "model_512.zip"), str(run / "final_model.zip")]
+            str(run / "checkpoints" / "model_256.zip"), str(run / "checkpoints" / "model_512.zip"),
+            str(run / "final_model.zip")]
     # a node that cannot read the run: the job validates the archive alone, its pick lands in the driver's folder
     plan = plan_selection(sb3_seeds / "seed_0", validation_episodes=2)
     archive = pack_run(plan)
@@ -181,7 +138,8 @@ def test_select_on_ray_ships_each_runs_checkpoints_and_picks_as_local_processes(
         away.rename(sb3_seeds)
     assert _picked(target) == _picked(tmp_path / "local" / "seed_0")
     summary = json.loads((target / "train_summary.json").read_text())
-    assert summary["best_model"] == str(target / "best_model.zip") and summary["selected_from"] == str(sb3_seeds / "seed_0")
+    assert (summary["best_model"] == str(target / "best_model.zip")
+            and summary["selected_from"] == str(sb3_seeds / "seed_0"))
 
 
 def _sweep(**extra) -> SweepConfig:
@@ -226,7 +184,8 @@ def test_ray_evaluation_equals_the_in_process_evaluation(tmp_path, local_ray):
     kw = dict(mus=[0.3, 0.6], episodes=2, progress=False, conditions=({"stiffness_scale": 1.5},))
     seq = evaluate(["fixed"], out_dir=tmp_path / "seq", **kw)
     par = evaluate(["fixed"], out_dir=tmp_path / "ray", runner=Runner.ray(), **kw)
-    assert [r["name"] for r in par["results"]] == [r["name"] for r in seq["results"]] == ["fixed2.5N", "reactive", "oracle"]
+    assert ([r["name"] for r in par["results"]] == [r["name"] for r in seq["results"]]
+            == ["fixed2.5N", "reactive", "oracle"])
     for a, b in zip(seq["results"], par["results"]):
         assert a["rows"] == b["rows"]
     assert seq["oracle_minimal_force"] == par["oracle_minimal_force"]

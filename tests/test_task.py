@@ -47,8 +47,8 @@ def _episodes(env: GraspLiftVectorEnv, policy, mus, seed: int = 0) -> dict[str, 
         done |= term | trunc
         if done.all():
             break
-    return {"return": ret, "success": success, "peak": peak, "peak_force": peak_charge, "pinch": np.array(pinch), "travel": np.array(travel),
-            "target": np.array(target)}
+    return {"return": ret, "success": success, "peak": peak, "peak_force": peak_charge, "pinch": np.array(pinch),
+            "travel": np.array(travel), "target": np.array(target)}
 
 
 # -- the control interface ---------------------------------------------------------------------------

@@ -85,7 +85,8 @@ def test_the_task_record_follows_the_config_fields():
     # numbers and flags as they are; a choice as one flag per option; None as NaN; strings left out
     assert record.lift_target_m == config.lift_target_m and record.obs_history == config.obs_history
     assert record.terminate_on_damage is True and record.max_pull_speed_m_s == 0.01
-    assert (record.pull_action_travel, record.pull_action_speed, record.pull_action_forward_speed) == (False, False, True)
+    assert (record.pull_action_travel, record.pull_action_speed,
+            record.pull_action_forward_speed) == (False, False, True)
     assert record.jaw_action_force and not record.jaw_action_speed
     assert record.reward.peak_force_timing_as_made and not record.reward.peak_force_timing_at_success
     assert math.isnan(record.reward.peak_force_mu_ref) and record.randomization.mu_range == (0.2, 0.9)

@@ -187,7 +187,8 @@ def test_implicit_barrier_step_is_backward_euler_of_the_barrier_force():
             assert np.all(dv[fixed_node] == 0.0)
             impulse = impulse + np.where(np.arange(4)[:, None] == fixed_node, -anchor * dt, 0.0)
         # (round-off: of the impulses, and of v - v_in at the falling apex's 0.5 m/s)
-        np.testing.assert_allclose(impulse.sum(axis=0), 0.0, atol=1e-12 * np.abs(impulse).max() + 1e-15 * 0.5 * mass.max())
+        np.testing.assert_allclose(impulse.sum(axis=0), 0.0,
+                                   atol=1e-12 * np.abs(impulse).max() + 1e-15 * 0.5 * mass.max())
         f = np.zeros((4, 3))
         volume_forces(x, tet, v0, np.array([k]), 0.5, 1.0, f)
         w = np.where(fixed, 0.0, 1.0 / mass)[:, None]

@@ -170,7 +170,8 @@ def test_the_shipped_policy_is_the_best_validated_checkpoint(tmp_path):
     key = [(h["success_rate"], -h["force_cost_N"]) for h in history]
     best = key.index(max(key))
     assert summary["best_iteration"] == (0, 2, 4)[best]
-    assert (tmp_path / "policy.pt").read_bytes() == (tmp_path / "checkpoints" / f"policy_{(0, 2, 4)[best]}.pt").read_bytes()
+    assert ((tmp_path / "policy.pt").read_bytes()
+            == (tmp_path / "checkpoints" / f"policy_{(0, 2, 4)[best]}.pt").read_bytes())
     assert json.loads((tmp_path / "policy.json").read_text())["iteration"] == summary["best_iteration"]
     assert summary["validation_success"] == history[best]["success_rate"]
     assert [r["mu"] for r in summary["validation"]] == [0.3, 0.9]

@@ -241,5 +241,6 @@ def test_the_algorithm_blocks_only_offer_arguments_of_the_sb3_constructors():
 
     for block, algo in ((PPOKwargs, PPO), (SACKwargs, SAC)):
         keys = set(get_type_hints(block))
-        assert keys <= set(inspect.signature(algo.__init__).parameters), keys - set(inspect.signature(algo.__init__).parameters)
+        assert keys <= set(inspect.signature(algo.__init__).parameters), (
+            keys - set(inspect.signature(algo.__init__).parameters))
         assert {"learning_rate", "batch_size", "gamma"} <= keys

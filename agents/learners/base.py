@@ -269,7 +269,7 @@ def _recorded(path: Path) -> str | None:
 
 def model_kinds() -> str:
     """What a saved model of each learner looks like, for messages."""
-    return "; ".join(f"{', '.join(n for n, l in _REGISTRY.items() if type(l) is type(fam))}: "
+    return "; ".join(f"{', '.join(n for n, learner in _REGISTRY.items() if type(learner) is type(fam))}: "
                      f"{fam.layout.model_description}" for fam in _families())
 
 

@@ -37,7 +37,9 @@ class SB3Learner(Learner):
         self.name = algo
 
     def check_available(self) -> None:
-        import stable_baselines3  # noqa: F401
+        from ...physics.config import require_extra
+
+        require_extra("train", f"learner {self.name}", "torch", "stable_baselines3")
 
     def owns_config(self, config: Any) -> bool:
         from ..models import TrainConfig

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ...physics.config import ConfigError
+from ...physics.config import ConfigError, needs_extra
 from .base import RunLayout
 
 if TYPE_CHECKING:
@@ -66,7 +66,8 @@ def is_ppo(algo: str) -> bool:
 
 
 def algo_class(name: str):
-    from stable_baselines3 import PPO, SAC
+    with needs_extra("train", f"SB3 algorithm {name}"):
+        from stable_baselines3 import PPO, SAC
 
     return {"ppo": PPO, "sac": SAC}[name]
 
