@@ -363,6 +363,7 @@ def make_benchmark_vector_env(num_envs: int = 1, scene: str = "spleen", render_m
     (which ``gym.make_vec`` passes from the spec) must be the task's own limit: change ``time_limit_s`` instead."""
     env = GraspLiftVectorEnv(num_envs, _benchmark(scene, overrides), render_mode, autoreset_mode)
     if max_episode_steps is not None and int(max_episode_steps) != env.config.max_episode_steps:
-        raise ValueError(f"max_episode_steps = {max_episode_steps} differs from the task's {env.config.max_episode_steps}"
-                         f" (time_limit_s = {env.config.time_limit_s} s); set time_limit_s instead")
+        raise ValueError(f"max_episode_steps = {max_episode_steps} differs from the task's "
+                         f"{env.config.max_episode_steps} (time_limit_s = {env.config.time_limit_s} s); "
+                         "set time_limit_s instead")
     return env

@@ -183,8 +183,9 @@ def test_v1_is_the_default_trainings_task_with_its_episode_limit_in_the_spec():
 def test_normalize_observation_steps_the_v1_vector_env_through_episode_ends():
     from gymnasium.wrappers.vector import NormalizeObservation
 
-    env = NormalizeObservation(gym.make_vec("msdgrasp/GraspLift-v1", num_envs=4, vectorization_mode="vector_entry_point",
-                                            time_limit_s=0.2, max_episode_steps=7))
+    env = NormalizeObservation(gym.make_vec("msdgrasp/GraspLift-v1", num_envs=4,
+                                            vectorization_mode="vector_entry_point", time_limit_s=0.2,
+                                            max_episode_steps=7))
     env.reset(seed=0)
     ends = 0
     for _ in range(16):
