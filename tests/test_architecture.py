@@ -154,7 +154,8 @@ CORE_ONLY = textwrap.dedent("""
     import msdgrasp.envs  # noqa: F401
 
     out = {"steps": {}}
-    for env_id in ("msdgrasp/GraspLift-v0", "msdgrasp/GraspLiftSphere-v0"):
+    for env_id in ("msdgrasp/GraspLift-v0", "msdgrasp/GraspLiftSphere-v0", "msdgrasp/GraspLift-v1",
+                   "msdgrasp/GraspLiftSphere-v1"):
         env = gym.make(env_id)
         obs, _ = env.reset(seed=0)
         obs2, reward, terminated, truncated, info = env.step(env.action_space.sample())
@@ -182,7 +183,8 @@ def test_the_envs_run_on_the_core_install_and_a_missing_extra_is_one_line_naming
                           env=os.environ.copy(), timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert sorted(out["steps"]) == ["msdgrasp/GraspLift-v0", "msdgrasp/GraspLiftSphere-v0"]
+    assert sorted(out["steps"]) == ["msdgrasp/GraspLift-v0", "msdgrasp/GraspLift-v1", "msdgrasp/GraspLiftSphere-v0",
+                                    "msdgrasp/GraspLiftSphere-v1"]
     for n_obs, n_obs2, reward, _ in out["steps"].values():
         assert n_obs == n_obs2 > 0 and reward == reward  # (not NaN)
     assert out["tried"] == []
