@@ -277,23 +277,8 @@ def implicit_spring_dashpots(
         wj = 0.0 if fixed[j] else 1.0 / meff[j]
         r = (v[j, 0] - v[i, 0]) * ux + (v[j, 1] - v[i, 1]) * uy + (v[j, 2] - v[i, 2]) * uz
         lam = c * dt * r / (1.0 + c * dt * (wi + wj))  # impulse on node i along u (on node j: minus it), N s
-        _dashpot_kick(x, v, i, wi, lam, (ux, uy, uz), dt, anchor)
-        _dashpot_kick(x, v, j, wj, -lam, (ux, uy, uz), dt, anchor)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _dashpot_kick(x, v, i, w, lam, u, dt, anchor) -> None:
-    """Node i's impulse lam u (N s) of a dashpot: its velocity changes by w lam u and its position with it; an
-    anchored node (w = 0) passes the force lam u / dt to its anchor."""
-    if w == 0.0:
-        anchor[0] -= lam * u[0] / dt
-        anchor[1] -= lam * u[1] / dt
-        anchor[2] -= lam * u[2] / dt
-        return
-    for c in range(3):
-        dv = w * lam * u[c]
-        v[i, c] += dv
-        x[i, c] += dt * dv
+        _kick(x, v, i, wi, lam, (ux, uy, uz), dt, anchor)
+        _kick(x, v, j, wj, -lam, (ux, uy, uz), dt, anchor)
 
 
 # -------------------------------------------------------------------------------------------------
@@ -473,16 +458,16 @@ def implicit_volume_barrier(
               + (0.0 if held[d] != 0 else wd) * (gdx * gdx + gdy * gdy + gdz * gdz))
         p = k * d1 / (1.0 + dt * dt * k * d2 * ww / v0)
         s = -dt * p  # impulse along each volume gradient, N s / m^2: dv_i = s w_i g_i
-        _barrier_kick(x, v, a, wa, s, (gax, gay, gaz), dt, anchor)
-        _barrier_kick(x, v, b, wb, s, (gbx, gby, gbz), dt, anchor)
-        _barrier_kick(x, v, c, wc, s, (gcx, gcy, gcz), dt, anchor)
-        _barrier_kick(x, v, d, wd, s, (gdx, gdy, gdz), dt, anchor)
+        _kick(x, v, a, wa, s, (gax, gay, gaz), dt, anchor)
+        _kick(x, v, b, wb, s, (gbx, gby, gbz), dt, anchor)
+        _kick(x, v, c, wc, s, (gcx, gcy, gcz), dt, anchor)
+        _kick(x, v, d, wd, s, (gdx, gdy, gdz), dt, anchor)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _barrier_kick(x, v, i, w, s, g, dt, anchor) -> None:
-    """Node i's share of a tet's barrier impulse s g (N s): its velocity changes by w s g and its position with
-    it; an anchored node (w = 0) passes the force s g / dt to its anchor."""
+def _kick(x, v, i, w, s, g, dt, anchor) -> None:
+    """Node i's share s g (N s) of an implicit impulse (a tet's barrier, a spring's dashpot): its velocity changes
+    by w s g and its position with it; an anchored node (w = 0) passes the force s g / dt to its anchor."""
     gx, gy, gz = g
     if w == 0.0:
         anchor[0] -= s * gx / dt
