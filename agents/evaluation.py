@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig
+from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
 from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .learners.base import learner_of_model, model_kinds
@@ -51,13 +51,6 @@ DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
 #: unseen tissue: stiffness and mass scales outside the training ranges (0.8-1.2, 0.9-1.1), at UNSEEN_MU
 UNSEEN_CONDITIONS = ({"stiffness_scale": 0.6}, {"stiffness_scale": 1.5}, {"mass_scale": 0.8}, {"mass_scale": 1.25})
 UNSEEN_MU = 0.5
-#: a published damage threshold for grasped soft tissue, Pa: the safety threshold of compressive stress for human
-#: small bowel and colon under 10 s grasps, 329-330 kPa (logistic regression on histological trauma; 20 samples,
-#: 100-600 kPa; "Tissue stress from laparoscopic grasper use and bowel injury in humans: establishing
-#: intraoperative force boundaries", BMJ Surgery, Interventions & Health Technologies 2021,
-#: doi:10.1136/bmjsit-2021-000084). No such threshold is published for the spleen; the bowel's is the nearest
-#: measured in humans. Evaluations report the time each episode's peak contact pressure spends above it.
-DAMAGE_PRESSURE_PA = 330e3
 #: baselines every evaluation includes (a learned policy is always shown beside them)
 ALWAYS = ("reactive", "oracle")
 MAX_GRID_VALUES = 101

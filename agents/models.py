@@ -15,10 +15,10 @@ from annotated_types import Ge, Gt, Le, MinLen
 from pydantic import with_config
 from typing_extensions import TypedDict
 
-from ..envs.core import GraspLiftConfig, benchmark_config
+from ..envs.core import GraspLiftConfig, RandomizationConfig, benchmark_config, ramp_randomization
 from ..physics.config import (
-    RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, config_dataclass, from_dict, read_yaml,
-    replace,
+    RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
+    read_yaml, replace,
 )
 
 PositiveInt = Annotated[Int, Ge(1)]
@@ -136,6 +136,26 @@ class TrainConfig:
     #: log-uniformly, a pinch action that spends more of its range on light grips, a pull-speed action, a
     #: peak-pinch charge scaled by mu / 0.4; docs/design.md), plus the privileged entries the critic reads
     env: GraspLiftConfig = field(default_factory=lambda: replace(benchmark_config(), privileged_obs=True))
+    #: domain randomisation of the training: the training's episodes (and its validation episodes, which select
+    #: the model) are drawn from this in place of env.randomization; the model's task stays ``env`` (evaluations
+    #: and the robustness suite run on it). None: env.randomization
+    train_randomization: RandomizationConfig | None = None
+    #: a curriculum: (start, end) fractions of total_timesteps over which the training's randomisation moves
+    #: linearly from env.randomization to train_randomization (envs.core.ramp_randomization); before start the
+    #: episodes are env's. None: train_randomization from the first step
+    randomization_ramp: tuple[Unit, Unit] | None = None
+
+    def training_task(self, progress: float = 1.0) -> GraspLiftConfig:
+        """The task the training draws its episodes from after a fraction ``progress`` of total_timesteps (the
+        curriculum's level then); 1.0: the task it validates on."""
+        if self.train_randomization is None:
+            return self.env
+        level = 1.0
+        if self.randomization_ramp is not None:
+            lo, hi = self.randomization_ramp
+            level = 1.0 if progress >= hi else max(0.0, (progress - lo) / (hi - lo))
+        return replace(self.env, randomization=ramp_randomization(self.env.randomization, self.train_randomization,
+                                                                  level))
 
     def __post_init__(self) -> None:
         if self.asymmetric_critic and self.algo != "ppo":
@@ -145,6 +165,11 @@ class TrainConfig:
         if self.squash_actions and self.algo == "ppo" and not self.ppo.get("use_sde", False):
             raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
                               "set squash_actions: false to train PPO without gSDE")
+        if self.randomization_ramp is not None:
+            if self.train_randomization is None:
+                raise ConfigError("randomization_ramp needs train_randomization (the randomisation it ramps to)")
+            check_range("randomization_ramp[1]", self.randomization_ramp[1], self.randomization_ramp[0], None,
+                        lo_inclusive=False)
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":

@@ -61,7 +61,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     out = Path(out_dir)
     torch.set_num_threads(config.torch_threads)
     write_yaml(out / LAYOUT.config, to_dict(config))
-    venv = GraspLiftSB3VecEnv(config.n_envs, config.env, seed=config.seed)
+    # (built on the widest randomisation it will draw from: the curriculum's end)
+    venv = GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=config.seed)
     algo_cls = algo_class(config.algo)
     if resume:
         path, _ = _latest_model(out)
@@ -104,6 +105,23 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
                 self.next += self.every
             return True
 
+    class Curriculum(BaseCallback):
+        """Moves the training's randomisation along config.randomization_ramp before each rollout."""
+
+        def _on_rollout_start(self) -> None:
+            progress = self.model.num_timesteps / config.total_timesteps
+            task = config.training_task(progress)
+            if task.randomization != venv.core.config.randomization:
+                venv.core.set_randomization(task.randomization)
+
+        def _on_step(self) -> bool:
+            return True
+
+    callbacks = [Checkpoint(config.checkpoint_every)]
+    if config.randomization_ramp is not None:
+        callbacks.append(Curriculum())
+        venv.core.set_randomization(config.training_task(model.num_timesteps / config.total_timesteps).randomization)
+
     bc = None
     if not resume and config.bc_teacher and is_ppo(config.algo):
         bc = behaviour_clone(model, config)
@@ -112,7 +130,7 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     t0 = time.perf_counter()
     if remaining > 0:
         model.learn(
-            remaining, callback=Checkpoint(config.checkpoint_every), progress_bar=progress,
+            remaining, callback=callbacks, progress_bar=progress,
             reset_num_timesteps=not resume, tb_log_name="run",
         )
     wall = time.perf_counter() - t0
@@ -216,7 +234,9 @@ class BestModel:
         if cfg.validation_episodes == 0:
             return None
 
-        rows = evaluate_policy(policy, cfg.validation_mu, cfg.validation_episodes, cfg.env,
+        # (on the training's own task at its full randomisation: SB3's TrainConfig.training_task)
+        task = cfg.training_task() if hasattr(cfg, "training_task") else cfg.env
+        rows = evaluate_policy(policy, cfg.validation_mu, cfg.validation_episodes, task,
                                seed=cfg.seed + VALIDATION_SEED_OFFSET, _envs=self._envs)
         rec = {
             "timesteps": int(timesteps),

@@ -11,7 +11,7 @@ generator, so a batch reproduces N single envs seeded alike exactly.
 from __future__ import annotations
 
 import math
-from dataclasses import field
+from dataclasses import field, fields
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -20,7 +20,7 @@ from annotated_types import Ge, Gt, Le, Lt
 
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml,
-    to_dict,
+    replace, to_dict,
 )
 from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
@@ -32,6 +32,14 @@ from .task import (
 )
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
+#: a published damage threshold for grasped soft tissue, Pa: the safety threshold of compressive stress for human
+#: small bowel and colon under 10 s grasps, 329-330 kPa (logistic regression on histological trauma; 20 samples,
+#: 100-600 kPa; "Tissue stress from laparoscopic grasper use and bowel injury in humans: establishing
+#: intraoperative force boundaries", BMJ Surgery, Interventions & Health Technologies 2021,
+#: doi:10.1136/bmjsit-2021-000084). No such threshold is published for the spleen; the bowel's is the nearest
+#: measured in humans. The benchmark task (v1) ends an episode whose peak contact pressure exceeds it;
+#: evaluations report the time each episode's peak contact pressure spends above it.
+DAMAGE_PRESSURE_PA = 330e3
 LatencySteps = Annotated[Int, Ge(0), Le(MAX_LATENCY_STEPS)]
 
 
@@ -147,7 +155,7 @@ class GraspLiftConfig:
     #: substeps gave errors of 0.05 N of 0.24 N and 0.95 mm)
     substep_safety: Annotated[Real, Gt(0), Le(1)] = SUBSTEP_SAFETY
     #: end an episode as a numerical failure when a tet inverts (info["min_volume_ratio"] <= 0; it is reported
-    #: either way). With the spleen's volume floor (configs/tissue/spleen.yaml) no tet inverts under the
+    #: either way). With the spleen's volume barrier (configs/tissue/spleen.yaml) no tet inverts under the
     #: env's largest pinch, so on the defaults this flags a real failure of the physics, not a hard pinch.
     inverted_tet_is_failure: Bool = True
     #: what action[0] commands: "force" = a pinch-force set-point in [0, max_pinch_force_N] that the jaw
@@ -187,7 +195,8 @@ class GraspLiftConfig:
     time_limit_s: Positive = 10.0
     #: pinch-force normalisation (observation and force penalty), N
     reference_force_N: Positive = 5.0
-    #: peak nodal stress (contact pressure) beyond which the tissue counts as damaged, Pa
+    #: peak nodal stress (contact pressure) beyond which the tissue counts as damaged, Pa. Version 0's 60 kPa is a
+    #: limit of the task, not a measured threshold; the benchmark task (v1) uses the published DAMAGE_PRESSURE_PA
     damage_stress_pa: Positive = 60e3
     #: terminate when damaged
     terminate_on_damage: Bool = True
@@ -228,12 +237,34 @@ def benchmark_config(scene: str = "spleen") -> GraspLiftConfig:
     the training measured better learning (docs/design.md): a pinch action that spends more of its range on
     light grips (exponent 2: action 0 is a 1.25 N set-point), a pull-speed action (action 0: 10 mm/s) instead of a
     travel set-point, a peak-pinch charge scaled by mu / 0.4 (it follows the ratio to the minimal slip-free
-    force), and friction drawn log-uniformly from 0.2-0.9 (low friction, where grasps fail, comes up more often).
-    The default training (agents.models.TrainConfig) trains on it, adding only the privileged observations its
-    critic reads (the actor does not)."""
+    force), friction drawn log-uniformly from 0.2-0.9 (low friction, where grasps fail, comes up more often), and
+    tissue damage at the published threshold DAMAGE_PRESSURE_PA (330 kPa) instead of version 0's unsourced 60 kPa
+    (a jaw placed 5 mm / 10 deg off touches first with one node at about 100 kPa for a few ms, which no published
+    measure calls damage). The default training (agents.models.TrainConfig) trains on it, adding the privileged
+    observations its critic reads (the actor does not) and its own domain randomisation."""
     return GraspLiftConfig(scene=scene, pinch_action_exponent=2.0, pull_action="forward_speed",
-                           reward=RewardConfig(peak_force_mu_ref=0.4),
+                           damage_stress_pa=DAMAGE_PRESSURE_PA, reward=RewardConfig(peak_force_mu_ref=0.4),
                            randomization=RandomizationConfig(mu_distribution="log_uniform"))
+
+
+def ramp_randomization(start: RandomizationConfig, end: RandomizationConfig, level: float) -> RandomizationConfig:
+    """The randomisation a fraction ``level`` (0-1) of the way from ``start`` to ``end`` (a training curriculum):
+    numbers and ranges linearly (latency bounds rounded to whole steps), choices (slip sensing, mu distribution,
+    pinch ceiling) at ``end``'s once ``level`` > 0."""
+    level = min(max(float(level), 0.0), 1.0)
+    if level == 0.0:
+        return start
+    values: dict[str, Any] = {}
+    for f in fields(RandomizationConfig):
+        a, b = getattr(start, f.name), getattr(end, f.name)
+        if isinstance(b, tuple) and isinstance(a, tuple):
+            mixed = tuple(x + level * (y - x) for x, y in zip(a, b))
+            values[f.name] = tuple(int(round(v)) for v in mixed) if f.name == "latency_steps" else mixed
+        elif isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+            values[f.name] = a + level * (b - a)
+        else:
+            values[f.name] = b
+    return RandomizationConfig(**values)
 
 
 def pinch_action(force_N: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:
@@ -296,7 +327,7 @@ class GraspLiftCore:
                                                   anchor_stiffness_n_per_m=cfg.anchor_stiffness_n_per_m)
         else:
             self.scene = sphere_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution)
-        rnd = cfg.randomization
+        rnd = self._built_randomization = cfg.randomization
         self.sim = self.scene.simulation(
             B, dt=PHYSICS_DT_S, max_stiffness_scale=max(1.0, rnd.stiffness_scale_range[1]),
             min_mass_scale=min(1.0, rnd.mass_scale_range[0]), safety=cfg.substep_safety,
@@ -343,6 +374,23 @@ class GraspLiftCore:
         state = self.__dict__.copy()
         state.pop("_render_cache", None)
         return state
+
+    def set_randomization(self, randomization: RandomizationConfig) -> None:
+        """Draw the episodes of later resets from ``randomization`` (a training curriculum moves it); episodes under
+        way keep their draws. The ranges that sized the simulation and the start pose when the core was built
+        bound it: stiffness scale at most, mass scale at least, pose offset at most theirs."""
+        built = self._built_randomization
+        limits = (("stiffness_scale_range[1]", randomization.stiffness_scale_range[1],
+                   max(1.0, built.stiffness_scale_range[1]), "<="),
+                  ("mass_scale_range[0]", randomization.mass_scale_range[0], min(1.0, built.mass_scale_range[0]), ">="),
+                  ("pose_offset_m", randomization.pose_offset_m, built.pose_offset_m, "<="))
+        for name, value, bound, op in limits:
+            if (value > bound) if op == "<=" else (value < bound):
+                raise ConfigError(f"randomization.{name} = {value!r} must be {op} {bound!r}, the value this env was "
+                                  f"built for (build it with the widest randomisation it will draw from)")
+        self.config = replace(self.config, randomization=randomization)
+        self.params = task_params(self)
+        self._drawn = [bool(column_drawn(self.params.env, k)) for k in range(len(DRAW_COLUMNS))]
 
     # ------------------------------------------------------------------------------------------
     def seed(self, index: int, seed: int | None) -> None:

@@ -174,7 +174,8 @@ class GraspLiftEnv(gym.Env):
       action, a peak-pinch charge scaled by mu / 0.4, friction drawn log-uniformly from 0.2-0.9 (the measurements
       behind each are in docs/design.md); the spec states ``max_episode_steps`` (304). Physics: the volume barrier
       integrated implicitly before the contacts (no tet inverts under a 5 N pinch and held nodes stay in their
-      friction cone), 3 substeps per ms on the coarse spleen.
+      friction cone), 3 substeps per ms on the coarse spleen. Damage at the published 330 kPa
+      (:data:`.core.DAMAGE_PRESSURE_PA`, human bowel under 10 s grasps) instead of v0's unsourced 60 kPa.
     * v0: the first interface (GraspLiftConfig's defaults: linear pinch action, pull-distance set-point, plain
       peak-pinch charge, uniform friction); it runs the current physics, which changed under it (3 substeps
       instead of 2, the volume floor, then the implicit barrier).
