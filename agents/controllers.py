@@ -212,7 +212,7 @@ class ModelPolicy:
         self.model = load_model(path)
         if name is None:  # named by what it is: "PPO (seed 3)" when its training config is saved with it
             cfg = model_train_config(path)
-            name = f"{cfg.algo.upper()} (seed {cfg.seed})"
+            name = f"BC of {cfg.bc_dataset}" if cfg.bc_dataset else f"{cfg.algo.upper()} (seed {cfg.seed})"
         self.name = name
 
     @classmethod

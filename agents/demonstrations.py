@@ -1,4 +1,5 @@
-"""Demonstrations as Minari datasets (``msdgrasp collect``): a policy's episodes on the randomised task, written by
+"""Demonstrations as Minari datasets (``msdgrasp collect``): a policy's episodes on the randomised task (the task its
+training drew its episodes from: the default training's for a controller), written by
 Minari itself (``minari.create_dataset_from_buffers`` with the registered env), so ``minari.load_dataset`` reads them
 back and ``dataset.recover_environment()`` rebuilds the task they were collected on. The episodes are gathered into
 Minari's ``EpisodeBuffer`` here rather than by its ``DataCollector`` wrapper, which needs JAX (``minari[create]``,
@@ -66,6 +67,15 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
     check_policy_spec(policy)
     config, trained_on = trained_task_of([policy])
     pol = build_policy(policy, config)
+    # the episodes are drawn from the training's randomised task (the default training's for a controller)
+    if trained_on is None:
+        from .models import TrainConfig
+
+        config = TrainConfig().training_task()
+    else:
+        from .learners.base import learner_of_model
+
+        config = learner_of_model(Path(policy)).model_training_task(Path(policy))
     name = str(getattr(pol, "name", policy))
     dataset_id = dataset_id or default_dataset_id(name)
     if not _ID.match(dataset_id):

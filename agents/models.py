@@ -112,6 +112,8 @@ class TrainConfig:
     bc_log_std: Real = -1.2
     #: also fit the critic to the teacher's discounted returns during cloning (see :func:`behaviour_clone`)
     bc_value_fit: Bool = False
+    #: set by ``msdgrasp clone`` (agents/offline.py): the Minari dataset the model was cloned from, without RL
+    bc_dataset: Str | None = None
     #: model selection: at every checkpoint and at the end the policy runs ``validation_episodes`` episodes
     #: at each friction in ``validation_mu`` (seeds disjoint from ``msdgrasp evaluate``'s); the best (highest
     #: success rate, then lowest mean peak pinch) is kept as ``best_model.zip``. 0 disables it.

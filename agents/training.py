@@ -63,32 +63,11 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     write_yaml(out / LAYOUT.config, to_dict(config))
     # (built on the widest randomisation it will draw from: the curriculum's end)
     venv = GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=config.seed)
-    algo_cls = algo_class(config.algo)
     if resume:
         path, _ = _latest_model(out)
-        model = algo_cls.load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
+        model = algo_class(config.algo).load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
     else:
-        kwargs = dict(getattr(config, config.algo))  # (the config's block of the algorithm: ppo or sac)
-        if config.lr_schedule == "linear":
-            from stable_baselines3.common.utils import LinearSchedule
-
-            kwargs["learning_rate"] = LinearSchedule(float(kwargs.get("learning_rate", 3e-4)), 0.0, 1.0)
-        policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net)}
-        if is_ppo(config.algo):
-            policy_kwargs["log_std_init"] = float(config.log_std_init)
-            if config.squash_actions:
-                policy_kwargs["squash_output"] = True
-        if config.asymmetric_critic:
-            from ..envs.core import OBS_NAMES, actor_mask
-            from .networks import AsymmetricActorCriticPolicy
-
-            core = venv.core
-            policy = AsymmetricActorCriticPolicy
-            policy_kwargs["actor_mask"] = actor_mask(len(OBS_NAMES), core.frame_dim, config.env.obs_history)
-        model = algo_cls(
-            policy, venv, seed=config.seed, device="cpu", verbose=0, tensorboard_log=str(out / "tb"),
-            policy_kwargs=policy_kwargs, **kwargs,
-        )
+        model = new_model(config, venv, tensorboard_log=str(out / "tb"))
 
     selector = BestModel(config, out, resume=resume)
 
@@ -153,6 +132,31 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     atomic_write(out / LAYOUT.summary, lambda p: p.write_text(json.dumps(summary, indent=2)))
     venv.close()
     return summary
+
+
+def new_model(config: TrainConfig, venv, tensorboard_log: str | None = None):
+    """A fresh SB3 model of ``config`` (its algorithm, network, action squashing, asymmetric critic) on ``venv``
+    (a :class:`~msdgrasp.envs.sb3.GraspLiftSB3VecEnv` of the config's task)."""
+    kwargs = dict(getattr(config, config.algo))  # (the config's block of the algorithm: ppo or sac)
+    if config.lr_schedule == "linear":
+        from stable_baselines3.common.utils import LinearSchedule
+
+        kwargs["learning_rate"] = LinearSchedule(float(kwargs.get("learning_rate", 3e-4)), 0.0, 1.0)
+    policy, policy_kwargs = "MlpPolicy", {"net_arch": list(config.policy_net)}
+    if is_ppo(config.algo):
+        policy_kwargs["log_std_init"] = float(config.log_std_init)
+        if config.squash_actions:
+            policy_kwargs["squash_output"] = True
+    if config.asymmetric_critic:
+        from ..envs.core import OBS_NAMES, actor_mask
+        from .networks import AsymmetricActorCriticPolicy
+
+        policy = AsymmetricActorCriticPolicy
+        policy_kwargs["actor_mask"] = actor_mask(len(OBS_NAMES), venv.core.frame_dim, config.env.obs_history)
+    return algo_class(config.algo)(
+        policy, venv, seed=config.seed, device="cpu", verbose=0, tensorboard_log=tensorboard_log,
+        policy_kwargs=policy_kwargs, **kwargs,
+    )
 
 
 class Demonstrations(NamedTuple):
@@ -295,25 +299,33 @@ def behaviour_clone(model, config: TrainConfig) -> dict[str, float]:
     the first updates are noise and drag the cloned policy away from the teacher (measured: the pinch
     force collapsed from 2.3 N to 1.3 N and low-friction success from 90 % to 0 % in the first 50k steps).
     """
+    demos = collect_demonstrations(config)
+    return fit_policy(model.policy, demos, config.bc_epochs, config.bc_log_std, seed=config.seed,
+                      fit_value=config.bc_value_fit)
+
+
+def fit_policy(policy, demos: Demonstrations, epochs: int, log_std: float, seed: int = 0,
+               fit_value: bool = False) -> dict[str, float]:
+    """Fit an SB3 PPO ``policy``'s mean action to ``demos`` (MSE over minibatches of 512, Adam 1e-3) for
+    ``epochs`` passes, then set its log std to ``log_std``; with ``fit_value`` the critic too, to the demos'
+    known returns. The one cloning step of online warm starts and of :mod:`.offline` datasets."""
     import torch
 
-    demos = collect_demonstrations(config)
-    policy = model.policy
     opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
     x = torch.as_tensor(demos.obs, dtype=torch.float32)
     y = torch.as_tensor(demos.actions, dtype=torch.float32)
     known = np.isfinite(demos.returns)
     xv = x[torch.as_tensor(known)]
     v = torch.as_tensor(demos.returns[known], dtype=torch.float32)
-    fit_value = config.bc_value_fit and len(v) > 0
+    fit_value = fit_value and len(v) > 0
     n = len(x)
     if fit_value:
         with torch.no_grad():  # start the critic at the mean return: Adam then only fits the variation
             policy.value_net.bias.fill_(float(v.mean()))
-    gen = torch.Generator().manual_seed(config.seed)
+    gen = torch.Generator().manual_seed(seed)
     loss_val = float("nan")
     vloss_val = float("nan")
-    for _ in range(config.bc_epochs):
+    for _ in range(epochs):
         perm = torch.randperm(n, generator=gen)
         vperm = torch.randperm(len(v), generator=gen) if fit_value else None
         for j, k in enumerate(range(0, n, 512)):
@@ -332,7 +344,7 @@ def behaviour_clone(model, config: TrainConfig) -> dict[str, float]:
             opt.step()
             loss_val = torch.mean((mean.detach() - y[idx]) ** 2).item()
     with torch.no_grad():
-        policy.log_std.fill_(config.bc_log_std)
+        policy.log_std.fill_(log_std)
     out = {"demo_steps": int(n), "final_mse": round(loss_val, 5)}
     if fit_value:
         out["value_fit_steps"] = int(len(v))

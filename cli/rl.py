@@ -264,6 +264,15 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_clone(args: argparse.Namespace) -> int:
+    from ..agents.offline import clone
+
+    if args.epochs < 1:
+        raise _usage(f"--epochs must be >= 1, got {args.epochs}")
+    print(json.dumps(clone(args.dataset_id, args.out, args.datasets, epochs=args.epochs, seed=args.seed), indent=2))
+    return 0
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
     from ..envs.grasp_lift import GraspLiftEnv
     from ..agents.evaluation import build_policy, check_policy_spec, record_policy_episode, task_of
@@ -407,6 +416,16 @@ def add_rl_commands(sub) -> None:
                     help="datasets folder (default logs/datasets; load with MINARI_DATASETS_PATH=<it>)")
     co.add_argument("--quiet", action="store_true", help="no progress output")
     co.set_defaults(func=_cmd_collect)
+
+    cl = sub.add_parser("clone", help="behaviour cloning of a Minari dataset made by collect (the offline baseline)")
+    cl.add_argument("dataset_id", metavar="DATASET_ID", help="the dataset's Minari id (collect prints it)")
+    cl.add_argument("--datasets", type=Path, default=Path("logs") / "datasets",
+                    help="the folder collect wrote it to (default logs/datasets)")
+    cl.add_argument("--out", type=Path, required=True,
+                    help="output folder: best_model.zip + .yaml (evaluate it as --policy OUT/best_model.zip)")
+    cl.add_argument("--epochs", type=int, default=40, help="passes over the dataset (default 40)")
+    cl.add_argument("--seed", type=int, default=0, help="network initialisation and minibatch order (default 0)")
+    cl.set_defaults(func=_cmd_clone)
 
     rp = sub.add_parser("report", help="the multi-seed report (seeds.json / seeds.md) of the runs DIR/seed_<k>/")
     rp.add_argument("folder", type=Path, metavar="DIR",

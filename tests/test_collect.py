@@ -80,3 +80,33 @@ def test_bad_collect_arguments_are_one_line_errors(tmp_path, argv, message):
     rc, _, err = _run_main(args)
     assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "d").exists()
+
+
+def test_a_clone_of_a_dataset_imitates_its_teacher_and_runs_as_a_policy_on_the_benchmark_task(tmp_path):
+    pytest.importorskip("stable_baselines3")
+    from msdgrasp.agents.evaluation import build_policy, evaluate_policy, trained_task_of
+    from msdgrasp.agents.models import TrainConfig
+
+    rc, _, err = _run_main(["collect", "--policy", "reactive", "--episodes", "3", "--out", str(tmp_path / "d"),
+                            "--quiet"])
+    assert rc == 0, err
+    rc, out, err = _run_main(["clone", DATASET, "--datasets", str(tmp_path / "d"), "--out", str(tmp_path / "bc"),
+                              "--epochs", "60"])
+    assert rc == 0, err
+    summary = json.loads(out)
+    model = str(tmp_path / "bc" / "best_model.zip")
+    config, _ = trained_task_of([model])
+    assert config == TrainConfig().env  # evaluated on the benchmark task, as every trained model
+    clone = build_policy(model, config)
+    assert clone.name == f"BC of {DATASET}"
+    # it fits its teacher's actions (in [-1, 1]: an error of 0.05 is a few percent of the range) and, run on its
+    # own, lifts as its teacher does at a friction where the teacher always lifts
+    assert summary["demo_steps"] > 300 and summary["final_mse"] < 0.05, summary
+    rows = evaluate_policy(clone, [0.6], 2, config, seed=3)
+    assert rows[0]["success_rate"] >= 0.5
+
+
+def test_clone_of_a_missing_dataset_is_a_one_line_error(tmp_path):
+    rc, _, err = _run_main(["clone", "msdgrasp/none-v0", "--datasets", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert rc == 2 and "card.json" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()

@@ -143,6 +143,11 @@ class Learner(ABC):
     def model_task(self, model: Path) -> "GraspLiftConfig":
         """The task (env config) the model was trained on."""
 
+    def model_training_task(self, model: Path) -> "GraspLiftConfig":
+        """The task the training drew its episodes from (its domain randomisation in place of the task's own); the
+        model's task where the learner has no randomisation of its own."""
+        return self.model_task(model)
+
     @abstractmethod
     def model_files(self, model: Path) -> dict[str, Path]:
         """The files a copy of the model needs elsewhere (a job on another machine), by the file name each

@@ -121,6 +121,9 @@ class SB3Learner(Learner):
     def model_task(self, model: Path) -> "GraspLiftConfig":
         return model_train_config(model).env
 
+    def model_training_task(self, model: Path) -> "GraspLiftConfig":
+        return model_train_config(model).training_task()
+
     def model_files(self, model: Path) -> dict[str, Path]:
         model = Path(model)
         return {model.name: model, model.with_suffix(".yaml").name: required_config_path(model)}

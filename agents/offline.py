@@ -1,0 +1,100 @@
+"""Behaviour cloning from a demonstration dataset (``msdgrasp clone``): the offline baseline of the leaderboard.
+
+A Minari dataset made by ``msdgrasp collect`` (its ``card.json`` names the task the episodes were collected on) is
+cloned into the default training's policy network: the PPO actor's mean action is fitted to the dataset's actions by
+MSE (:func:`.training.fit_policy`, the step behaviour-cloning warm starts use), the actor seeing what a deployed policy
+sees (the privileged entries are masked as in training). The result is saved in the SB3 layout (``best_model.zip``
+and ``best_model.yaml`` beside it), so ``msdgrasp evaluate --policy DIR/best_model.zip`` and the robustness suite run
+it on the benchmark task like any trained model. Needs the ``train`` and ``collect`` extras.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..envs.core import GraspLiftConfig
+from ..physics.config import ConfigError, atomic_write, atomic_write_text, from_dict, needs_extra, replace, to_dict
+from ..physics.config import write_yaml
+from .learners.sb3_layout import LAYOUT
+from .models import TrainConfig
+
+#: cloning passes over the dataset (the warm start's default)
+CLONE_EPOCHS = 40
+
+
+def _load(dataset_id: str, datasets_path: Path):
+    from .demonstrations import _minari
+
+    minari = _minari()
+    folder = datasets_path / dataset_id
+    if not (folder / "card.json").is_file():
+        raise ConfigError(f"dataset {dataset_id!r}: no {folder / 'card.json'} (datasets made by msdgrasp collect carry "
+                          "one; give the folder they were written to with --datasets)")
+    card = json.loads((folder / "card.json").read_text())
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(datasets_path)
+    try:
+        dataset = minari.load_dataset(dataset_id)
+        obs, actions = [], []
+        for episode in dataset.iterate_episodes():
+            obs.append(np.asarray(episode.observations[:-1], dtype=np.float32))  # (the last one has no action)
+            actions.append(np.asarray(episode.actions, dtype=np.float32))
+    finally:
+        if old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
+    return card, np.concatenate(obs), np.concatenate(actions)
+
+
+def clone_config(task: GraspLiftConfig, seed: int = 0) -> TrainConfig:
+    """The training config a clone of demonstrations on ``task`` is saved with: the default training's, its task the
+    benchmark task when ``task`` is that task with another randomisation (which the clone then records as its
+    training randomisation), else ``task`` itself."""
+    base = TrainConfig(seed=seed)
+    if replace(task, randomization=base.env.randomization) == base.env:
+        drawn = None if task.randomization == base.env.randomization else task.randomization
+        return replace(base, train_randomization=drawn, randomization_ramp=None)
+    return replace(base, env=task, train_randomization=None, randomization_ramp=None)
+
+
+def clone(dataset_id: str, out_dir: str | Path, datasets_path: str | Path = Path("logs") / "datasets",
+          epochs: int = CLONE_EPOCHS, seed: int = 0) -> dict[str, Any]:
+    """Clone the dataset ``dataset_id`` (under ``datasets_path``) into ``out_dir``; returns the summary it writes
+    (``clone_summary.json``)."""
+    with needs_extra("train", "behaviour cloning"):
+        import torch
+
+    from ..envs.sb3 import GraspLiftSB3VecEnv
+    from .training import Demonstrations, fit_policy, new_model
+
+    if isinstance(epochs, bool) or not isinstance(epochs, (int, np.integer)) or epochs < 1:
+        raise ConfigError(f"epochs must be an integer >= 1, got {epochs!r}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output folder {out} exists and is not a folder")
+    card, obs, actions = _load(dataset_id, Path(datasets_path))
+    task = from_dict(GraspLiftConfig, card["config"], where=f"{dataset_id}/card.json:config")
+    config = replace(clone_config(task, seed), bc_dataset=dataset_id, bc_epochs=int(epochs))
+    torch.manual_seed(seed)
+    venv = GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=seed)
+    if obs.shape[1] != venv.core.obs_dim:
+        raise ConfigError(f"dataset {dataset_id!r}: observations of {obs.shape[1]} entries, its task's have "
+                          f"{venv.core.obs_dim}")
+    model = new_model(config, venv)
+    demos = Demonstrations(obs, actions, np.full(len(obs), np.nan))
+    fit = fit_policy(model.policy, demos, int(epochs), config.bc_log_std, seed=seed)
+    venv.close()
+    write_yaml(out / LAYOUT.config, to_dict(config))
+    best = atomic_write(out / LAYOUT.model, lambda p: model.save(p))
+    write_yaml(best.with_suffix(".yaml"), to_dict(config))
+    summary = {"dataset_id": dataset_id, "teacher": card.get("policy"),
+               "teacher_success_rate": card.get("success_rate"), "episodes": card.get("episodes"),
+               "epochs": int(epochs), **fit, "model": str(best)}
+    atomic_write_text(out / "clone_summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary
