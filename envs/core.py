@@ -335,7 +335,8 @@ class GraspLiftCore:
         g = self.scene.grasper
         self.max_close = g.max_closing_speed_m_s
         self.max_pull = g.max_pull_speed_m_s if cfg.max_pull_speed_m_s is None else cfg.max_pull_speed_m_s
-        # start radius: clear of the tissue even with the largest pose offset
+        # widest start radius: clear of the tissue with the largest pose offset (each episode opens the jaws
+        # just clear of its own offset: envs/task.py begin_episode)
         self.start_radius = min(g.open_radius_m, self.scene.start_radius + rnd.pose_offset_m)
         mesh = self.scene.mesh
         # grasp region: surface nodes the jaws may hold (within the jaw span), tracked for the lift

@@ -190,7 +190,9 @@ class TaskParams(NamedTuple):
     pull_dir: np.ndarray  # (3,)
     priv_nodes: np.ndarray  # (P,) int nodes of the privileged displacement observation
     draw_is_normal: np.ndarray  # (len(DRAW_COLUMNS),) bool: DRAW_IS_NORMAL
-    start_radius: float  # m
+    clear_radius: float  # m jaw radius clear of the tissue at the planned pose (the opening observation's scale)
+    open_radius: float  # m the grasper's widest opening
+    jaw_length: float  # m
     max_close: float  # m/s jaw closing speed limit
     max_pull: float  # m/s arm speed limit
     agent_dt: float  # s
@@ -208,7 +210,9 @@ def task_params(core: Any) -> TaskParams:
         dl_start=elongations(scene.x_start, scene.model.edges, scene.model.rest_length),
         pose_tip=vec(scene.pose.tip), pose_axis=vec(scene.pose.axis), pose_e1=vec(scene.pose.e1),
         pull_dir=vec(scene.pull_direction), priv_nodes=np.ascontiguousarray(core.priv_nodes, dtype=np.int64),
-        draw_is_normal=np.array(DRAW_IS_NORMAL), start_radius=float(core.start_radius), max_close=float(core.max_close),
+        draw_is_normal=np.array(DRAW_IS_NORMAL), clear_radius=float(core.scene.start_radius),
+        open_radius=float(core.scene.grasper.open_radius_m), jaw_length=float(core.scene.grasper.jaw_length_m),
+        max_close=float(core.max_close),
         max_pull=float(core.max_pull), agent_dt=float(cfg.agent_dt_s), max_steps=int(cfg.max_episode_steps),
         frame_dim=int(core.frame_dim),
     )
@@ -430,7 +434,7 @@ def observe(p, s, out, ts, b, fresh):
     ref = e.reference_force_N
     tgt = e.lift_target_m
     rmin = s.g_rmin[b]
-    o[I_OPENING] = (s.g_radius[b] - rmin) / (p.start_radius - rmin)
+    o[I_OPENING] = (s.g_radius[b] - rmin) / (p.clear_radius - rmin)
     o[I_JAW_SPEED] = -s.g_vradius[b] / p.max_close
     tr = travel(p, s, ts, b)
     o[I_TRAVEL] = tr / tgt
@@ -661,11 +665,16 @@ def begin_episode(p, s, out, ts, b):
     s.kscale[b] = pinned(pin[P_KS], d[D_KS])
     s.mscale[b] = pinned(pin[P_MS], d[D_MS])
     deg = math.pi / 180.0
-    perturb_pose(p.pose_tip, p.pose_axis, p.pose_e1, d, pinned(pin[P_OFFSET], r.pose_offset_m),
-                 pinned(pin[P_TILT], r.pose_tilt_deg) * deg, pinned(pin[P_AZIMUTH], r.pose_azimuth_deg) * deg,
-                 s.g_tip[b], s.g_axis[b], s.g_e1[b])
+    offset, tilt = pinned(pin[P_OFFSET], r.pose_offset_m), pinned(pin[P_TILT], r.pose_tilt_deg) * deg
+    perturb_pose(p.pose_tip, p.pose_axis, p.pose_e1, d, offset, tilt,
+                 pinned(pin[P_AZIMUTH], r.pose_azimuth_deg) * deg, s.g_tip[b], s.g_axis[b], s.g_e1[b])
     s.t[b] = 0.0
-    s.g_radius[b] = p.start_radius
+    # the jaws open clear of the tissue for this episode's own placement: the planned pose's clear radius plus
+    # the tip's offset and the most the tilt (about the tip) moves a jaw's far end. Not the widest the ranges
+    # allow: a 5 mm range then opened every episode 4 mm wider, and a policy that pulls while it closes never
+    # reached the tissue.
+    s.g_radius[b] = min(p.open_radius, p.clear_radius + offset * d[D_OFFSET_R]
+                        + p.jaw_length * abs(math.sin(tilt * d[D_TILT])))
     s.g_vradius[b] = 0.0
     for c in range(3):
         s.g_vpull[b, c] = 0.0
