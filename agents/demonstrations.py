@@ -21,12 +21,15 @@ import sys
 import tempfile
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..physics.config import ConfigError, atomic_write_text, to_dict
 from .evaluation import build_policy, check_policy_spec, trained_task_of
+
+if TYPE_CHECKING:
+    from .models import TrainConfig
 
 #: the env the datasets are collected on (its version is part of every dataset's card)
 ENV_ID = "msdgrasp/GraspLift-v0"
@@ -54,9 +57,11 @@ def default_dataset_id(policy_name: str) -> str:
 
 
 def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | None = None, seed: int = 0,
-            progress: bool = True) -> dict[str, Any]:
+            progress: bool = True, train_config: "TrainConfig | None" = None) -> dict[str, Any]:
     """Record ``episodes`` episodes of ``policy`` (a spec as ``msdgrasp evaluate`` takes) into a Minari dataset
-    under ``out_dir``; returns the card. Everything is checked before an episode runs."""
+    under ``out_dir``; returns the card. The episodes are drawn from the task the policy's training drew from; for a
+    controller, ``train_config``'s (default: the default training's). Everything is checked before an episode
+    runs."""
     minari = _minari()
     import gymnasium as gym
 
@@ -71,7 +76,10 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
     if trained_on is None:
         from .models import TrainConfig
 
-        config = TrainConfig().training_task()
+        config = (train_config or TrainConfig()).training_task()
+    elif train_config is not None:
+        raise ConfigError(f"policy {policy!r} is a saved model: its episodes are drawn from its own training's task; "
+                          "drop --config")
     else:
         from .learners.base import learner_of_model
 

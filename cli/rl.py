@@ -257,8 +257,13 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    train_config = None
+    if args.config is not None:
+        from ..agents.models import TrainConfig
+
+        train_config = TrainConfig.load(args.config)
     card = collect(args.policy, args.episodes, args.out, dataset_id=args.dataset_id, seed=args.seed,
-                   progress=not args.quiet)
+                   progress=not args.quiet, train_config=train_config)
     print(json.dumps({k: card[k] for k in ("dataset_id", "path", "policy", "episodes", "success_rate", "steps",
                                            "load")}, indent=2))
     return 0
@@ -408,6 +413,9 @@ def add_rl_commands(sub) -> None:
     co.add_argument("--policy", required=True, metavar="SPEC",
                     help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | oracle (the default "
                          "training's task)")
+    co.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
+                    help="a controller's episodes are drawn from this training's task (default: the default "
+                         "training's)")
     co.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
     co.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i (default 0)")
     co.add_argument("--dataset-id", default=None,
