@@ -175,7 +175,9 @@ class GraspLiftEnv(gym.Env):
       behind each are in docs/design.md); the spec states ``max_episode_steps`` (304). Physics: the volume barrier
       integrated implicitly before the contacts (no tet inverts under a 5 N pinch and held nodes stay in their
       friction cone), 3 substeps per ms on the coarse spleen. Damage at the published 330 kPa
-      (:data:`.core.DAMAGE_PRESSURE_PA`, human bowel under 10 s grasps) instead of v0's unsourced 60 kPa.
+      (:data:`.core.DAMAGE_PRESSURE_PA`, human bowel under 10 s grasps) instead of v0's unsourced 60 kPa. The jaws
+      open clear of each episode's own placement (the planned pose's clear radius plus its tip offset and the most
+      its tilt moves a jaw's far end), not as wide as the largest placement error in the ranges needs.
     * v0: the first interface (GraspLiftConfig's defaults: linear pinch action, pull-distance set-point, plain
       peak-pinch charge, uniform friction); it runs the current physics, which changed under it (3 substeps
       instead of 2, the volume floor, then the implicit barrier).
