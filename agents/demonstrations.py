@@ -21,15 +21,12 @@ import sys
 import tempfile
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..physics.config import ConfigError, atomic_write_text, to_dict
 from .evaluation import build_policy, check_policy_spec, trained_task_of
-
-if TYPE_CHECKING:
-    from .models import TrainConfig
 
 #: the env the datasets are collected on (its version is part of every dataset's card)
 ENV_ID = "msdgrasp/GraspLift-v0"
@@ -57,11 +54,11 @@ def default_dataset_id(policy_name: str) -> str:
 
 
 def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | None = None, seed: int = 0,
-            progress: bool = True, train_config: "TrainConfig | None" = None) -> dict[str, Any]:
+            progress: bool = True, train_config: str | Path | None = None) -> dict[str, Any]:
     """Record ``episodes`` episodes of ``policy`` (a spec as ``msdgrasp evaluate`` takes) into a Minari dataset
     under ``out_dir``; returns the card. The episodes are drawn from the task the policy's training drew from; for a
-    controller, ``train_config``'s (default: the default training's). Everything is checked before an episode
-    runs."""
+    controller, that of the training config file ``train_config`` (default: the default training's). Everything is
+    checked before an episode runs."""
     minari = _minari()
     import gymnasium as gym
 
@@ -70,20 +67,22 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
     check_policy_spec(policy)
-    config, trained_on = trained_task_of([policy])
-    pol = build_policy(policy, config)
-    # the episodes are drawn from the training's randomised task (the default training's for a controller)
-    if trained_on is None:
+    task, trained_on = trained_task_of([policy])
+    if trained_on is None:  # a controller: the given training's task, or the default training's
         from .models import TrainConfig
 
-        config = (train_config or TrainConfig()).training_task()
+        training = TrainConfig() if train_config is None else TrainConfig.load(train_config)
+        task, config = training.env, training.training_task()
+        task_from = f"{train_config if train_config is not None else 'the default training'}'s randomised task"
     elif train_config is not None:
         raise ConfigError(f"policy {policy!r} is a saved model: its episodes are drawn from its own training's task; "
                           "drop --config")
     else:
         from .learners.base import learner_of_model
 
-        config = learner_of_model(Path(policy)).model_training_task(Path(policy))
+        config, task_from = learner_of_model(Path(policy)).model_training_task(Path(policy)), trained_on
+    # (the policy acts on its task; the episodes are drawn from its training's randomisation of it)
+    pol = build_policy(policy, task)
     name = str(getattr(pol, "name", policy))
     dataset_id = dataset_id or default_dataset_id(name)
     if not _ID.match(dataset_id):
@@ -126,7 +125,7 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
                       f"success={outcomes[-1]['success']}", file=sys.stderr)
         card = {
             "dataset_id": dataset_id, "env_id": ENV_ID, "env_version": int(ENV_ID.rsplit("-v", 1)[1]),
-            "policy": name, "policy_spec": policy, "task_from": trained_on or "the default training's task",
+            "policy": name, "policy_spec": policy, "task_from": task_from, "env": to_dict(task),
             "episodes": int(episodes), "seeds": [o["seed"] for o in outcomes],
             "success_rate": float(np.mean([o["success"] for o in outcomes])),
             "steps": int(sum(o["steps"] for o in outcomes)), "per_episode": outcomes, "config": to_dict(config),

@@ -172,6 +172,15 @@ class TrainConfig:
                 raise ConfigError("randomization_ramp needs train_randomization (the randomisation it ramps to)")
             check_range("randomization_ramp[1]", self.randomization_ramp[1], self.randomization_ramp[0], None,
                         lo_inclusive=False)
+            # (the training env is built on train_randomization, whose stiffness and mass ranges size its substeps)
+            start, end = self.env.randomization, self.train_randomization
+            if end.stiffness_scale_range[1] < start.stiffness_scale_range[1]:
+                raise ConfigError(f"train_randomization.stiffness_scale_range[1] = {end.stiffness_scale_range[1]!r} "
+                                  f"must be >= env.randomization's {start.stiffness_scale_range[1]!r}, where "
+                                  "randomization_ramp starts")
+            if end.mass_scale_range[0] > start.mass_scale_range[0]:
+                raise ConfigError(f"train_randomization.mass_scale_range[0] = {end.mass_scale_range[0]!r} must be <= "
+                                  f"env.randomization's {start.mass_scale_range[0]!r}, where randomization_ramp starts")
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":

@@ -52,15 +52,16 @@ def _load(dataset_id: str, datasets_path: Path):
     return card, np.concatenate(obs), np.concatenate(actions)
 
 
-def clone_config(task: GraspLiftConfig, seed: int = 0) -> TrainConfig:
-    """The training config a clone of demonstrations on ``task`` is saved with: the default training's, its task the
-    benchmark task when ``task`` is that task with another randomisation (which the clone then records as its
-    training randomisation), else ``task`` itself."""
-    base = TrainConfig(seed=seed)
-    if replace(task, randomization=base.env.randomization) == base.env:
-        drawn = None if task.randomization == base.env.randomization else task.randomization
-        return replace(base, train_randomization=drawn, randomization_ramp=None)
-    return replace(base, env=task, train_randomization=None, randomization_ramp=None)
+def clone_config(env: GraspLiftConfig, drawn: GraspLiftConfig, seed: int = 0) -> TrainConfig:
+    """The training config a clone is saved with: the default training's, its task ``env`` (the one the teacher acts
+    on, which evaluations run the clone on) and its training randomisation the one the episodes were drawn from
+    (``drawn``'s; none where it is env's own); the asymmetric critic where the task has privileged entries."""
+    if replace(drawn, randomization=env.randomization) != env:
+        raise ConfigError("the dataset's card is inconsistent: its episodes were drawn from another task than its "
+                          "'env' with another randomisation")
+    rnd = None if drawn.randomization == env.randomization else drawn.randomization
+    return replace(TrainConfig(seed=seed), env=env, train_randomization=rnd, randomization_ramp=None,
+                   asymmetric_critic=env.privileged_obs)
 
 
 def clone(dataset_id: str, out_dir: str | Path, datasets_path: str | Path = Path("logs") / "datasets",
@@ -79,8 +80,13 @@ def clone(dataset_id: str, out_dir: str | Path, datasets_path: str | Path = Path
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output folder {out} exists and is not a folder")
     card, obs, actions = _load(dataset_id, Path(datasets_path))
-    task = from_dict(GraspLiftConfig, card["config"], where=f"{dataset_id}/card.json:config")
-    config = replace(clone_config(task, seed), bc_dataset=dataset_id, bc_epochs=int(epochs))
+    if "env" not in card:
+        raise ConfigError(f"dataset {dataset_id!r}: its card names no 'env' (the task its policy acts on); collect it "
+                          "again with this version of msdgrasp collect")
+    where = f"{dataset_id}/card.json"
+    env = from_dict(GraspLiftConfig, card["env"], where=f"{where}:env")
+    drawn = from_dict(GraspLiftConfig, card["config"], where=f"{where}:config")
+    config = replace(clone_config(env, drawn, seed), bc_dataset=dataset_id, bc_epochs=int(epochs))
     torch.manual_seed(seed)
     venv = GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=seed)
     if obs.shape[1] != venv.core.obs_dim:

@@ -96,6 +96,10 @@ class TorchPPOConfig:
         if self.asymmetric_critic and not self.env.privileged_obs:
             raise ConfigError("asymmetric_critic needs env.privileged_obs: true (the critic's extra entries)")
 
+    def training_task(self, progress: float = 1.0) -> GraspLiftConfig:
+        """The task the training draws its episodes from: ``env`` (this learner has no randomisation of its own)."""
+        return self.env
+
     @property
     def steps_per_iteration(self) -> int:
         """Agent steps collected per PPO iteration (all envs)."""

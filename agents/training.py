@@ -238,9 +238,8 @@ class BestModel:
         if cfg.validation_episodes == 0:
             return None
 
-        # (on the training's own task at its full randomisation: SB3's TrainConfig.training_task)
-        task = cfg.training_task() if hasattr(cfg, "training_task") else cfg.env
-        rows = evaluate_policy(policy, cfg.validation_mu, cfg.validation_episodes, task,
+        # (on the task the training draws from, at its full randomisation)
+        rows = evaluate_policy(policy, cfg.validation_mu, cfg.validation_episodes, cfg.training_task(),
                                seed=cfg.seed + VALIDATION_SEED_OFFSET, _envs=self._envs)
         rec = {
             "timesteps": int(timesteps),

@@ -257,24 +257,20 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
-    train_config = None
-    if args.config is not None:
-        from ..agents.models import TrainConfig
-
-        train_config = TrainConfig.load(args.config)
     card = collect(args.policy, args.episodes, args.out, dataset_id=args.dataset_id, seed=args.seed,
-                   progress=not args.quiet, train_config=train_config)
+                   progress=not args.quiet, train_config=args.config)
     print(json.dumps({k: card[k] for k in ("dataset_id", "path", "policy", "episodes", "success_rate", "steps",
                                            "load")}, indent=2))
     return 0
 
 
 def _cmd_clone(args: argparse.Namespace) -> int:
-    from ..agents.offline import clone
+    from ..agents.offline import CLONE_EPOCHS, clone
 
-    if args.epochs < 1:
-        raise _usage(f"--epochs must be >= 1, got {args.epochs}")
-    print(json.dumps(clone(args.dataset_id, args.out, args.datasets, epochs=args.epochs, seed=args.seed), indent=2))
+    epochs = CLONE_EPOCHS if args.epochs is None else args.epochs
+    if epochs < 1:
+        raise _usage(f"--epochs must be >= 1, got {epochs}")
+    print(json.dumps(clone(args.dataset_id, args.out, args.datasets, epochs=epochs, seed=args.seed), indent=2))
     return 0
 
 
@@ -431,7 +427,8 @@ def add_rl_commands(sub) -> None:
                     help="the folder collect wrote it to (default logs/datasets)")
     cl.add_argument("--out", type=Path, required=True,
                     help="output folder: best_model.zip + .yaml (evaluate it as --policy OUT/best_model.zip)")
-    cl.add_argument("--epochs", type=int, default=40, help="passes over the dataset (default 40)")
+    cl.add_argument("--epochs", type=int, default=None,
+                    help="passes over the dataset (default: agents.offline.CLONE_EPOCHS, 40)")
     cl.add_argument("--seed", type=int, default=0, help="network initialisation and minibatch order (default 0)")
     cl.set_defaults(func=_cmd_clone)
 

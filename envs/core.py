@@ -249,8 +249,8 @@ def benchmark_config(scene: str = "spleen") -> GraspLiftConfig:
 
 def ramp_randomization(start: RandomizationConfig, end: RandomizationConfig, level: float) -> RandomizationConfig:
     """The randomisation a fraction ``level`` (0-1) of the way from ``start`` to ``end`` (a training curriculum):
-    numbers and ranges linearly (latency bounds rounded to whole steps), choices (slip sensing, mu distribution,
-    pinch ceiling) at ``end``'s once ``level`` > 0."""
+    numbers and ranges linearly where both ends have them (latency bounds rounded half up to whole steps), anything
+    else (slip sensing, the mu distribution, a pinch ceiling that one end has not) at ``end``'s once ``level`` > 0."""
     level = min(max(float(level), 0.0), 1.0)
     if level == 0.0:
         return start
@@ -259,7 +259,7 @@ def ramp_randomization(start: RandomizationConfig, end: RandomizationConfig, lev
         a, b = getattr(start, f.name), getattr(end, f.name)
         if isinstance(b, tuple) and isinstance(a, tuple):
             mixed = tuple(x + level * (y - x) for x, y in zip(a, b))
-            values[f.name] = tuple(int(round(v)) for v in mixed) if f.name == "latency_steps" else mixed
+            values[f.name] = tuple(int(math.floor(v + 0.5)) for v in mixed) if f.name == "latency_steps" else mixed
         elif isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
             values[f.name] = a + level * (b - a)
         else:
@@ -335,9 +335,6 @@ class GraspLiftCore:
         g = self.scene.grasper
         self.max_close = g.max_closing_speed_m_s
         self.max_pull = g.max_pull_speed_m_s if cfg.max_pull_speed_m_s is None else cfg.max_pull_speed_m_s
-        # widest start radius: clear of the tissue with the largest pose offset (each episode opens the jaws
-        # just clear of its own offset: envs/task.py begin_episode)
-        self.start_radius = min(g.open_radius_m, self.scene.start_radius + rnd.pose_offset_m)
         mesh = self.scene.mesh
         # grasp region: surface nodes the jaws may hold (within the jaw span), tracked for the lift
         pose = self.scene.pose
@@ -362,7 +359,7 @@ class GraspLiftCore:
 
         self.rngs = [np.random.default_rng() for _ in range(B)]
         self.params = task_params(self)
-        # which draw columns a reset draws (an axis that is off draws nothing): fixed by the config
+        # which draw columns a reset draws (an axis that is off draws nothing): set by the randomisation
         self._drawn = [bool(column_drawn(self.params.env, k)) for k in range(len(DRAW_COLUMNS))]
         #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
         #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
@@ -378,13 +375,12 @@ class GraspLiftCore:
 
     def set_randomization(self, randomization: RandomizationConfig) -> None:
         """Draw the episodes of later resets from ``randomization`` (a training curriculum moves it); episodes under
-        way keep their draws. The ranges that sized the simulation and the start pose when the core was built
-        bound it: stiffness scale at most, mass scale at least, pose offset at most theirs."""
+        way keep their draws. The ranges that sized the simulation's substeps when the core was built bound it:
+        stiffness scale at most, mass scale at least theirs."""
         built = self._built_randomization
         limits = (("stiffness_scale_range[1]", randomization.stiffness_scale_range[1],
                    max(1.0, built.stiffness_scale_range[1]), "<="),
-                  ("mass_scale_range[0]", randomization.mass_scale_range[0], min(1.0, built.mass_scale_range[0]), ">="),
-                  ("pose_offset_m", randomization.pose_offset_m, built.pose_offset_m, "<="))
+                  ("mass_scale_range[0]", randomization.mass_scale_range[0], min(1.0, built.mass_scale_range[0]), ">="))
         for name, value, bound, op in limits:
             if (value > bound) if op == "<=" else (value < bound):
                 raise ConfigError(f"randomization.{name} = {value!r} must be {op} {bound!r}, the value this env was "

@@ -75,7 +75,7 @@ class _Frame:
         self.surf = Poly3DCollection(x0[self.tris], edgecolor=(0.1, 0.1, 0.1, 0.2), linewidth=0.25, zorder=1)
         ax.add_collection3d(self.surf)
         g = scene.grasper
-        corners = jaw_face_corners(scene.pose, core.start_radius, g)
+        corners = jaw_face_corners(scene.pose, scene.start_radius, g)
         self.jaws = Poly3DCollection(list(corners), facecolor=[(*_rgb(c), 0.45) for c in JAW_COLOURS],
                                      edgecolor="k", linewidth=0.8, zorder=2)
         ax.add_collection3d(self.jaws)

@@ -69,11 +69,15 @@ class GraspLiftSB3VecEnv(VecEnv):
         ``render()`` tiles the frames of all sub-envs (``get_images()`` gives them one by one).
     """
 
+    @property
+    def config(self) -> GraspLiftConfig:
+        """The task (the core's: a training curriculum moves its randomisation)."""
+        return self.core.config
+
     def __init__(self, num_envs: int, config: GraspLiftConfig | dict | None = None, seed: int | None = None,
                  render_mode: str | None = "rgb_array", **overrides: Any) -> None:
         check_render_mode(render_mode, type(self).__name__)
-        self.config = _config(config, **overrides)
-        self.core = GraspLiftCore(self.config, int(num_envs))
+        self.core = GraspLiftCore(_config(config, **overrides), int(num_envs))
         self._render_mode = render_mode
         obs_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
         act_space = spaces.Box(-1.0, 1.0, (2,), np.float32)

@@ -43,6 +43,7 @@ from numba import njit
 
 from ..physics.contact import (
     G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TY, J_TZ,
+    jaw_reach, jaw_start_radius,
 )
 from ..physics.numba_cache import key_on_physics
 from ..physics.viscoelastic import elongations
@@ -193,6 +194,8 @@ class TaskParams(NamedTuple):
     clear_radius: float  # m jaw radius clear of the tissue at the planned pose (the opening observation's scale)
     open_radius: float  # m the grasper's widest opening
     jaw_length: float  # m
+    jaw_half_width: float  # m
+    surface: np.ndarray  # (S,) int surface nodes (the jaws' footprints)
     max_close: float  # m/s jaw closing speed limit
     max_pull: float  # m/s arm speed limit
     agent_dt: float  # s
@@ -212,6 +215,8 @@ def task_params(core: Any) -> TaskParams:
         pull_dir=vec(scene.pull_direction), priv_nodes=np.ascontiguousarray(core.priv_nodes, dtype=np.int64),
         draw_is_normal=np.array(DRAW_IS_NORMAL), clear_radius=float(core.scene.start_radius),
         open_radius=float(core.scene.grasper.open_radius_m), jaw_length=float(core.scene.grasper.jaw_length_m),
+        jaw_half_width=0.5 * float(core.scene.grasper.jaw_width_m),
+        surface=np.ascontiguousarray(core.scene.mesh.surface_nodes, dtype=np.int64),
         max_close=float(core.max_close),
         max_pull=float(core.max_pull), agent_dt=float(cfg.agent_dt_s), max_steps=int(cfg.max_episode_steps),
         frame_dim=int(core.frame_dim),
@@ -665,16 +670,17 @@ def begin_episode(p, s, out, ts, b):
     s.kscale[b] = pinned(pin[P_KS], d[D_KS])
     s.mscale[b] = pinned(pin[P_MS], d[D_MS])
     deg = math.pi / 180.0
-    offset, tilt = pinned(pin[P_OFFSET], r.pose_offset_m), pinned(pin[P_TILT], r.pose_tilt_deg) * deg
-    perturb_pose(p.pose_tip, p.pose_axis, p.pose_e1, d, offset, tilt,
-                 pinned(pin[P_AZIMUTH], r.pose_azimuth_deg) * deg, s.g_tip[b], s.g_axis[b], s.g_e1[b])
+    perturb_pose(p.pose_tip, p.pose_axis, p.pose_e1, d, pinned(pin[P_OFFSET], r.pose_offset_m),
+                 pinned(pin[P_TILT], r.pose_tilt_deg) * deg, pinned(pin[P_AZIMUTH], r.pose_azimuth_deg) * deg,
+                 s.g_tip[b], s.g_axis[b], s.g_e1[b])
     s.t[b] = 0.0
-    # the jaws open clear of the tissue for this episode's own placement: the planned pose's clear radius plus
-    # the tip's offset and the most the tilt (about the tip) moves a jaw's far end. Not the widest the ranges
-    # allow: a 5 mm range then opened every episode 4 mm wider, and a policy that pulls while it closes never
-    # reached the tissue.
-    s.g_radius[b] = min(p.open_radius, p.clear_radius + offset * d[D_OFFSET_R]
-                        + p.jaw_length * abs(math.sin(tilt * d[D_TILT])))
+    # the jaws open just clear of the tissue at this episode's own pose, by the rule that sets the planned pose's
+    # start radius. Not as wide as the largest placement error in the ranges needs: a 5 mm range then opened
+    # every episode 4 mm wider, and a policy that pulls while it closes never reached the tissue.
+    s.g_radius[b] = jaw_start_radius(
+        jaw_reach(s.x[b], p.surface, (s.g_tip[b, 0], s.g_tip[b, 1], s.g_tip[b, 2]),
+                  (s.g_axis[b, 0], s.g_axis[b, 1], s.g_axis[b, 2]), (s.g_e1[b, 0], s.g_e1[b, 1], s.g_e1[b, 2]),
+                  p.jaw_length, p.jaw_half_width), p.open_radius)
     s.g_vradius[b] = 0.0
     for c in range(3):
         s.g_vpull[b, c] = 0.0

@@ -142,6 +142,53 @@ def jaw_candidate(
 
 
 @njit(cache=True, error_model="numpy")
+def jaw_reach(x, nodes, tip, axis, e1, jaw_length: float, jaw_half_width: float):
+    """(reach_0, reach_1, reach_2): for each jaw k of a grasper at ``tip`` with ``axis`` and azimuth-0 direction
+    ``e1`` (3-tuples, m; unit), the largest outward distance (x_i - tip).u_k of the nodes ``nodes`` of ``x`` (N,3)
+    on its footprint (axial coordinate on the jaws, lateral offset within the half width, in front of the face):
+    the jaw touches the tissue only below that radius (0: no node on its footprint). The one rule behind a scene's
+    jaw centring and start radius and each episode's start radius."""
+    ax, ay, az = axis
+    e1x, e1y, e1z = e1
+    e2x, e2y, e2z = ay * e1z - az * e1y, az * e1x - ax * e1z, ax * e1y - ay * e1x
+    two_pi_3 = 2.0 * math.pi / 3.0
+    reach0 = 0.0
+    reach1 = 0.0
+    reach2 = 0.0
+    for q in range(nodes.shape[0]):
+        i = nodes[q]
+        rx, ry, rz = x[i, 0] - tip[0], x[i, 1] - tip[1], x[i, 2] - tip[2]
+        s = rx * ax + ry * ay + rz * az
+        if s > 0.0 or s < -jaw_length:
+            continue
+        for k in range(3):
+            c = math.cos(two_pi_3 * k)
+            sn = math.sin(two_pi_3 * k)
+            ux, uy, uz = c * e1x + sn * e2x, c * e1y + sn * e2y, c * e1z + sn * e2z
+            lat = rx * (ay * uz - az * uy) + ry * (az * ux - ax * uz) + rz * (ax * uy - ay * ux)
+            dist = rx * ux + ry * uy + rz * uz
+            if dist > 0.0 and abs(lat) <= jaw_half_width:
+                if k == 0:
+                    reach0 = max(reach0, dist)
+                elif k == 1:
+                    reach1 = max(reach1, dist)
+                else:
+                    reach2 = max(reach2, dist)
+    return reach0, reach1, reach2
+
+
+#: how far outside the tissue the jaws open at an episode's start, m: beyond the largest reach on their footprints
+JAW_CLEARANCE_M = 1e-3
+
+
+@njit(cache=True, error_model="numpy")
+def jaw_start_radius(reach, open_radius: float) -> float:
+    """The radius the jaws open to at a start: clear of the jaws' reaches (:func:`jaw_reach`) by JAW_CLEARANCE_M,
+    at most the grasper's widest opening ``open_radius`` (m)."""
+    return min(open_radius, max(reach[0], max(reach[1], reach[2])) + JAW_CLEARANCE_M)
+
+
+@njit(cache=True, error_model="numpy")
 def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarray) -> None:
     """Outward direction u[k] of jaw k (azimuth 2 pi k / 3 about the axis from e1) and its lateral tj[k] = a x u."""
     ax, ay, az = axis[0], axis[1], axis[2]

@@ -135,16 +135,17 @@ def reachable_radius(points: np.ndarray, pose: GrasperPose, params: GrasperParam
     A jaw can touch the tissue only while its radius is below this value: a jaw whose value is below
     ``min_radius_m`` never makes contact (e.g. a grasper axis that misses the tissue). A node counts if its
     axial coordinate is on the jaws and its lateral offset from the face's centre line is within half the
-    jaw width.
+    jaw width (:func:`.contact.jaw_reach`, which each episode's start radius uses too).
     """
-    r = np.asarray(points) - pose.tip
-    s = r @ pose.axis
-    on_axis = (s <= 0.0) & (s >= -params.jaw_length_m)
-    out = np.zeros(3)
-    for k, u in enumerate(pose.jaw_directions()):
-        lat = r @ np.cross(pose.axis, u)
-        dist = r @ u
-        ok = on_axis & (np.abs(lat) <= 0.5 * params.jaw_width_m) & (dist > 0)
-        if np.any(ok):
-            out[k] = float(dist[ok].max())
-    return out
+    from .contact import jaw_reach
+
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    return np.array(jaw_reach(points, np.arange(len(points)), tuple(pose.tip), tuple(pose.axis), tuple(pose.e1),
+                              float(params.jaw_length_m), 0.5 * float(params.jaw_width_m)))
+
+
+def start_radius(reach, params: GrasperParams) -> float:
+    """The radius the jaws open to at a start, clear of ``reach`` (:func:`.contact.jaw_start_radius`)."""
+    from .contact import jaw_start_radius
+
+    return float(jaw_start_radius(tuple(float(r) for r in reach), float(params.open_radius_m)))

@@ -17,7 +17,7 @@ from typing import TypeVar
 import numpy as np
 
 from .config import GRASPER_FILE, TISSUE_FILE, ConfigError, builtin_config, from_dict, load_config
-from .grasper import GrasperParams, GrasperPose, reachable_radius
+from .grasper import GrasperParams, GrasperPose, reachable_radius, start_radius
 from .mesh import TetMesh
 from .mesh_io import mesh_from_config, mesh_spec
 from .simulation import SUBSTEP_SAFETY, Simulation
@@ -189,7 +189,7 @@ def _spleen_scene_cached(
     pose = fit_pole_pose(x_start, mesh.node_sets["inferior_pole"], hint, grasper.jaw_length_m, insert_depth_m,
                          math.radians(azimuth_deg))
     pose, reach = centre_jaws(x_start[mesh.surface_nodes], pose, grasper)
-    start = min(grasper.open_radius_m, float(reach.max()) + 1e-3)
+    start = start_radius(reach, grasper)
     return GraspScene("spleen", model, grasper, x_start, fv_start, pose, start, -pose.axis, reach)
 
 
@@ -238,6 +238,6 @@ def sphere_scene(
     pose = GrasperPose.from_axis(centre + 0.5 * grasper.jaw_length_m * axis, axis, up_hint=(1.0, 0.0, 0.0))
     x_start = mesh.nodes.copy()
     reach = reachable_radius(x_start[mesh.surface_nodes], pose, grasper)
-    start = min(grasper.open_radius_m, float(reach.max()) + 1e-3)
+    start = start_radius(reach, grasper)
     fv_start = np.zeros(len(model.edges))
     return GraspScene("sphere", model, grasper, x_start, fv_start, pose, start, np.array([0.0, 0.0, 1.0]), reach)
