@@ -176,11 +176,12 @@ class GraspLiftEnv(gym.Env):
       integrated implicitly before the contacts (no tet inverts under a 5 N pinch and held nodes stay in their
       friction cone), 3 substeps per ms on the coarse spleen. Damage at the published 330 kPa
       (:data:`.core.DAMAGE_PRESSURE_PA`, human bowel under 10 s grasps) instead of v0's unsourced 60 kPa. The jaws
-      open clear of each episode's own placement (the planned pose's clear radius plus its tip offset and the most
-      its tilt moves a jaw's far end), not as wide as the largest placement error in the ranges needs.
+      open just clear of the tissue at each episode's own pose (the jaws' reach there + 1 mm), not as wide as the
+      largest placement error in the ranges needs.
     * v0: the first interface (GraspLiftConfig's defaults: linear pinch action, pull-distance set-point, plain
       peak-pinch charge, uniform friction); it runs the current physics, which changed under it (3 substeps
-      instead of 2, the volume floor, then the implicit barrier).
+      instead of 2, the volume floor, then the implicit barrier) and under the start radius rule (the jaws open clear
+      of each episode's own placement).
 
     ``info``: mu, pinch_force_N, peak_pinch_N, slip_distance_m, lifted_m, travel_m, hold_time_s,
     peak_stress_pa, contact_nodes, is_success, lost_grasp, damaged, numerical_failure (non-finite state or an
