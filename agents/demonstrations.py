@@ -96,7 +96,8 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
     register_envs()
     out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".collect-", dir=out_dir))
+    # (absolute: Minari joins a relative MINARI_DATASETS_PATH onto paths it has already joined it to)
+    tmp = Path(tempfile.mkdtemp(prefix=".collect-", dir=out_dir)).resolve()
     old = os.environ.get("MINARI_DATASETS_PATH")
     os.environ["MINARI_DATASETS_PATH"] = str(tmp)  # (Minari reads it when it creates the dataset)
     try:

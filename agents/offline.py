@@ -37,7 +37,7 @@ def _load(dataset_id: str, datasets_path: Path):
                           "one; give the folder they were written to with --datasets)")
     card = json.loads((folder / "card.json").read_text())
     old = os.environ.get("MINARI_DATASETS_PATH")
-    os.environ["MINARI_DATASETS_PATH"] = str(datasets_path)
+    os.environ["MINARI_DATASETS_PATH"] = str(datasets_path.resolve())  # (absolute: see demonstrations.collect)
     try:
         dataset = minari.load_dataset(dataset_id)
         obs, actions = [], []

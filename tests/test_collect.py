@@ -82,16 +82,15 @@ def test_bad_collect_arguments_are_one_line_errors(tmp_path, argv, message):
     assert not (tmp_path / "d").exists()
 
 
-def test_a_clone_of_a_dataset_imitates_its_teacher_and_runs_as_a_policy_on_the_benchmark_task(tmp_path):
+def test_a_clone_of_a_dataset_imitates_its_teacher_and_runs_as_a_policy_on_the_benchmark_task(tmp_path, monkeypatch):
     pytest.importorskip("stable_baselines3")
+    monkeypatch.chdir(tmp_path)  # (relative folders, as the command line's defaults are)
     from msdgrasp.agents.evaluation import build_policy, evaluate_policy, trained_task_of
     from msdgrasp.agents.models import TrainConfig
 
-    rc, _, err = _run_main(["collect", "--policy", "reactive", "--episodes", "3", "--out", str(tmp_path / "d"),
-                            "--quiet"])
+    rc, _, err = _run_main(["collect", "--policy", "reactive", "--episodes", "3", "--out", "d", "--quiet"])
     assert rc == 0, err
-    rc, out, err = _run_main(["clone", DATASET, "--datasets", str(tmp_path / "d"), "--out", str(tmp_path / "bc"),
-                              "--epochs", "60"])
+    rc, out, err = _run_main(["clone", DATASET, "--datasets", "d", "--out", "bc", "--epochs", "60"])
     assert rc == 0, err
     summary = json.loads(out)
     model = str(tmp_path / "bc" / "best_model.zip")
