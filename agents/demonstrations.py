@@ -13,6 +13,7 @@ so an interrupted run leaves no partial dataset. Needs ``pip install 'msdgrasp[c
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -20,6 +21,7 @@ import shutil
 import sys
 import tempfile
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +47,21 @@ def _version() -> str:
     from importlib.metadata import version
 
     return version("msdgrasp")
+
+
+@contextlib.contextmanager
+def datasets_path(folder: Path) -> Iterator[None]:
+    """Minari's datasets folder (``MINARI_DATASETS_PATH``) set to ``folder`` inside the block, made absolute (Minari
+    joins a relative one onto paths it has already joined it to), and restored after."""
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(Path(folder).resolve())
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
 
 
 def default_dataset_id(policy_name: str) -> str:
@@ -96,59 +113,54 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
     register_envs()
     out_dir.mkdir(parents=True, exist_ok=True)
-    # (absolute: Minari joins a relative MINARI_DATASETS_PATH onto paths it has already joined it to)
-    tmp = Path(tempfile.mkdtemp(prefix=".collect-", dir=out_dir)).resolve()
-    old = os.environ.get("MINARI_DATASETS_PATH")
-    os.environ["MINARI_DATASETS_PATH"] = str(tmp)  # (Minari reads it when it creates the dataset)
+    tmp = Path(tempfile.mkdtemp(prefix=".collect-", dir=out_dir))
     try:
-        env = gym.make(ENV_ID, config=to_dict(config))
-        buffers, outcomes = [], []
-        for i in range(episodes):
-            obs, info = env.reset(seed=int(seed) + i)
-            pol.reset([info])
-            observations, actions, rewards, terminations, truncations = [obs], [], [], [], []
-            done = False
-            while not done:
-                action = np.asarray(pol.act(obs[None]), dtype=np.float32).reshape(2)
-                obs, reward, terminated, truncated, info = env.step(action)
-                for seq, value in ((observations, obs), (actions, action), (rewards, float(reward)),
-                                   (terminations, bool(terminated)), (truncations, bool(truncated))):
-                    seq.append(value)
-                done = terminated or truncated
-            buffers.append(minari.data_collector.EpisodeBuffer(
-                id=i, seed=int(seed) + i, observations=observations, actions=actions, rewards=rewards,
-                terminations=terminations, truncations=truncations, infos={}))
-            outcomes.append({"seed": int(seed) + i, "mu": float(info["mu"]), "success": bool(info["is_success"]),
-                             "steps": len(actions), "peak_pinch_N": float(info["peak_pinch_N"]),
-                             "return": float(np.sum(rewards))})
-            if progress:
-                print(f"  {name}: episode {i + 1}/{episodes} mu={outcomes[-1]['mu']:.3f} "
-                      f"success={outcomes[-1]['success']}", file=sys.stderr)
-        card = {
-            "dataset_id": dataset_id, "env_id": ENV_ID, "env_version": int(ENV_ID.rsplit("-v", 1)[1]),
-            "policy": name, "policy_spec": policy, "task_from": task_from, "env": to_dict(task),
-            "episodes": int(episodes), "seeds": [o["seed"] for o in outcomes],
-            "success_rate": float(np.mean([o["success"] for o in outcomes])),
-            "steps": int(sum(o["steps"] for o in outcomes)), "per_episode": outcomes, "config": to_dict(config),
-            "load": f"MINARI_DATASETS_PATH={out_dir} python -c \"import minari; minari.load_dataset('{dataset_id}')\"",
-        }
-        with warnings.catch_warnings():  # (Minari asks for an author e-mail: a tool has none)
-            warnings.filterwarnings("ignore", message="`author_email` is set to None")
-            minari.create_dataset_from_buffers(
-                dataset_id, buffers, env=env, eval_env=env.spec, algorithm_name=name, author="msdgrasp collect",
-                code_permalink="msdgrasp/agents/demonstrations.py", description=card_markdown(card),
-                data_format="arrow", requirements=[f"msdgrasp=={_version()}"])
-        env.close()
-        made = tmp / dataset_id
-        atomic_write_text(made / "card.json", json.dumps(card, indent=2) + "\n")
-        atomic_write_text(made / "card.md", card_markdown(card))
-        final.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(made, final)  # the whole dataset appears at once
+        with datasets_path(tmp):  # (Minari reads it when it creates the dataset)
+            env = gym.make(ENV_ID, config=to_dict(config))
+            buffers, outcomes = [], []
+            for i in range(episodes):
+                obs, info = env.reset(seed=int(seed) + i)
+                pol.reset([info])
+                observations, actions, rewards, terminations, truncations = [obs], [], [], [], []
+                done = False
+                while not done:
+                    action = np.asarray(pol.act(obs[None]), dtype=np.float32).reshape(2)
+                    obs, reward, terminated, truncated, info = env.step(action)
+                    for seq, value in ((observations, obs), (actions, action), (rewards, float(reward)),
+                                       (terminations, bool(terminated)), (truncations, bool(truncated))):
+                        seq.append(value)
+                    done = terminated or truncated
+                buffers.append(minari.data_collector.EpisodeBuffer(
+                    id=i, seed=int(seed) + i, observations=observations, actions=actions, rewards=rewards,
+                    terminations=terminations, truncations=truncations, infos={}))
+                outcomes.append({"seed": int(seed) + i, "mu": float(info["mu"]), "success": bool(info["is_success"]),
+                                 "steps": len(actions), "peak_pinch_N": float(info["peak_pinch_N"]),
+                                 "return": float(np.sum(rewards))})
+                if progress:
+                    print(f"  {name}: episode {i + 1}/{episodes} mu={outcomes[-1]['mu']:.3f} "
+                          f"success={outcomes[-1]['success']}", file=sys.stderr)
+            card = {
+                "dataset_id": dataset_id, "env_id": ENV_ID, "env_version": int(ENV_ID.rsplit("-v", 1)[1]),
+                "policy": name, "policy_spec": policy, "task_from": task_from, "env": to_dict(task),
+                "episodes": int(episodes), "seeds": [o["seed"] for o in outcomes],
+                "success_rate": float(np.mean([o["success"] for o in outcomes])),
+                "steps": int(sum(o["steps"] for o in outcomes)), "per_episode": outcomes, "config": to_dict(config),
+                "load": (f"MINARI_DATASETS_PATH={out_dir} python -c "
+                         f"\"import minari; minari.load_dataset('{dataset_id}')\""),
+            }
+            with warnings.catch_warnings():  # (Minari asks for an author e-mail: a tool has none)
+                warnings.filterwarnings("ignore", message="`author_email` is set to None")
+                minari.create_dataset_from_buffers(
+                    dataset_id, buffers, env=env, eval_env=env.spec, algorithm_name=name, author="msdgrasp collect",
+                    code_permalink="msdgrasp/agents/demonstrations.py", description=card_markdown(card),
+                    data_format="arrow", requirements=[f"msdgrasp=={_version()}"])
+            env.close()
+            made = tmp / dataset_id
+            atomic_write_text(made / "card.json", json.dumps(card, indent=2) + "\n")
+            atomic_write_text(made / "card.md", card_markdown(card))
+            final.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(made, final)  # the whole dataset appears at once
     finally:
-        if old is None:
-            os.environ.pop("MINARI_DATASETS_PATH", None)
-        else:
-            os.environ["MINARI_DATASETS_PATH"] = old
         shutil.rmtree(tmp, ignore_errors=True)
     return {**card, "path": str(final)}
 

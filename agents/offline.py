@@ -11,7 +11,6 @@ it on the benchmark task like any trained model. Needs the ``train`` and ``colle
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -27,28 +26,21 @@ from .models import TrainConfig
 CLONE_EPOCHS = 40
 
 
-def _load(dataset_id: str, datasets_path: Path):
-    from .demonstrations import _minari
+def _load(dataset_id: str, datasets_path_: Path):
+    from .demonstrations import _minari, datasets_path
 
     minari = _minari()
-    folder = datasets_path / dataset_id
+    folder = datasets_path_ / dataset_id
     if not (folder / "card.json").is_file():
         raise ConfigError(f"dataset {dataset_id!r}: no {folder / 'card.json'} (datasets made by msdgrasp collect carry "
                           "one; give the folder they were written to with --datasets)")
     card = json.loads((folder / "card.json").read_text())
-    old = os.environ.get("MINARI_DATASETS_PATH")
-    os.environ["MINARI_DATASETS_PATH"] = str(datasets_path.resolve())  # (absolute: see demonstrations.collect)
-    try:
+    with datasets_path(datasets_path_):
         dataset = minari.load_dataset(dataset_id)
         obs, actions = [], []
         for episode in dataset.iterate_episodes():
             obs.append(np.asarray(episode.observations[:-1], dtype=np.float32))  # (the last one has no action)
             actions.append(np.asarray(episode.actions, dtype=np.float32))
-    finally:
-        if old is None:
-            os.environ.pop("MINARI_DATASETS_PATH", None)
-        else:
-            os.environ["MINARI_DATASETS_PATH"] = old
     return card, np.concatenate(obs), np.concatenate(actions)
 
 

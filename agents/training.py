@@ -84,14 +84,14 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
                 self.next += self.every
             return True
 
-    class Curriculum(BaseCallback):
-        """Moves the training's randomisation along config.randomization_ramp before each rollout."""
+    def follow_ramp() -> None:  # the env's randomisation where config.randomization_ramp is at this step count
+        task = config.training_task(model.num_timesteps / config.total_timesteps)
+        if task.randomization != venv.core.config.randomization:
+            venv.core.set_randomization(task.randomization)
 
+    class Curriculum(BaseCallback):
         def _on_rollout_start(self) -> None:
-            progress = self.model.num_timesteps / config.total_timesteps
-            task = config.training_task(progress)
-            if task.randomization != venv.core.config.randomization:
-                venv.core.set_randomization(task.randomization)
+            follow_ramp()
 
         def _on_step(self) -> bool:
             return True
@@ -99,7 +99,7 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     callbacks = [Checkpoint(config.checkpoint_every)]
     if config.randomization_ramp is not None:
         callbacks.append(Curriculum())
-        venv.core.set_randomization(config.training_task(model.num_timesteps / config.total_timesteps).randomization)
+        follow_ramp()  # (before the first reset)
 
     bc = None
     if not resume and config.bc_teacher and is_ppo(config.algo):
