@@ -27,7 +27,8 @@ from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
-    MAX_LATENCY_STEPS, OBS_NAMES, P_OFFSET, PINNABLE, REWARD_TERMS, column_drawn, command_batch, draw_episode,
+    MAX_LATENCY_STEPS, OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_PERTURBATIONS, REWARD_TERMS, column_drawn,
+    command_batch, draw_episode,
     perturb_pose, pinch_setpoint, start_episode, task_params, task_state, travel_setpoint, update_batch,
 )
 
@@ -206,8 +207,16 @@ class GraspLiftConfig:
     privileged_obs: Bool = False
     #: nodes subsampled for the privileged displacement observation
     privileged_nodes: Annotated[Int, Ge(1)] = 16
+    #: also add the episode's robustness draws to the privileged state (PRIVILEGED_PERTURBATIONS: the pose error,
+    #: force bias, latency, force-loop gain), so that a critic trained under them can tell a hard episode from a
+    #: poor action. Needs privileged_obs
+    privileged_perturbations: Bool = False
     reward: RewardConfig = field(default_factory=RewardConfig)
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+
+    def __post_init__(self) -> None:
+        if self.privileged_perturbations and not self.privileged_obs:
+            raise ConfigError("privileged_perturbations: true needs privileged_obs: true (they extend its entries)")
 
     @property
     def agent_dt_s(self) -> float:
@@ -354,7 +363,8 @@ class GraspLiftCore:
         self.priv_nodes = np.sort(rng0.choice(mesh.n_nodes, size=min(cfg.privileged_nodes, mesh.n_nodes),
                                               replace=False))
         #: one observation frame; the observation is the last ``obs_history`` frames, oldest first
-        self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0)
+        self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0) + (
+            len(PRIVILEGED_PERTURBATIONS) if cfg.privileged_perturbations else 0)
         self.obs_dim = self.frame_dim * cfg.obs_history
 
         self.rngs = [np.random.default_rng() for _ in range(B)]

@@ -124,8 +124,10 @@ class GraspLiftEnv(gym.Env):
     | 28-30 | friction utilisation abs(T) / N of jaw 0, 1, 2 (<= mu while sticking) | ratio |
     | 31 | slip since lifting began | / lift_slip_tolerance_m (above 1 no success is possible) |
     | 32- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, 16 node displacements | (1) |
+    | 83- | privileged (``privileged_perturbations=True``): the pose error, force biases, latency, gain error | (2) |
 
-    (1) as they are; the node displacements / lift target.
+    (1) as they are; the node displacements / lift target. (2) ``envs.task.PRIVILEGED_PERTURBATIONS``: each about 1
+    at the robustness suite's largest levels; all 0 on an unperturbed task.
 
     ## Rewards (each term in ``info["reward_terms"]``, weights in ``RewardConfig``)
 

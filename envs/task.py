@@ -100,6 +100,14 @@ DRAW_IS_NORMAL = tuple(c.startswith(("offset_dir", "tilt_axis")) for c in DRAW_C
 D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH, D_BIAS, D_LATENCY, D_GAIN = (
     DRAW_COLUMNS.index(n) for n in ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_r", "tilt_axis_x",
                                     "tilt", "azimuth", "force_bias_0", "latency", "force_loop_gain"))
+#: the privileged robustness entries (``privileged_perturbations``), after mu, the scales and the node displacements:
+#: the grasper tip's offset from the planned pose (x, y, z / 5 mm), its axis's and its jaw direction's change from
+#: the planned ones (unit vectors' differences / 0.1745, 10 deg in rad), the three jaws' force-sensor biases
+#: (/ 0.1 N), the latency (/ MAX_LATENCY_STEPS) and the force loop's gain error (gain - 1, / 0.2): each about 1
+#: at the suite's largest levels
+PRIVILEGED_PERTURBATIONS = ("tip_offset_x", "tip_offset_y", "tip_offset_z", "axis_change_x", "axis_change_y",
+                            "axis_change_z", "jaw_dir_change_x", "jaw_dir_change_y", "jaw_dir_change_z",
+                            "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain_error")
 #: the longest action latency, agent steps (the length of the action queue less one)
 MAX_LATENCY_STEPS = 3
 #: per-step noise columns of ``TaskState.noise``: the three jaws' force readings, then their slip speeds
@@ -484,6 +492,16 @@ def observe(p, s, out, ts, b, fresh):
             i = p.priv_nodes[q]
             for c in range(3):
                 o[N_OBS + 3 + 3 * q + c] = (s.x[b, i, c] - p.x_start[i, c]) / tgt
+        if e.privileged_perturbations:
+            d = ts.draws[b]
+            j = N_OBS + 3 + 3 * p.priv_nodes.shape[0]
+            for c in range(3):
+                o[j + c] = (ts.tip0[b, c] - p.pose_tip[c]) / 0.005
+                o[j + 3 + c] = (s.g_axis[b, c] - p.pose_axis[c]) / 0.1745  # (10 deg of turn, rad)
+                o[j + 6 + c] = (s.g_e1[b, c] - p.pose_e1[c]) / 0.1745
+                o[j + 9 + c] = d[D_BIAS + c] / 0.1
+            o[j + 12] = d[D_LATENCY] / MAX_LATENCY_STEPS
+            o[j + 13] = (d[D_GAIN] - 1.0) / 0.2
     if fresh:
         for k in range(h - 1):
             for c in range(fd):

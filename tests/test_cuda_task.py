@@ -61,7 +61,9 @@ AXES = {"latency_steps": (1, 1), "pinch_ceiling_N": 1.5, "slip_sensing": "binary
 @pytest.mark.parametrize("axes", [{}, AXES], ids=["nominal", "latency_ceiling_binary_slip"])
 def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core(axes):
     config = _config()
-    config = from_dict(GraspLiftConfig, {**to_dict(config), "randomization": {**to_dict(config.randomization), **axes}})
+    # (with the axes, the privileged robustness entries too: compared with the observation)
+    config = from_dict(GraspLiftConfig, {**to_dict(config), "privileged_perturbations": bool(axes),
+                                         "randomization": {**to_dict(config.randomization), **axes}})
     gpu = _gpu(config)
     cpu = GraspLiftCore(config, 2)
     obs = gpu.reset().copy_to_host()

@@ -93,6 +93,35 @@ def test_spaces():
     np.testing.assert_array_equal(obs[:n0], env.reset(seed=1, options={"mu": 0.42})[0])
 
 
+def test_privileged_perturbations_give_the_critic_the_episodes_robustness_draws():
+    """privileged_perturbations appends the episode's pose error, force biases, latency and gain error, each scaled
+    to about 1 at the suite's largest levels; the actor's entries are unchanged; all zero on an unperturbed task."""
+    from msdgrasp.envs.core import ConfigError, RandomizationConfig
+    from msdgrasp.envs.task import PRIVILEGED_PERTURBATIONS
+
+    r = RandomizationConfig(force_bias_N=0.05, latency_steps=(2, 2), force_loop_gain_error=0.2, pose_offset_m=0.004,
+                            pose_tilt_deg=0.0, pose_azimuth_deg=0.0)
+    env = GraspLiftEnv(privileged_obs=True, privileged_perturbations=True, randomization=r)
+    plain = GraspLiftEnv(privileged_obs=True, randomization=r)
+    n = plain.observation_space.shape[0]
+    assert env.observation_space.shape == (n + len(PRIVILEGED_PERTURBATIONS),)
+    for seed in range(3):
+        obs, _ = env.reset(seed=seed)
+        np.testing.assert_array_equal(obs[:n], plain.reset(seed=seed)[0])
+        x = dict(zip(PRIVILEGED_PERTURBATIONS, obs[n:].astype(float)))
+        offset = np.hypot(np.hypot(x["tip_offset_x"], x["tip_offset_y"]), x["tip_offset_z"]) * 5.0  # mm
+        assert 0.0 < offset <= 4.0 + 1e-6
+        assert all(abs(x[f"{k}_change_{c}"]) < 1e-6 for k in ("axis", "jaw_dir") for c in "xyz")  # no tilt, no turn
+        assert all(0.0 < abs(x[f"force_bias_{k}"]) <= 0.5 for k in range(3))  # 0.05 N of 0.1 N
+        assert x["latency"] == pytest.approx(2 / 3)
+        assert 0.0 < abs(x["force_loop_gain_error"]) <= 1.0
+    still = RandomizationConfig(pose_offset_m=0.0, pose_tilt_deg=0.0, pose_azimuth_deg=0.0)
+    nominal = GraspLiftEnv(privileged_obs=True, privileged_perturbations=True, randomization=still)
+    assert not np.any(nominal.reset(seed=0)[0][n:])
+    with pytest.raises(ConfigError, match="privileged_perturbations.*privileged_obs"):
+        GraspLiftEnv(privileged_perturbations=True)
+
+
 # -- determinism -----------------------------------------------------------------------------------
 def test_same_seed_same_trajectory_different_seed_different_mu():
     acts = _actions(30)
