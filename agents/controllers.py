@@ -181,7 +181,13 @@ def _probe(env, forces: np.ndarray, mu: float, pull: float) -> np.ndarray:
     """Success of the fixed-force controller at each force (one batched episode each)."""
     opts = {"mu": mu, "stiffness_scale": 1.0, "mass_scale": 1.0, "pose_offset_m": 0.0, "pose_tilt_deg": 0.0,
             "pose_azimuth_deg": 0.0}
-    obs, info = env.reset(seed=0, options=opts)
+    return _fixed_force_success(env, forces, pull, seed=0, options=opts)
+
+
+def _fixed_force_success(env, forces: np.ndarray, pull: float, **reset) -> np.ndarray:
+    """Whether the fixed-force controller lifts and holds each of ``env``'s episodes (``env.reset(**reset)``), env
+    k at ``forces[k]``."""
+    obs, info = env.reset(**reset)
     pol = FixedForcePolicy(env.config, 1.0, pull)
     pol.reset([{}] * env.num_envs)
     pol.force = np.asarray(forces, dtype=np.float64)
@@ -196,6 +202,50 @@ def _probe(env, forces: np.ndarray, mu: float, pull: float) -> np.ndarray:
         if done.all():
             break
     return success
+
+
+#: the forces a hindsight search tries first, N (then it bisects between the two that bracket an episode's minimum)
+HINDSIGHT_GRID_N = (0.3, 0.45, 0.6, 0.75, 0.9, 1.05, 1.2, 1.4, 1.6, 1.9, 2.3, 3.0, 4.0, 5.0)
+
+
+def episode_minimal_forces(config: GraspLiftConfig, mus: Sequence[float], seeds: Sequence[int],
+                           options: dict[str, float] | None = None, pull: float = 0.5,
+                           tolerance_N: float = 0.05) -> np.ndarray:
+    """The hindsight oracle: for each episode (friction ``mus[k]``, reset seed ``seeds[k]``, reset ``options``: the
+    episode a policy meets in an evaluation with those seeds), the smallest fixed pinch force (N, within
+    ``tolerance_N``) with which the fixed-force controller at pull ``pull`` lifts and holds it; NaN where no force
+    in HINDSIGHT_GRID_N does. Unlike :func:`minimal_force` (the nominal tissue), it sees each episode's own draws:
+    placement error, stiffness and mass, sensing and actuation perturbations."""
+    from ..envs.grasp_lift import GraspLiftVectorEnv
+
+    if len(mus) != len(seeds):
+        raise ValueError(f"mus and seeds must have one entry per episode, got {len(mus)} and {len(seeds)}")
+    grid = np.asarray(HINDSIGHT_GRID_N)
+    n, g = len(seeds), len(grid)
+
+    def probe(forces: np.ndarray, episodes: np.ndarray) -> np.ndarray:
+        env = GraspLiftVectorEnv(len(forces), config)
+        opts = {**(options or {}), "mu": [float(mus[k]) for k in episodes]}
+        return _fixed_force_success(env, forces, pull, seed=[int(seeds[k]) for k in episodes], options=opts)
+
+    held = probe(np.tile(grid, n), np.repeat(np.arange(n), g)).reshape(n, g)
+    lo, hi = np.zeros(n), np.full(n, np.nan)
+    for k in range(n):
+        if held[k].any():
+            j = int(np.argmax(held[k]))
+            hi[k], lo[k] = grid[j], (grid[j - 1] if j > 0 else 0.5 * grid[0])
+    while True:  # every open bracket split in four per round, all episodes in one batch
+        live = np.flatnonzero(np.isfinite(hi) & (hi - lo > tolerance_N))
+        if not len(live):
+            return hi
+        mids = np.stack([np.linspace(lo[k], hi[k], 5)[1:-1] for k in live])
+        res = probe(mids.ravel(), np.repeat(live, 3)).reshape(len(live), 3)
+        for q, k in enumerate(live):
+            if res[q].any():
+                j = int(np.argmax(res[q]))
+                hi[k], lo[k] = mids[q, j], (mids[q, j - 1] if j > 0 else lo[k])
+            else:
+                lo[k] = mids[q, -1]
 
 
 def minimal_force(config: GraspLiftConfig, mu: float, pull: float = 0.5, tolerance_N: float = 0.1) -> float:

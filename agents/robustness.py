@@ -37,6 +37,7 @@ from .evaluation import (
     ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
     evaluate_policy, expand_policy_specs, nan_to_none, trained_task_of,
 )
+from .controllers import episode_minimal_forces
 from .parallel import Runner
 
 SUITE_VERSION = 1
@@ -80,6 +81,8 @@ CONDITIONS: tuple[Condition, ...] = (
     *(Condition("tissue", f"mass x{k:g}", options={"mass_scale": k}) for k in (0.7, 1.5)),
 )
 SUITES = {"robustness": CONDITIONS}
+#: the axes whose conditions change the force a grasp needs (the pose, the tissue): the hindsight oracle's
+HINDSIGHT_AXES = ("nominal", "placement", "tissue")
 
 
 def condition_config(config: GraspLiftConfig, condition: Condition) -> GraspLiftConfig:
@@ -97,6 +100,27 @@ def _suite_job(payload, config_dict: dict[str, Any], mus: Sequence[float], episo
     return evaluate_policy(_policy_of(payload, config), list(mus), episodes, config, seed, options=options or None)
 
 
+def _hindsight_job(config_dict: dict[str, Any], mus: Sequence[float], episodes: int, seed: int,
+                   options: dict[str, float]) -> dict[str, list[float | None]]:
+    """Each episode's minimal fixed force (the suite's episodes: episode i of every mu seeded seed + i), per mu."""
+    config = from_dict(GraspLiftConfig, config_dict, where="env")
+    forces = episode_minimal_forces(config, [m for m in mus for _ in range(episodes)],
+                                    [seed + i for _ in mus for i in range(episodes)], options or None)
+    return {str(m): [None if not math.isfinite(f) else float(f) for f in forces[k * episodes:(k + 1) * episodes]]
+            for k, m in enumerate(mus)}
+
+
+def _hindsight_cell(forces: dict[str, list[float | None]], minimal: dict[float, float]) -> dict[str, Any]:
+    """What the hindsight oracle needs in one condition: the share of episodes some fixed force holds and the mean
+    over mu of their mean minimal force over the nominal oracle's (the force ratio a policy that grips each
+    episode with just enough could reach)."""
+    held = [f for fs in forces.values() for f in fs if f is not None]
+    ratios = [np.mean([f for f in fs if f is not None]) / minimal[float(m)] for m, fs in forces.items()
+              if any(f is not None for f in fs) and math.isfinite(minimal.get(float(m), math.nan))]
+    return {"held_rate": len(held) / sum(len(fs) for fs in forces.values()),
+            "force_ratio": float(np.mean(ratios)) if ratios else math.nan, "episode_minimal_force_N": forces}
+
+
 def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, Any]:
     """A policy's numbers in one condition, over its mu rows."""
     ratios = [r["mean_peak_pinch_N"] / minimal[r["mu"]] for r in rows
@@ -111,10 +135,14 @@ def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, 
 
 
 def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int = EPISODES,
-              seed: int = 0, runner: Runner | None = None, progress: bool = True) -> dict[str, Any]:
+              seed: int = 0, runner: Runner | None = None, progress: bool = True,
+              hindsight: bool = False) -> dict[str, Any]:
     """Run ``suite`` on every policy spec and the baselines; write ``suite_<suite>.json`` and
     ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and every model loaded before any
-    episode runs. ``runner``: each (policy, condition) a job (local processes or Ray), same numbers as without."""
+    episode runs. ``runner``: each (policy, condition) a job (local processes or Ray), same numbers as without.
+    ``hindsight``: also search each episode's minimal fixed force in the conditions of HINDSIGHT_AXES
+    (:func:`.controllers.episode_minimal_forces`; about 4 CPU-minutes per condition and mu): what a policy that
+    grips every episode with just enough force would reach there."""
     if suite not in SUITES:
         raise ConfigError(f"suite = {suite!r} is not known; choose one of {', '.join(map(repr, SUITES))}")
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
@@ -140,6 +168,9 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     all_mus = sorted({m for cond in conditions for m in cond.mus})
     nominal = to_dict(config)
     jobs += [(_minimal_force_job, (nominal, m)) for m in all_mus]
+    searched = [c for c, cond in enumerate(conditions) if hindsight and cond.axis in HINDSIGHT_AXES]
+    jobs += [(_hindsight_job, (to_dict(condition_config(config, conditions[c])), conditions[c].mus, int(episodes),
+                               int(seed), dict(conditions[c].options))) for c in searched]
 
     def done(k: int, res: Any) -> None:
         if progress and k < len(where):
@@ -158,7 +189,11 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
             out = runner.run(jobs, on_done=done)
     # the bisection's cap (twice the reference force) means no fixed force up to it held: no minimal force known
     cap = 2.0 * config.reference_force_N
-    minimal = {m: (float(f) if f < cap else math.nan) for m, f in zip(all_mus, out[len(where):])}
+    minimal = {m: (float(f) if f < cap else math.nan)
+               for m, f in zip(all_mus, out[len(where):len(where) + len(all_mus)])}
+    hindsight_cells: list[dict[str, Any] | None] = [None] * len(conditions)
+    for c, forces in zip(searched, out[len(where) + len(all_mus):]):
+        hindsight_cells[c] = _hindsight_cell(forces, minimal)
     table = [[_cell(out[k], minimal) for k in range(p * len(conditions), (p + 1) * len(conditions))]
              for p in range(len(specs))]
     board = []
@@ -179,6 +214,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
         "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
         "conditions": [dataclasses.asdict(c) for c in conditions],
+        "hindsight": hindsight_cells if hindsight else None,
         "leaderboard": [board[p] for p in order],
         "results": [{"policy": names[p], "spec": specs[p],
                      "cells": [{"axis": cond.axis, "condition": cond.name, **cell}
@@ -211,10 +247,19 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
                      f"{row['worst_condition']} ({row['worst_success_rate']:.2f}) | "
                      f"{_num(row['max_peak_pressure_kPa'], '.1f')} |")
     names = [r["policy"] for r in result["results"]]
-    lines += ["", "Success rate / force ratio per condition:", "",
-              "| axis | condition | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    hind = result.get("hindsight")
+    lines += ["", "Success rate / force ratio per condition" + (
+        "; hindsight: the share of episodes a fixed force holds / the ratio of their mean minimal fixed force "
+        "(each episode's own, found by search) to the nominal oracle's, what a policy gripping every episode "
+        "with just enough would reach:" if hind else ":"), "",
+              "| axis | condition | " + " | ".join(names) + (" | hindsight" if hind else "") + " |",
+              "|---|---|" + "---|" * (len(names) + bool(hind))]
     for c, cond in enumerate(result["conditions"]):
         cells = [r["cells"][c] for r in result["results"]]
+        extra = ""
+        if hind:
+            h = hind[c]
+            extra = " | -" if h is None else f" | {h['held_rate']:.2f} / {_num(h['force_ratio'], '.2f')}"
         lines.append(f"| {cond['axis']} | {cond['name']} | " + " | ".join(
-            f"{x['success_rate']:.2f} / {_num(x['force_ratio'], '.2f')}" for x in cells) + " |")
+            f"{x['success_rate']:.2f} / {_num(x['force_ratio'], '.2f')}" for x in cells) + extra + " |")
     return "\n".join(lines) + "\n"

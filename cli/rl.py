@@ -209,6 +209,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.suite is not None:
         return _cmd_suite(args)
+    if args.hindsight:
+        raise _usage("--hindsight needs --suite robustness (it searches the suite's episodes)")
     mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
@@ -246,7 +248,7 @@ def _cmd_suite(args: argparse.Namespace) -> int:
     policies = args.policy or _default_policies()
     runner = _runner(args) if _runner_asked(args) else None
     result = run_suite(policies, args.out, args.suite, episodes=args.episodes, seed=args.seed, runner=runner,
-                       progress=not args.quiet)
+                       progress=not args.quiet, hindsight=args.hindsight)
     print(Path(result["files"]["markdown"]).read_text())
     print(json.dumps(result["files"], indent=2))
     return 0
@@ -393,6 +395,10 @@ def add_rl_commands(sub) -> None:
                    help="run a versioned protocol instead of the mu grid: robustness (sensing, actuation, placement, "
                         "friction and tissue outside training; agents/robustness.py): suite_<name>.json and "
                         "leaderboard_<name>.md in --out")
+    e.add_argument("--hindsight", action="store_true",
+                   help="with --suite: also search each episode's minimal fixed force where the condition changes the "
+                        "pose or the tissue (the hindsight oracle: what gripping every episode with just enough "
+                        "would reach; about 4 CPU-minutes per condition and mu)")
     e.add_argument("--no-unseen", action="store_true",
                    help="skip the unseen tissues (stiffness 0.6 / 1.5, mass 0.8 / 1.25 at mu 0.5)")
     e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")

@@ -9,6 +9,7 @@ import io
 import json
 import math
 
+import numpy as np
 import pytest
 
 from msdgrasp.agents import robustness
@@ -76,3 +77,39 @@ def test_an_unknown_suite_is_refused(suite, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["evaluate", "--suite", suite, "--policy", "fixed"])
     assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err
+
+
+def test_the_hindsight_oracle_finds_each_episodes_own_minimal_force():
+    """An episode's minimal fixed force: the fixed-force controller holds that very episode (its seed, its grasp
+    placed up to 5 mm off) at it and not one tolerance below."""
+    from msdgrasp.agents.controllers import _fixed_force_success, episode_minimal_forces
+    from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+
+    config = TrainConfig().env
+    off = {"pose_offset_m": 0.005}
+    [f] = episode_minimal_forces(config, [0.5], [3], off, tolerance_N=0.1)
+    env = GraspLiftVectorEnv(2, config)
+    held = _fixed_force_success(env, np.array([f, f - 0.1]), 0.5, seed=[3, 3], options={"mu": [0.5, 0.5], **off})
+    assert held.tolist() == [True, False]
+
+
+def test_the_suite_reports_the_hindsight_oracle_where_the_pose_or_the_tissue_changes(tmp_path, monkeypatch):
+    stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
+                Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
+    monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
+    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)
+    monkeypatch.setattr(robustness, "_hindsight_job", lambda cfg, mus, n, seed, opts: {"0.5": [1.5, None]})
+    from msdgrasp.agents import controllers
+
+    monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)
+    rc, out, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--episodes", "1",
+                              "--hindsight", "--out", str(tmp_path), "--quiet"])
+    assert rc == 0, err
+    data = json.loads((tmp_path / "suite_robustness.json").read_text())
+    nominal, latency = data["hindsight"]
+    assert latency is None  # (latency changes no pose and no tissue)
+    assert nominal["held_rate"] == 0.5 and math.isclose(nominal["force_ratio"], 1.5 / 1.25)
+    board = (tmp_path / "leaderboard_robustness.md").read_text()
+    assert "| hindsight |" in board and "| 0.50 / 1.20 |" in board
+    rc, _, err = _run_main(["evaluate", "--policy", "fixed", "--hindsight", "--out", str(tmp_path / "y")])
+    assert rc == 2 and "--hindsight needs --suite" in err
