@@ -205,7 +205,7 @@ def _fixed_force_success(env, forces: np.ndarray, pull: float, **reset) -> np.nd
 
 
 #: the forces a hindsight search tries first, N (then it bisects between the two that bracket an episode's minimum)
-HINDSIGHT_GRID_N = (0.3, 0.45, 0.6, 0.75, 0.9, 1.05, 1.2, 1.4, 1.6, 1.9, 2.3, 3.0, 4.0, 5.0)
+HINDSIGHT_GRID_N = (0.4, 0.6, 0.8, 1.0, 1.25, 1.6, 2.0, 3.0, 5.0)
 
 
 def episode_minimal_forces(config: GraspLiftConfig, mus: Sequence[float], seeds: Sequence[int],

@@ -396,9 +396,9 @@ def add_rl_commands(sub) -> None:
                         "friction and tissue outside training; agents/robustness.py): suite_<name>.json and "
                         "leaderboard_<name>.md in --out")
     e.add_argument("--hindsight", action="store_true",
-                   help="with --suite: also search each episode's minimal fixed force where the condition changes the "
-                        "pose or the tissue (the hindsight oracle: what gripping every episode with just enough "
-                        "would reach; about 4 CPU-minutes per condition and mu)")
+                   help="with --suite: also search each episode's minimal fixed force in the nominal and placement "
+                        "conditions (the hindsight oracle: what gripping every episode with just enough would "
+                        "reach; about 3 CPU-minutes per condition and mu)")
     e.add_argument("--no-unseen", action="store_true",
                    help="skip the unseen tissues (stiffness 0.6 / 1.5, mass 0.8 / 1.25 at mu 0.5)")
     e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")

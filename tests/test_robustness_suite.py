@@ -93,7 +93,7 @@ def test_the_hindsight_oracle_finds_each_episodes_own_minimal_force():
     assert held.tolist() == [True, False]
 
 
-def test_the_suite_reports_the_hindsight_oracle_where_the_pose_or_the_tissue_changes(tmp_path, monkeypatch):
+def test_the_suite_reports_the_hindsight_oracle_where_the_placement_changes(tmp_path, monkeypatch):
     stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
                 Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
     monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
@@ -107,7 +107,7 @@ def test_the_suite_reports_the_hindsight_oracle_where_the_pose_or_the_tissue_cha
     assert rc == 0, err
     data = json.loads((tmp_path / "suite_robustness.json").read_text())
     nominal, latency = data["hindsight"]
-    assert latency is None  # (latency changes no pose and no tissue)
+    assert latency is None  # (latency changes no placement)
     assert nominal["held_rate"] == 0.5 and math.isclose(nominal["force_ratio"], 1.5 / 1.25)
     board = (tmp_path / "leaderboard_robustness.md").read_text()
     assert "| hindsight |" in board and "| 0.50 / 1.20 |" in board
