@@ -31,13 +31,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig
+from ..envs.core import GraspLiftConfig, RandomizationConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
     ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
     evaluate_policy, expand_policy_specs, nan_to_none, trained_task_of,
 )
 from .controllers import episode_minimal_forces
+from .learners.base import learner_of_model
 from .parallel import Runner
 
 SUITE_VERSION = 1
@@ -93,6 +94,29 @@ def condition_config(config: GraspLiftConfig, condition: Condition) -> GraspLift
     data = to_dict(config)
     data["randomization"] = {**data["randomization"], **condition.randomization}
     return from_dict(GraspLiftConfig, data, where="env")
+
+
+def inside_ranges(condition: Condition, ranges: RandomizationConfig) -> bool:
+    """Whether ``condition`` lies inside the randomisation a policy was trained on (``ranges``): every level it sets
+    at most the training's (a latency within its steps, the same slip sensing, a pinch ceiling no lower than a
+    trained one), its mu and tissue pins inside the training's ranges."""
+    for key, value in condition.randomization.items():
+        trained = getattr(ranges, key)
+        if key == "latency_steps":
+            ok = trained[0] <= value[0] and value[1] <= trained[1]
+        elif key == "slip_sensing":
+            ok = value == trained
+        elif key == "pinch_ceiling_N":
+            ok = trained is not None and value >= trained
+        else:
+            ok = value <= trained + 1e-12
+        if not ok:
+            return False
+    for key, value in condition.options.items():
+        lo, hi = getattr(ranges, f"{key}_range")
+        if not lo <= value <= hi:
+            return False
+    return all(ranges.mu_range[0] <= m <= ranges.mu_range[1] for m in condition.mus)
 
 
 def _suite_job(payload, config_dict: dict[str, Any], mus: Sequence[float], episodes: int, seed: int,
@@ -156,6 +180,9 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         check_policy_spec(spec)
     specs += [b for b in BASELINES if b not in specs]
     config, trained_on = trained_task_of(specs)
+    # the ranges the first model was trained on (its training's randomisation; the task's where it has none)
+    ranges = (learner_of_model(Path(trained_on)).model_training_task(Path(trained_on)) if trained_on
+              else config).randomization
     built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
     names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]
     conditions = SUITES[suite]
@@ -192,6 +219,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     cap = 2.0 * config.reference_force_N
     minimal = {m: (float(f) if f < cap else math.nan)
                for m, f in zip(all_mus, out[len(where):len(where) + len(all_mus)])}
+    inside = [inside_ranges(cond, ranges) for cond in conditions]
     hindsight_cells: list[dict[str, Any] | None] = [None] * len(conditions)
     for c, forces in zip(searched, out[len(where) + len(all_mus):]):
         hindsight_cells[c] = _hindsight_cell(forces, minimal)
@@ -203,9 +231,13 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         success = [c["success_rate"] for c in cells]
         ratios = [c["force_ratio"] for c in cells if math.isfinite(c["force_ratio"])]
         worst = int(np.argmin(success))
+        in_range = [c for c, ok in zip(cells, inside) if ok]
+        in_ratios = [c["force_ratio"] for c in in_range if math.isfinite(c["force_ratio"])]
         board.append({"policy": name, "spec": specs[p], "score": float(np.mean(success)),
                       "mean_force_ratio": float(np.mean(ratios)) if ratios else math.nan,
                       "worst_condition": conditions[worst].name, "worst_success_rate": success[worst],
+                      "in_range_worst_success_rate": min((c["success_rate"] for c in in_range), default=math.nan),
+                      "in_range_max_force_ratio": max(in_ratios, default=math.nan),
                       "max_peak_pressure_kPa": max(c["max_peak_pressure_kPa"] for c in cells)})
     order = sorted(range(len(board)), key=lambda p: (-board[p]["score"], board[p]["mean_force_ratio"]))
     result = {
@@ -215,6 +247,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
         "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
         "conditions": [dataclasses.asdict(c) for c in conditions],
+        "inside_training_ranges": inside,
         "hindsight": hindsight_cells if hindsight else None,
         "leaderboard": [board[p] for p in order],
         "results": [{"policy": names[p], "spec": specs[p],
@@ -241,10 +274,16 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
              f"Score: success averaged over the conditions. Force ratio: mean peak pinch over the oracle's "
              f"minimal slip-free force at that mu on the nominal task. "
              f"Damage threshold: {result['damage_pressure_kPa']:g} kPa (published, human bowel, 10 s grasps).", "",
-             "| rank | policy | score | mean force ratio | worst condition (success) | max peak pressure kPa |",
-             "|---|---|---|---|---|---|"]
+             f"In training ranges: the {sum(result['inside_training_ranges'])} conditions (marked *) inside the "
+             "randomisation the task's model was trained on; each policy's worst success and largest force ratio "
+             "there.", "",
+             "| rank | policy | score | mean force ratio | in training ranges: worst success / max force ratio | "
+             "worst condition (success) | max peak pressure kPa |",
+             "|---|---|---|---|---|---|---|"]
     for k, row in enumerate(result["leaderboard"], 1):
         lines.append(f"| {k} | {row['policy']} | {row['score']:.3f} | {_num(row['mean_force_ratio'], '.2f')} | "
+                     f"{_num(row['in_range_worst_success_rate'], '.2f')} / "
+                     f"{_num(row['in_range_max_force_ratio'], '.2f')} | "
                      f"{row['worst_condition']} ({row['worst_success_rate']:.2f}) | "
                      f"{_num(row['max_peak_pressure_kPa'], '.1f')} |")
     names = [r["policy"] for r in result["results"]]
@@ -261,6 +300,7 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
         if hind:
             h = hind[c]
             extra = " | -" if h is None else f" | {h['held_rate']:.2f} / {_num(h['force_ratio'], '.2f')}"
-        lines.append(f"| {cond['axis']} | {cond['name']} | " + " | ".join(
+        mark = " *" if result["inside_training_ranges"][c] else ""
+        lines.append(f"| {cond['axis']} | {cond['name']}{mark} | " + " | ".join(
             f"{x['success_rate']:.2f} / {_num(x['force_ratio'], '.2f')}" for x in cells) + extra + " |")
     return "\n".join(lines) + "\n"

@@ -18,6 +18,12 @@ from msdgrasp.agents.training import TrainConfig
 from msdgrasp.cli.main import main
 
 
+def row_of(data, spec, condition):
+    [res] = [r for r in data["results"] if r["spec"] == spec]
+    [cell] = [c for c in res["cells"] if c["condition"] == condition]
+    return cell
+
+
 def _run_main(argv):
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -42,6 +48,18 @@ def test_the_protocol_covers_every_axis_at_the_levels_it_names():
         assert changed == set(c.randomization), c.name
 
 
+def test_a_condition_is_inside_the_training_ranges_where_every_level_it_sets_was_trained():
+    from pathlib import Path
+
+    robust = TrainConfig.load(Path(__file__).parents[1] / "configs/train/experiments/R-robust.yaml")
+    inside = {c.name for c in CONDITIONS if robustness.inside_ranges(c, robust.training_task().randomization)}
+    assert inside == {"nominal", "force noise 0.05 N", "force noise 0.08 N", "force bias up to 0.05 N",
+                      "latency 1 step", "force-loop gain error up to 20%",
+                      "grasp up to 3 mm off, 5 deg tilt, 5 deg turn", "grasp up to 5 mm off, 10 deg tilt, 10 deg turn"}
+    nominal = TrainConfig().training_task().randomization  # (1 mm / 1 deg / 1.5 deg of pose jitter, no other axis)
+    assert {c.name for c in CONDITIONS if robustness.inside_ranges(c, nominal)} == {"nominal"}
+
+
 def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_grid_options(tmp_path, monkeypatch):
     stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
                 Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
@@ -64,8 +82,12 @@ def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_gri
             assert cell["success_rate"] == row["success_rate"] and row["mu"] == 0.5
             assert math.isclose(cell["force_ratio"], row["mean_peak_pinch_N"] / 1.25)
             assert cell["mean_time_above_damage_s"] >= 0.0 and cell["max_peak_pressure_kPa"] >= 0.0
+    assert data["inside_training_ranges"] == [True, False]  # (the default training: nominal, no latency)
+    for row in data["leaderboard"]:
+        assert row["in_range_worst_success_rate"] == row_of(data, row["spec"], "nominal")["success_rate"]
     board = (tmp_path / "leaderboard_robustness.md").read_text()
     assert "| rank | policy | score |" in board and "latency 3 steps" in board and board in out
+    assert "| nominal * |" in board and "| latency 3 steps |" in board
     rc, _, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--mu-grid", "0.5",
                             "--out", str(tmp_path / "x")])
     assert rc == 2 and "the suite fixes its conditions, mu and batches; drop --mu-grid" in err
