@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
+from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
 from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .learners.base import learner_of_model, model_kinds
@@ -541,6 +541,19 @@ def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[Gr
     if config is not None and config != envs[0]:
         raise ConfigError(f"the given task is not the one the models were trained on ({next(iter(found))})")
     return envs[0], next(iter(found))
+
+
+def trained_ranges_of(policies: Sequence[str]) -> RandomizationConfig:
+    """The randomisation the first model among ``policies`` was trained under (its training's domain randomisation,
+    else its task's); with controllers alone, the default training's."""
+    for spec in policies:
+        if spec in _NAMED or spec.startswith("fixed:"):
+            continue
+        path = Path(spec)
+        return learner_of_model(path).model_training_task(path).randomization
+    from .models import TrainConfig
+
+    return TrainConfig().training_task().randomization
 
 
 def trained_task_of(policies: Sequence[str]) -> tuple[GraspLiftConfig, str | None]:

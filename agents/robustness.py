@@ -35,10 +35,9 @@ from ..envs.core import GraspLiftConfig, RandomizationConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
     ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
-    evaluate_policy, expand_policy_specs, nan_to_none, trained_task_of,
+    evaluate_policy, expand_policy_specs, nan_to_none, trained_ranges_of, trained_task_of,
 )
 from .controllers import episode_minimal_forces
-from .learners.base import learner_of_model
 from .parallel import Runner
 
 SUITE_VERSION = 1
@@ -180,9 +179,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         check_policy_spec(spec)
     specs += [b for b in BASELINES if b not in specs]
     config, trained_on = trained_task_of(specs)
-    # the ranges the first model was trained on (its training's randomisation; the task's where it has none)
-    ranges = (learner_of_model(Path(trained_on)).model_training_task(Path(trained_on)) if trained_on
-              else config).randomization
+    ranges = trained_ranges_of(specs)
     built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
     names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]
     conditions = SUITES[suite]

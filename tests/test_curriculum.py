@@ -101,3 +101,7 @@ def test_a_curriculum_training_moves_the_env_and_keeps_the_benchmark_task_as_the
     # rollouts start at 0, 256, 512 and 768 of 1,024 steps: levels 0, 0, 1 (set once per change), then unchanged
     assert levels == pytest.approx([0.02, 0.08])
     assert model_train_config(tmp_path / "best_model.zip").env == config.env
+    # the suite reads the ranges the model was trained under (its in-range conditions) from the model
+    from msdgrasp.agents.evaluation import trained_ranges_of
+
+    assert trained_ranges_of(["reactive", str(tmp_path / "best_model.zip")]).sensor_noise_N == 0.08
