@@ -521,15 +521,17 @@ def _curve_record(config: GraspLiftConfig, mus: Sequence[float], forces: Sequenc
             "search_limit_N": 2.0 * config.reference_force_N}
 
 
+def _model_paths(policies: Sequence[str]) -> list[Path]:
+    """The saved models among policy specs (the controllers' names left out)."""
+    return [Path(spec) for spec in policies if not (spec in _NAMED or spec.startswith("fixed:"))]
+
+
 def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
     """The task to evaluate on: the env config the model(s) were trained with (all models must agree, and
     agree with ``config`` where one is given), else ``config``, else (controllers only) the default task.
     Returns (config, the file it came from). A model is never run on a task it was not trained on."""
     found: dict[str, GraspLiftConfig] = {}
-    for spec in policies:
-        if spec in _NAMED or spec.startswith("fixed:"):
-            continue
-        path = Path(spec)
+    for path in _model_paths(policies):
         learner = learner_of_model(path)
         found[str(learner.config_file(path))] = learner.model_task(path)
     if not found:
@@ -546,10 +548,7 @@ def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[Gr
 def trained_ranges_of(policies: Sequence[str]) -> RandomizationConfig:
     """The randomisation the first model among ``policies`` was trained under (its training's domain randomisation,
     else its task's); with controllers alone, the default training's."""
-    for spec in policies:
-        if spec in _NAMED or spec.startswith("fixed:"):
-            continue
-        path = Path(spec)
+    for path in _model_paths(policies):
         return learner_of_model(path).model_training_task(path).randomization
     from .models import TrainConfig
 
