@@ -114,6 +114,11 @@ class TrainConfig:
     bc_value_fit: Bool = False
     #: set by ``msdgrasp clone`` (agents/offline.py): the Minari dataset the model was cloned from, without RL
     bc_dataset: Str | None = None
+    #: warm start: a trained model (an SB3 ``.zip`` of the same algorithm, observation and action spaces and
+    #: network) whose weights (actor, critic, action noise) this run starts from instead of random ones; the
+    #: optimiser and the step count start afresh. ``{seed}`` in the path is replaced by ``seed``, so that
+    #: ``--seeds 0-4`` fine-tunes each seed of an earlier run. None (the default): from scratch.
+    init_model: Str | None = None
     #: model selection: at every checkpoint and at the end the policy runs ``validation_episodes`` episodes
     #: at each friction in ``validation_mu`` (seeds disjoint from ``msdgrasp evaluate``'s); the best (highest
     #: success rate, then lowest mean peak pinch) is kept as ``best_model.zip``. 0 disables it.
@@ -147,6 +152,10 @@ class TrainConfig:
     #: episodes are env's. None: train_randomization from the first step
     randomization_ramp: tuple[Unit, Unit] | None = None
 
+    def init_model_path(self) -> Path | None:
+        """``init_model`` with ``{seed}`` replaced by this run's seed (None without a warm start)."""
+        return None if self.init_model is None else Path(self.init_model.replace("{seed}", str(self.seed)))
+
     def training_task(self, progress: float = 1.0) -> GraspLiftConfig:
         """The task the training draws its episodes from after a fraction ``progress`` of total_timesteps (the
         curriculum's level then); 1.0: the task it validates on."""
@@ -167,6 +176,9 @@ class TrainConfig:
         if self.squash_actions and self.algo == "ppo" and not self.ppo.get("use_sde", False):
             raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
                               "set squash_actions: false to train PPO without gSDE")
+        if self.init_model is not None and self.bc_teacher is not None:
+            raise ConfigError("give either init_model (start from a trained model) or bc_teacher (clone a teacher "
+                              "first), not both")
         if self.randomization_ramp is not None:
             if self.train_randomization is None:
                 raise ConfigError("randomization_ramp needs train_randomization (the randomisation it ramps to)")

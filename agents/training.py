@@ -59,6 +59,9 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     from ..envs.sb3 import GraspLiftSB3VecEnv
 
     out = Path(out_dir)
+    init = config.init_model_path()
+    if not resume and init is not None and not init.is_file():
+        raise ConfigError(f"init_model: {init} is not a file (a trained model's .zip, e.g. <run>/best_model.zip)")
     torch.set_num_threads(config.torch_threads)
     write_yaml(out / LAYOUT.config, to_dict(config))
     # (built on the widest randomisation it will draw from: the curriculum's end)
@@ -68,6 +71,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
         model = algo_class(config.algo).load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
     else:
         model = new_model(config, venv, tensorboard_log=str(out / "tb"))
+        if init is not None:
+            warm_start(model, init)
 
     selector = BestModel(config, out, resume=resume)
 
@@ -157,6 +162,30 @@ def new_model(config: TrainConfig, venv, tensorboard_log: str | None = None):
         policy, venv, seed=config.seed, device="cpu", verbose=0, tensorboard_log=tensorboard_log,
         policy_kwargs=policy_kwargs, **kwargs,
     )
+
+
+def warm_start(model, path: Path) -> None:
+    """Copy the weights of the trained model at ``path`` (actor, critic, action noise) into ``model``.
+
+    Only the network is taken: the optimiser's moments, the step count and the learning-rate schedule are
+    ``model``'s own, so a warm-started run is a fresh run from those weights. The saved model must have the
+    same observation and action spaces and the same network (a one-line error names what differs).
+    """
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    data, params, _ = load_from_zip_file(path, device="cpu")
+    for name in ("observation_space", "action_space"):
+        saved, ours = data.get(name), getattr(model, name)
+        if saved is None or saved.shape != ours.shape:
+            raise ConfigError(f"init_model: {path} was trained with {name} of shape "
+                              f"{getattr(saved, 'shape', None)}, this run's is {ours.shape} (the task's "
+                              "observation or action layout differs)")
+    try:
+        model.policy.load_state_dict(params["policy"])
+    except (KeyError, RuntimeError) as exc:
+        first = str(exc).strip().splitlines()[0]
+        raise ConfigError(f"init_model: {path}'s network does not match this run's policy_net / critic "
+                          f"({first})") from None
 
 
 class Demonstrations(NamedTuple):

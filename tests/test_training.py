@@ -244,3 +244,46 @@ def test_the_algorithm_blocks_only_offer_arguments_of_the_sb3_constructors():
         assert keys <= set(inspect.signature(algo.__init__).parameters), (
             keys - set(inspect.signature(algo.__init__).parameters))
         assert {"learning_rate", "batch_size", "gamma"} <= keys
+
+
+def test_warm_start_begins_from_the_trained_models_weights(short_run, tmp_path):
+    """init_model: the run's network starts as the saved model's (actor, critic, action noise), per seed."""
+    import torch
+
+    from msdgrasp.agents.training import new_model, warm_start
+    from msdgrasp.envs.sb3 import GraspLiftSB3VecEnv
+
+    src, _ = short_run
+    cfg = from_dict(TrainConfig, {**SHORT, "seed": 3, "init_model": str(src / "{seed}" / ".." / "best_model.zip")})
+    assert cfg.init_model_path() == src / "3" / ".." / "best_model.zip"
+    venv = GraspLiftSB3VecEnv(cfg.n_envs, cfg.training_task(), seed=cfg.seed)
+    fresh = new_model(cfg, venv)
+    saved = new_model(cfg, venv)
+    warm_start(saved, src / "best_model.zip")
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    want = load_from_zip_file(src / "best_model.zip", device="cpu")[1]["policy"]
+    got, other = saved.policy.state_dict(), fresh.policy.state_dict()
+    assert set(got) == set(want)
+    assert all(torch.equal(got[k], want[k]) for k in want)
+    assert not all(torch.equal(other[k], want[k]) for k in want)  # (a fresh network is not the saved one)
+
+    # a model of another observation layout is refused, naming the field
+    from dataclasses import replace
+
+    wider = replace(cfg, env=replace(cfg.env, obs_history=2))
+    with pytest.raises(ConfigError, match="init_model: .* observation_space of shape"):
+        warm_start(new_model(wider, GraspLiftSB3VecEnv(wider.n_envs, wider.training_task(), seed=0)),
+                   src / "best_model.zip")
+
+
+def test_warm_start_errors_come_before_any_output(tmp_path):
+    from msdgrasp.agents.training import train
+
+    with pytest.raises(ConfigError, match="give either init_model .* or bc_teacher"):
+        from_dict(TrainConfig, {**SHORT, "init_model": "a.zip", "bc_teacher": "reactive"})
+    out = tmp_path / "run"
+    with pytest.raises(ConfigError, match=r"init_model: .*seed_7.*best_model\.zip is not a file"):
+        train(from_dict(TrainConfig, {**SHORT, "seed": 7, "init_model": str(tmp_path / "seed_{seed}" / "best_model.zip")}),
+              out, progress=False)
+    assert not out.exists()
