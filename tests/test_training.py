@@ -284,6 +284,6 @@ def test_warm_start_errors_come_before_any_output(tmp_path):
         from_dict(TrainConfig, {**SHORT, "init_model": "a.zip", "bc_teacher": "reactive"})
     out = tmp_path / "run"
     with pytest.raises(ConfigError, match=r"init_model: .*seed_7.*best_model\.zip is not a file"):
-        train(from_dict(TrainConfig, {**SHORT, "seed": 7, "init_model": str(tmp_path / "seed_{seed}" / "best_model.zip")}),
-              out, progress=False)
+        pattern = str(tmp_path / "seed_{seed}" / "best_model.zip")
+        train(from_dict(TrainConfig, {**SHORT, "seed": 7, "init_model": pattern}), out, progress=False)
     assert not out.exists()
