@@ -94,7 +94,7 @@ def time_per_unit(run: Callable[[int], Any], min_time: float, repeats: int = 3, 
 
 
 def _clone(src, dst) -> None:
-    """Copy tissue 0 of ``src`` into every tissue of ``dst`` (same model and grasper)."""
+    """Copy the first tissue of ``src`` into every tissue of ``dst`` (same model and grasper)."""
     for name in ("x", "v", "t", "fv", "dl_prev", "kscale", "mscale", "f_ext", "g_tip", "g_axis", "g_e1", "g_radius",
                  "g_vradius", "g_vpull", "g_rmin", "g_rmax", "mu_s", "mu_k", "contact_state", "contact_force"):
         getattr(dst, name)[:] = getattr(src, name)[0]

@@ -388,7 +388,7 @@ class RerunRecorder(gym.Wrapper):
         rec.set_time(TIMELINE_TIME, duration=float(self.core.sim.t[0]))
 
     def _log_frame(self, info: dict[str, Any], reward: float | None, action: np.ndarray | None) -> None:
-        """Log the current state of tissue 0 (and the step's info/reward/action) at the current time."""
+        """Log the current state of the first tissue (and the step's info/reward/action) at the current time."""
         import rerun as rr
 
         from ..physics.contact import J_CONTACT, J_NORMAL, J_SLIP, J_STICK, J_TX, J_TZ, SLIP, WALL_SLIP
