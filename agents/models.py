@@ -156,6 +156,12 @@ class TrainConfig:
         """``init_model`` with ``{seed}`` replaced by this run's seed (None without a warm start)."""
         return None if self.init_model is None else Path(self.init_model.replace("{seed}", str(self.seed)))
 
+    def check_inputs(self) -> None:
+        """ConfigError for a file the run reads that is not there (the warm start's model), before it writes."""
+        init = self.init_model_path()
+        if init is not None and not init.is_file():
+            raise ConfigError(f"init_model: {init} is not a file (a trained model's .zip, e.g. <run>/best_model.zip)")
+
     def training_task(self, progress: float = 1.0) -> GraspLiftConfig:
         """The task the training draws its episodes from after a fraction ``progress`` of total_timesteps (the
         curriculum's level then); 1.0: the task it validates on."""

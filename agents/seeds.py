@@ -25,6 +25,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -153,6 +154,9 @@ def train_points(configs: Sequence[Any], folders: Sequence[Path], seeds: Sequenc
     ``folders[p]/seed_<k>``, beside the baselines of each distinct task. One result per config: the
     per-seed records, their aggregate, the baselines and the oracle's minimal-force curve."""
     mus = [float(m) for m in mus]
+    for c in configs:  # (every seed's inputs before the first job)
+        for s in seeds:
+            learner_of_config(c).check_inputs(replace(c, seed=s))
     learners = [learner_of_config(c).name for c in configs]
     # one core per job: the jobs are the parallelism
     cfg_dicts = [to_dict(learner_of_config(c).one_core(c)) for c in configs]

@@ -59,9 +59,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     from ..envs.sb3 import GraspLiftSB3VecEnv
 
     out = Path(out_dir)
-    init = config.init_model_path()
-    if not resume and init is not None and not init.is_file():
-        raise ConfigError(f"init_model: {init} is not a file (a trained model's .zip, e.g. <run>/best_model.zip)")
+    if not resume:
+        config.check_inputs()
     torch.set_num_threads(config.torch_threads)
     write_yaml(out / LAYOUT.config, to_dict(config))
     # (built on the widest randomisation it will draw from: the curriculum's end)
@@ -71,8 +70,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
         model = algo_class(config.algo).load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
     else:
         model = new_model(config, venv, tensorboard_log=str(out / "tb"))
-        if init is not None:
-            warm_start(model, init)
+        if config.init_model is not None:
+            warm_start(model, config.init_model_path())
 
     selector = BestModel(config, out, resume=resume)
 

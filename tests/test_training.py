@@ -287,3 +287,20 @@ def test_warm_start_errors_come_before_any_output(tmp_path):
         pattern = str(tmp_path / "seed_{seed}" / "best_model.zip")
         train(from_dict(TrainConfig, {**SHORT, "seed": 7, "init_model": pattern}), out, progress=False)
     assert not out.exists()
+
+
+def test_a_multi_seed_warm_start_checks_every_seeds_model_before_any_seed_trains(short_run, tmp_path):
+    import shutil
+
+    import yaml
+
+    from msdgrasp.cli.main import main
+
+    src, _ = short_run
+    (tmp_path / "seed_0").mkdir()
+    shutil.copy(src / "best_model.zip", tmp_path / "seed_0" / "best_model.zip")  # seed 1's is missing
+    cfg = tmp_path / "warm.yaml"
+    cfg.write_text(yaml.safe_dump({**SHORT, "init_model": str(tmp_path / "seed_{seed}" / "best_model.zip")}))
+    out = tmp_path / "runs"
+    assert main(["train", "--config", str(cfg), "--seeds", "0-1", "--workers", "1", "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()  # seed 0 did not train either

@@ -91,6 +91,10 @@ class Learner(ABC):
         """The config to continue run ``run`` with (only where ``can_resume``)."""
         raise ConfigError(f"--resume {run}: learner {self.name} cannot continue a run; train a new one")
 
+    def check_inputs(self, config: Any) -> None:
+        """ConfigError for a file that the run of ``config`` reads and that is missing (checked for every seed of a
+        multi-seed run before its first job, so that no seed trains when another cannot start)."""
+
     def check_available(self) -> None:
         """Raise ImportError naming the missing package where the learner's dependencies are not installed."""
 

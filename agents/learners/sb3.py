@@ -72,6 +72,9 @@ class SB3Learner(Learner):
                 data[key] = val
         return check_env_files(self.config_from_dict(data, where=str(path)), path)
 
+    def check_inputs(self, config: "TrainConfig") -> None:
+        config.check_inputs()
+
     def resume_config(self, run: Path, overrides: TrainOverrides) -> "TrainConfig":
         from ...physics.config import to_dict
 
