@@ -690,7 +690,6 @@ def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_pe
     from numba import cuda
 
     from ..agents.torch_ppo import TorchPPOConfig, train_torch
-    from ..envs.core import GraspLiftConfig
     from ..envs.cuda_core import CudaGraspLiftCore
     from ..envs.sb3 import CudaSB3VecEnv
     from ..physics.config import needs_extra, replace
@@ -700,7 +699,7 @@ def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_pe
         import torch
         from stable_baselines3 import PPO
 
-    config = config or GraspLiftConfig()
+    config = config or TorchPPOConfig().env  # (the task rsl_ppo.yaml trains on: its critic reads privileged obs)
     threads = threads or THREADS_PER_BLOCK
     steps = iterations * steps_per_env * batch
     core = CudaGraspLiftCore(config, batch, seed=0, threads=threads)

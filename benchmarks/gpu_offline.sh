@@ -8,9 +8,9 @@
 #                     bash benchmarks/gpu_offline.sh bench gpu  # or precision, learners
 #                     bash benchmarks/gpu_offline.sh train 0-1  # seeds
 #
-# Each part stays inside 10 minutes (timeout 560 s). bench PART: `msdgrasp bench gpu` (physics batches 1..16,384
-# and the whole task step, float64 and float32, against 200k agent steps/s), `precision` (float32 error, coarse
-# spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS: `msdgrasp train --backend cuda` on
+# Each part stays inside 10 minutes (timeout PART_S seconds, default 560). bench PART: `msdgrasp bench gpu`
+# (physics batches 1..16,384 and the whole task step, float64 and float32, against 200k agent steps/s),
+# `precision` (float32 error, coarse spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS: `msdgrasp train --backend cuda` on
 # rsl_ppo.yaml, timed, each seed evaluated; the runs come back as one archive. tests: the kernels and the task
 # against the CPU on real hardware (NUMBA_ENABLE_CUDASIM=0). Everything lands in $OUT (default logs/gpu), each
 # part's log included, so a part killed at its limit still reports.
@@ -38,16 +38,16 @@ case "${1:-}" in
     bench)
         part="${2:?bench PART: gpu, precision or learners}"
         setup
-        timeout 560 msdgrasp bench "$part" --out "$OUT/bench_$part.json" 2>&1 | tee "$OUT/bench_$part.log" || true ;;
+        timeout "${PART_S:-560}" msdgrasp bench "$part" --out "$OUT/bench_$part.json" 2>&1 | tee "$OUT/bench_$part.log" || true ;;
     train)
         setup
         seeds="${2:?train SEEDS, e.g. 0-1}"
-        ( time timeout 560 msdgrasp train --backend cuda --seeds "$seeds" --out logs/train_torch_gpu --quiet ) \
+        ( time timeout "${PART_S:-560}" msdgrasp train --backend cuda --seeds "$seeds" --out logs/train_torch_gpu --quiet ) \
             2>&1 | tee "$OUT/train_$seeds.log" || true
         tar czf "$OUT/train_$seeds.tgz" logs/train_torch_gpu ;;
     tests)
         setup
-        NUMBA_ENABLE_CUDASIM=0 timeout 560 python3 -m pytest tests/test_cuda_physics.py tests/test_cuda_task.py \
+        NUMBA_ENABLE_CUDASIM=0 timeout "${PART_S:-560}" python3 -m pytest tests/test_cuda_physics.py tests/test_cuda_task.py \
             -rs -q 2>&1 | tee "$OUT/tests.log" || true ;;
     *)
         echo "usage: bash benchmarks/gpu_offline.sh wheels | bench gpu|precision|learners | train SEEDS | tests" >&2

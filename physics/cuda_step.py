@@ -35,6 +35,9 @@ from .records import SimModel, SimReadout, SimState  # noqa: E402
 
 #: threads per block (one block per tissue); the loops stride over springs, tets and nodes
 THREADS_PER_BLOCK = 128
+#: flagged tets a block lists in shared memory for the barrier (the coarse spleen flags 2 at rest, about 5 under a
+#: grasp); with more, thread 0 scans every tet's flag instead, as the CPU does: the same impulses either way
+FLAG_LIST = 64
 
 
 @functools.cache  # one twin per function: the kernel and every caller share it
@@ -59,6 +62,7 @@ _damping_factors = device_twin(_integrator.damping_factors)
 _advance_node = device_twin(_integrator.advance_node)
 _below_barrier = device_twin(_forces.below_barrier)
 _implicit_volume_barrier = device_twin(_forces.implicit_volume_barrier)
+_barrier_impulse = device_twin(_forces.barrier_impulse)
 _implicit_spring_dashpots = device_twin(_forces.implicit_spring_dashpots)
 _jaw_directions = device_twin(_contact.jaw_directions)
 _clear_readouts = device_twin(_contact.clear_readouts)
@@ -68,6 +72,18 @@ _advance_jaws = device_twin(_contact.advance_jaws)
 _jaw_candidates = device_twin(_contact.jaw_candidates)
 _resolve_jaw_contacts = device_twin(_contact.resolve_jaw_contacts)
 _plate_contacts = device_twin(_contact.plate_contacts)
+
+
+@cuda.jit(device=True)
+def _sort_ints(a, k):
+    """Insertion sort of a[:k] (a few flagged tets) in place."""
+    for i in range(1, k):
+        key = a[i]
+        j = i - 1
+        while j >= 0 and a[j] > key:
+            a[j + 1] = a[j]
+            j -= 1
+        a[j + 1] = key
 
 
 @cuda.jit
@@ -86,6 +102,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
     flags = (False, m.use_sls)  # (the dashpots act in their own implicit pass)
     res = cuda.local.array(6, np.float64)
     n_flagged = cuda.shared.array(1, np.int32)  # tets of this tissue below the barrier's threshold in this substep
+    flag_list = cuda.shared.array(FLAG_LIST, np.int32)  # (their indices, in the order the threads found them)
     vr = 0.0  # (thread 0) the jaws' radial speed in this substep
     if tid == 0:
         _clear_readouts(b, out)
@@ -145,22 +162,30 @@ def _simulate_kernel(m, s, out, w, n_steps):
                         w.dash_out[b, c] = 0.0
                     _implicit_spring_dashpots(x[b], v[b], w.meff[b], m.fixed, m.edges, m.cdash, ks, dt, w.dash_out[b])
                 cuda.syncthreads()
-            # ---- 4. volume barrier: tets flagged in parallel; only where any is (as on the CPU), thread 0
-            # integrates it on them in the CPU's (tet) order
+            # ---- 4. volume barrier: tets flagged and listed in parallel; only where any is (as on the CPU), thread 0
+            # sorts the list into the CPU's (tet) order and integrates the barrier on those tets (a scan over every
+            # tet's flag, 810 dependent loads on the coarse spleen, cost as much as the rest of the substep)
             if nt > 0:
-                flagged = 0
                 for t in range(tid, nt, nth):
                     on = _below_barrier(x[b], m.tets, m.rest_volume, m.vol_threshold, t)
                     w.tet_on[b, t] = 1 if on else 0
-                    flagged += 1 if on else 0
-                if flagged > 0:
-                    cuda.atomic.add(n_flagged, 0, flagged)
+                    if on:
+                        slot = cuda.atomic.add(n_flagged, 0, 1)
+                        if slot < FLAG_LIST:
+                            flag_list[slot] = t
                 cuda.syncthreads()
                 if tid == 0 and n_flagged[0] > 0:
                     for c in range(3):
                         w.vol_out[b, c] = 0.0
-                    _implicit_volume_barrier(x[b], v[b], w.meff[b], (m.fixed, s.held[b]), m.tets, m.rest_volume, m.kvol,
-                                             m.vol_threshold, ks, dt, w.tet_on[b], w.vol_out[b])
+                    k = n_flagged[0]
+                    if k <= FLAG_LIST:
+                        _sort_ints(flag_list, k)
+                        for q in range(k):
+                            _barrier_impulse(x[b], v[b], w.meff[b], (m.fixed, s.held[b]), m.tets, m.rest_volume,
+                                             m.kvol, m.vol_threshold, ks, dt, flag_list[q], w.vol_out[b])
+                    else:
+                        _implicit_volume_barrier(x[b], v[b], w.meff[b], (m.fixed, s.held[b]), m.tets, m.rest_volume,
+                                                 m.kvol, m.vol_threshold, ks, dt, w.tet_on[b], w.vol_out[b])
                 cuda.syncthreads()
             # ---- 5. contacts: cleared and tested in parallel, resolved by thread 0 in the CPU's (surface) order
             for q in range(tid, m.surface_nodes.shape[0], nth):

@@ -413,6 +413,41 @@ def flag_barrier_lanes(x, tets, rest_volume, j_c, flagged, n_flagged) -> None:
             n_flagged[lane] += 1 if below else 0
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor) -> None:
+    """Tet t's implicit barrier impulse (see above; the arguments as :func:`implicit_volume_barrier`'s): the
+    body of its loop, which the GPU step also runs on its own list of flagged tets."""
+    fixed, held = pins
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
+    v0 = rest_volume[t]
+    jac = vol / v0
+    d1, d2 = barrier_slopes(jac, j_c)
+    if d1 == 0.0:  # (moved back above the threshold by an earlier tet's impulse)
+        return
+    k = ks * kvol[t]
+    gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
+    gax, gay, gaz = -(gbx + gcx + gdx), -(gby + gcy + gdy), -(gbz + gcz + gdz)
+    a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    wa = 0.0 if fixed[a] else 1.0 / meff[a]
+    wb = 0.0 if fixed[b] else 1.0 / meff[b]
+    wc = 0.0 if fixed[c] else 1.0 / meff[c]
+    wd = 0.0 if fixed[d] else 1.0 / meff[d]
+    # the mode's mobility W counts only the nodes that can follow the impulse: a node a jaw or plate holds
+    # receives its share (which its contact then reacts to, inside the friction law) but does not move with
+    # it, so counting it would size the impulse as if the tet could open there, and a held apex pressed into
+    # a tet would creep through it (measured: the fine spleen inverted in a 2 s hold under a 5 N pinch)
+    ww = ((0.0 if held[a] != 0 else wa) * (gax * gax + gay * gay + gaz * gaz)
+          + (0.0 if held[b] != 0 else wb) * (gbx * gbx + gby * gby + gbz * gbz)
+          + (0.0 if held[c] != 0 else wc) * (gcx * gcx + gcy * gcy + gcz * gcz)
+          + (0.0 if held[d] != 0 else wd) * (gdx * gdx + gdy * gdy + gdz * gdz))
+    p = k * d1 / (1.0 + dt * dt * k * d2 * ww / v0)
+    s = -dt * p  # impulse along each volume gradient, N s / m^2: dv_i = s w_i g_i
+    _kick(x, v, a, wa, s, (gax, gay, gaz), dt, anchor)
+    _kick(x, v, b, wb, s, (gbx, gby, gbz), dt, anchor)
+    _kick(x, v, c, wc, s, (gcx, gcy, gcz), dt, anchor)
+    _kick(x, v, d, wd, s, (gdx, gdy, gdz), dt, anchor)
+
+
 @njit(cache=True, error_model="numpy")
 def implicit_volume_barrier(
     x: np.ndarray,  # (N,3) positions of one tissue after the explicit update, m (modified)
@@ -430,38 +465,9 @@ def implicit_volume_barrier(
     anchor: np.ndarray,  # (3,) N: the force the anchors supply against the barrier is ADDED here
 ) -> None:
     """The volume barrier's implicit impulses on every flagged tet of one tissue, in tet order (see above)."""
-    fixed, held = pins
     for t in range(tets.shape[0]):
-        if flagged[t] == 0:
-            continue
-        e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
-        v0 = rest_volume[t]
-        jac = vol / v0
-        d1, d2 = barrier_slopes(jac, j_c)
-        if d1 == 0.0:  # (moved back above the threshold by an earlier tet's impulse)
-            continue
-        k = ks * kvol[t]
-        gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
-        gax, gay, gaz = -(gbx + gcx + gdx), -(gby + gcy + gdy), -(gbz + gcz + gdz)
-        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        wa = 0.0 if fixed[a] else 1.0 / meff[a]
-        wb = 0.0 if fixed[b] else 1.0 / meff[b]
-        wc = 0.0 if fixed[c] else 1.0 / meff[c]
-        wd = 0.0 if fixed[d] else 1.0 / meff[d]
-        # the mode's mobility W counts only the nodes that can follow the impulse: a node a jaw or plate holds
-        # receives its share (which its contact then reacts to, inside the friction law) but does not move with
-        # it, so counting it would size the impulse as if the tet could open there, and a held apex pressed into
-        # a tet would creep through it (measured: the fine spleen inverted in a 2 s hold under a 5 N pinch)
-        ww = ((0.0 if held[a] != 0 else wa) * (gax * gax + gay * gay + gaz * gaz)
-              + (0.0 if held[b] != 0 else wb) * (gbx * gbx + gby * gby + gbz * gbz)
-              + (0.0 if held[c] != 0 else wc) * (gcx * gcx + gcy * gcy + gcz * gcz)
-              + (0.0 if held[d] != 0 else wd) * (gdx * gdx + gdy * gdy + gdz * gdz))
-        p = k * d1 / (1.0 + dt * dt * k * d2 * ww / v0)
-        s = -dt * p  # impulse along each volume gradient, N s / m^2: dv_i = s w_i g_i
-        _kick(x, v, a, wa, s, (gax, gay, gaz), dt, anchor)
-        _kick(x, v, b, wb, s, (gbx, gby, gbz), dt, anchor)
-        _kick(x, v, c, wc, s, (gcx, gcy, gcz), dt, anchor)
-        _kick(x, v, d, wd, s, (gdx, gdy, gdz), dt, anchor)
+        if flagged[t] != 0:
+            barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

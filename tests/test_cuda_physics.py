@@ -46,7 +46,13 @@ def _pair(threads: int):
 
 
 def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
+    from msdgrasp.physics.cuda_step import FLAG_LIST
+    from msdgrasp.physics.forces import flag_barrier
+
     scene, (cpu, gpu) = _pair(threads=4)  # 4 threads: the strided loops and barriers of a real block
+    m = cpu.kernel_model()
+    flags = np.zeros(m.tets.shape[0], dtype=np.int8)
+    n_flagged = []
     seen_stick = seen_slip = 0
     worst = 0.0
     lowest = 1.0
@@ -58,6 +64,7 @@ def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
         gpu.step(8)
         worst = max(worst, float(np.abs(cpu.x - gpu.x).max()))
         lowest = min(lowest, float(cpu.min_volume_ratio().min()))
+        n_flagged += [flag_barrier(cpu.x[b], m.tets, m.rest_volume, m.vol_threshold, flags) for b in range(2)]
         np.testing.assert_array_equal(gpu.contact_state, cpu.contact_state)  # identical stick/slip decisions
         seen_stick += int((cpu.contact_state == 1).sum())
         seen_slip += int((cpu.contact_state == 2).sum())
@@ -66,6 +73,8 @@ def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
     assert cpu.pinch_force.min() > 0.2  # the jaws held the tissue
     assert cpu.min_volume_ratio().min() < 1.0 and cpu.model.kvol.max() > 0  # the barrier acted
     assert 0.5 < lowest < 0.99, lowest  # the barrier acted on squeezed tets (from any volume loss) and held them
+    # the GPU's two barrier paths both ran: its shared list of flagged tets, and the scan of every flag past it
+    assert min(n_flagged) <= FLAG_LIST < max(n_flagged), n_flagged
     for name in ("v", "fv", "dl_prev", "g_radius", "g_tip", "t"):
         np.testing.assert_allclose(getattr(gpu, name), getattr(cpu, name), rtol=0,
                                    atol=1e-9 * max(1.0, np.abs(getattr(cpu, name)).max()))
