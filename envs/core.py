@@ -109,6 +109,11 @@ class RandomizationConfig:
     pose_azimuth_deg: NonNegative = 1.5
     #: standard deviation of the force-sensor noise, N
     sensor_noise_N: NonNegative = 0.02
+    #: how that noise enters the tangential reading: "magnitude" (the normal reading's noise sample n added to |T| as
+    #: |n|: always upward, so the tangential reading and the friction use T / N read high by 0.8 sigma on average)
+    #: or "vector" (independent noise on each force component, as a three-axis load cell reads: |T + n_t|, n_t a
+    #: Gaussian in the jaw face, about unbiased once |T| is a few sigma)
+    force_noise: Literal["magnitude", "vector"] = "magnitude"
     # ---- sensing, actuation: the robustness axes (all off by default: the nominal task)
     #: largest force-sensor bias, N: each jaw's normal-force reading is offset by a constant drawn per episode
     #: uniformly in [-bias, bias] (a load cell's zero drift)
@@ -441,7 +446,9 @@ class GraspLiftCore:
         for b in range(self.num_envs):
             ts.noise[b, :3] = self.rngs[b].normal(0.0, rnd.sensor_noise_N, size=3)
             if rnd.slip_noise > 0.0:  # (drawn only when used: the nominal task's random stream is unchanged)
-                ts.noise[b, 3:] = self.rngs[b].normal(0.0, rnd.slip_noise, size=3)
+                ts.noise[b, 3:6] = self.rngs[b].normal(0.0, rnd.slip_noise, size=3)
+            if rnd.force_noise == "vector":  # (likewise)
+                ts.noise[b, 6:] = self.rngs[b].normal(0.0, rnd.sensor_noise_N, size=6)
         update_batch(self.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
         infos = {
             "mu": ts.mu.copy(),

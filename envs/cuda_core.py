@@ -76,6 +76,9 @@ def _task_kernel(m, s, out, p, ts, rng):
         if r.slip_noise > 0.0:  # (drawn only when used, as on the CPU)
             for c in range(3):
                 ts.noise[b, 3 + c] = r.slip_noise * xoroshiro128p_normal_float64(rng, b)
+        if r.force_noise_vector:
+            for c in range(6):
+                ts.noise[b, 6 + c] = r.sensor_noise_N * xoroshiro128p_normal_float64(rng, b)
         _update(p, s, out, ts, b, ok == 1, lo)
 
 

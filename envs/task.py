@@ -110,8 +110,9 @@ PRIVILEGED_PERTURBATIONS = ("tip_offset_x", "tip_offset_y", "tip_offset_z", "axi
                             "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain_error")
 #: the longest action latency, agent steps (the length of the action queue less one)
 MAX_LATENCY_STEPS = 3
-#: per-step noise columns of ``TaskState.noise``: the three jaws' force readings, then their slip speeds
-N_NOISE = 6
+#: per-step noise columns of ``TaskState.noise``: the three jaws' force readings, their slip speeds, then (with
+#: ``force_noise: vector``) their tangential readings' noise along the tangential force and across it
+N_NOISE = 12
 
 #: what a reset may pin (columns of ``TaskState.pin``; NaN: drawn, or the config's pose jitter)
 PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
@@ -458,7 +459,11 @@ def observe(p, s, out, ts, b, fresh):
         noise = ts.noise[b, k]
         o[I_NORMAL + k] = (jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]) / ref
         tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
-        o[I_TANGENTIAL + k] = (tt + abs(noise)) / ref
+        if e.randomization.force_noise_vector:  # |T + n_t|: n_t's components along T and across it
+            ta, tc = tt + ts.noise[b, 6 + k], ts.noise[b, 9 + k]
+            o[I_TANGENTIAL + k] = math.sqrt(ta * ta + tc * tc) / ref
+        else:
+            o[I_TANGENTIAL + k] = (tt + abs(noise)) / ref
         o[I_CONTACT + k] = min(jo[J_CONTACT] / p.nominal[k], 2.0)
         r = e.randomization
         if r.slip_sensing_exact:
@@ -707,8 +712,8 @@ def begin_episode(p, s, out, ts, b):
             out.jaw_out[b, c, col] = 0.0
         ts.tip0[b, c] = s.g_tip[b, c]
         ts.region0[b, c] = region_mean(p, s.x, b, c)
-        ts.noise[b, c] = 0.0  # (no sensor noise in the first frame)
-        ts.noise[b, 3 + c] = 0.0
+        for col in range(c, N_NOISE, 3):  # (no sensor noise in the first frame)
+            ts.noise[b, col] = 0.0
     s.g_force[b, G_PINCH] = 0.0
     s.g_force[b, G_SETPOINT] = -1.0  # (the force loop off: the closing speed is commanded)
     if e.jaw_action_force:  # the jaw motor starts in force control at zero force (jaws at rest)

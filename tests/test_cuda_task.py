@@ -165,6 +165,19 @@ def test_gpu_draws_follow_the_randomisation_and_the_pose_is_the_cpu_formula():
     np.testing.assert_array_equal(again.download("draws")["draws"], d)
 
 
+def test_gpu_vector_force_noise_draws_the_tangential_components_with_the_sensors_sigma():
+    for model, sigma in (("vector", 0.05), ("magnitude", 0.05)):
+        gpu = _gpu(_config(randomization={"sensor_noise_N": sigma, "force_noise": model}), num_envs=8, seed=3)
+        gpu.reset()
+        gpu.step(np.zeros((8, 2)))
+        noise = gpu.download("noise")["noise"]
+        assert 0.03 < noise[:, :3].std() < 0.07
+        if model == "vector":
+            assert 0.035 < noise[:, 6:].std() < 0.065  # 48 draws of N(0, 0.05)
+        else:  # (not drawn: the magnitude model's random stream is the one it always was)
+            assert np.all(noise[:, 6:] == 0.0)
+
+
 def test_gpu_task_input_errors_name_the_field_and_the_range():
     gpu = _gpu(_config(), num_envs=2)
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['pose_offset_m'\]; allowed on the GPU: \['mu', "):

@@ -93,11 +93,32 @@ def test_slip_noise_has_its_standard_deviation_and_leaves_the_force_readings():
     np.testing.assert_array_equal(noisy[:, :, obs_group("normal_force")], clean[:, :, obs_group("normal_force")])
 
 
+def test_vector_force_noise_reads_the_tangential_force_without_the_magnitude_models_upward_bias():
+    """The magnitude model adds the normal reading's noise to |T| as |n|: on average 0.8 sigma too high. The vector
+    model's |T + n_t| is about unbiased where |T| is a few sigma (its bias is sigma^2 / 2|T|, 0.013 N at 0.25 N)."""
+    actions = _grasp_and_pull(60)
+    clean, pinch, env = _run(actions)
+    magnitude, pinch_m, _ = _run(actions, sensor_noise_N=0.08)
+    vector, pinch_v, _ = _run(actions, sensor_noise_N=0.08, force_noise="vector")
+    np.testing.assert_array_equal(pinch_m, pinch)  # the physics is untouched
+    np.testing.assert_array_equal(pinch_v, pinch)
+    ref, tangential = env.config.reference_force_N, obs_group("tangential_force")
+    true = clean[1:, :, tangential] * ref
+    held = true > 0.2  # readings where |T| >= 2.5 sigma (about 80 of 360 here)
+    error = {name: obs[1:, :, tangential][held] * ref - true[held] for name, obs in
+             (("magnitude", magnitude), ("vector", vector))}
+    assert held.sum() >= 40
+    assert error["magnitude"].mean() > 0.045  # sigma sqrt(2 / pi) = 0.064 N
+    assert abs(error["vector"].mean()) < 0.035 and error["vector"].mean() < error["magnitude"].mean() - 0.03
+    assert 0.06 < error["vector"].std() < 0.10  # the component along T has the sensor's sigma
+
+
 @pytest.mark.parametrize("axes, message", [
     ({"latency_steps": (0, 4)}, r"latency_steps"),
     ({"latency_steps": (2, 1)}, r"latency_steps\[1\]"),
     ({"force_loop_gain_error": 1.0}, r"force_loop_gain_error"),
     ({"slip_sensing": "tactile"}, r"slip_sensing"),
+    ({"force_noise": "scalar"}, r"force_noise"),
     ({"pinch_ceiling_N": 0.0}, r"pinch_ceiling_N"),
 ])
 def test_out_of_range_axes_are_one_line_errors_naming_the_field(axes, message):
