@@ -114,6 +114,10 @@ class RandomizationConfig:
     #: or "vector" (independent noise on each force component, as a three-axis load cell reads: |T + n_t|, n_t a
     #: Gaussian in the jaw face, about unbiased once |T| is a few sigma)
     force_noise: Literal["magnitude", "vector"] = "magnitude"
+    #: time constant of a first-order low-pass filter on each jaw's force readings (normal and tangential, after
+    #: noise and bias), s: the sensor pipeline's smoothing, which trades the noise's sigma for lag (at the 30 Hz agent
+    #: rate, 0.1 s leaves 0.40 of the white noise's sigma and lags by about 0.1 s); 0: the raw readings
+    force_filter_s: NonNegative = 0.0
     # ---- sensing, actuation: the robustness axes (all off by default: the nominal task)
     #: largest force-sensor bias, N: each jaw's normal-force reading is offset by a constant drawn per episode
     #: uniformly in [-bias, bias] (a load cell's zero drift)

@@ -279,6 +279,7 @@ class TaskState(NamedTuple):
     pin: np.ndarray  # (B,len(PINNABLE)) pinned values (NaN: drawn)
     noise: np.ndarray  # (B,N_NOISE) force-sensor noise (N), then slip-sensing noise, of this step's frame
     queue: np.ndarray  # (B,MAX_LATENCY_STEPS+1,2) the actions sent, newest first (what a latency delays)
+    readings: np.ndarray  # (B,6) N: the low-pass filtered normal, then tangential, force readings (force_filter_s)
 
 
 def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np.float64) -> TaskState:
@@ -291,7 +292,7 @@ def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np
         "terminal_obs": ((batch, obs_history * frame_dim), obs_dtype),
         "terms": ((batch, len(REWARD_TERMS)), f), "episode_length": ((batch,), i),
         "draws": ((batch, len(DRAW_COLUMNS)), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, N_NOISE), f),
-        "queue": ((batch, MAX_LATENCY_STEPS + 1, 2), f),
+        "queue": ((batch, MAX_LATENCY_STEPS + 1, 2), f), "readings": ((batch, 6), f),
     }
     flags = ("lift_started", "terminated", "truncated", "done", "is_success", "lost_grasp", "slipped", "damaged",
              "numerical_failure")
@@ -457,13 +458,23 @@ def observe(p, s, out, ts, b, fresh):
     for k in range(3):
         jo = out.jaw_out[b, k]
         noise = ts.noise[b, k]
-        o[I_NORMAL + k] = (jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]) / ref
+        normal = jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]
         tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
         if e.randomization.force_noise_vector:  # |T + n_t|: n_t's components along T and across it
             ta, tc = tt + ts.noise[b, 6 + k], ts.noise[b, 9 + k]
-            o[I_TANGENTIAL + k] = math.sqrt(ta * ta + tc * tc) / ref
+            tangential = math.sqrt(ta * ta + tc * tc)
         else:
-            o[I_TANGENTIAL + k] = (tt + abs(noise)) / ref
+            tangential = tt + abs(noise)
+        if e.randomization.force_filter_s > 0.0:  # first-order low-pass, started at the episode's first reading
+            if fresh:
+                ts.readings[b, k], ts.readings[b, 3 + k] = normal, tangential
+            else:
+                a = 1.0 - math.exp(-p.agent_dt / e.randomization.force_filter_s)
+                ts.readings[b, k] += a * (normal - ts.readings[b, k])
+                ts.readings[b, 3 + k] += a * (tangential - ts.readings[b, 3 + k])
+            normal, tangential = ts.readings[b, k], ts.readings[b, 3 + k]
+        o[I_NORMAL + k] = normal / ref
+        o[I_TANGENTIAL + k] = tangential / ref
         o[I_CONTACT + k] = min(jo[J_CONTACT] / p.nominal[k], 2.0)
         r = e.randomization
         if r.slip_sensing_exact:

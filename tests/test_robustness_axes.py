@@ -113,6 +113,29 @@ def test_vector_force_noise_reads_the_tangential_force_without_the_magnitude_mod
     assert 0.06 < error["vector"].std() < 0.10  # the component along T has the sensor's sigma
 
 
+def test_the_force_filter_is_a_first_order_low_pass_of_the_raw_readings():
+    """force_filter_s draws no random number, so the raw readings are the unfiltered run's, and each filtered reading
+    is r_t = r_(t-1) + a (raw_t - r_(t-1)), a = 1 - exp(-dt / tau), from the episode's first reading."""
+    actions = _grasp_and_pull(40)
+    raw, pinch, env = _run(actions, sensor_noise_N=0.08)
+    filtered, pinch_f, _ = _run(actions, sensor_noise_N=0.08, force_filter_s=0.1)
+    np.testing.assert_array_equal(pinch_f, pinch)
+    a = 1.0 - np.exp(-env.config.agent_dt_s / 0.1)
+    for group in ("normal_force", "tangential_force"):
+        x = raw[:, :, obs_group(group)].astype(np.float64)
+        want = x.copy()
+        for t in range(1, len(x)):
+            want[t] = want[t - 1] + a * (x[t] - want[t - 1])
+        np.testing.assert_allclose(filtered[:, :, obs_group(group)], want, rtol=0, atol=1e-6)
+    clean, _, _ = _run(actions)
+    normal = obs_group("normal_force")
+    ref = env.config.reference_force_N
+    # the white noise's sigma shrinks to sqrt(a / (2 - a)) = 0.40 of itself (the lag adds a little error on top)
+    err_raw = np.std((raw - clean)[5:, :, normal]) * ref
+    err_filtered = np.std((filtered - clean)[5:, :, normal]) * ref
+    assert 0.06 < err_raw < 0.10 and err_filtered < 0.6 * err_raw
+
+
 @pytest.mark.parametrize("axes, message", [
     ({"latency_steps": (0, 4)}, r"latency_steps"),
     ({"latency_steps": (2, 1)}, r"latency_steps\[1\]"),
