@@ -455,28 +455,29 @@ def observe(p, s, out, ts, b, fresh):
     o[I_TRAVEL] = tr / tgt
     o[I_PULL_SPEED] = (s.g_vpull[b, 0] * p.pull_dir[0] + s.g_vpull[b, 1] * p.pull_dir[1]
                        + s.g_vpull[b, 2] * p.pull_dir[2]) / p.max_pull
+    r = e.randomization
+    # the force readings' low-pass filter weight per agent step (force_filter_s; unused at 0)
+    a = 1.0 - math.exp(-p.agent_dt / r.force_filter_s) if r.force_filter_s > 0.0 else 1.0
     for k in range(3):
         jo = out.jaw_out[b, k]
         noise = ts.noise[b, k]
         normal = jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]
         tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
-        if e.randomization.force_noise_vector:  # |T + n_t|: n_t's components along T and across it
+        if r.force_noise_vector:  # |T + n_t|: n_t's components along T and across it
             ta, tc = tt + ts.noise[b, 6 + k], ts.noise[b, 9 + k]
             tangential = math.sqrt(ta * ta + tc * tc)
         else:
             tangential = tt + abs(noise)
-        if e.randomization.force_filter_s > 0.0:  # first-order low-pass, started at the episode's first reading
+        if r.force_filter_s > 0.0:  # first-order low-pass, started at the episode's first reading
             if fresh:
                 ts.readings[b, k], ts.readings[b, 3 + k] = normal, tangential
             else:
-                a = 1.0 - math.exp(-p.agent_dt / e.randomization.force_filter_s)
                 ts.readings[b, k] += a * (normal - ts.readings[b, k])
                 ts.readings[b, 3 + k] += a * (tangential - ts.readings[b, 3 + k])
             normal, tangential = ts.readings[b, k], ts.readings[b, 3 + k]
         o[I_NORMAL + k] = normal / ref
         o[I_TANGENTIAL + k] = tangential / ref
         o[I_CONTACT + k] = min(jo[J_CONTACT] / p.nominal[k], 2.0)
-        r = e.randomization
         if r.slip_sensing_exact:
             o[I_SLIP_SPEED + k] = jo[J_SLIP_DIST] / p.agent_dt / p.max_pull + ts.noise[b, 3 + k]
             # incipient slip (what a tactile array sees): the share of the jaw's contact nodes that slip
