@@ -142,6 +142,17 @@ def soak_run(tmp_path_factory):
     return rc, json.loads((out / "report.json").read_text())
 
 
+@pytest.mark.parametrize("argv, match", [(["msdgrasp", "--rounds", "3"], "--rounds must be >= 4 (quartiles), got 3"),
+                                         (["msdgrasp,no_such_build"], "'no_such_build' cannot be imported")])
+def test_interleaved_ab_refuses_bad_input_before_timing(argv, match, capsys):
+    from msdgrasp.benchmarks.interleaved import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert match in capsys.readouterr().err
+
+
 def test_short_soak_is_clean(soak_run):
     rc, rep = soak_run
     assert rc == 0 and rep["ok"] is True
