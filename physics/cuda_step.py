@@ -24,6 +24,7 @@ from .device_layout import check_numba_cuda_numpy, installed_version
 
 check_numba_cuda_numpy(installed_version("numba-cuda"), np.__version__)  # before numba.cuda compiles anything
 
+from numba import config as _numba_config  # noqa: E402
 from numba import cuda  # noqa: E402
 from numba.core.dispatcher import Dispatcher  # noqa: E402
 
@@ -38,6 +39,11 @@ THREADS_PER_BLOCK = 128
 #: flagged tets a block lists in shared memory for the barrier (the coarse spleen flags 2 at rest, about 5 under a
 #: grasp); with more, thread 0 scans every tet's flag instead, as the CPU does: the same impulses either way
 FLAG_LIST = 64
+#: registers per thread the physics kernel may use. Uncapped it takes so many that an SM holds 2 blocks (12.5 %
+#: occupancy, measured), and a large batch waits on latency; capped at 64 it holds 8, and spills to the L1. On an
+#: H100 the cap took the task step at 16,384 coarse spleens from 53,200 to 94,400 agent steps/s and a batch of 1
+#: from 153 to 132 (docs/performance.md); 48, 96 and 128 were slower at scale. Spilling changes no arithmetic.
+MAX_REGISTERS = 64
 
 
 @functools.cache  # one twin per function: the kernel and every caller share it
@@ -86,7 +92,12 @@ def _sort_ints(a, k):
         a[j + 1] = key
 
 
-@cuda.jit
+def _kernel(fn):
+    """``cuda.jit`` with :data:`MAX_REGISTERS` (the simulator takes no register cap: it runs Python)."""
+    return cuda.jit(fn) if _numba_config.ENABLE_CUDASIM else cuda.jit(max_registers=MAX_REGISTERS)(fn)
+
+
+@_kernel
 def _simulate_kernel(m, s, out, w, n_steps):
     """Advance tissue blockIdx.x by ``n_steps`` outer steps (see the module docstring)."""
     b = cuda.blockIdx.x
