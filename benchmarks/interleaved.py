@@ -1,10 +1,16 @@
-"""Two or more builds of the physics timed in one process, alternating: an A/B that a busy machine cannot skew.
+"""Two or more builds of the physics timed alternately, each in its own process: an A/B that a busy machine cannot
+skew.
 
 On a shared machine the speed of a core drifts by tens of percent over minutes, so two builds timed one after
 the other differ by the drift. Here every build steps its own copy of the bench's grasp (coarse spleen, jaws
-closed on it: :func:`.bench._grasped`, one tissue and a batch of 64), and each round times every build once, in
-a random order, so drift falls on all of them alike. Reported per build: the median, first quartile and minimum
-over the rounds, in us of compute per simulated ms.
+closed on it: :func:`.bench._grasped`, one tissue and a batch of 64) in a worker process of its own, and each
+round times every build once, in a random order, one worker at a time, so drift falls on all of them alike.
+Reported per build: the median, first quartile and minimum over the rounds, in us of compute per simulated ms.
+
+One process per build, because two copies of the package in one process are not independent: every build
+imported after the first paid about 0.85 ms more per ``Simulation.step`` call (measured: the same build was
+fast when imported first and slow when second, at equal cost per simulated ms), which at 40 ms per call read as
++21 us per simulated ms against whichever build came first.
 
 Each build is a copy of the package under its own name on ``sys.path`` (numba caches each copy apart)::
 
@@ -12,17 +18,40 @@ Each build is a copy of the package under its own name on ``sys.path`` (numba ca
     mkdir -p /tmp/ab/msd_new && git archive HEAD | tar -x -C /tmp/ab/msd_new
     PYTHONPATH=/tmp/ab python -m msdgrasp.benchmarks.interleaved msd_base,msd_new --rounds 200
 
-(the name ``msdgrasp`` is the installed build itself). The first call of each build compiles its kernels.
+(the name ``msdgrasp`` is the installed build itself). Each worker compiles or loads its kernels before the
+first round.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import random
 import statistics
+import subprocess
 import sys
 import time
+
+
+def _worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
+    """A build's worker: build the grasp, say ``ready``, then one timed round per line read from stdin; each
+    reply is one line of JSON [us per simulated ms of one tissue, us per simulated ms per tissue of the batch]."""
+    bench = importlib.import_module(name + ".benchmarks.bench")
+    simulation = importlib.import_module(name + ".physics.simulation")
+    scene, one = bench._grasped("coarse", 2.0, 2.0)
+    many = simulation.Simulation(scene.model, batch, dt=bench.DT_OUTER, grasper=scene.grasper)
+    bench._clone(one, many)
+    one.step(1)  # compile or load the kernels
+    many.step(1)
+    print("ready", flush=True)
+    for _ in sys.stdin:
+        t0 = time.perf_counter()
+        one.step(steps_one)
+        t1 = time.perf_counter()
+        many.step(steps_batch)
+        t2 = time.perf_counter()
+        print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
 
 
 def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_batch: int = 2,
@@ -31,29 +60,30 @@ def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_bat
     ``steps_batch`` ms per call) median, first quartile and minimum, us per simulated ms, over ``rounds``."""
     if rounds < 4:
         raise ValueError(f"rounds must be >= 4 (quartiles), got {rounds}")
-    sims = {}
-    for name in packages:
-        bench = importlib.import_module(name + ".benchmarks.bench")
-        simulation = importlib.import_module(name + ".physics.simulation")
-        scene, one = bench._grasped("coarse", 2.0, 2.0)
-        many = simulation.Simulation(scene.model, batch, dt=bench.DT_OUTER, grasper=scene.grasper)
-        bench._clone(one, many)
-        one.step(1)  # compile or load the kernels
-        many.step(1)
-        sims[name] = (one, many)
-    times: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in packages}
-    for _ in range(rounds):
-        order = list(packages)
-        random.shuffle(order)
-        for name in order:
-            one, many = sims[name]
-            t0 = time.perf_counter()
-            one.step(steps_one)
-            t1 = time.perf_counter()
-            many.step(steps_batch)
-            t2 = time.perf_counter()
-            times[name][0].append((t1 - t0) / steps_one * 1e6)
-            times[name][1].append((t2 - t1) / steps_batch / batch * 1e6)
+    workers = {}
+    try:
+        for name in packages:  # one after the other: compiling builds do not compete for the cores
+            steps = f"{steps_one},{steps_batch},{batch}"
+            argv = [sys.executable, "-m", __spec__.name, "--worker", name, "--steps", steps]
+            proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            workers[name] = proc
+            if proc.stdout.readline().strip() != "ready":
+                raise RuntimeError(f"build {name!r}: its worker failed before the first round (rc {proc.wait()})")
+        times: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in packages}
+        for _ in range(rounds):
+            order = list(packages)
+            random.shuffle(order)
+            for name in order:
+                proc = workers[name]
+                proc.stdin.write("\n")
+                proc.stdin.flush()
+                one_us, batch_us = json.loads(proc.stdout.readline())
+                times[name][0].append(one_us)
+                times[name][1].append(batch_us)
+    finally:
+        for proc in workers.values():
+            proc.stdin.close()
+            proc.wait()
     out = {}
     for name, (a, b) in times.items():
         out[name] = {"one_median": statistics.median(a), "one_q1": statistics.quantiles(a)[0], "one_min": min(a),
@@ -65,11 +95,20 @@ def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_bat
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m msdgrasp.benchmarks.interleaved",
                                      description=__doc__.split("\n")[0])
-    parser.add_argument("packages", help="comma-separated package names on sys.path (msdgrasp: this build)")
+    parser.add_argument("packages", nargs="?", help="comma-separated package names on sys.path (msdgrasp: this build)")
     parser.add_argument("--rounds", type=int, default=200)
+    parser.add_argument("--worker", help=argparse.SUPPRESS)  # (a build's worker process)
+    parser.add_argument("--steps", default="40,2,64", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.worker:
+        _worker(args.worker, *(int(s) for s in args.steps.split(",")))
+        return 0
+    if not args.packages:
+        parser.error("packages: give one or more comma-separated package names")
     names = [p for p in args.packages.split(",") if p]
-    for name in names:  # every package, before the first one compiles its kernels
+    if len(set(names)) != len(names):
+        parser.error(f"packages must differ, got {args.packages!r}")
+    for name in names:  # every package, before any worker compiles its kernels
         try:
             importlib.import_module(name + ".physics.simulation")
         except ImportError as exc:

@@ -413,6 +413,118 @@ def flag_barrier_lanes(x, tets, rest_volume, j_c, flagged, n_flagged) -> None:
             n_flagged[lane] += 1 if below else 0
 
 
+# -------------------------------------------------------------------------------------------------
+# The flag pass's watch list (CPU). Finding the tets below J_c takes a volume per tet and substep, a quarter of a
+# one-tissue substep, although a tet far above the threshold cannot reach it in a few substeps. So a full pass
+# also lists the tets that could. V = e1 . (e2 x e3) / 6 with e_i = x_i - x_a; let every node move by u_a with
+# |u_a - c| <= delta for a common translation c (which leaves volumes unchanged). Each edge vector then moves by
+# at most 2 delta, and expanding the triple product (its first-order term is sum_a g_a . (u_a - c), with the
+# volume gradients g_a, which sum to zero) gives
+#     |V - V_ref| <= delta sum_a |g_a| + (2/3) delta^2 (|e1| + |e2| + |e3|) + (4/3) delta^3
+#                 <= delta 2 sqrt(sum_a |g_a|^2) + (2/3) delta^2 sqrt(3 sum_i |e_i|^2) + (4/3) delta^3
+# (Cauchy-Schwarz, equal where the gradients are, as in a well-shaped tet; tested squared, :func:`_watched`).
+# A tet whose slack V_ref - J_c V0 exceeds that bound (with head room for round-off) for the budget delta cannot
+# be below the threshold while the nodes stay within the budget; between full passes only the listed tets'
+# volumes are computed. The flags are exactly those of a full pass, so impulses and trajectories are bitwise
+# unchanged.
+# -------------------------------------------------------------------------------------------------
+
+#: a tet is watched where its slack is at most this multiple of the bound above (head room for round-off, which
+#: is ~1e-16 of the terms)
+WATCH_SAFETY = 1.25
+#: the displacement budget between full passes, as a fraction of the mesh's mean rest spring length (coarse
+#: spleen under a pinch: the watch list and the full passes' frequency in docs/performance.md)
+WATCH_DELTA = 0.02
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _watched(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, slack, delta) -> bool:
+    """Could a tet with edge vectors e1-e3 (m) and volume slack ``slack`` (m^3) above the threshold fall below it
+    while no node moves more than ``delta`` (m, after a common translation)? The bound above, S (a + b + c), tested
+    without square roots (branch-free, SIMD): (a + b)^2 <= 1.1 a^2 + 11 b^2, which loosens it by at most 5 % where
+    b << a (b / a ~ delta / edge length)."""
+    gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
+    gax, gay, gaz = gbx + gcx + gdx, gby + gcy + gdy, gbz + gcz + gdz
+    g2 = (gax * gax + gay * gay + gaz * gaz + gbx * gbx + gby * gby + gbz * gbz + gcx * gcx + gcy * gcy + gcz * gcz
+          + gdx * gdx + gdy * gdy + gdz * gdz)
+    e2 = e1x * e1x + e1y * e1y + e1z * e1z + e2x * e2x + e2y * e2y + e2z * e2z + e3x * e3x + e3y * e3y + e3z * e3z
+    s2 = WATCH_SAFETY * WATCH_SAFETY * delta * delta
+    a2 = 4.0 * s2 * g2  # (S delta 2 sqrt(g2))^2
+    b2 = (4.0 / 3.0) * s2 * delta * delta * e2  # (S (2/3) delta^2 sqrt(3 e2))^2
+    rest = slack - WATCH_SAFETY * (4.0 / 3.0) * delta * delta * delta
+    return not (rest > 0.0 and rest * rest > 1.1 * a2 + 11.0 * b2)  # (a NaN slack is watched)
+
+
+@njit(cache=True, error_model="numpy")
+def displacement_spread(x: np.ndarray, x_ref: np.ndarray, nl: int, lohi: np.ndarray) -> float:
+    """How far (m) any node of any lane has moved from x_ref, after the best common translation of its lane:
+    half the diagonal of the bounding box of the displacements. x, x_ref (N, 3 L) in lane layout (column
+    c L + lane), lohi (3, 3 L) scratch. NaN where a position is not finite."""
+    w = x.shape[1]
+    for k in range(w):
+        lohi[0, k] = x[0, k] - x_ref[0, k]
+        lohi[1, k] = lohi[0, k]
+        lohi[2, k] = 0.0
+    for i in range(x.shape[0]):
+        for k in range(w):  # selects, not min/max (NaN rules): SIMD; non-finite values reach lohi[2] as NaN
+            d = x[i, k] - x_ref[i, k]
+            lo = lohi[0, k]
+            hi = lohi[1, k]
+            lohi[0, k] = d if d < lo else lo
+            lohi[1, k] = d if d > hi else hi
+            lohi[2, k] += d * 0.0
+    spread = 0.0
+    bad = 0.0
+    for lane in range(nl):
+        s2 = 0.0
+        for c in range(3):
+            k = c * nl + lane
+            h = 0.5 * (lohi[1, k] - lohi[0, k])
+            s2 += h * h
+            bad += lohi[2, k]
+        spread = max(spread, math.sqrt(s2))
+    return spread if bad == 0.0 else math.nan
+
+
+@njit(cache=True, error_model="numpy")
+def watch_barrier(x, tets, rest_volume, j_c, delta, flagged, n_flagged, watch) -> int:
+    """The barrier's full flag pass over the lanes of x (N,3,L): flagged (T,L) int8 and n_flagged (L,) out, and
+    ``watch`` (T,) filled in tet order with the tets any lane could push below ``j_c`` within the displacement
+    budget ``delta`` (m); returns their count. One tissue is L = 1."""
+    nl = x.shape[2]
+    n_flagged[:] = 0
+    nw = 0
+    for t in range(tets.shape[0]):
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        vmin = j_c * rest_volume[t]
+        near = 0
+        for lane in range(nl):  # branch-free across lanes
+            e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges_lane(x, a, b, c, d, lane)
+            below = vol < vmin
+            flagged[t, lane] = 1 if below else 0
+            n_flagged[lane] += 1 if below else 0
+            near |= 1 if _watched(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol - vmin, delta) else 0
+        watch[nw] = t
+        nw += near
+    return nw
+
+
+@njit(cache=True, error_model="numpy")
+def flag_watched(x, tets, rest_volume, j_c, watch, n_watch, flagged, n_flagged) -> None:
+    """The barrier's flag pass between full passes: only the watched tets (the rest stay unflagged, as a full pass
+    would leave them while the nodes are within its budget). Arguments as :func:`watch_barrier`'s."""
+    nl = x.shape[2]
+    n_flagged[:] = 0
+    for k in range(n_watch):
+        t = watch[k]
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        vmin = j_c * rest_volume[t]
+        for lane in range(nl):
+            below = _tet_edges_lane(x, a, b, c, d, lane)[9] < vmin
+            flagged[t, lane] = 1 if below else 0
+            n_flagged[lane] += 1 if below else 0
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor) -> None:
     """Tet t's implicit barrier impulse (see above; the arguments as :func:`implicit_volume_barrier`'s): the
@@ -466,6 +578,17 @@ def implicit_volume_barrier(
 ) -> None:
     """The volume barrier's implicit impulses on every flagged tet of one tissue, in tet order (see above)."""
     for t in range(tets.shape[0]):
+        if flagged[t] != 0:
+            barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor)
+
+
+@njit(cache=True, error_model="numpy")
+def implicit_volume_barrier_watched(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, visit, anchor) -> None:
+    """:func:`implicit_volume_barrier` visiting only the watched tets: ``visit`` (flagged (T,) int8, watch, n_watch),
+    ``watch[:n_watch]`` in tet order, every flagged tet among them. The same impulses in the same order."""
+    flagged, watch, n_watch = visit
+    for k in range(n_watch):
+        t = watch[k]
         if flagged[t] != 0:
             barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor)
 

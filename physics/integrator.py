@@ -48,12 +48,13 @@ from .contact import (
     plate_contacts,
 )
 from .forces import (
-    flag_barrier,
-    flag_barrier_lanes,
+    displacement_spread,
+    flag_watched,
     implicit_spring_dashpots,
-    implicit_volume_barrier,
+    implicit_volume_barrier_watched,
     spring_loop,
     spring_loop_lanes,
+    watch_barrier,
 )
 from .records import SimModel, SimReadout, SimState, Springs
 
@@ -163,9 +164,15 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     res = np.empty(6)
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
-    flags = np.empty((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the barrier's threshold
+    flags = np.zeros((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the barrier's threshold
     n_flagged = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the barrier's threshold
     flags_one = flags.reshape(tets.shape[0] * nl)  # one tissue: a contiguous 1-D view (faster than (T,1))
+    # the flag pass's watch list (forces.watch_barrier): the tets a full pass found near the threshold, the
+    # positions it saw (the first substep makes one; the next comes where a node has moved m.watch_delta)
+    watch = np.empty(tets.shape[0], dtype=np.int64)
+    n_watch = -1
+    x_ref = np.empty((n, 3 * nl))
+    lohi = np.empty((3, 3 * nl))
     anchor_vol = np.zeros(3)  # the anchors' force against the barrier in one tissue's substep, N
     held = state.held[lane0 : lane0 + nl]  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
@@ -224,21 +231,28 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                             anchor_out[lane0 + lane, c] += anchor_vol[c]
             # ---- 4. the volume barrier, implicit, on the tets below its threshold (flagged across lanes)
             if kvol.shape[0] > 0:
-                if lanes:
-                    flag_barrier_lanes(x, tets, rest_volume, m.vol_threshold, flags, n_flagged)
+                # a full pass where the nodes have left its budget (or are not finite), else the watched tets only
+                if n_watch < 0 or not displacement_spread(x_one, x_ref, nl, lohi) <= m.watch_delta:
+                    n_watch = watch_barrier(x, tets, rest_volume, m.vol_threshold, m.watch_delta, flags, n_flagged,
+                                            watch)
+                    for k in range(x_ref.shape[0]):
+                        for c in range(x_ref.shape[1]):
+                            x_ref[k, c] = x_one[k, c]
                 else:
-                    n_flagged[0] = flag_barrier(x_one, tets, rest_volume, m.vol_threshold, flags_one)
+                    flag_watched(x, tets, rest_volume, m.vol_threshold, watch, n_watch, flags, n_flagged)
                 for lane in range(nl):
                     if n_flagged[lane] > 0:
                         b = lane0 + lane
                         anchor_vol[:] = 0.0
                         if lanes:
-                            implicit_volume_barrier(x[:, :, lane], v[:, :, lane], meff[:, lane], (fixed, held[lane]),
-                                                    tets, rest_volume, kvol, m.vol_threshold, ks[lane], dt,
-                                                    flags[:, lane], anchor_vol)
+                            implicit_volume_barrier_watched(x[:, :, lane], v[:, :, lane], meff[:, lane],
+                                                            (fixed, held[lane]), tets, rest_volume, kvol,
+                                                            m.vol_threshold, ks[lane], dt,
+                                                            (flags[:, lane], watch, n_watch), anchor_vol)
                         else:
-                            implicit_volume_barrier(x_one, v_one, meff[:, 0], (fixed, held[0]), tets, rest_volume, kvol,
-                                                    m.vol_threshold, ks[0], dt, flags_one, anchor_vol)
+                            implicit_volume_barrier_watched(x_one, v_one, meff[:, 0], (fixed, held[0]), tets,
+                                                            rest_volume, kvol, m.vol_threshold, ks[0], dt,
+                                                            (flags_one, watch, n_watch), anchor_vol)
                         if last_sub:
                             for c in range(3):
                                 anchor_out[b, c] += anchor_vol[c]

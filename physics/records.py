@@ -40,6 +40,8 @@ class SimModel(NamedTuple):
     rest_volume: np.ndarray  # (T,) m^3
     kvol: np.ndarray  # (T,) Pa
     vol_threshold: float  # volume ratio below which the barrier acts
+    watch_delta: float  # m: how far nodes may move between the barrier's full flag passes (forces.watch_barrier;
+    #                     0: a full pass every substep)
     # nodes
     mass: np.ndarray  # (N,) kg
     b0: np.ndarray  # (N,) N s/m nodal damping

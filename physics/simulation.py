@@ -35,7 +35,7 @@ from .contact import (
 )
 from .grasper import GrasperParams, GrasperPose
 from .integrator import all_finite, simulate
-from .forces import min_volume_ratios
+from .forces import WATCH_DELTA, min_volume_ratios
 from .records import SimModel, SimReadout, SimState
 from .tissue import TissueModel, check_dt
 from .viscoelastic import elongations
@@ -146,6 +146,9 @@ class Simulation:
         self.node_area = np.ascontiguousarray(mesh.surface_vertex_areas(), dtype=np.float64)
         self.use_dashpot = bool(model.params.spring_damping_time_s > 0.0)
         self.use_sls = bool(model.params.relaxation_strength > 0.0)
+        #: m: how far a node may move (beyond a common translation) before the volume barrier's flag pass looks at
+        #: every tet again (:data:`.forces.WATCH_DELTA` of the mean spring length; 0: every substep; bitwise the same)
+        self.watch_delta = WATCH_DELTA * float(np.mean(model.rest_length)) if len(model.rest_length) else 0.0
         n_springs = len(model.edges)
         self.fv = np.zeros((B, n_springs))  # Maxwell-branch force per spring, N
         self.dl_prev = np.zeros((B, n_springs))  # spring elongation at the last substep, m
@@ -300,6 +303,7 @@ class Simulation:
             cdash=tm.cdash, use_dashpot=self.use_dashpot, use_sls=self.use_sls, kv=tm.kv,
             tau=float(tm.params.relaxation_time_s),
             tets=tm.tets, rest_volume=tm.rest_volume, kvol=tm.kvol, vol_threshold=float(tm.volume_threshold),
+            watch_delta=self.watch_delta,
             mass=tm.mass, b0=tm.b0, b1=tm.b1, fixed=tm.fixed, anchor_k=tm.anchor_k, anchor_offset=tm.anchor_offset,
             gravity=tm.gravity, surface_nodes=self.surface_nodes, node_area=self.node_area,
             jaw_active=gp is not None,

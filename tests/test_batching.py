@@ -89,6 +89,31 @@ def test_the_volume_barrier_acting_in_a_lane_batch_acts_exactly_as_alone():
         _assert_same(batch, alone, b)
 
 
+def test_the_barriers_watch_list_gives_the_trajectory_of_a_full_flag_pass_every_substep():
+    """Between full flag passes the barrier looks only at the tets a full pass found near its threshold
+    (forces.watch_barrier); with watch_delta 0 every substep is a full pass. Under a 4-6 N force-loop pinch and a
+    pull, with tets crossing the threshold, both give the same trajectories bitwise, alone and in a lane batch."""
+    scene = spleen_scene(resolution="coarse", settle_s=0.5)
+    setpoints = np.linspace(4.0, 6.0, LANE_MIN)
+
+    def run(sim, rows):
+        sim.command_pinch_force(setpoints[rows], 0.05, 0.02)
+        sim.step(600)
+        sim.command(pull_velocity=np.tile(0.03 * scene.pull_direction, (len(rows), 1)))
+        sim.step(300)
+
+    for rows in (np.arange(LANE_MIN), np.array([LANE_MIN - 1])):
+        watched, full = scene.simulation(len(rows)), scene.simulation(len(rows))
+        assert watched.watch_delta > 0.0
+        full.watch_delta = 0.0
+        run(watched, rows)
+        run(full, rows)
+        assert np.all(watched.min_volume_ratio() < scene.model.params.volume_threshold)
+        for name in STATE + READOUTS:
+            got, want = getattr(watched, name), getattr(full, name)
+            assert np.array_equal(got, want), f"{name} differs by {np.max(np.abs(got - want)):.3g}"
+
+
 def test_plates_in_a_lane_batch_act_exactly_as_alone():
     scene = sphere_scene(resolution="coarse")
     z = scene.x_start[:, 2]

@@ -16,13 +16,17 @@ import pytest
 from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, replace
 from msdgrasp.experiments.compression import CompressionConfig, load_tissue_params, run_compression
 from msdgrasp.physics.forces import (
+    _volume_gradients,
     barrier_slopes,
+    displacement_spread,
     flag_barrier,
+    flag_watched,
     implicit_volume_barrier,
     spring_force_array,
     spring_tangent,
     volume_energy,
     volume_forces,
+    watch_barrier,
 )
 from msdgrasp.physics.mesh import tet_signed_volumes
 from msdgrasp.physics.mesh_gen import sphere_mesh
@@ -229,6 +233,47 @@ def test_implicit_barrier_touches_only_tets_below_the_threshold(sphere_coarse):
     jac_new = tet_signed_volumes(x_new, mesh.tets) / mesh.tet_volumes
     assert jac_new.min() > 0.2, jac_new.min()
     assert barrier_slopes(0.6, 0.5) == (0.0, 0.0)
+
+
+def test_the_flag_pass_watch_list_holds_every_tet_the_nodes_can_push_below_the_threshold(sphere_coarse):
+    """The barrier's full flag pass lists the tets that could fall below J_c while no node moves more than the
+    budget delta beyond a common translation (forces.watch_barrier); the passes between look at those alone
+    (forces.flag_watched). Soundness: for displacements within the budget (random, and the worst case for each
+    unlisted tet: its nodes moved against its volume gradients), the watched pass flags exactly the tets a full
+    pass flags. And the list is short: the bound is not a blanket."""
+    rng = np.random.default_rng(5)
+    mesh = sphere_coarse
+    tets, v0 = mesh.tets, mesh.tet_volumes
+    x = mesh.nodes + rng.normal(0.0, 0.0012, mesh.nodes.shape)
+    delta = 0.02 * float(np.mean(np.linalg.norm(mesh.nodes[mesh.edges[:, 1]] - mesh.nodes[mesh.edges[:, 0]],
+                                                axis=1)))
+    flags, n_flagged = np.zeros((len(tets), 1), np.int8), np.zeros(1, np.int64)
+    watch = np.empty(len(tets), np.int64)
+    n_watch = watch_barrier(x[:, :, None], tets, v0, 0.5, delta, flags, n_flagged, watch)
+    listed = watch[:n_watch]
+    assert np.all(np.diff(listed) > 0)  # in tet order, as the implicit step visits them
+    assert n_flagged[0] > 0 and set(np.flatnonzero(flags[:, 0])) <= set(listed)
+    assert n_watch < 0.5 * len(tets), n_watch
+    unlisted = np.setdiff1d(np.arange(len(tets)), listed)
+    fields = [rng.normal(size=x.shape) for _ in range(20)]
+    for t in unlisted[:: max(1, len(unlisted) // 60)]:  # the worst case of one unlisted tet
+        e = x[tets[t, 1:]] - x[tets[t, 0]]
+        g = np.array(_volume_gradients(*e.ravel())).reshape(3, 3)
+        u = np.zeros_like(x)
+        u[tets[t]] = -np.vstack([-g.sum(axis=0), g])
+        fields.append(u)
+    for u in fields:
+        scale = np.linalg.norm(u, axis=1, keepdims=True)
+        u = delta * u / np.maximum(scale.max(), 1e-300) + rng.normal(size=3)  # within the budget + a translation
+        xd = x + u
+        full = np.zeros(len(tets), np.int8)
+        flag_barrier(xd, tets, v0, 0.5, full)
+        got, got_n = np.zeros((len(tets), 1), np.int8), np.zeros(1, np.int64)
+        flag_watched(xd[:, :, None], tets, v0, 0.5, watch, n_watch, got, got_n)
+        np.testing.assert_array_equal(got[:, 0], full)
+        assert got_n[0] == full.sum()
+    assert displacement_spread(x + 0.3, x, 1, np.empty((3, 3))) < 1e-15  # a translation is no displacement
+    assert math.isnan(displacement_spread(np.full_like(x, np.nan), x, 1, np.empty((3, 3))))
 
 
 def test_lumped_mass_is_exact(sphere_coarse, spleen_coarse):
