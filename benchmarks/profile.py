@@ -6,9 +6,10 @@ substep
     substep of :func:`~msdgrasp.physics.integrator._advance_block` is timed by calling that phase's own kernel
     function with the arguments the integrator passes it, repeatedly inside one compiled loop (so Python's
     dispatch does not count), on the state the phase meets in a substep: force reset (gravity and external
-    forces), spring loop (Maxwell branch as configured), node update, volume barrier (flag pass; implicit step
-    where tets are flagged, their nodes restored before each repetition), contacts (plates and jaws per tissue,
-    surface nodes restored before each repetition); a restore is timed alone and subtracted. The whole
+    forces), spring loop (Maxwell branch as configured), node update, volume barrier (the flag pass over the
+    watched tets, as most substeps run it, with the full pass that makes the watch list timed beside it; the
+    implicit step where tets are flagged, their nodes restored before each repetition), contacts (plates and
+    jaws per tissue, surface nodes restored before each repetition); a restore is timed alone and subtracted. The whole
     ``simulate`` call per substep is timed beside it; ``remainder`` = whole - sum of the phases (loop overhead,
     readouts, cache effects; it can be negative: a phase timed alone keeps its data in cache).
 agent step
@@ -39,11 +40,12 @@ from numba import njit
 from ..physics.config import needs_extra
 from ..physics.contact import clear_contacts, jaw_contacts, jaw_directions, plate_contacts
 from ..physics.forces import (
-    flag_barrier,
-    flag_barrier_lanes,
-    implicit_volume_barrier,
+    displacement_spread,
+    flag_watched,
+    implicit_volume_barrier_watched,
     spring_loop,
     spring_loop_lanes,
+    watch_barrier,
 )
 from ..physics.integrator import _constant_damping, _to_lanes, _update_nodes
 from ..physics.records import Springs
@@ -131,22 +133,28 @@ def _rep_contacts(model, state, out, x, v, x0, v0, nodes, meff, held, u, tj, sub
 
 
 @njit(cache=True, error_model="numpy")
-def _rep_barrier_flag(x, tets, rest_volume, thr, flags, n_flagged, lanes, reps):
-    n = x.shape[0]
-    nt = tets.shape[0]
-    if lanes:
-        for _ in range(reps):
-            flag_barrier_lanes(x, tets, rest_volume, thr, flags, n_flagged)
-    else:
-        x_one = x.reshape((n, 3))
-        flags_one = flags.reshape(nt)
-        for _ in range(reps):
-            n_flagged[0] = flag_barrier(x_one, tets, rest_volume, thr, flags_one)
+def _rep_barrier_flag(x, tets, rest_volume, thr, delta, flags, n_flagged, watch, full, reps):
+    """The barrier's flag pass as the integrator runs it: ``full``, the full pass that also makes the watch list
+    (returns its length); else the check of the nodes' displacement against the budget and the pass over the
+    watched tets alone (``watch[:n]``, n from a full pass)."""
+    n_watch = watch_barrier(x, tets, rest_volume, thr, delta, flags, n_flagged, watch)
+    nl = x.shape[2]
+    x_one = x.reshape((x.shape[0], 3 * nl))
+    x_ref = x_one.copy()
+    lohi = np.empty((3, 3 * nl))
+    for _ in range(reps):
+        if full:
+            n_watch = watch_barrier(x, tets, rest_volume, thr, delta, flags, n_flagged, watch)
+        elif displacement_spread(x_one, x_ref, nl, lohi) <= delta:
+            flag_watched(x, tets, rest_volume, thr, watch, n_watch, flags, n_flagged)
+    return n_watch
 
 
 @njit(cache=True, error_model="numpy")
-def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, flags, n_flagged, anchor_vol, lanes, run, reps):
-    """The barrier's implicit step on the flagged tets (run False: only the restore of their nodes)."""
+def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, visit, anchor_vol, lanes, run, reps):
+    """The barrier's implicit step on the flagged tets (run False: only the restore of their nodes); visit:
+    (flags (T,L), n_flagged (L,), watch, n_watch) as the flag pass left them."""
+    flags, n_flagged, watch, n_watch = visit
     n = x.shape[0]
     nl = x.shape[2]
     nt = model.tets.shape[0]
@@ -158,13 +166,15 @@ def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, flags, n_f
             if n_flagged[lane] > 0:
                 anchor_vol[:] = 0.0
                 if lanes:
-                    implicit_volume_barrier(x[:, :, lane], v[:, :, lane], meff[:, lane], (model.fixed, held[lane]),
-                                            model.tets, model.rest_volume, model.kvol, model.vol_threshold, ks[lane],
-                                            dt, flags[:, lane], anchor_vol)
+                    implicit_volume_barrier_watched(x[:, :, lane], v[:, :, lane], meff[:, lane],
+                                                    (model.fixed, held[lane]), model.tets, model.rest_volume,
+                                                    model.kvol, model.vol_threshold, ks[lane], dt,
+                                                    (flags[:, lane], watch, n_watch), anchor_vol)
                 else:
-                    implicit_volume_barrier(x.reshape((n, 3)), v.reshape((n, 3)), meff[:, 0], (model.fixed, held[0]),
-                                            model.tets, model.rest_volume, model.kvol, model.vol_threshold, ks[0], dt,
-                                            flags.reshape(nt), anchor_vol)
+                    implicit_volume_barrier_watched(x.reshape((n, 3)), v.reshape((n, 3)), meff[:, 0],
+                                                    (model.fixed, held[0]), model.tets, model.rest_volume,
+                                                    model.kvol, model.vol_threshold, ks[0], dt,
+                                                    (flags.reshape(nt), watch, n_watch), anchor_vol)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -242,26 +252,35 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
     rows["barrier_flag"] = 0.0
     rows["barrier_step"] = 0.0
     flagged = 0
+    full_pass = 0.0
+    watch = np.empty(nt, dtype=np.int64)
+    n_watch = 0
     if barrier_on:
-        flags_c, n_flagged_c = flags.copy(), n_flagged.copy()
-        rows["barrier_flag"] = _us(lambda k: _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, flags_c,
-                                                               n_flagged_c, lanes, k), min_time, repeats)
-        _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, flags, n_flagged, lanes, 1)
+        flags_c, n_flagged_c, watch_c = flags.copy(), n_flagged.copy(), watch.copy()
+
+        def flag_pass(full: bool) -> Callable[[int], None]:
+            return lambda k: _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, m.watch_delta, flags_c,
+                                               n_flagged_c, watch_c, full, k)
+
+        rows["barrier_flag"] = _us(flag_pass(False), min_time, repeats)
+        full_pass = _us(flag_pass(True), min_time, repeats)
+        n_watch = _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, m.watch_delta, flags, n_flagged,
+                                    watch, True, 0)
         flagged = int(n_flagged.sum())
         if flagged:
             tet_nodes = np.unique(m.tets[np.flatnonzero(flags.any(axis=1))].ravel()).astype(np.int64)
             x0, v0 = x.copy(), v.copy()
+            visit = (flags, n_flagged, watch, n_watch)
 
             def step(run: bool) -> Callable[[int], None]:
-                return lambda k: _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, flags, n_flagged,
-                                                   anchor_vol, lanes, run, k)
+                return lambda k: _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, visit, anchor_vol,
+                                                   lanes, run, k)
 
             with_restore = _us(step(True), min_time, repeats)
             restore = _us(step(False), min_time, repeats)
             rows["barrier_step"] = max(with_restore - restore, 0.0)
             x[:], v[:] = x0, v0
-            _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, flags, n_flagged, anchor_vol, lanes,
-                              True, 1)  # the real state moves on
+            _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, visit, anchor_vol, lanes, True, 1)
     # ---- 5. contacts: the nodes that penetrated the jaws in this substep are pushed out; restore them
     surf = np.ascontiguousarray(m.surface_nodes, dtype=np.int64)
     x0, v0 = x.copy(), v.copy()
@@ -294,6 +313,8 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
         "dashpots": bool(m.use_dashpot),
         "contact_nodes": contact_nodes,
         "tets_below_barrier_threshold": flagged,
+        "tets_watched": n_watch,
+        "barrier_full_flag_pass_us": _r(full_pass),
         "phases_us_per_substep": {p: _r(rows[p]) for p in PHASES},
         "phases_share_of_whole": {p: _r(rows[p] / whole) for p in PHASES},
         "sum_of_phases_us": _r(total),
@@ -569,7 +590,11 @@ def markdown_table(report: dict) -> str:
                        ("remainder_us", "remainder (whole - sum)")):
         lines.append(f"| {label} | {one[key]} | {_r(one[key] / one['whole_us_per_substep'])} | {batch[key]} | "
                      f"{_r(batch[key] / batch['tissues'])} | {_r(batch[key] / batch['whole_us_per_substep'])} |")
-    lines += ["", "Per agent step, ms (share of the SB3 vector env's step):", "",
+    lines += ["", f"Volume barrier: {one['tets_watched']} / {batch['tets_watched']} tets watched (one tissue / batch), "
+              f"{one['tets_below_barrier_threshold']} / {batch['tets_below_barrier_threshold']} flagged; the full "
+              f"flag pass that remakes the watch list (where a node has left its budget) "
+              f"{one['barrier_full_flag_pass_us']} / {batch['barrier_full_flag_pass_us']} us, not in the phases.",
+              "", "Per agent step, ms (share of the SB3 vector env's step):", "",
               "| n_envs | physics | task | finite + volume | Python rest | SB3 vec step | agent steps/s |",
               "|---|---|---|---|---|---|---|"]
     for r in report["agent_step"]["rows"]:
