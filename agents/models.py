@@ -15,7 +15,7 @@ from annotated_types import Ge, Gt, Le, MinLen
 from pydantic import with_config
 from typing_extensions import TypedDict
 
-from ..envs.core import GraspLiftConfig, RandomizationConfig, benchmark_config, ramp_randomization
+from ..envs.core import GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
     read_yaml, replace,
@@ -130,6 +130,10 @@ class TrainConfig:
     #: PPO only: the critic also sees the privileged entries of the observation (mu, stiffness and mass
     #: scales, node displacements); the actor does not (agents/networks.py). Needs env.privileged_obs.
     asymmetric_critic: Bool = True
+    #: observation entries the actor does not see either (names of envs.task.OBS_NAMES, or a per-jaw group such
+    #: as normal_force), e.g. the force readings, so that a policy cannot lean on a noisy or biased sensor; the
+    #: critic still sees them. Needs asymmetric_critic (the actor's mask). Empty: the actor sees every task entry
+    actor_hidden: tuple[Str, ...] = ()
     #: the PPO block replaces SB3's defaults key by key (a key left out gets SB3's default, not this one's)
     ppo: PPOKwargs = field(default_factory=lambda: PPOKwargs(
         learning_rate=1e-3, n_steps=128, batch_size=1024, n_epochs=10, gamma=0.999, gae_lambda=0.95,
@@ -175,6 +179,10 @@ class TrainConfig:
                                                                   level))
 
     def __post_init__(self) -> None:
+        if self.actor_hidden:
+            if not self.asymmetric_critic:
+                raise ConfigError("actor_hidden needs asymmetric_critic: true (the actor's mask hides the entries)")
+            hidden_entries(self.actor_hidden)
         if self.asymmetric_critic and self.algo != "ppo":
             raise ConfigError(f"asymmetric_critic is implemented for algo 'ppo' only, got algo {self.algo!r}")
         if self.asymmetric_critic and not self.env.privileged_obs:

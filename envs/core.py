@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import field, fields
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Sequence
 
 import numpy as np
 from annotated_types import Ge, Gt, Le, Lt
@@ -27,8 +27,8 @@ from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
-    MAX_LATENCY_STEPS, OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_PERTURBATIONS, REWARD_TERMS, column_drawn,
-    command_batch, draw_episode,
+    MAX_LATENCY_STEPS, OBS, OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_PERTURBATIONS, REWARD_TERMS, column_drawn,
+    command_batch, draw_episode, obs_group,
     perturb_pose, pinch_setpoint, start_episode, task_params, task_state, travel_setpoint, update_batch,
 )
 
@@ -309,12 +309,32 @@ def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, ti
     return GrasperPose(tip, axis, e1)
 
 
-def actor_mask(n_task: int, frame_dim: int, history: int) -> list[bool]:
+def hidden_entries(names: Sequence[str], field: str = "actor_hidden") -> list[int]:
+    """Frame positions of the observation entries ``names`` name: an entry of :data:`OBS_NAMES`, or a per-jaw
+    group's prefix (``normal_force``: its three entries). A one-line ConfigError names an unknown one."""
+    groups = sorted({n.rsplit("_", 1)[0] for n in OBS_NAMES if n[-2:] in ("_0", "_1", "_2")})
+    out: list[int] = []
+    for name in names:
+        if name in OBS:
+            out.append(OBS[name])
+        elif name in groups:
+            out.extend(range(obs_group(name).start, obs_group(name).stop))
+        else:
+            raise ConfigError(f"{field}: {name!r} is no observation entry; allowed: an entry of envs.task.OBS_NAMES "
+                              f"or a per-jaw group ({', '.join(groups)})")
+    return sorted(set(out))
+
+
+def actor_mask(n_task: int, frame_dim: int, history: int, hidden: Sequence[str] = ()) -> list[bool]:
     """True for the ``n_task`` task entries of each of ``history`` frames of ``frame_dim`` entries (a frame is
-    the task entries, then the privileged ones an asymmetric critic sees and the actor does not)."""
+    the task entries, then the privileged ones an asymmetric critic sees and the actor does not), except the
+    task entries ``hidden`` names (:func:`hidden_entries`), which the actor does not see either."""
     if not 0 < n_task <= frame_dim:
         raise ValueError(f"n_task must be in (0, frame_dim={frame_dim}], got {n_task}")
-    return ([True] * n_task + [False] * (frame_dim - n_task)) * history
+    frame = [True] * n_task + [False] * (frame_dim - n_task)
+    for i in hidden_entries(hidden):
+        frame[i] = False
+    return frame * history
 
 
 def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> None:

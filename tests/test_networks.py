@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents.training import TrainConfig, load_model, train
-from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, actor_mask
+from msdgrasp.envs.core import OBS, OBS_NAMES, GraspLiftConfig, GraspLiftCore, actor_mask
 from msdgrasp.physics.config import ConfigError, from_dict
 
 
@@ -18,6 +18,13 @@ def test_actor_mask_keeps_the_task_entries_of_every_frame():
     assert mask == [True, True, True, False, False] * 2
     with pytest.raises(ValueError, match="n_task"):
         actor_mask(6, 5, 1)
+    # hidden task entries: by name, or a per-jaw group by its prefix
+    n = len(OBS_NAMES)
+    mask = actor_mask(n, n + 2, 2, ("friction_use", "peak_pinch"))
+    hidden = {OBS["friction_use_0"], OBS["friction_use_1"], OBS["friction_use_2"], OBS["peak_pinch"], n, n + 1}
+    assert mask == [i not in hidden for i in range(n + 2)] * 2
+    with pytest.raises(ConfigError, match="actor_hidden: 'friction' is no observation entry"):
+        actor_mask(n, n, 1, ("friction",))
 
 
 @pytest.fixture(scope="module")
@@ -25,23 +32,26 @@ def asymmetric_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("asym")
     cfg = from_dict(TrainConfig, {
         "total_timesteps": 512, "n_envs": 2, "checkpoint_every": 10**6, "validation_episodes": 0,
-        "asymmetric_critic": True, "lr_schedule": "linear", "log_std_init": -1.0,
+        "asymmetric_critic": True, "actor_hidden": ["normal_force"], "lr_schedule": "linear", "log_std_init": -1.0,
         "ppo": {"learning_rate": 1e-3, "n_steps": 128, "batch_size": 64, "n_epochs": 2, "use_sde": True},
         "env": {"privileged_obs": True, "obs_history": 2}})
     train(cfg, out, progress=False)
     return load_model(out / "final_model.zip")
 
 
-def test_the_saved_actor_is_blind_to_privileged_entries_and_the_critic_is_not(asymmetric_run):
+def test_the_saved_actor_is_blind_to_privileged_and_hidden_entries_and_the_critic_is_not(asymmetric_run):
     import torch
 
     model = asymmetric_run
     n = model.observation_space.shape[0]
     mask = np.array(model.policy.actor_mask)
-    assert mask.sum() == 2 * len(OBS_NAMES) and len(mask) == n  # 32 task entries per frame survive the load
+    # the task entries of both frames but the hidden normal-force readings survive the load
+    assert mask.sum() == 2 * (len(OBS_NAMES) - 3) and len(mask) == n
+    frame = n // 2
+    assert not mask[[OBS["normal_force_0"], OBS["normal_force_2"], frame + OBS["normal_force_1"]]].any()
     obs = np.random.default_rng(0).normal(size=(8, n)).astype(np.float32)
     other = obs.copy()
-    other[:, ~mask] += 3.0  # change only mu, the scales and the node displacements
+    other[:, ~mask] += 3.0  # change only mu, the scales, the node displacements and the normal-force readings
     a0, _ = model.predict(obs, deterministic=True)
     a1, _ = model.predict(other, deterministic=True)
     np.testing.assert_array_equal(a0, a1)
@@ -74,6 +84,8 @@ def test_linear_schedule_anneals_the_learning_rate_to_zero(asymmetric_run):
     ({"asymmetric_critic": "yes"}, "asymmetric_critic"),
     ({"lr_schedule": "cosine"}, "lr_schedule"),
     ({"log_std_init": 3.0}, "log_std_init"),
+    ({"actor_hidden": ["normal_forces"], "env": {"privileged_obs": True}}, "actor_hidden: 'normal_forces' is no"),
+    ({"actor_hidden": ["normal_force"], "asymmetric_critic": False}, "actor_hidden needs asymmetric_critic"),
 ])
 def test_bad_training_options_name_the_field(over, field):
     with pytest.raises(ConfigError, match=field):
