@@ -398,21 +398,6 @@ def flag_barrier(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_c: 
     return n_flagged
 
 
-@njit(cache=True, error_model="numpy")
-def flag_barrier_lanes(x, tets, rest_volume, j_c, flagged, n_flagged) -> None:
-    """:func:`flag_barrier` for L tissues at once (lane layout x (N,3,L)): flagged (T,L) int8 and n_flagged (L,)
-    int64 out. One pass over the tets across lanes (SIMD): a pass per lane on the strided (N,3) view is slower."""
-    nl = x.shape[2]
-    n_flagged[:] = 0
-    for t in range(tets.shape[0]):
-        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        vmin = j_c * rest_volume[t]
-        for lane in range(nl):
-            below = _tet_edges_lane(x, a, b, c, d, lane)[9] < vmin
-            flagged[t, lane] = 1 if below else 0
-            n_flagged[lane] += 1 if below else 0
-
-
 # -------------------------------------------------------------------------------------------------
 # The flag pass's watch list (CPU). Finding the tets below J_c takes a volume per tet and substep, a quarter of a
 # one-tissue substep, although a tet far above the threshold cannot reach it in a few substeps. So a full pass
