@@ -8,6 +8,8 @@ A policy maps observations to actions for a batch of episodes::
 * :class:`FixedForcePolicy`: close until the pinch force reaches a set value, then pull while holding that
   force (a cautious surgeon: hard enough for the slipperiest tissue).
 * :class:`SlipReactivePolicy`: close lightly, pull, and tighten whenever the jaw sensors show slip.
+* :class:`SlipFeedbackPolicy`: start with a light grip and tighten in proportion to the slip since lifting
+  began; reads no force at all, so force-sensor noise and bias do not touch it.
 * :class:`OraclePolicy`: knows mu; uses the smallest fixed force that lifts without slip at that mu
   (found by bisection in simulation, cached per mu) plus a margin: the physical limit a learned policy
   is measured against.
@@ -32,6 +34,8 @@ from ..physics.config import needs_extra
 _NORMAL = obs_group("normal_force")
 _SLIP = obs_group("slip_speed")
 _TRAVEL = OBS["pull_distance"]
+_CONTACT = obs_group("contact_fraction")
+_LIFT_SLIP = OBS["lift_slip"]
 
 
 def _current_frame(obs: np.ndarray, config: GraspLiftConfig) -> np.ndarray:
@@ -122,6 +126,60 @@ class SlipReactivePolicy(FixedForcePolicy):
         slipping = self._grasped & (frame[:, _SLIP].max(axis=1) > self.slip_threshold)
         self.force = np.where(slipping, np.minimum(self.force + self.step, self.max_force), self.force)
         return super().act(obs)
+
+
+class SlipFeedbackPolicy:
+    """Grip lightly, pull, and hold the pinch set-point at ``initial_force_N + gain_N_per_mm x`` (slip since lifting
+    began, mm), never lowering it: the grip grows with the load only as far as the tissue shows it must.
+
+    It reads the contact fractions (to know when the jaws hold: ``contact_jaws`` jaws touching for
+    ``settle_steps`` steps, then the pull starts) and the slip since lifting began (``lift_slip``), never a force
+    reading, so force-sensor noise and bias leave its actions unchanged. Needs a force-set-point jaw and a
+    forward-speed pull (the benchmark task's interface).
+    """
+
+    def __init__(self, config: GraspLiftConfig | None = None, initial_force_N: float = 0.55,
+                 gain_N_per_mm: float = 1.0, max_force_N: float = 4.0, pull: float = 0.5, contact_jaws: int = 2,
+                 settle_steps: int = 6) -> None:
+        self.config = config or GraspLiftConfig()
+        if self.config.jaw_action != "force" or self.config.pull_action != "forward_speed":
+            raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
+                             f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
+        if not 0 < initial_force_N <= max_force_N:
+            raise ValueError(f"initial_force_N must be in (0, max_force_N={max_force_N}], got {initial_force_N!r}")
+        if not gain_N_per_mm >= 0:
+            raise ValueError(f"gain_N_per_mm must be >= 0, got {gain_N_per_mm!r}")
+        if not 0 < pull <= 1:
+            raise ValueError(f"pull must be in (0, 1], got {pull!r}")
+        if contact_jaws not in (1, 2, 3):
+            raise ValueError(f"contact_jaws must be 1, 2 or 3, got {contact_jaws!r}")
+        self.initial = float(initial_force_N)
+        self.gain = float(gain_N_per_mm)
+        self.max_force = float(max_force_N)
+        self.pull = float(pull)
+        self.contact_jaws = int(contact_jaws)
+        self.settle_steps = int(settle_steps)
+        self.name = "slipfeedback"
+        self.reset([{}])
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        self.force = np.full(len(infos), self.initial)
+        self._held = np.zeros(len(infos), dtype=np.int64)  # steps since the jaws first held
+
+    def reset_one(self, index: int, info: dict[str, Any]) -> None:
+        """Start a new episode in batch slot ``index`` only (the others keep their state)."""
+        self.force[index] = self.initial
+        self._held[index] = 0
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        frame = _current_frame(obs, cfg)
+        touching = (frame[:, _CONTACT] > 0.0).sum(axis=1) >= self.contact_jaws
+        self._held += (touching | (self._held > 0)).astype(np.int64)
+        slip_mm = frame[:, _LIFT_SLIP] * cfg.lift_slip_tolerance_m * 1e3
+        self.force = np.maximum(self.force, np.minimum(self.initial + self.gain * slip_mm, self.max_force))
+        pull = np.where(self._held > self.settle_steps, 2.0 * self.pull - 1.0, -1.0)
+        return np.stack([pinch_action(self.force, cfg), pull], axis=1).astype(np.float32)
 
 
 class OraclePolicy(FixedForcePolicy):
@@ -330,8 +388,8 @@ def idle_action(config: GraspLiftConfig) -> np.ndarray:
 
 
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
-    """'fixed' | 'fixed:<N>' | 'reactive' | 'oracle' | 'zero' | 'idle' | a path to a saved model of any learner
-    (run by the learner recorded beside it)."""
+    """'fixed' | 'fixed:<N>' | 'reactive' | 'slipfeedback' | 'oracle' | 'zero' | 'idle' | a path to a saved model of
+    any learner (run by the learner recorded beside it)."""
     config = config or GraspLiftConfig()
     if spec == "zero":
         return ConstantPolicy([0.0, 0.0], "zero")
@@ -346,6 +404,8 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
             raise ValueError(f"policy {spec!r}: 'fixed:<force in N>' expects a positive number ({exc})") from None
     if spec == "reactive":
         return SlipReactivePolicy(config)
+    if spec == "slipfeedback":
+        return SlipFeedbackPolicy(config)
     if spec == "oracle":
         return OraclePolicy(config)
     from .learners.base import learner_of_model

@@ -55,8 +55,8 @@ UNSEEN_MU = 0.5
 ALWAYS = ("reactive", "oracle")
 MAX_GRID_VALUES = 101
 MU_MAX = 10.0  # the env accepts mu in [0, 10]
-BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "oracle", "zero", "idle")
-_NAMED = ("fixed", "reactive", "oracle", "zero", "idle")
+BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "slipfeedback", "oracle", "zero", "idle")
+_NAMED = ("fixed", "reactive", "slipfeedback", "oracle", "zero", "idle")
 
 CSV_COLUMNS = (
     "policy", "mu", "success_rate", "mean_peak_pinch_N", "peak_pinch_over_oracle_min", "max_peak_pinch_N",
