@@ -142,7 +142,7 @@ class SlipFeedbackPolicy:
                  gain_N_per_mm: float = 1.0, max_force_N: float = 4.0, pull: float = 0.5, contact_jaws: int = 2,
                  settle_steps: int = 6) -> None:
         self.config = config or GraspLiftConfig()
-        if self.config.jaw_action != "force" or self.config.pull_action != "forward_speed":
+        if not self.supports(self.config):
             raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
                              f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
         if not 0 < initial_force_N <= max_force_N:
@@ -161,6 +161,11 @@ class SlipFeedbackPolicy:
         self.settle_steps = int(settle_steps)
         self.name = "slipfeedback"
         self.reset([{}])
+
+    @staticmethod
+    def supports(config: GraspLiftConfig) -> bool:
+        """Whether the task's interface is the one it drives (a force set-point jaw, a forward-speed pull)."""
+        return config.jaw_action == "force" and config.pull_action == "forward_speed"
 
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
         self.force = np.full(len(infos), self.initial)

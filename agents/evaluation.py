@@ -414,6 +414,8 @@ def display_name(name: str) -> str:
     """What a policy is, for plots and tables: 'reactive' -> 'slip-reactive', 'fixed2.5N' -> 'fixed 2.5 N'."""
     if name == "reactive":
         return "slip-reactive"
+    if name == "slipfeedback":
+        return "slip-feedback"
     if name == "oracle":
         return "oracle (min. force + 10%)"
     if name.startswith("fixed") and name.endswith("N"):

@@ -73,7 +73,8 @@ def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_gri
     assert rc == 0, err
     data = json.loads((tmp_path / "suite_robustness.json").read_text())
     assert data["version"] == SUITE_VERSION and data["episodes"] == 1 and data["damage_pressure_kPa"] == 330.0
-    assert {r["spec"] for r in data["leaderboard"]} == {"fixed", "reactive", "oracle"}
+    # (the slip-feedback controller too: the default training's task has its interface)
+    assert {r["spec"] for r in data["leaderboard"]} == {"fixed", "reactive", "oracle", "slipfeedback"}
     scores = [r["score"] for r in data["leaderboard"]]
     assert scores == sorted(scores, reverse=True)
     for res in data["results"]:

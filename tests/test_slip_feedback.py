@@ -1,0 +1,89 @@
+"""The slip-feedback controller: a light grip tightened in proportion to the slip since lifting began.
+
+What it must be: blind to the force readings (so force-sensor noise and bias cannot cost it force), monotone in
+its grip, and on the benchmark task a lighter grip than the slip-reactive controller that still lifts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from msdgrasp.agents.controllers import SlipFeedbackPolicy, make_policy
+from msdgrasp.agents.evaluation import evaluate_policy
+from msdgrasp.envs.core import GraspLiftConfig, benchmark_config
+from msdgrasp.envs.task import OBS, obs_group
+
+TASK = benchmark_config()
+
+
+def _frame(n: int = 1) -> np.ndarray:
+    return np.zeros((n, len(OBS)), dtype=np.float32)
+
+
+def test_its_actions_do_not_read_the_force_readings():
+    rng = np.random.default_rng(0)
+    a, b = SlipFeedbackPolicy(TASK), SlipFeedbackPolicy(TASK)
+    a.reset([{}] * 4)
+    b.reset([{}] * 4)
+    for t in range(40):
+        obs = _frame(4)
+        obs[:, obs_group("contact_fraction")] = 0.5 if t > 3 else 0.0
+        obs[:, OBS["lift_slip"]] = max(0.0, (t - 20) * 0.02)
+        noisy = obs.copy()
+        for group in ("normal_force", "tangential_force", "friction_use"):
+            noisy[:, obs_group(group)] = rng.normal(0.0, 1.0, size=(4, 3))
+        assert np.array_equal(a.act(obs), b.act(noisy))
+
+
+def test_the_grip_follows_the_slip_and_never_eases():
+    pol = SlipFeedbackPolicy(TASK, initial_force_N=0.5, gain_N_per_mm=1.0, max_force_N=2.0)
+    pol.reset([{}])
+    tol_mm = TASK.lift_slip_tolerance_m * 1e3
+    forces = []
+    for slip_mm in (0.0, 0.3, 0.8, 0.4, 0.0, 5.0):
+        obs = _frame()
+        obs[0, OBS["lift_slip"]] = slip_mm / tol_mm
+        pol.act(obs)
+        forces.append(float(pol.force[0]))
+    assert forces == pytest.approx([0.5, 0.8, 1.3, 1.3, 1.3, 2.0])  # 0.5 N + 1 N/mm, the peak kept, capped
+
+
+def test_it_pulls_only_once_the_jaws_have_held_for_the_settling_steps():
+    pol = SlipFeedbackPolicy(TASK, contact_jaws=2, settle_steps=3)
+    pol.reset([{}])
+    pulls = []
+    for t in range(8):
+        obs = _frame()
+        obs[0, obs_group("contact_fraction")] = [0.4, 0.3, 0.0] if t >= 2 else [0.4, 0.0, 0.0]
+        pulls.append(float(pol.act(obs)[0, 1]))
+    assert pulls[:5] == [-1.0] * 5 and pulls[5:] == [0.0] * 3  # two jaws touch from step 2; pull (10 mm/s) after 3
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"initial_force_N": 0.0}, "initial_force_N"),
+    ({"initial_force_N": 5.0, "max_force_N": 4.0}, "initial_force_N"),
+    ({"gain_N_per_mm": -1.0}, "gain_N_per_mm"),
+    ({"pull": 0.0}, "pull"),
+    ({"contact_jaws": 4}, "contact_jaws"),
+])
+def test_bad_parameters_are_refused_naming_the_field(kwargs, needle):
+    with pytest.raises(ValueError, match=needle):
+        SlipFeedbackPolicy(TASK, **kwargs)
+
+
+def test_it_needs_the_force_set_point_and_pull_speed_interface():
+    with pytest.raises(ValueError, match="jaw_action: force and pull_action: forward_speed"):
+        SlipFeedbackPolicy(GraspLiftConfig())  # version 0: a travel set-point
+
+
+def test_it_lifts_with_a_lighter_grip_than_the_slip_reactive_controller_under_force_noise():
+    noisy = dataclasses.replace(TASK, randomization=dataclasses.replace(TASK.randomization, sensor_noise_N=0.08))
+    mus = [0.4, 0.7]
+    ours = evaluate_policy(make_policy("slipfeedback", noisy), mus, 2, noisy)
+    theirs = evaluate_policy(make_policy("reactive", noisy), mus, 2, noisy)
+    for a, b in zip(ours, theirs):
+        assert a["success_rate"] == 1.0, a["outcomes"]
+        assert a["mean_peak_pinch_N"] < b["mean_peak_pinch_N"]
