@@ -134,6 +134,12 @@ class TrainConfig:
     #: as normal_force), e.g. the force readings, so that a policy cannot lean on a noisy or biased sensor; the
     #: critic still sees them. Needs asymmetric_critic (the actor's mask). Empty: the actor sees every task entry
     actor_hidden: tuple[Str, ...] = ()
+    #: residual policy (agents/residual.py): the model's action is a correction added to this controller's,
+    #: clip(controller + residual_scale x model, -1, 1), in training and wherever the model runs; the controller
+    #: needs the task's interface (slipfeedback: a force set-point and a pull speed). None: the model acts alone
+    residual_base: Literal["slipfeedback", "reactive", "fixed"] | None = None
+    #: the largest correction, in action units (the action range is [-1, 1])
+    residual_scale: Annotated[Real, Gt(0), Le(2)] = 0.5
     #: the PPO block replaces SB3's defaults key by key (a key left out gets SB3's default, not this one's)
     ppo: PPOKwargs = field(default_factory=lambda: PPOKwargs(
         learning_rate=1e-3, n_steps=128, batch_size=1024, n_epochs=10, gamma=0.999, gae_lambda=0.95,
@@ -190,6 +196,15 @@ class TrainConfig:
         if self.squash_actions and self.algo == "ppo" and not self.ppo.get("use_sde", False):
             raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
                               "set squash_actions: false to train PPO without gSDE")
+        if self.residual_base is not None:
+            if self.bc_teacher is not None:
+                raise ConfigError("give either residual_base (learn a correction on a controller) or bc_teacher "
+                                  "(clone a controller first), not both")
+            from .controllers import SlipFeedbackPolicy
+
+            if self.residual_base == "slipfeedback" and not SlipFeedbackPolicy.supports(self.env):
+                raise ConfigError("residual_base: slipfeedback needs env.jaw_action: force and env.pull_action: "
+                                  f"forward_speed, got {self.env.jaw_action!r} / {self.env.pull_action!r}")
         if self.init_model is not None and self.bc_teacher is not None:
             raise ConfigError("give either init_model (start from a trained model) or bc_teacher (clone a teacher "
                               "first), not both")

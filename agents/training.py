@@ -33,6 +33,7 @@ from .learners.sb3_layout import model_train_config  # noqa: F401 (re-exported)
 from .models import TrainConfig
 from .controllers import ModelPolicy, make_policy
 from .evaluation import evaluate_policy
+from .residual import residual_venv, with_residual
 
 
 def _save_atomic(model, path: Path) -> Path:
@@ -64,7 +65,7 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     torch.set_num_threads(config.torch_threads)
     write_yaml(out / LAYOUT.config, to_dict(config))
     # (built on the widest randomisation it will draw from: the curriculum's end)
-    venv = GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=config.seed)
+    venv = residual_venv(GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=config.seed), config)
     if resume:
         path, _ = _latest_model(out)
         model = algo_class(config.algo).load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
@@ -258,7 +259,8 @@ class BestModel:
             best = _save_atomic(model, self.out / LAYOUT.model)
             write_yaml(best.with_suffix(".yaml"), to_dict(self.config))
 
-        return self.consider_policy(ModelPolicy.from_model(model, "validation"), int(model.num_timesteps), path, keep)
+        policy = with_residual(ModelPolicy.from_model(model, "validation"), self.config)
+        return self.consider_policy(policy, int(model.num_timesteps), path, keep)
 
     def consider_policy(self, policy, timesteps: int, path: Path, keep: Callable[[], None]) -> dict[str, Any] | None:
         """Validate ``policy`` (saved at ``path`` after ``timesteps`` agent steps); call ``keep()`` if it beats

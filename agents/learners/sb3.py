@@ -118,8 +118,9 @@ class SB3Learner(Learner):
 
     def load_policy(self, model: Path, name: str | None = None):
         from ..controllers import ModelPolicy
+        from ..residual import with_residual
 
-        return ModelPolicy(model, name)
+        return with_residual(ModelPolicy(model, name), model_train_config(model))
 
     def model_task(self, model: Path) -> "GraspLiftConfig":
         return model_train_config(model).env

@@ -1,0 +1,89 @@
+"""Residual policies: a learned correction added to a controller's action.
+
+A model trained with ``residual_base`` (:class:`~.models.TrainConfig`) does not act alone: its output r in [-1, 1]
+is added to the controller's action a_c, ``a = clip(a_c + residual_scale * r, -1, 1)`` (:func:`compose`), in
+training (:func:`residual_venv`, around the SB3 vector env: PPO learns over r) and wherever the model runs
+(:func:`with_residual`, around the loaded policy: evaluation, validation, the robustness suite, recording,
+demonstrations). The controller keeps its own state per episode. An untrained network outputs r ~ 0, so a
+residual training starts from the controller's behaviour and learns what it lacks (residual reinforcement
+learning: Johannink et al., ICRA 2019; Silver et al., arXiv:1812.06298).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from .controllers import make_policy
+
+#: the controllers a residual may sit on (their state resets per episode without knowing mu)
+RESIDUAL_BASES = ("slipfeedback", "reactive", "fixed")
+
+
+def compose(base: np.ndarray, residual: np.ndarray, scale: float) -> np.ndarray:
+    """The action sent: the controller's ``base`` plus ``scale`` times the learned ``residual``, clipped to [-1, 1]."""
+    return np.clip(np.asarray(base, dtype=np.float64) + scale * np.asarray(residual, dtype=np.float64),
+                   -1.0, 1.0).astype(np.float32)
+
+
+class ResidualPolicy:
+    """A policy (``inner``, the trained model) acting as a correction on the controller ``base``."""
+
+    def __init__(self, inner: Any, base: Any, scale: float) -> None:
+        self.inner = inner
+        self.base = base
+        self.scale = float(scale)
+        self.name = inner.name
+
+    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
+        self.base.reset(infos)
+        self.inner.reset(infos)
+
+    def reset_one(self, index: int, info: dict[str, Any]) -> None:
+        self.base.reset_one(index, info)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return compose(self.base.act(obs), self.inner.act(obs), self.scale)
+
+
+def with_residual(policy: Any, config: Any) -> Any:
+    """``policy`` (a loaded model) as it acts: on its controller where its training ``config`` names one."""
+    base = getattr(config, "residual_base", None)
+    if base is None:
+        return policy
+    return ResidualPolicy(policy, make_policy(base, config.env), config.residual_scale)
+
+
+def residual_venv(venv: Any, config: Any) -> Any:
+    """The SB3 vector env ``venv`` with the policy's actions composed on ``config.residual_base`` (``venv`` itself
+    without one); attributes (``core``, ...) read through."""
+    if getattr(config, "residual_base", None) is None:
+        return venv
+    from stable_baselines3.common.vec_env import VecEnvWrapper
+
+    class ResidualVecEnv(VecEnvWrapper):
+        def __init__(self) -> None:
+            super().__init__(venv)
+            self.base = make_policy(config.residual_base, config.training_task())
+            self.scale = float(config.residual_scale)
+            self._obs: np.ndarray | None = None
+
+        def reset(self) -> np.ndarray:
+            obs = self.venv.reset()
+            self.base.reset([{}] * self.num_envs)
+            self._obs = obs
+            return obs
+
+        def step_async(self, actions: np.ndarray) -> None:
+            self.venv.step_async(compose(self.base.act(self._obs), actions, self.scale))
+
+        def step_wait(self):
+            obs, rewards, dones, infos = self.venv.step_wait()
+            for i in np.flatnonzero(dones):  # (obs[i] is the next episode's first observation)
+                self.base.reset_one(int(i), {})
+            self._obs = obs
+            return obs, rewards, dones, infos
+
+    return ResidualVecEnv()
