@@ -1,0 +1,79 @@
+"""Residual policies: a trained correction added to a controller's action, the same in training and wherever the
+model runs.
+
+Runtime: one 256-step residual training (2 envs), a few seconds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msdgrasp.agents.controllers import SlipFeedbackPolicy
+from msdgrasp.agents.models import TrainConfig
+from msdgrasp.agents.residual import ResidualPolicy, compose, residual_venv
+from msdgrasp.physics.config import ConfigError, from_dict
+
+SHORT = {
+    "n_envs": 2, "torch_threads": 1, "total_timesteps": 256, "checkpoint_every": 256, "validation_episodes": 1,
+    "validation_mu": [0.5], "residual_base": "slipfeedback", "residual_scale": 0.5,
+    "ppo": {"n_steps": 128, "batch_size": 128, "n_epochs": 1, "learning_rate": 1e-4, "use_sde": True},
+}
+
+
+def test_compose_adds_the_scaled_correction_and_clips_to_the_action_range():
+    base = np.array([[-0.4, 0.0], [0.9, -1.0]])
+    out = compose(base, np.array([[1.0, -1.0], [1.0, 0.2]]), 0.5)
+    assert out.dtype == np.float32
+    assert np.allclose(out, [[0.1, -0.5], [1.0, -0.9]])
+
+
+def test_the_training_env_sends_the_controllers_action_plus_the_correction():
+    from msdgrasp.envs.sb3 import GraspLiftSB3VecEnv
+
+    config = from_dict(TrainConfig, SHORT)
+    venv = residual_venv(GraspLiftSB3VecEnv(2, config.training_task(), seed=0), config)
+    twin = SlipFeedbackPolicy(config.training_task())
+    obs = venv.reset()
+    twin.reset([{}, {}])
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        residual = rng.uniform(-1.0, 1.0, size=(2, 2)).astype(np.float32)
+        expected = compose(twin.act(obs), residual, 0.5)
+        obs, _, dones, _ = venv.step(residual)
+        assert np.allclose(venv.core.act, expected, atol=1e-6)  # the action the task received
+        for i in np.flatnonzero(dones):
+            twin.reset_one(int(i), {})
+
+
+def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(tmp_path):
+    from msdgrasp.agents.controllers import ModelPolicy
+    from msdgrasp.agents.learners import learner_of_model
+    from msdgrasp.agents.training import train
+    from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+
+    train(from_dict(TrainConfig, SHORT), tmp_path, progress=False)
+    path = tmp_path / "best_model.zip"
+    policy = learner_of_model(path).load_policy(path)
+    assert isinstance(policy, ResidualPolicy) and policy.scale == 0.5
+    config = from_dict(TrainConfig, SHORT)
+    env = GraspLiftVectorEnv(2, config.env)
+    obs, _ = env.reset(seed=0)
+    twin, bare = SlipFeedbackPolicy(config.env), ModelPolicy(path)
+    policy.reset([{}, {}])
+    twin.reset([{}, {}])
+    for _ in range(20):
+        action = policy.act(obs)  # (once per step: the controller keeps state)
+        assert np.allclose(action, compose(twin.act(obs), bare.act(obs), 0.5))
+        obs, *_ = env.step(action)
+
+
+@pytest.mark.parametrize("over, needle", [
+    ({"bc_teacher": "reactive"}, "either residual_base"),
+    ({"residual_base": "oracle"}, "residual_base"),
+    ({"residual_scale": 0.0}, "residual_scale"),
+    ({"asymmetric_critic": False, "env": {"pull_action": "travel"}}, "residual_base: slipfeedback needs"),
+])
+def test_bad_residual_settings_are_refused_naming_the_field(over, needle):
+    with pytest.raises(ConfigError, match=needle):
+        from_dict(TrainConfig, {**SHORT, **over})
