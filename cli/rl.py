@@ -385,8 +385,8 @@ def add_rl_commands(sub) -> None:
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
-                        "fixed:<N> | reactive | oracle (repeatable; default: the model of the default learner's run in "
-                        "logs/train, else of every logs/train/seed_*/; none there is an error). "
+                        "fixed:<N> | reactive | slipfeedback | oracle (repeatable; default: the model of the default "
+                        "learner's run in logs/train, else of every logs/train/seed_*/; none there is an error). "
                         "reactive and oracle are always added")
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
@@ -413,8 +413,8 @@ def add_rl_commands(sub) -> None:
 
     co = sub.add_parser("collect", help="record a policy's episodes as a Minari dataset (demonstrations)")
     co.add_argument("--policy", required=True, metavar="SPEC",
-                    help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | oracle (the default "
-                         "training's task)")
+                    help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | slipfeedback | oracle "
+                         "(the default training's task)")
     co.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
                     help="a controller's episodes are drawn from this training's task (default: the default "
                          "training's)")
@@ -464,7 +464,7 @@ def add_rl_commands(sub) -> None:
     r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
     r.add_argument("--policy", required=True, metavar="SPEC",
                    help="PATH (a saved model: it runs on the task it was trained on) | fixed | fixed:<N> | reactive "
-                        "| oracle | zero | idle")
+                        "| slipfeedback | oracle | zero | idle")
     r.add_argument("--mu", type=float, default=0.5, help="friction coefficient (default 0.5)")
     r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     r.add_argument("--out", type=Path, default=Path("logs") / "record" / "episode.rrd",
