@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig, pinch_action
+from ..envs.core import GraspLiftConfig, pinch_action, setpoint_interface
 from ..envs.task import OBS, obs_group
 from ..physics.config import needs_extra
 
@@ -165,7 +165,7 @@ class SlipFeedbackPolicy:
     @staticmethod
     def supports(config: GraspLiftConfig) -> bool:
         """Whether the task's interface is the one it drives (a force set-point jaw, a forward-speed pull)."""
-        return config.jaw_action == "force" and config.pull_action == "forward_speed"
+        return setpoint_interface(config)
 
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
         self.force = np.full(len(infos), self.initial)

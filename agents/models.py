@@ -15,7 +15,9 @@ from annotated_types import Ge, Gt, Le, MinLen
 from pydantic import with_config
 from typing_extensions import TypedDict
 
-from ..envs.core import GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization
+from ..envs.core import (
+    GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization, setpoint_interface,
+)
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
     read_yaml, replace,
@@ -200,9 +202,7 @@ class TrainConfig:
             if self.bc_teacher is not None:
                 raise ConfigError("give either residual_base (learn a correction on a controller) or bc_teacher "
                                   "(clone a controller first), not both")
-            from .controllers import SlipFeedbackPolicy
-
-            if self.residual_base == "slipfeedback" and not SlipFeedbackPolicy.supports(self.env):
+            if self.residual_base == "slipfeedback" and not setpoint_interface(self.env):
                 raise ConfigError("residual_base: slipfeedback needs env.jaw_action: force and env.pull_action: "
                                   f"forward_speed, got {self.env.jaw_action!r} / {self.env.pull_action!r}")
         if self.init_model is not None and self.bc_teacher is not None:

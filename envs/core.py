@@ -285,6 +285,12 @@ def ramp_randomization(start: RandomizationConfig, end: RandomizationConfig, lev
     return RandomizationConfig(**values)
 
 
+def setpoint_interface(config: GraspLiftConfig) -> bool:
+    """Whether the task is commanded by a pinch-force set-point and a forward pull speed (the benchmark task's
+    interface; the one the slip-feedback controller drives)."""
+    return config.jaw_action == "force" and config.pull_action == "forward_speed"
+
+
 def pinch_action(force_N: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:
     """The jaw action whose pinch-force set-point is ``force_N`` (jaw_action = force), clipped to [-1, 1]:
     the inverse of :func:`.task.pinch_setpoint`."""
