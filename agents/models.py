@@ -140,8 +140,9 @@ class TrainConfig:
     #: clip(controller + residual_scale x model, -1, 1), in training and wherever the model runs; the controller
     #: needs the task's interface (slipfeedback: a force set-point and a pull speed). None: the model acts alone
     residual_base: Literal["slipfeedback", "reactive", "fixed"] | None = None
-    #: the largest correction, in action units (the action range is [-1, 1])
-    residual_scale: Annotated[Real, Gt(0), Le(2)] = 0.5
+    #: the largest correction, in action units (the action range is [-1, 1]): one for both actions, or one per
+    #: action (jaw, pull); 0 leaves that action to the controller
+    residual_scale: Annotated[Real, Gt(0), Le(2)] | tuple[Annotated[Real, Ge(0), Le(2)], Annotated[Real, Ge(0), Le(2)]] = 0.5
     #: the PPO block replaces SB3's defaults key by key (a key left out gets SB3's default, not this one's)
     ppo: PPOKwargs = field(default_factory=lambda: PPOKwargs(
         learning_rate=1e-3, n_steps=128, batch_size=1024, n_epochs=10, gamma=0.999, gae_lambda=0.95,

@@ -22,8 +22,10 @@ from .controllers import make_policy
 RESIDUAL_BASES = ("slipfeedback", "reactive", "fixed")
 
 
-def compose(base: np.ndarray, residual: np.ndarray, scale: float) -> np.ndarray:
-    """The action sent: the controller's ``base`` plus ``scale`` times the learned ``residual``, clipped to [-1, 1]."""
+def compose(base: np.ndarray, residual: np.ndarray, scale: float | Sequence[float]) -> np.ndarray:
+    """The action sent: the controller's ``base`` plus ``scale`` (one, or one per action) times the learned
+    ``residual``, clipped to [-1, 1]."""
+    scale = np.asarray(scale, dtype=np.float64)
     return np.clip(np.asarray(base, dtype=np.float64) + scale * np.asarray(residual, dtype=np.float64),
                    -1.0, 1.0).astype(np.float32)
 
@@ -31,10 +33,10 @@ def compose(base: np.ndarray, residual: np.ndarray, scale: float) -> np.ndarray:
 class ResidualPolicy:
     """A policy (``inner``, the trained model) acting as a correction on the controller ``base``."""
 
-    def __init__(self, inner: Any, base: Any, scale: float) -> None:
+    def __init__(self, inner: Any, base: Any, scale: float | Sequence[float]) -> None:
         self.inner = inner
         self.base = base
-        self.scale = float(scale)
+        self.scale = scale
         self.name = inner.name
 
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
@@ -67,7 +69,7 @@ def residual_venv(venv: Any, config: Any) -> Any:
         def __init__(self) -> None:
             super().__init__(venv)
             self.base = make_policy(config.residual_base, config.training_task())
-            self.scale = float(config.residual_scale)
+            self.scale = config.residual_scale
             self._obs: np.ndarray | None = None
 
         def reset(self) -> np.ndarray:
