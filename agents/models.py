@@ -25,6 +25,7 @@ from ..physics.config import (
 
 PositiveInt = Annotated[Int, Ge(1)]
 Unit = Annotated[Real, Ge(0), Le(1)]
+_Scale = Annotated[Real, Ge(0), Le(2)]
 
 
 @with_config(RECORD_CONFIG)
@@ -142,7 +143,7 @@ class TrainConfig:
     residual_base: Literal["slipfeedback", "reactive", "fixed"] | None = None
     #: the largest correction, in action units (the action range is [-1, 1]): one for both actions, or one per
     #: action (jaw, pull); 0 leaves that action to the controller
-    residual_scale: Annotated[Real, Gt(0), Le(2)] | tuple[Annotated[Real, Ge(0), Le(2)], Annotated[Real, Ge(0), Le(2)]] = 0.5
+    residual_scale: Annotated[Real, Gt(0), Le(2)] | tuple[_Scale, _Scale] = 0.5
     #: the PPO block replaces SB3's defaults key by key (a key left out gets SB3's default, not this one's)
     ppo: PPOKwargs = field(default_factory=lambda: PPOKwargs(
         learning_rate=1e-3, n_steps=128, batch_size=1024, n_epochs=10, gamma=0.999, gae_lambda=0.95,
