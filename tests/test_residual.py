@@ -26,6 +26,8 @@ def test_compose_adds_the_scaled_correction_and_clips_to_the_action_range():
     out = compose(base, np.array([[1.0, -1.0], [1.0, 0.2]]), 0.5)
     assert out.dtype == np.float32
     assert np.allclose(out, [[0.1, -0.5], [1.0, -0.9]])
+    # one scale per action: (jaw, pull); 0 leaves the pull to the controller
+    assert np.allclose(compose(base, np.ones((2, 2)), (0.5, 0.0)), [[0.1, 0.0], [1.0, -1.0]])
 
 
 def test_the_training_env_sends_the_controllers_action_plus_the_correction():
@@ -72,6 +74,7 @@ def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(t
     ({"bc_teacher": "reactive"}, "either residual_base"),
     ({"residual_base": "oracle"}, "residual_base"),
     ({"residual_scale": 0.0}, "residual_scale"),
+    ({"residual_scale": [0.5, -0.1]}, "residual_scale"),
     ({"asymmetric_critic": False, "env": {"pull_action": "travel"}}, "residual_base: slipfeedback needs"),
 ])
 def test_bad_residual_settings_are_refused_naming_the_field(over, needle):
