@@ -112,3 +112,14 @@ def test_log_uniform_needs_a_positive_lower_bound():
         from_dict(GraspLiftConfig, {"randomization": {"mu_range": [0.0, 0.9], "mu_distribution": "log_uniform"}})
     with pytest.raises(ConfigError, match="mu_distribution"):
         from_dict(GraspLiftConfig, {"randomization": {"mu_distribution": "normal"}})
+
+
+def test_actor_privileged_shows_the_actor_mu_and_nothing_else_privileged():
+    from msdgrasp.envs.core import OBS_NAMES, actor_mask
+    from msdgrasp.physics.config import ConfigError
+
+    n = len(OBS_NAMES)
+    mask = actor_mask(n, n + 5, 2, privileged=["mu"])
+    assert mask == ([True] * n + [True, False, False, False, False]) * 2
+    with pytest.raises(ConfigError, match="actor_privileged"):
+        actor_mask(n, n, 1, privileged=["mu"])  # (no privileged entries in this observation)
