@@ -142,7 +142,7 @@ class SlipFeedbackPolicy:
                  gain_N_per_mm: float = 1.0, max_force_N: float = 4.0, pull: float = 0.5, contact_jaws: int = 2,
                  settle_steps: int = 6) -> None:
         self.config = config or GraspLiftConfig()
-        if not self.supports(self.config):
+        if not setpoint_interface(self.config):
             raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
                              f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
         if not 0 < initial_force_N <= max_force_N:
@@ -153,6 +153,8 @@ class SlipFeedbackPolicy:
             raise ValueError(f"pull must be in (0, 1], got {pull!r}")
         if contact_jaws not in (1, 2, 3):
             raise ValueError(f"contact_jaws must be 1, 2 or 3, got {contact_jaws!r}")
+        if not (isinstance(settle_steps, int) and settle_steps >= 0):
+            raise ValueError(f"settle_steps must be an integer >= 0, got {settle_steps!r}")
         self.initial = float(initial_force_N)
         self.gain = float(gain_N_per_mm)
         self.max_force = float(max_force_N)
@@ -161,11 +163,6 @@ class SlipFeedbackPolicy:
         self.settle_steps = int(settle_steps)
         self.name = "slipfeedback"
         self.reset([{}])
-
-    @staticmethod
-    def supports(config: GraspLiftConfig) -> bool:
-        """Whether the task's interface is the one it drives (a force set-point jaw, a forward-speed pull)."""
-        return setpoint_interface(config)
 
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
         self.force = np.full(len(infos), self.initial)

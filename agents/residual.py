@@ -18,10 +18,6 @@ import numpy as np
 
 from .controllers import make_policy
 
-#: the controllers a residual may sit on (their state resets per episode without knowing mu)
-RESIDUAL_BASES = ("slipfeedback", "reactive", "fixed")
-
-
 def compose(base: np.ndarray, residual: np.ndarray, scale: float | Sequence[float]) -> np.ndarray:
     """The action sent: the controller's ``base`` plus ``scale`` (one, or one per action) times the learned
     ``residual``, clipped to [-1, 1]."""

@@ -31,13 +31,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig, RandomizationConfig
+from ..envs.core import GraspLiftConfig, RandomizationConfig, setpoint_interface
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
     ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
     evaluate_policy, expand_policy_specs, nan_to_none, trained_ranges_of, trained_task_of,
 )
-from .controllers import SlipFeedbackPolicy, episode_minimal_forces
+from .controllers import episode_minimal_forces
 from .parallel import Runner
 
 SUITE_VERSION = 1
@@ -46,7 +46,6 @@ EPISODES = 10
 #: the suite's baselines (reactive and oracle are added to every evaluation; the fixed force beside them), and the
 #: slip-feedback controller where the task has the interface it drives (a force set-point and a pull speed)
 BASELINES = (*ALWAYS, "fixed")
-INTERFACE_BASELINES = ("slipfeedback",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -181,8 +180,8 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         check_policy_spec(spec)
     specs += [b for b in BASELINES if b not in specs]
     config, trained_on = trained_task_of(specs)
-    if SlipFeedbackPolicy.supports(config):
-        specs += [b for b in INTERFACE_BASELINES if b not in specs]
+    if setpoint_interface(config) and "slipfeedback" not in specs:
+        specs.append("slipfeedback")
     ranges = trained_ranges_of(specs)
     built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
     names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]

@@ -68,6 +68,7 @@ def test_it_pulls_only_once_the_jaws_have_held_for_the_settling_steps():
     ({"gain_N_per_mm": -1.0}, "gain_N_per_mm"),
     ({"pull": 0.0}, "pull"),
     ({"contact_jaws": 4}, "contact_jaws"),
+    ({"settle_steps": -1}, "settle_steps"),
 ])
 def test_bad_parameters_are_refused_naming_the_field(kwargs, needle):
     with pytest.raises(ValueError, match=needle):
