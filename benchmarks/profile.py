@@ -42,6 +42,7 @@ from ..physics.contact import clear_contacts, jaw_contacts, jaw_directions, plat
 from ..physics.forces import (
     displacement_spread,
     flag_watched,
+    implicit_volume_barrier_lanes,
     implicit_volume_barrier_watched,
     spring_loop,
     spring_loop_lanes,
@@ -162,19 +163,14 @@ def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, visit, anc
         _restore(x, v, x0, v0, nodes)
         if not run:
             continue
-        for lane in range(nl):
-            if n_flagged[lane] > 0:
-                anchor_vol[:] = 0.0
-                if lanes:
-                    implicit_volume_barrier_watched(x[:, :, lane], v[:, :, lane], meff[:, lane],
-                                                    (model.fixed, held[lane]), model.tets, model.rest_volume,
-                                                    model.kvol, model.vol_threshold, ks[lane], dt,
-                                                    (flags[:, lane], watch, n_watch), anchor_vol)
-                else:
-                    implicit_volume_barrier_watched(x.reshape((n, 3)), v.reshape((n, 3)), meff[:, 0],
-                                                    (model.fixed, held[0]), model.tets, model.rest_volume,
-                                                    model.kvol, model.vol_threshold, ks[0], dt,
-                                                    (flags.reshape(nt), watch, n_watch), anchor_vol)
+        if lanes:
+            anchor_vol[:] = 0.0
+            implicit_volume_barrier_lanes(x, v, meff, (model.fixed, held), model.tets, model.rest_volume, model.kvol,
+                                          model.vol_threshold, ks, dt, (flags, watch, n_watch), anchor_vol)
+        elif n_flagged[0] > 0:
+            implicit_volume_barrier_watched(x.reshape((n, 3)), v.reshape((n, 3)), meff[:, 0], (model.fixed, held[0]),
+                                            model.tets, model.rest_volume, model.kvol, model.vol_threshold, ks[0],
+                                            dt, (flags.reshape(nt), watch, n_watch), anchor_vol[0])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -224,7 +220,7 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
         jaw_directions(state.g_axis[lane], state.g_e1[lane], u[lane], tj[lane])
     flags = np.empty((nt, nb), dtype=np.int8)
     n_flagged = np.zeros(nb, dtype=np.int64)
-    anchor_vol = np.zeros(3)
+    anchor_vol = np.zeros((nb, 3))  # per tissue: the anchors' force against the barrier
     # the contacts' memory of the last substep: the barrier's step reads it (a copy: the contacts rewrite it)
     held = np.ascontiguousarray(state.held, dtype=np.int8).copy()
     res = np.empty(6)

@@ -51,6 +51,7 @@ from .forces import (
     displacement_spread,
     flag_watched,
     implicit_spring_dashpots,
+    implicit_volume_barrier_lanes,
     implicit_volume_barrier_watched,
     spring_loop,
     spring_loop_lanes,
@@ -174,6 +175,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     x_ref = np.empty((n, 3 * nl))
     lohi = np.empty((3, 3 * nl))
     anchor_vol = np.zeros(3)  # the anchors' force against the barrier in one tissue's substep, N
+    anchor_lanes = np.zeros((nl, 3))  # the same per tissue of a lane block
     held = state.held[lane0 : lane0 + nl]  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
@@ -240,22 +242,23 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                             x_ref[k, c] = x_one[k, c]
                 else:
                     flag_watched(x, tets, rest_volume, m.vol_threshold, watch, n_watch, flags, n_flagged)
-                for lane in range(nl):
-                    if n_flagged[lane] > 0:
-                        b = lane0 + lane
-                        anchor_vol[:] = 0.0
-                        if lanes:
-                            implicit_volume_barrier_watched(x[:, :, lane], v[:, :, lane], meff[:, lane],
-                                                            (fixed, held[lane]), tets, rest_volume, kvol,
-                                                            m.vol_threshold, ks[lane], dt,
-                                                            (flags[:, lane], watch, n_watch), anchor_vol)
-                        else:
-                            implicit_volume_barrier_watched(x_one, v_one, meff[:, 0], (fixed, held[0]), tets,
-                                                            rest_volume, kvol, m.vol_threshold, ks[0], dt,
-                                                            (flags_one, watch, n_watch), anchor_vol)
-                        if last_sub:
-                            for c in range(3):
-                                anchor_out[b, c] += anchor_vol[c]
+                if lanes:
+                    anchor_lanes[:] = 0.0
+                    implicit_volume_barrier_lanes(x, v, meff, (fixed, held), tets, rest_volume, kvol, m.vol_threshold,
+                                                  ks, dt, (flags, watch, n_watch), anchor_lanes)
+                    if last_sub:
+                        for lane in range(nl):
+                            if n_flagged[lane] > 0:
+                                for c in range(3):
+                                    anchor_out[lane0 + lane, c] += anchor_lanes[lane, c]
+                elif n_flagged[0] > 0:
+                    anchor_vol[:] = 0.0
+                    implicit_volume_barrier_watched(x_one, v_one, meff[:, 0], (fixed, held[0]), tets, rest_volume,
+                                                    kvol, m.vol_threshold, ks[0], dt, (flags_one, watch, n_watch),
+                                                    anchor_vol)
+                    if last_sub:
+                        for c in range(3):
+                            anchor_out[lane0, c] += anchor_vol[c]
             # ---- 5. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
