@@ -51,8 +51,13 @@ from ..physics.forces import (
 from ..physics.integrator import _constant_damping, _to_lanes, _update_nodes
 from ..physics.records import Springs
 from ..physics.reference import DT_OUTER
+from ..physics.numba_cache import key_on_physics
 from .bench import _clone, _grasped, time_per_unit
 from .report import _r
+
+# the phase timers below call the physics kernels and are cached: without this, an edit of physics/ would leave
+# them timing the old kernels (numba checks a cached function against its own file only)
+key_on_physics(__file__)
 
 #: batch of the lane-layout rows (one lane block)
 PROFILE_BATCH = 64

@@ -136,9 +136,27 @@ def jaw_candidate(
     p2 = rx * e2x + ry * e2y + rz * e2z
     if p1 * p1 + p2 * p2 < radius * radius:
         return -1
-    phi = math.atan2(p2, p1)
-    k = int(math.floor(phi / (2.0 * math.pi / 3.0) + 0.5)) % 3
-    return k
+    return jaw_sector(p1, p2)
+
+
+#: sin(2 pi / 3): jaw k's centre lies at (cos, sin)(2 pi k / 3) = (1, 0), (-1/2, +-SIN_120) in (e1, e2)
+SIN_120 = math.sqrt(3.0) / 2.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def jaw_sector(p1: float, p2: float) -> int:
+    """The jaw whose centre azimuth (2 pi k / 3) is nearest to the direction (p1, p2) (components along e1, e2; not
+    both zero): the largest projection on the three centre directions, a tie going to the jaw counter-clockwise of
+    the boundary (k = floor(phi / (2 pi / 3) + 1/2) mod 3 with phi = atan2(p2, p1), without the atan2, which took two
+    thirds of the contact pass's node tests)."""
+    c0 = p1
+    c1 = -0.5 * p1 + SIN_120 * p2
+    c2 = -0.5 * p1 - SIN_120 * p2
+    if c1 >= c0 and c1 > c2:
+        return 1
+    if c2 >= c1 and c2 > c0:
+        return 2
+    return 0
 
 
 @njit(cache=True, error_model="numpy")
