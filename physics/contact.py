@@ -147,8 +147,9 @@ SIN_120 = math.sqrt(3.0) / 2.0
 def jaw_sector(p1: float, p2: float) -> int:
     """The jaw whose centre azimuth (2 pi k / 3) is nearest to the direction (p1, p2) (components along e1, e2; not
     both zero): the largest projection on the three centre directions, a tie going to the jaw counter-clockwise of
-    the boundary (k = floor(phi / (2 pi / 3) + 1/2) mod 3 with phi = atan2(p2, p1), without the atan2, which took two
-    thirds of the contact pass's node tests)."""
+    the edge. That is the paper's k = floor(phi / (2 pi / 3) + 1/2) mod 3, phi = atan2(p2, p1), except within
+    round-off of a sector edge (where that formula's own rounding decides), without the atan2, which took two thirds
+    of the contact pass's node tests."""
     c0 = p1
     c1 = -0.5 * p1 + SIN_120 * p2
     c2 = -0.5 * p1 - SIN_120 * p2

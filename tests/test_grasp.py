@@ -167,3 +167,28 @@ def test_axis_missing_the_tissue_is_a_clear_no_contact_result():
 
     with pytest.raises(ConfigError, match="no contact"):
         run_grasp(replace(scene, pose=far, reach=reach), [0.5])
+
+
+def test_each_node_is_assigned_the_jaw_whose_centre_azimuth_is_nearest():
+    """The cylindrical detection's jaw choice (contact.jaw_sector, projections on the jaw centres): the jaw whose
+    centre azimuth 2 pi k / 3 is nearest; the paper's rule k = floor(phi / (2 pi / 3) + 1/2) mod 3 wherever the azimuth
+    is more than round-off from a sector edge; on an exact edge, the jaw counter-clockwise of it."""
+    import math
+
+    from msdgrasp.physics.contact import jaw_sector
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(20000, 2)) * np.exp(rng.uniform(-12.0, 2.0, size=(20000, 1)))
+    edge = rng.choice([math.pi / 3, -math.pi / 3, math.pi, -math.pi], size=20000)
+    near = edge + rng.normal(size=20000) * rng.choice([1e-15, 1e-9, 1e-4], size=20000)
+    pts_edge = np.stack([np.cos(near), np.sin(near)], axis=1) * rng.uniform(1e-4, 1.0, size=(20000, 1))
+    centres = 2.0 * math.pi / 3.0 * np.arange(3)
+    for p1, p2 in np.concatenate([pts, pts_edge]):
+        phi = math.atan2(p2, p1)
+        gap = np.abs((phi - centres + math.pi) % (2.0 * math.pi) - math.pi)  # angle to each jaw centre
+        k = jaw_sector(p1, p2)
+        assert gap[k] <= gap.min() + 1e-12, (p1, p2)
+        if np.sort(gap)[1] - gap.min() > 1e-12:  # clear of an edge: the paper's formula
+            assert k == int(math.floor(phi / (2.0 * math.pi / 3.0) + 0.5)) % 3, (p1, p2)
+    # an exact edge (the two nearest centres equally near, phi = pi): counter-clockwise of it, as floor(3/2 + 1/2)
+    assert jaw_sector(-1.0, 0.0) == 2 and jaw_sector(-0.25, 0.0) == 2
