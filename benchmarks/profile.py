@@ -162,7 +162,6 @@ def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, visit, anc
     (flags (T,L), n_flagged (L,), watch, n_watch) as the flag pass left them."""
     flags, n_flagged, watch, n_watch = visit
     n = x.shape[0]
-    nl = x.shape[2]
     nt = model.tets.shape[0]
     for _ in range(reps):
         _restore(x, v, x0, v0, nodes)

@@ -20,13 +20,14 @@ last outer step, i.e. what a 1 kHz force sensor would report.
 State is plain arrays with the batch first: x (B,N,3), v (B,N,3), grasper pose (B,3), radius (B,), ...
 Tissues of a batch differ by per-tissue stiffness and mass scale, friction, grasper pose and commands.
 
-Vectorisation across tissues: a batch of LANE_MIN or more runs in blocks of up to LANE_BLOCK tissues
-copied into a tissue-innermost "lane" layout (x[i, c, lane]) for the duration of the call. Springs, tets
-and the node update then loop over lanes innermost, with unit stride and no branches, and LLVM emits SIMD
-code for them (measured here: 1.7x less time per tissue at B = 64 than tissue by tissue with the
-three-pass one-tissue spring loop, 2.1-2.2x than the fused loop it replaced). Contacts stay per tissue
-(few nodes, branchy). Every lane performs the one-tissue kernels' floating-point operations
-in the same order, so a tissue's trajectory is bitwise the same in any batch (tests/test_batching.py).
+Vectorisation across tissues: a batch of LANE_MIN or more runs in blocks of up to LANE_BLOCK tissues (a
+multiple of LANE_WIDTH each; the few left over run alone) copied into a tissue-innermost "lane" layout
+(x[i, c, lane]) for the duration of the call. Springs, tets and the node update then loop over lanes
+innermost, with unit stride and no branches, and LLVM emits SIMD code for them (7.0 us per tissue and
+substep at 32 lanes against 10.2 us for one tissue alone on the bench's grasp). Contacts and the volume
+barrier's impulses stay per tissue (few nodes, branchy). Every lane performs the one-tissue kernels'
+floating-point operations in the same order, so a tissue's trajectory is bitwise the same in any batch
+(tests/test_batching.py).
 """
 
 from __future__ import annotations
@@ -60,13 +61,39 @@ from .forces import (
 from .records import SimModel, SimReadout, SimState, Springs
 
 
+#: lane blocks hold a multiple of this many tissues: LLVM vectorises the loops over lanes in chunks of 8 doubles
+#: and runs a remainder scalar (measured per tissue and substep on the bench's grasp: 31 lanes 9.0 us, 32 lanes
+#: 7.0 us, one tissue alone 10.2 us)
+LANE_WIDTH = 8
 #: batches of at least this many tissues compute springs and tets across tissues (SIMD lanes); smaller
-#: ones loop over tissues with the one-tissue kernels, which are faster when there are few lanes. (LLVM
-#: guards the vectorised spring loop with a trip-count check of 32 here: 16-31 lanes gain 1.3x per
-#: tissue, mostly from the node update; 32 and more 2.1-2.2x.)
-LANE_MIN = 16
+#: ones, and the fewer than LANE_WIDTH tissues left over by the blocks, loop over tissues with the one-tissue
+#: kernels. (LLVM guards the vectorised spring loop with a trip-count check: 16 lanes ran it scalar, 12.4 us per
+#: tissue and substep against 7.4 at 24 lanes.)
+LANE_MIN = 24
 #: tissues advanced together in one lane block (bounds the block's state to a few MB of cache)
 LANE_BLOCK = 64
+
+
+@njit(cache=True, error_model="numpy")
+def lane_blocks(nb: int) -> np.ndarray:
+    """(first tissue, tissues) of each block :func:`simulate` advances a batch of ``nb`` tissues in: blocks of
+    LANE_MIN..LANE_BLOCK tissues, a multiple of LANE_WIDTH each and as equal as that allows, then the rest (fewer
+    than LANE_WIDTH, or the whole batch below LANE_MIN) one tissue per block."""
+    in_lanes = nb // LANE_WIDTH * LANE_WIDTH if nb >= LANE_MIN else 0
+    units = in_lanes // LANE_WIDTH
+    n_blocks = -(-in_lanes // LANE_BLOCK)
+    out = np.empty((n_blocks + nb - in_lanes, 2), dtype=np.int64)
+    lane0 = 0
+    for k in range(n_blocks):
+        nl = (units // n_blocks + (1 if k < units % n_blocks else 0)) * LANE_WIDTH
+        out[k, 0] = lane0
+        out[k, 1] = nl
+        lane0 += nl
+    for k in range(n_blocks, out.shape[0]):
+        out[k, 0] = lane0
+        out[k, 1] = 1
+        lane0 += 1
+    return out
 
 
 @njit(cache=True, error_model="numpy")
@@ -76,19 +103,17 @@ def simulate(model: SimModel, state: SimState, out: SimReadout, n_steps: int) ->
     Tissues are independent.
 
     Internally the batch runs in blocks of up to LANE_BLOCK tissues stored tissue-innermost (lane
-    layout, x[i, c, lane]): copied in at the start of the call and back at the end, so the per-substep
-    loops over springs, tets and nodes run across tissues with SIMD. A batch of one is a view.
+    layout, x[i, c, lane]; :func:`lane_blocks`): copied in at the start of the call and back at the end, so the
+    per-substep loops over springs, tets and nodes run across tissues with SIMD. A block of one is a view.
     """
     x, v, fv, dl_prev = state.x, state.v, state.fv, state.dl_prev
     nb = x.shape[0]
     n = x.shape[1]
     ne = fv.shape[1]
-    if nb < LANE_MIN:
-        block = 1  # tissue after tissue, in place
-    else:  # equal blocks of LANE_MIN..LANE_BLOCK tissues
-        block = -(-nb // -(-nb // LANE_BLOCK))
-    for lane0 in range(0, nb, block):
-        nl = min(block, nb - lane0)
+    blocks = lane_blocks(nb)
+    for k in range(blocks.shape[0]):
+        lane0 = blocks[k, 0]
+        nl = blocks[k, 1]
         if nl == 1:  # x[b] (N,3) and (N,3,1) are the same memory
             xl = x[lane0].reshape((n, 3, 1))
             vl = v[lane0].reshape((n, 3, 1))

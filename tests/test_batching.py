@@ -1,7 +1,8 @@
 """Batching is an implementation detail: a tissue's trajectory does not depend on the batch it runs in.
 
 Batches of LANE_MIN or more tissues run springs, tets and the node update across tissues (SIMD lanes,
-in blocks of up to LANE_BLOCK); smaller ones run tissue after tissue. Each lane performs the same
+in blocks of up to LANE_BLOCK); smaller ones, and the few a batch leaves over, run tissue after tissue. Each
+lane performs the same
 floating-point operations in the same order as the one-tissue kernels, so the results must agree
 *bitwise*, not within a tolerance: any drift means the two code paths compute different physics.
 """
@@ -181,3 +182,19 @@ def test_a_blown_up_tissue_does_not_touch_its_lane_neighbours():
     alone.step(40)
     for b in (2, 4, LANE_MIN - 1):
         _assert_same(batch, alone, b)
+
+
+@pytest.mark.parametrize("nb", [1, LANE_MIN - 1, LANE_MIN, LANE_MIN + 1, 30, 32, LANE_BLOCK, LANE_BLOCK + 3, 72, 257])
+def test_lane_blocks_cover_the_batch_in_simd_widths(nb):
+    """simulate's blocks: consecutive, covering every tissue once; lane blocks of LANE_MIN..LANE_BLOCK tissues in
+    multiples of LANE_WIDTH (the vector width the loops are compiled for); alone only the leftover tissues (fewer
+    than LANE_WIDTH) or a whole batch below LANE_MIN."""
+    from msdgrasp.physics.integrator import LANE_WIDTH, lane_blocks
+
+    blocks = lane_blocks(nb)
+    assert blocks[0, 0] == 0 and blocks[:, 1].sum() == nb
+    assert np.array_equal(blocks[1:, 0], blocks[:-1, 0] + blocks[:-1, 1])
+    lanes = blocks[blocks[:, 1] > 1, 1]
+    assert ((lanes >= LANE_MIN) & (lanes <= LANE_BLOCK) & (lanes % LANE_WIDTH == 0)).all()
+    alone = int(np.sum(blocks[:, 1] == 1))
+    assert alone == (nb if nb < LANE_MIN else nb % LANE_WIDTH)
