@@ -1,10 +1,9 @@
 """Batching is an implementation detail: a tissue's trajectory does not depend on the batch it runs in.
 
 Batches of LANE_MIN or more tissues run springs, tets and the node update across tissues (SIMD lanes,
-in blocks of up to LANE_BLOCK); smaller ones, and the few a batch leaves over, run tissue after tissue. Each
-lane performs the same
-floating-point operations in the same order as the one-tissue kernels, so the results must agree
-*bitwise*, not within a tolerance: any drift means the two code paths compute different physics.
+in blocks of up to LANE_BLOCK); smaller ones, and the few a batch leaves over, run tissue after tissue.
+Each lane performs the same floating-point operations in the same order as the one-tissue kernels, so the
+results must agree *bitwise*, not within a tolerance: any drift means the two code paths compute different physics.
 """
 
 from __future__ import annotations
