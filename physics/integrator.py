@@ -199,8 +199,8 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     n_watch = -1
     x_ref = np.empty((n, 3 * nl))
     lohi = np.empty((3, 3 * nl))
-    anchor_vol = np.zeros(3)  # the anchors' force against the barrier in one tissue's substep, N
-    anchor_lanes = np.zeros((nl, 3))  # the same per tissue of a lane block
+    anchor_vol = np.zeros(3)  # the anchors' force against the spring dashpots in one tissue's substep, N
+    anchor_lanes = np.zeros((nl, 3))  # per tissue: the anchors' force against the volume barrier in a substep, N
     held = state.held[lane0 : lane0 + nl]  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
@@ -267,23 +267,19 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                             x_ref[k, c] = x_one[k, c]
                 else:
                     flag_watched(x, tets, rest_volume, m.vol_threshold, watch, n_watch, flags, n_flagged)
+                anchor_lanes[:] = 0.0
                 if lanes:
-                    anchor_lanes[:] = 0.0
                     implicit_volume_barrier_lanes(x, v, meff, (fixed, held), tets, rest_volume, kvol, m.vol_threshold,
                                                   ks, dt, (flags, watch, n_watch), anchor_lanes)
-                    if last_sub:
-                        for lane in range(nl):
-                            if n_flagged[lane] > 0:
-                                for c in range(3):
-                                    anchor_out[lane0 + lane, c] += anchor_lanes[lane, c]
                 elif n_flagged[0] > 0:
-                    anchor_vol[:] = 0.0
                     implicit_volume_barrier_watched(x_one, v_one, meff[:, 0], (fixed, held[0]), tets, rest_volume,
                                                     kvol, m.vol_threshold, ks[0], dt, (flags_one, watch, n_watch),
-                                                    anchor_vol)
-                    if last_sub:
-                        for c in range(3):
-                            anchor_out[lane0, c] += anchor_vol[c]
+                                                    anchor_lanes[0])
+                if last_sub:
+                    for lane in range(nl):
+                        if n_flagged[lane] > 0:
+                            for c in range(3):
+                                anchor_out[lane0 + lane, c] += anchor_lanes[lane, c]
             # ---- 5. contacts, one tissue at a time (branchy, few nodes)
             for lane in range(nl):
                 b = lane0 + lane
