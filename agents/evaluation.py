@@ -161,6 +161,10 @@ def _config_for(config: GraspLiftConfig, options: dict[str, float]) -> GraspLift
     return config if rnd is config.randomization else replace(config, randomization=rnd)
 
 
+#: the grasper's travel from which a pull counts as started (``peak_pinch_before_pull_N``), m
+PULL_STARTED_M = 1e-3
+
+
 def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
                options: dict[str, float] | None = None) -> dict[str, np.ndarray]:
     """Run ``len(seeds) <= env.num_envs`` episodes, episode k at friction ``mus[k]``; per-episode metrics
@@ -177,6 +181,7 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
     out = {
         "success": np.zeros(B, dtype=bool),
         "peak_pinch_N": np.zeros(B),
+        "peak_pinch_before_pull_N": np.zeros(B),
         "pinch_sum_N": np.zeros(B),
         "return": np.zeros(B),
         "steps": np.zeros(B, dtype=np.int64),
@@ -196,6 +201,10 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         obs, rew, term, trunc, inf = core.step(act)
         live = ~done
         out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
+        # where the peak is set: the grip before the grasper has pulled PULL_STARTED_M (closing, squeezing)
+        before = live & (inf["travel_m"] < PULL_STARTED_M)
+        out["peak_pinch_before_pull_N"][before] = np.maximum(out["peak_pinch_before_pull_N"][before],
+                                                             inf["pinch_force_N"][before])
         out["return"][live] += rew[live]
         out["steps"][live] += 1
         out["time_above_damage_s"][live & (inf["peak_stress_pa"] > DAMAGE_PRESSURE_PA)] += env.config.agent_dt_s
@@ -239,6 +248,7 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
         "mean_peak_pinch_N": float(np.mean(ep["peak_pinch_N"])),
         "peak_pinch_ci95_N": list(bootstrap_ci(ep["peak_pinch_N"])),
         "max_peak_pinch_N": float(np.max(ep["peak_pinch_N"])),
+        "mean_peak_pinch_before_pull_N": float(np.mean(ep["peak_pinch_before_pull_N"])),
         "mean_pinch_N": float(np.mean(ep["mean_pinch_N"])),
         "mean_return": float(np.mean(ep["return"])),
         "mean_slip_mm": float(np.mean(ep["slip_mm"])),
@@ -251,6 +261,7 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
         "per_episode": {
             "success": [bool(v) for v in ep["success"]],
             "peak_pinch_N": [float(v) for v in ep["peak_pinch_N"]],
+            "peak_pinch_before_pull_N": [float(v) for v in ep["peak_pinch_before_pull_N"]],
             "mean_pinch_N": [float(v) for v in ep["mean_pinch_N"]],
             "return": [float(v) for v in ep["return"]],
             "slip_mm": [float(v) for v in ep["slip_mm"]],

@@ -88,3 +88,8 @@ def test_it_lifts_with_a_lighter_grip_than_the_slip_reactive_controller_under_fo
     for a, b in zip(ours, theirs):
         assert a["success_rate"] == 1.0, a["outcomes"]
         assert a["mean_peak_pinch_N"] < b["mean_peak_pinch_N"]
+        # before it pulls it holds its initial 0.55 N set-point: the evaluation's grip before the pull is the
+        # jaws' force on it (the force loop settles from below; 5 % for the loop's overshoot), not zero
+        before = a["per_episode"]["peak_pinch_before_pull_N"]
+        assert all(0.0 < f <= 0.55 * 1.05 for f in before), before
+        assert all(f <= p for f, p in zip(before, a["per_episode"]["peak_pinch_N"]))
