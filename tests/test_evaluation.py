@@ -184,16 +184,19 @@ def _hand_episode(env: GraspLiftEnv, seed: int, mu: float) -> dict[str, float]:
     policy = FixedForcePolicy(CONFIG)
     obs, info = env.reset(seed=seed, options={"mu": mu})
     policy.reset([info])
-    pinches, stresses, ttl = [], [], float("nan")
+    pinches, stresses, ttl, before_pull = [], [], float("nan"), 0.0
     for step in range(1, CONFIG.max_episode_steps + 1):
         obs, _, terminated, truncated, info = env.step(policy.act(obs[None])[0])
         pinches.append(info["pinch_force_N"])
+        if info["travel_m"] < 1e-3:  # the grasper has not pulled 1 mm yet
+            before_pull = max(before_pull, info["pinch_force_N"])
         stresses.append(info["peak_stress_pa"])
         if math.isnan(ttl) and info["lifted_m"] >= CONFIG.lift_target_m:
             ttl = step * CONFIG.agent_dt_s
         if terminated or truncated:
             break
     return {"success": bool(info["is_success"]), "peak_pinch_N": max(pinches), "mean_pinch_N": float(np.mean(pinches)),
+            "peak_pinch_before_pull_N": before_pull,
             "slip_mm": info["slip_distance_m"] * 1e3, "peak_stress_kPa": max(stresses) * 1e-3, "time_to_lift_s": ttl,
             "steps": step}
 
@@ -208,7 +211,8 @@ def test_json_values_match_episodes_run_by_hand(cli_run):
     per = row["per_episode"]
     assert per["success"] == [h["success"] for h in hand]
     assert per["steps"] == [h["steps"] for h in hand]
-    for key in ("peak_pinch_N", "mean_pinch_N", "slip_mm", "peak_stress_kPa", "time_to_lift_s"):
+    for key in ("peak_pinch_N", "peak_pinch_before_pull_N", "mean_pinch_N", "slip_mm", "peak_stress_kPa",
+                "time_to_lift_s"):
         assert per[key] == pytest.approx([h[key] for h in hand], rel=1e-6, nan_ok=True), key
     assert row["success_rate"] == pytest.approx(np.mean([h["success"] for h in hand]))
     assert row["mean_peak_pinch_N"] == pytest.approx(np.mean([h["peak_pinch_N"] for h in hand]), rel=1e-6)
