@@ -18,7 +18,7 @@ import pytest
 
 from msdgrasp.cli.main import build_parser, main
 from msdgrasp.agents.controllers import FixedForcePolicy, OraclePolicy, minimal_force
-from msdgrasp.agents.evaluation import CSV_COLUMNS, evaluate_policy, parse_mu_grid
+from msdgrasp.agents.evaluation import CSV_COLUMNS, PULL_STARTED_M, evaluate_policy, parse_mu_grid
 from msdgrasp.envs.core import GraspLiftConfig
 from msdgrasp.envs.grasp_lift import GraspLiftEnv
 from msdgrasp.physics.config import ConfigError
@@ -188,7 +188,7 @@ def _hand_episode(env: GraspLiftEnv, seed: int, mu: float) -> dict[str, float]:
     for step in range(1, CONFIG.max_episode_steps + 1):
         obs, _, terminated, truncated, info = env.step(policy.act(obs[None])[0])
         pinches.append(info["pinch_force_N"])
-        if info["travel_m"] < 1e-3:  # the grasper has not pulled 1 mm yet
+        if info["travel_m"] < PULL_STARTED_M:  # the grasper has not started pulling yet
             before_pull = max(before_pull, info["pinch_force_N"])
         stresses.append(info["peak_stress_pa"])
         if math.isnan(ttl) and info["lifted_m"] >= CONFIG.lift_target_m:
