@@ -474,14 +474,20 @@ class GraspLiftCore:
         return {name: v[name] for name in ("mu", "mu_kinetic", "stiffness_scale", "mass_scale")}
 
     # ------------------------------------------------------------------------------------------
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        """Advance every sub-env by one agent step. ``actions``: (B,2) in [-1,1] (clipped)."""
+    def step(self, actions: np.ndarray, advance: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Advance every sub-env by one agent step. ``actions``: (B,2) in [-1,1] (clipped).
+
+        ``advance``: the indices of the sub-envs whose physics runs this step (default: all). The others' tissues
+        stand still and their task update reads their last readouts: for a batch whose ended episodes no longer
+        count (an evaluation), it skips their physics and changes nothing for the rest (each tissue's physics is
+        bitwise the same in any batch)."""
         actions = np.ascontiguousarray(actions, dtype=np.float64)
         if actions.shape != (self.num_envs, 2):
             raise ConfigError(f"actions must have shape ({self.num_envs}, 2), got {actions.shape}")
         sim, ts = self.sim, self.state
         command_batch(self.params, sim.kernel_state(), ts, actions)
-        sim.step(self.config.physics_steps_per_action)
+        sim.step(self.config.physics_steps_per_action, indices=advance)
         finite = sim.finite()
         volume_ratio = sim.min_volume_ratio()
         rnd = self.config.randomization

@@ -328,10 +328,25 @@ class Simulation:
         return SimReadout(jaw_out=self.jaw_out, plate_out=self.plate_out, anchor_out=self.anchor_out,
                           contact_state=self.contact_state, contact_force=self.contact_force)
 
-    def step(self, n_steps: int = 1) -> None:
-        """Advance all tissues by ``n_steps`` outer steps (n_steps x n_sub substeps) in one kernel call."""
+    def step(self, n_steps: int = 1, indices=None) -> None:
+        """Advance the tissues by ``n_steps`` outer steps (n_steps x n_sub substeps) in one kernel call.
+
+        ``indices`` (CPU backend): advance only these tissues; the others (and their readouts) stay as they
+        are. Each tissue's trajectory is bitwise the same in any batch, so this changes nothing for the tissues
+        advanced; it saves the work of tissues whose episodes have ended while others run on."""
         # records are rebuilt each call (a few microseconds): they alias the current arrays, whatever
         # a caller has assigned to the attributes since
+        if indices is not None:
+            idx = self._idx(indices)
+            if idx.size and (idx.min() < 0 or idx.max() >= self.batch_size or np.unique(idx).size != idx.size):
+                raise ConfigError(f"step indices must be distinct tissues in 0..{self.batch_size - 1}, got {idx}")
+            if self.backend == "cuda":
+                raise ConfigError("step indices: the cuda backend advances its whole resident batch; pass "
+                                  "indices=None")
+            if idx.size < self.batch_size:
+                if idx.size:
+                    self._step_subset(np.sort(idx), int(n_steps))
+                return
         if self.backend == "cuda":
             state, out = self.kernel_state(), self.kernel_readout()
             if self._cuda is None:
@@ -344,6 +359,17 @@ class Simulation:
             self._cuda.download(state, out)
             return
         simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps))
+
+    def _step_subset(self, idx: np.ndarray, n_steps: int) -> None:
+        """:meth:`step` of the tissues ``idx`` alone: their state and readouts gathered into a smaller batch,
+        advanced, and written back."""
+        state = SimState(*(a[idx] for a in self.kernel_state()))
+        out = SimReadout(*(a[idx] for a in self.kernel_readout()))
+        simulate(self.kernel_model(), state, out, n_steps)
+        for dst, src in zip(self.kernel_state(), state):
+            dst[idx] = src
+        for dst, src in zip(self.kernel_readout(), out):
+            dst[idx] = src
 
     # -- readouts ---------------------------------------------------------------------------------
     def finite(self) -> np.ndarray:

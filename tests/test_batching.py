@@ -183,6 +183,45 @@ def test_a_blown_up_tissue_does_not_touch_its_lane_neighbours():
         _assert_same(batch, alone, b)
 
 
+def test_stepping_some_tissues_moves_them_as_the_whole_batch_and_leaves_the_rest():
+    """``step(n, indices)`` (what an evaluation uses once some episodes have ended): the tissues named move
+    bitwise as in a step of the whole batch (here from a lane block of 26 to 24 lanes and to tissues alone), the
+    others, state and readouts, do not change at all."""
+    scene = spleen_scene(resolution="coarse")
+    kw = {"max_stiffness_scale": 1.3, "min_mass_scale": 0.85}
+    B = LANE_MIN + 2
+    whole, part = scene.simulation(B, **kw), scene.simulation(B, **kw)
+    settings = _varied(whole, np.random.default_rng(7), scene.pull_direction)
+    _apply(part, settings, np.arange(B))
+    whole.step(120)
+    part.step(120)  # in contact: sticking and slipping
+    assert part.jaw_contact_counts[:, :, 0].sum() > 0, "the scenario must reach contact"
+    for some in (np.arange(2, B), np.array([5, 0, 17])):  # (unsorted: any order names the same tissues)
+        kept = {name: getattr(part, name).copy() for name in STATE + READOUTS}
+        whole.step(33)
+        part.step(33, indices=some)
+        rest = np.setdiff1d(np.arange(B), some)
+        for name in STATE + READOUTS:
+            got = getattr(part, name)
+            assert np.array_equal(got[some], getattr(whole, name)[some]), f"{name} of the tissues stepped"
+            assert np.array_equal(got[rest], kept[name][rest]), f"{name} of the tissues not stepped"
+        # catch up with the whole batch: its state and readouts, whole
+        for dst, src in zip((*part.kernel_state(), *part.kernel_readout()),
+                            (*whole.kernel_state(), *whole.kernel_readout())):
+            dst[...] = src
+
+
+@pytest.mark.parametrize("indices", [[0, 0], [-1], [LANE_MIN + 2]])
+def test_stepping_tissues_that_are_not_distinct_members_of_the_batch_is_refused(indices):
+    from msdgrasp.physics.config import ConfigError
+
+    sim = spleen_scene(resolution="coarse").simulation(LANE_MIN + 2)
+    x = sim.x.copy()
+    with pytest.raises(ConfigError, match="step indices"):
+        sim.step(1, indices=indices)
+    assert np.array_equal(sim.x, x)
+
+
 @pytest.mark.parametrize("nb", [1, LANE_MIN - 1, LANE_MIN, LANE_MIN + 1, 30, 32, LANE_BLOCK, LANE_BLOCK + 3, 72, 257])
 def test_lane_blocks_cover_the_batch_in_simd_widths(nb):
     """simulate's blocks: consecutive, covering every tissue once; lane blocks of LANE_MIN..LANE_BLOCK tissues in
