@@ -222,6 +222,15 @@ def test_stepping_tissues_that_are_not_distinct_members_of_the_batch_is_refused(
     assert np.array_equal(sim.x, x)
 
 
+def test_the_cuda_backend_refuses_to_step_some_tissues():
+    """Its batch lives on the device and steps whole: a subset is refused, not silently stepped whole."""
+    from msdgrasp.physics.config import ConfigError
+
+    sim = spleen_scene(resolution="coarse").simulation(2, backend="cuda")
+    with pytest.raises(ConfigError, match="cuda backend advances its whole"):
+        sim.step(1, indices=[0])
+
+
 @pytest.mark.parametrize("nb", [1, LANE_MIN - 1, LANE_MIN, LANE_MIN + 1, 30, 32, LANE_BLOCK, LANE_BLOCK + 3, 72, 257])
 def test_lane_blocks_cover_the_batch_in_simd_widths(nb):
     """simulate's blocks: consecutive, covering every tissue once; lane blocks of LANE_MIN..LANE_BLOCK tissues in
