@@ -257,7 +257,7 @@ def _fixed_force_success(env, forces: np.ndarray, pull: float, **reset) -> np.nd
     for _ in range(env.config.max_episode_steps):
         act = pol.act(obs)
         # (ended episodes' tissues stand still, as in the evaluation)
-        obs, _, term, trunc, info = core.step(act, advance=np.flatnonzero(~done) if done.any() else None)
+        obs, _, term, trunc, info = core.step(act, advance=np.flatnonzero(~done))
         success |= (~done) & info["is_success"]
         done |= term | trunc
         if done.all():

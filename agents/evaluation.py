@@ -200,7 +200,7 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         act = np.where(done[:, None], idle_action(env.config), act)  # finished tissues just rest
         # ended episodes no longer count: their tissues stand still (each tissue's physics is the same in any
         # batch, so the others' are unchanged)
-        obs, rew, term, trunc, inf = core.step(act, advance=np.flatnonzero(~done) if done.any() else None)
+        obs, rew, term, trunc, inf = core.step(act, advance=np.flatnonzero(~done))
         live = ~done
         out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
         # where the peak is set: the grip before the grasper has pulled PULL_STARTED_M (closing, squeezing)
