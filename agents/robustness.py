@@ -85,6 +85,9 @@ SUITES = {"robustness": CONDITIONS}
 #: the hindsight oracle's axes: those inside a robust training's ranges whose conditions change the force a grasp
 #: needs (the tissue's conditions change it too, but lie outside every training's ranges)
 HINDSIGHT_AXES = ("nominal", "placement")
+#: the share of a condition's episodes at each mu that the hindsight's fixed grip holds (the robust training's
+#: success target, 95 %)
+FIXED_GRIP_SHARE = 0.95
 
 
 def condition_config(config: GraspLiftConfig, condition: Condition) -> GraspLiftConfig:
@@ -135,15 +138,32 @@ def _hindsight_job(config_dict: dict[str, Any], mus: Sequence[float], episodes: 
             for k, m in enumerate(mus)}
 
 
+def fixed_grip_force(forces: Sequence[float | None], share: float = FIXED_GRIP_SHARE) -> float:
+    """The smallest fixed pinch force that holds at least ``share`` of the episodes whose own minimal fixed forces are
+    ``forces`` (None: no fixed force holds that episode): their ceil(share x n)-th smallest, as a grip that holds an
+    episode holds it at any larger force too. NaN where no fixed force holds that share."""
+    if not forces or not 0.0 < share <= 1.0:
+        raise ValueError(f"need episodes and a share in (0, 1], got {len(forces)} episodes and share {share!r}")
+    ordered = sorted(math.inf if f is None else float(f) for f in forces)
+    f = ordered[math.ceil(share * len(ordered) - 1e-9) - 1]
+    return f if math.isfinite(f) else math.nan
+
+
 def _hindsight_cell(forces: dict[str, list[float | None]], minimal: dict[float, float]) -> dict[str, Any]:
-    """What the hindsight oracle needs in one condition: the share of episodes some fixed force holds and the mean
-    over mu of their mean minimal force over the nominal oracle's (the force ratio a policy that grips each
-    episode with just enough could reach)."""
+    """What the hindsight oracle needs in one condition: the share of episodes some fixed force holds; the mean over
+    mu of their mean minimal force over the nominal oracle's (the force ratio a policy that grips each episode with
+    just enough could reach); and the mean over mu of :func:`fixed_grip_force` over the nominal oracle's (the force
+    ratio of a grip fixed per mu that holds FIXED_GRIP_SHARE of the episodes: a policy that knows mu but cannot tell
+    the condition's episodes apart)."""
     held = [f for fs in forces.values() for f in fs if f is not None]
-    ratios = [np.mean([f for f in fs if f is not None]) / minimal[float(m)] for m, fs in forces.items()
-              if any(f is not None for f in fs) and math.isfinite(minimal.get(float(m), math.nan))]
+    known = {m: fs for m, fs in forces.items() if math.isfinite(minimal.get(float(m), math.nan))}
+    ratios = [np.mean([f for f in fs if f is not None]) / minimal[float(m)] for m, fs in known.items()
+              if any(f is not None for f in fs)]
+    fixed = [fixed_grip_force(fs) / minimal[float(m)] for m, fs in known.items()]
     return {"held_rate": len(held) / sum(len(fs) for fs in forces.values()),
-            "force_ratio": float(np.mean(ratios)) if ratios else math.nan, "episode_minimal_force_N": forces}
+            "force_ratio": float(np.mean(ratios)) if ratios else math.nan,
+            "fixed_grip_ratio": float(np.mean(fixed)) if fixed else math.nan,
+            "episode_minimal_force_N": forces}
 
 
 def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, Any]:
@@ -291,7 +311,9 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
     lines += ["", "Success rate / force ratio per condition" + (
         "; hindsight: the share of episodes a fixed force holds / the ratio of their mean minimal fixed force "
         "(each episode's own, found by search) to the nominal oracle's, what a policy gripping every episode "
-        "with just enough would reach:" if hind else ":"), "",
+        "with just enough would reach / the ratio of the smallest grip fixed per mu that holds "
+        f"{FIXED_GRIP_SHARE:.0%} of the episodes, what a policy that knows mu but cannot tell the episodes apart "
+        "needs:" if hind else ":"), "",
               "| axis | condition | " + " | ".join(names) + (" | hindsight" if hind else "") + " |",
               "|---|---|" + "---|" * (len(names) + bool(hind))]
     for c, cond in enumerate(result["conditions"]):
@@ -299,7 +321,8 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
         extra = ""
         if hind:
             h = hind[c]
-            extra = " | -" if h is None else f" | {h['held_rate']:.2f} / {_num(h['force_ratio'], '.2f')}"
+            extra = " | -" if h is None else (f" | {h['held_rate']:.2f} / {_num(h['force_ratio'], '.2f')} / "
+                                              f"{_num(h.get('fixed_grip_ratio'), '.2f')}")
         mark = " *" if result["inside_training_ranges"][c] else ""
         lines.append(f"| {cond['axis']} | {cond['name']}{mark} | " + " | ".join(
             f"{x['success_rate']:.2f} / {_num(x['force_ratio'], '.2f')}" for x in cells) + extra + " |")

@@ -116,6 +116,21 @@ def test_the_hindsight_oracle_finds_each_episodes_own_minimal_force():
     assert held.tolist() == [True, False]
 
 
+def test_a_fixed_grip_holds_the_share_of_episodes_whose_own_minimal_force_it_reaches():
+    """Of 20 episodes needing 1..20 N, a grip of 19 N holds 19 (95 %) and 18 N only 18; an episode no fixed force
+    holds counts as needing more than any, and where more than 5 % are such, no fixed grip holds 95 %."""
+    from msdgrasp.agents.robustness import fixed_grip_force
+
+    needs = [float(k) for k in range(20, 0, -1)]
+    assert fixed_grip_force(needs) == 19.0
+    assert fixed_grip_force(needs, share=0.5) == 10.0 and fixed_grip_force(needs, share=1.0) == 20.0
+    assert fixed_grip_force(needs[1:] + [None]) == 19.0  # 1..19 N and one unheld: 19 N holds 19 of 20
+    assert math.isnan(fixed_grip_force(needs[2:] + [None, None]))
+    assert fixed_grip_force([None] * 3 + [0.5] * 57) == 0.5  # 57 of 60 is 95 %
+    with pytest.raises(ValueError, match="share"):
+        fixed_grip_force(needs, share=0.0)
+
+
 def test_the_suite_reports_the_hindsight_oracle_where_the_placement_changes(tmp_path, monkeypatch):
     stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
                 Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
@@ -133,6 +148,8 @@ def test_the_suite_reports_the_hindsight_oracle_where_the_placement_changes(tmp_
     assert latency is None  # (latency changes no placement)
     assert nominal["held_rate"] == 0.5 and math.isclose(nominal["force_ratio"], 1.5 / 1.25)
     board = (tmp_path / "leaderboard_robustness.md").read_text()
-    assert "| hindsight |" in board and "| 0.50 / 1.20 |" in board
+    # one episode of two held: no fixed grip holds 95 % of them
+    assert nominal["fixed_grip_ratio"] is None  # (NaN, written as null)
+    assert "| hindsight |" in board and "| 0.50 / 1.20 / - |" in board
     rc, _, err = _run_main(["evaluate", "--policy", "fixed", "--hindsight", "--out", str(tmp_path / "y")])
     assert rc == 2 and "--hindsight needs --suite" in err
