@@ -137,9 +137,10 @@ class TrainConfig:
     #: as normal_force), e.g. the force readings, so that a policy cannot lean on a noisy or biased sensor; the
     #: critic still sees them. Needs asymmetric_critic (the actor's mask). Empty: the actor sees every task entry
     actor_hidden: tuple[Str, ...] = ()
-    #: privileged entries the actor sees too (names of envs.core.ACTOR_PRIVILEGED: ``mu``): a diagnosis, an actor
-    #: that knows what a deployed one would have to estimate. Needs asymmetric_critic. Empty (the default): none
-    actor_privileged: tuple[Literal["mu"], ...] = ()
+    #: privileged entries the actor sees too (names of envs.core.ACTOR_PRIVILEGED: ``mu``; ``perturbations``, the
+    #: episode's robustness draws, with env.privileged_perturbations): a diagnosis, an actor that knows what a
+    #: deployed one would have to estimate. Needs asymmetric_critic. Empty (the default): none
+    actor_privileged: tuple[Literal["mu", "perturbations"], ...] = ()
     #: residual policy (agents/residual.py): the model's action is a correction added to this controller's,
     #: clip(controller + residual_scale x model, -1, 1), in training and wherever the model runs; the controller
     #: needs the task's interface (slipfeedback: a force set-point and a pull speed). None: the model acts alone
@@ -198,6 +199,9 @@ class TrainConfig:
             hidden_entries(self.actor_hidden)
         if self.actor_privileged and not self.asymmetric_critic:
             raise ConfigError("actor_privileged needs asymmetric_critic: true (the actor's mask shows the entries)")
+        if "perturbations" in self.actor_privileged and not self.env.privileged_perturbations:
+            raise ConfigError("actor_privileged: 'perturbations' needs env.privileged_perturbations: true (the "
+                              "entries it shows)")
         if self.asymmetric_critic and self.algo != "ppo":
             raise ConfigError(f"asymmetric_critic is implemented for algo 'ppo' only, got algo {self.algo!r}")
         if self.asymmetric_critic and not self.env.privileged_obs:

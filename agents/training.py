@@ -158,7 +158,8 @@ def new_model(config: TrainConfig, venv, tensorboard_log: str | None = None):
 
         policy = AsymmetricActorCriticPolicy
         policy_kwargs["actor_mask"] = actor_mask(len(OBS_NAMES), venv.core.frame_dim, config.env.obs_history,
-                                                 config.actor_hidden, config.actor_privileged)
+                                                 config.actor_hidden, config.actor_privileged,
+                                                 config.env.privileged_perturbations)
     return algo_class(config.algo)(
         policy, venv, seed=config.seed, device="cpu", verbose=0, tensorboard_log=tensorboard_log,
         policy_kwargs=policy_kwargs, **kwargs,

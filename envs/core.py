@@ -331,27 +331,36 @@ def hidden_entries(names: Sequence[str], field: str = "actor_hidden") -> list[in
     return sorted(set(out))
 
 
-#: privileged entries an actor may be shown (``TrainConfig.actor_privileged``), by name: their frame positions after
-#: the task entries
-ACTOR_PRIVILEGED = {"mu": 0}
+#: privileged entries an actor may be shown (``TrainConfig.actor_privileged``), by name: ``mu`` (its frame position
+#: after the task entries) and ``perturbations`` (the PRIVILEGED_PERTURBATIONS block, the frame's last entries with
+#: ``privileged_perturbations``: the episode's pose error, force biases, latency and force-loop gain error)
+ACTOR_PRIVILEGED = {"mu": 0, "perturbations": None}
 
 
 def actor_mask(n_task: int, frame_dim: int, history: int, hidden: Sequence[str] = (),
-               privileged: Sequence[str] = ()) -> list[bool]:
+               privileged: Sequence[str] = (), perturbations: bool = False) -> list[bool]:
     """True for the ``n_task`` task entries of each of ``history`` frames of ``frame_dim`` entries (a frame is
     the task entries, then the privileged ones an asymmetric critic sees and the actor does not), except the
     task entries ``hidden`` names (:func:`hidden_entries`), which the actor does not see either, and with the
-    privileged entries ``privileged`` names (:data:`ACTOR_PRIVILEGED`), which it does."""
+    privileged entries ``privileged`` names (:data:`ACTOR_PRIVILEGED`), which it does. ``perturbations``: whether
+    the frame ends with the PRIVILEGED_PERTURBATIONS block (``privileged_perturbations``)."""
     if not 0 < n_task <= frame_dim:
         raise ValueError(f"n_task must be in (0, frame_dim={frame_dim}], got {n_task}")
     frame = [True] * n_task + [False] * (frame_dim - n_task)
     for i in hidden_entries(hidden):
         frame[i] = False
+    n_pert = len(PRIVILEGED_PERTURBATIONS)
     for name in privileged:
-        if name not in ACTOR_PRIVILEGED or n_task + ACTOR_PRIVILEGED[name] >= frame_dim:
+        if name == "perturbations":
+            if not perturbations or frame_dim - n_pert < n_task:
+                raise ConfigError("actor_privileged: 'perturbations' needs env.privileged_perturbations: true (the "
+                                  "entries it shows)")
+            frame[frame_dim - n_pert:] = [True] * n_pert
+        elif name not in ACTOR_PRIVILEGED or n_task + ACTOR_PRIVILEGED[name] >= frame_dim:
             raise ConfigError(f"actor_privileged: {name!r} is no privileged entry of this observation; allowed: "
                               f"{', '.join(ACTOR_PRIVILEGED)} (with env.privileged_obs: true)")
-        frame[n_task + ACTOR_PRIVILEGED[name]] = True
+        else:
+            frame[n_task + ACTOR_PRIVILEGED[name]] = True
     return frame * history
 
 

@@ -123,3 +123,20 @@ def test_actor_privileged_shows_the_actor_mu_and_nothing_else_privileged():
     assert mask == ([True] * n + [True, False, False, False, False]) * 2
     with pytest.raises(ConfigError, match="actor_privileged"):
         actor_mask(n, n, 1, privileged=["mu"])  # (no privileged entries in this observation)
+
+
+def test_actor_privileged_perturbations_show_the_episodes_draws_only():
+    """The perturbation block is the frame's last entries; the node displacements before it stay hidden, and without
+    the block the name is refused rather than showing whatever entries end the frame."""
+    from msdgrasp.envs.core import OBS_NAMES, actor_mask
+    from msdgrasp.envs.task import PRIVILEGED_PERTURBATIONS
+    from msdgrasp.physics.config import ConfigError
+
+    n, k = len(OBS_NAMES), len(PRIVILEGED_PERTURBATIONS)
+    frame = n + 51 + k  # task, mu + scales + 16 nodes' displacements, perturbations
+    mask = actor_mask(n, frame, 1, privileged=["mu", "perturbations"], perturbations=True)
+    assert mask == [True] * n + [True] + [False] * 50 + [True] * k
+    with pytest.raises(ConfigError, match="privileged_perturbations"):
+        actor_mask(n, n + 51, 1, privileged=["perturbations"])
+    with pytest.raises(ConfigError, match="privileged_perturbations"):
+        from_dict(TrainConfig, {"actor_privileged": ["perturbations"]})
