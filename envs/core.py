@@ -26,7 +26,7 @@ from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
-    D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
+    D_AZIMUTH, D_KS, D_MS, D_MU, D_NOISE, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
     MAX_LATENCY_STEPS, OBS, OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_PERTURBATIONS, REWARD_TERMS, column_drawn,
     command_batch, draw_episode, obs_group,
     perturb_pose, pinch_setpoint, start_episode, task_params, task_state, travel_setpoint, update_batch,
@@ -109,6 +109,10 @@ class RandomizationConfig:
     pose_azimuth_deg: NonNegative = 1.5
     #: standard deviation of the force-sensor noise, N
     sensor_noise_N: NonNegative = 0.02
+    #: the lowest noise level, N: with it, each episode draws its noise's standard deviation uniformly in
+    #: [sensor_noise_low_N, sensor_noise_N] (a training that meets every sensor from this one to the noisiest);
+    #: None: every episode at sensor_noise_N
+    sensor_noise_low_N: NonNegative | None = None
     #: how that noise enters the tangential reading: "magnitude" (the normal reading's noise sample n added to |T| as
     #: |n|: always upward, so the tangential reading and the friction use T / N read high by 0.8 sigma on average)
     #: or "vector" (independent noise on each force component, as a three-axis load cell reads: |T + n_t|, n_t a
@@ -143,6 +147,8 @@ class RandomizationConfig:
             check_range(f"{name}[1]", hi, lo, None)
         if self.mu_distribution == "log_uniform":
             check_range("mu_range[0] (log_uniform)", self.mu_range[0], 0.0, None, lo_inclusive=False)
+        if self.sensor_noise_low_N is not None:
+            check_range("sensor_noise_low_N", self.sensor_noise_low_N, 0.0, self.sensor_noise_N)
 
 
 @config_dataclass
@@ -275,6 +281,13 @@ def ramp_randomization(start: RandomizationConfig, end: RandomizationConfig, lev
     values: dict[str, Any] = {}
     for f in fields(RandomizationConfig):
         a, b = getattr(start, f.name), getattr(end, f.name)
+        if f.name == "sensor_noise_low_N" and (a is None or b is None):
+            if b is None and (a is None or level == 1.0):
+                values[f.name] = None
+                continue
+            # (no lowest level is every episode at the one level: the range [s, s])
+            a = start.sensor_noise_N if a is None else a
+            b = end.sensor_noise_N if b is None else b
         if isinstance(b, tuple) and isinstance(a, tuple):
             mixed = tuple(x + level * (y - x) for x, y in zip(a, b))
             values[f.name] = tuple(int(math.floor(v + 0.5)) for v in mixed) if f.name == "latency_steps" else mixed
@@ -501,11 +514,11 @@ class GraspLiftCore:
         volume_ratio = sim.min_volume_ratio()
         rnd = self.config.randomization
         for b in range(self.num_envs):
-            ts.noise[b, :3] = self.rngs[b].normal(0.0, rnd.sensor_noise_N, size=3)
+            ts.noise[b, :3] = self.rngs[b].normal(0.0, ts.draws[b, D_NOISE], size=3)  # (the episode's level)
             if rnd.slip_noise > 0.0:  # (drawn only when used: the nominal task's random stream is unchanged)
                 ts.noise[b, 3:6] = self.rngs[b].normal(0.0, rnd.slip_noise, size=3)
             if rnd.force_noise == "vector":  # (likewise)
-                ts.noise[b, 6:] = self.rngs[b].normal(0.0, rnd.sensor_noise_N, size=6)
+                ts.noise[b, 6:] = self.rngs[b].normal(0.0, ts.draws[b, D_NOISE], size=6)
         update_batch(self.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
         infos = {
             "mu": ts.mu.copy(),

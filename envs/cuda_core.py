@@ -29,7 +29,7 @@ from ..physics.config import ConfigError, check_choice, check_range
 from ..physics.cuda_step import PRECISIONS, THREADS_PER_BLOCK, CudaBatch, _tet_edges, device_twin, to_device
 from . import task
 from .core import GraspLiftConfig, GraspLiftCore, check_pin
-from .task import PINNABLE, TaskState, task_state
+from .task import D_NOISE, PINNABLE, TaskState, task_state
 
 #: what ``reset(options=...)`` may pin (for every later episode)
 GPU_PINNABLE = ("mu", "stiffness_scale", "mass_scale")
@@ -72,13 +72,13 @@ def _task_kernel(m, s, out, p, ts, rng):
             ok = ok & ok_sh[k]
         r = p.env.randomization
         for c in range(3):
-            ts.noise[b, c] = r.sensor_noise_N * xoroshiro128p_normal_float64(rng, b)
+            ts.noise[b, c] = ts.draws[b, D_NOISE] * xoroshiro128p_normal_float64(rng, b)  # (the episode's level)
         if r.slip_noise > 0.0:  # (drawn only when used, as on the CPU)
             for c in range(3):
                 ts.noise[b, 3 + c] = r.slip_noise * xoroshiro128p_normal_float64(rng, b)
         if r.force_noise_vector:
             for c in range(6):
-                ts.noise[b, 6 + c] = r.sensor_noise_N * xoroshiro128p_normal_float64(rng, b)
+                ts.noise[b, 6 + c] = ts.draws[b, D_NOISE] * xoroshiro128p_normal_float64(rng, b)
         _update(p, s, out, ts, b, ok == 1, lo)
 
 

@@ -93,13 +93,13 @@ REWARD_TERMS = ("progress", "hold", "grasp", "slip", "force", "peak_force", "dam
 #: an episode's random draws, columns of ``TaskState.draws`` (after :func:`draw_episode`: the values)
 DRAW_COLUMNS = ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_dir_y", "offset_dir_z", "offset_r",
                 "tilt_axis_x", "tilt_axis_y", "tilt_axis_z", "tilt", "azimuth",
-                "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain")
+                "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain", "sensor_noise")
 #: which raw variate each column starts as: standard normal (True) or uniform on [0, 1) (False), drawn in
 #: column order; the columns of a robustness axis that is off are not drawn (:func:`column_drawn`)
 DRAW_IS_NORMAL = tuple(c.startswith(("offset_dir", "tilt_axis")) for c in DRAW_COLUMNS)
-D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH, D_BIAS, D_LATENCY, D_GAIN = (
+D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH, D_BIAS, D_LATENCY, D_GAIN, D_NOISE = (
     DRAW_COLUMNS.index(n) for n in ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_r", "tilt_axis_x",
-                                    "tilt", "azimuth", "force_bias_0", "latency", "force_loop_gain"))
+                                    "tilt", "azimuth", "force_bias_0", "latency", "force_loop_gain", "sensor_noise"))
 #: the privileged robustness entries (``privileged_perturbations``), after mu, the scales and the node displacements:
 #: the grasper tip's offset from the planned pose (x, y, z / 5 mm), its axis's and its jaw direction's change from
 #: the planned ones (unit vectors' differences / 0.1745, 10 deg in rad), the three jaws' force-sensor biases
@@ -377,6 +377,8 @@ def column_drawn(env, k):
         return r.latency_steps[1] > r.latency_steps[0]
     if k == D_GAIN:
         return r.force_loop_gain_error > 0.0
+    if k == D_NOISE:
+        return (not math.isnan(r.sensor_noise_low_N)) and r.sensor_noise_low_N < r.sensor_noise_N
     return True
 
 
@@ -667,7 +669,8 @@ def restore_settled(p, s, out, b, first, stride):
 def draw_episode(p, ts, b):
     """Turn env b's raw variates in ``ts.draws[b]`` (DRAW_IS_NORMAL) into the episode's draws in place:
     friction and scales uniform in their ranges (mu log-uniform if so configured), the pose's offset radius
-    u^(1/3) (uniform in a ball), tilt and azimuth uniform in [-1, 1]."""
+    u^(1/3) (uniform in a ball), tilt and azimuth uniform in [-1, 1], the robustness axes' levels and the
+    force-noise level (its standard deviation, N)."""
     r = p.env.randomization
     d = ts.draws[b]
     lo, hi = r.mu_range[0], r.mu_range[1]
@@ -688,6 +691,11 @@ def draw_episode(p, ts, b):
     d[D_LATENCY] = min(lo_lat + int(math.floor(d[D_LATENCY] * (int(r.latency_steps[1]) - lo_lat + 1))),
                        int(r.latency_steps[1]))
     d[D_GAIN] = 1.0 + r.force_loop_gain_error * (-1.0 + 2.0 * d[D_GAIN]) if r.force_loop_gain_error > 0.0 else 1.0
+    # the episode's force-noise level (standard deviation, N): uniform in [low, sensor_noise_N], else that one level
+    if (not math.isnan(r.sensor_noise_low_N)) and r.sensor_noise_low_N < r.sensor_noise_N:
+        d[D_NOISE] = r.sensor_noise_low_N + (r.sensor_noise_N - r.sensor_noise_low_N) * d[D_NOISE]
+    else:
+        d[D_NOISE] = r.sensor_noise_N
 
 
 @njit(cache=True, error_model="numpy")

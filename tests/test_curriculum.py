@@ -33,6 +33,19 @@ def test_the_ramp_starts_at_the_start_ends_at_the_end_and_is_linear_between():
     assert half.slip_sensing == "binary"  # a choice switches to the end's as soon as the ramp begins
 
 
+def test_a_noise_level_range_ramps_from_the_tasks_one_level():
+    """The task's noise, one level (no lowest), is the range [s, s]: the ramp widens it to the training's range and
+    never puts the lowest level above the highest on the way."""
+    start = benchmark_config().randomization
+    end = replace(ROBUST, sensor_noise_low_N=0.01)
+    for level in np.linspace(0.05, 0.95, 19):
+        mid = ramp_randomization(start, end, level)
+        assert mid.sensor_noise_low_N == pytest.approx(start.sensor_noise_N + level * (0.01 - start.sensor_noise_N))
+        assert mid.sensor_noise_low_N <= mid.sensor_noise_N
+    assert ramp_randomization(start, end, 1.0) == end
+    assert ramp_randomization(end, start, 1.0).sensor_noise_low_N is None  # (back to one level)
+
+
 def test_the_training_task_follows_the_ramp_over_the_run():
     config = TrainConfig(train_randomization=ROBUST, randomization_ramp=(0.2, 0.6))
     nominal = config.env.randomization

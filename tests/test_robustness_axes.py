@@ -65,7 +65,9 @@ def test_the_pinch_ceiling_cuts_the_set_point_and_the_gain_error_changes_the_for
     settle = np.array([[-0.6, -1.0]] * 60)  # 1 N: the loop reaches its set-point, where its gain matters
     _, gain, env = _run(settle, force_loop_gain_error=0.5)
     _, full, _ = _run(settle)
-    factor = env.core.draws[:, -1]
+    from msdgrasp.envs.task import D_GAIN
+
+    factor = env.core.draws[:, D_GAIN]
     assert np.all((0.5 <= factor) & (factor <= 1.5)) and np.abs(factor - 1.0).min() > 1e-3
     assert not np.array_equal(gain, full)  # a stiffer or softer force loop: another force history
 
@@ -91,6 +93,26 @@ def test_slip_noise_has_its_standard_deviation_and_leaves_the_force_readings():
     diff = (noisy - clean)[1:, :, obs_group("slip_speed")]
     assert 0.035 < diff.std() < 0.065  # 144 samples of N(0, 0.05)
     np.testing.assert_array_equal(noisy[:, :, obs_group("normal_force")], clean[:, :, obs_group("normal_force")])
+
+
+def test_a_noise_level_drawn_per_episode_scales_that_episodes_force_noise():
+    """With sensor_noise_low_N each episode draws its noise's standard deviation in [low, sensor_noise_N] and its
+    normal readings scatter by that much about the noise-free ones; without it every episode reads at the one level."""
+    from msdgrasp.envs.task import D_NOISE
+
+    actions = _grasp_and_pull()
+    ranged, _, env = _run(actions, sensor_noise_N=0.1, sensor_noise_low_N=0.01)
+    clean, _, _ = _run(actions)
+    levels = env.core.draws[:, D_NOISE]
+    assert np.all((0.01 <= levels) & (levels <= 0.1)) and levels[0] != levels[1]
+    for b in range(2):
+        diff = (ranged - clean)[1:, b, obs_group("normal_force")]
+        # 72 samples of N(0, level) on readings normalised by the reference force (the actions are fixed, so the
+        # physics is the noise-free run's): their spread within 25 % of the level
+        ref = env.config.reference_force_N
+        assert 0.75 * levels[b] < diff.std() * ref < 1.25 * levels[b]
+    _, _, one = _run(actions[:2], sensor_noise_N=0.05)
+    np.testing.assert_array_equal(one.core.draws[:, D_NOISE], [0.05, 0.05])
 
 
 def test_vector_force_noise_reads_the_tangential_force_without_the_magnitude_models_upward_bias():
@@ -143,6 +165,7 @@ def test_the_force_filter_is_a_first_order_low_pass_of_the_raw_readings():
     ({"slip_sensing": "tactile"}, r"slip_sensing"),
     ({"force_noise": "scalar"}, r"force_noise"),
     ({"pinch_ceiling_N": 0.0}, r"pinch_ceiling_N"),
+    ({"sensor_noise_N": 0.05, "sensor_noise_low_N": 0.08}, r"sensor_noise_low_N.*\[0, 0.05\]"),
 ])
 def test_out_of_range_axes_are_one_line_errors_naming_the_field(axes, message):
     with pytest.raises(ConfigError, match=message):

@@ -14,7 +14,9 @@ import math
 import numpy as np
 
 from msdgrasp.envs.core import GraspLiftConfig, GraspLiftCore
-from msdgrasp.envs.task import D_BIAS, D_GAIN, D_LATENCY, OBS, OBS_NAMES, REWARD_TERMS, config_record, obs_group
+from msdgrasp.envs.task import (
+    D_BIAS, D_GAIN, D_LATENCY, D_NOISE, OBS, OBS_NAMES, REWARD_TERMS, config_record, obs_group,
+)
 from msdgrasp.physics.config import from_dict
 
 N = 192
@@ -105,11 +107,12 @@ def test_the_observation_and_reward_layouts_are_named_once():
 
 
 def test_cpu_and_gpu_draw_the_robustness_axes_from_the_same_distributions():
-    """Force bias, latency and force-loop gain error, drawn per episode on both backends (KS at 0.1 %), within
-    their ranges; latency takes each of its integer values."""
+    """Force bias, latency, force-loop gain error and the force-noise level, drawn per episode on both backends (KS
+    at 0.1 %), within their ranges; latency takes each of its integer values."""
     from msdgrasp.envs.cuda_core import CudaGraspLiftCore
 
-    config = _config(force_bias_N=0.1, latency_steps=(0, 3), force_loop_gain_error=0.3)
+    config = _config(force_bias_N=0.1, latency_steps=(0, 3), force_loop_gain_error=0.3, sensor_noise_N=0.08,
+                     sensor_noise_low_N=0.02)
     gpu = CudaGraspLiftCore(config, N, seed=7, threads=2)
     gpu.reset()
     gpu_draws = gpu.download("draws")["draws"]
@@ -123,7 +126,8 @@ def test_cpu_and_gpu_draw_the_robustness_axes_from_the_same_distributions():
         assert np.abs(bias).max() <= 0.1 and bias.min() < -0.08 and bias.max() > 0.08
         assert set(np.unique(draws[:, D_LATENCY])) == {0.0, 1.0, 2.0, 3.0}
         assert 0.7 <= draws[:, D_GAIN].min() and draws[:, D_GAIN].max() <= 1.3
-    for col in (D_BIAS, D_BIAS + 2, D_LATENCY, D_GAIN):
+        assert 0.02 <= draws[:, D_NOISE].min() < 0.025 and 0.075 < draws[:, D_NOISE].max() <= 0.08
+    for col in (D_BIAS, D_BIAS + 2, D_LATENCY, D_GAIN, D_NOISE):
         assert _ks_statistic(cpu_draws[:, col], gpu_draws[:, col]) < KS_CRITICAL, col
     # the axes that are off draw nothing and leave the nominal episode's values: no bias, no latency, gain x 1
     nominal = GraspLiftCore(_config(), 1)
@@ -131,3 +135,4 @@ def test_cpu_and_gpu_draw_the_robustness_axes_from_the_same_distributions():
     nominal.reset(0)
     assert nominal.draws[0, D_BIAS:D_BIAS + 3].tolist() == [0.0, 0.0, 0.0]
     assert nominal.draws[0, D_LATENCY] == 0.0 and nominal.draws[0, D_GAIN] == 1.0
+    assert nominal.draws[0, D_NOISE] == nominal.config.randomization.sensor_noise_N
