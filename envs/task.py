@@ -692,7 +692,7 @@ def draw_episode(p, ts, b):
                        int(r.latency_steps[1]))
     d[D_GAIN] = 1.0 + r.force_loop_gain_error * (-1.0 + 2.0 * d[D_GAIN]) if r.force_loop_gain_error > 0.0 else 1.0
     # the episode's force-noise level (standard deviation, N): uniform in [low, sensor_noise_N], else that one level
-    if (not math.isnan(r.sensor_noise_low_N)) and r.sensor_noise_low_N < r.sensor_noise_N:
+    if column_drawn(p.env, D_NOISE):
         d[D_NOISE] = r.sensor_noise_low_N + (r.sensor_noise_N - r.sensor_noise_low_N) * d[D_NOISE]
     else:
         d[D_NOISE] = r.sensor_noise_N
