@@ -314,6 +314,13 @@ def pinned(value, default):
 
 
 @njit(cache=True, error_model="numpy")
+def capped_peak_charge(w, e, peak_pinch, weight):
+    """The peak-force charge, points, of an episode whose peak pinch is ``peak_pinch`` N (``weight``: the
+    friction scaling), at most ``w.peak_force_cap``."""
+    return min(w.peak_force * (peak_pinch * weight) / e.reference_force_N, w.peak_force_cap)
+
+
+@njit(cache=True, error_model="numpy")
 def rotate(v0, v1, v2, k0, k1, k2, ang):
     """Rodrigues rotation of v about the unit axis k."""
     c = math.cos(ang)
@@ -590,18 +597,27 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     # every episode that ends without success pays the same failure penalty, running out of time
     # (e.g. never touching the tissue) included: not touching is then no safe haven
     unsuccessful = (terminated or truncated) and not success
-    if w.peak_force_timing_as_made:  # charged as made, refunded without success
-        peak_charge = peak_rise - (ts.peak_pinch[b] if unsuccessful else 0.0)
-    else:
-        peak_charge = ts.peak_pinch[b] if success else 0.0
-    peak_charge = peak_charge * pinned(ts.mu[b] / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
+    peak_weight = pinned(ts.mu[b] / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
+    if math.isnan(w.peak_force_cap):
+        if w.peak_force_timing_as_made:  # charged as made, refunded without success
+            peak_charge = peak_rise - (ts.peak_pinch[b] if unsuccessful else 0.0)
+        else:
+            peak_charge = ts.peak_pinch[b] if success else 0.0
+        peak_charge = w.peak_force * (peak_charge * peak_weight) / e.reference_force_N
+    else:  # the episode's charge at most the cap: as made, the rise of the capped charge
+        charge_now = capped_peak_charge(w, e, ts.peak_pinch[b], peak_weight)
+        if w.peak_force_timing_as_made:
+            peak_charge = charge_now - capped_peak_charge(w, e, ts.peak_pinch[b] - peak_rise, peak_weight)
+            peak_charge -= charge_now if unsuccessful else 0.0
+        else:
+            peak_charge = charge_now if success else 0.0
     t = ts.terms[b]
     t[R_PROGRESS] = w.progress * progress
     t[R_HOLD] = w.hold * hold_gain
     t[R_GRASP] = w.grasp * grip_gain
     t[R_SLIP] = -w.slip_per_mm * slip * 1e3
     t[R_FORCE] = -w.force_per_s * (pinch / e.reference_force_N) * dt
-    t[R_PEAK_FORCE] = -w.peak_force * peak_charge / e.reference_force_N
+    t[R_PEAK_FORCE] = -peak_charge
     t[R_DAMAGE] = -w.damage * (1.0 if damaged else 0.0)
     t[R_SUCCESS] = w.success_bonus * (1.0 if success else 0.0)
     t[R_FAILURE] = -w.failure_penalty * (1.0 if unsuccessful else 0.0)
