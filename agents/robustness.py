@@ -31,7 +31,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig, RandomizationConfig, setpoint_interface
+from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig, setpoint_interface
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
     ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
@@ -147,6 +147,30 @@ def fixed_grip_force(forces: Sequence[float | None], share: float = FIXED_GRIP_S
     ordered = sorted(math.inf if f is None else float(f) for f in forces)
     f = ordered[math.ceil(share * len(ordered) - 1e-9) - 1]
     return f if math.isfinite(f) else math.nan
+
+
+def fixed_grip_return(forces: Sequence[float | None], grip_N: float, mu: float, reward: RewardConfig,
+                      reference_force_N: float) -> tuple[float, float]:
+    """(held share, expected terminal return) of a grip of ``grip_N`` fixed for the episodes whose own minimal fixed
+    forces are ``forces`` (None: none holds), at friction ``mu``, under ``reward``: the success bonus less the
+    peak-force charge (friction-scaled and capped as the task charges it) where the grip holds, the failure penalty
+    where it does not. The shaping terms are left out: progress and hold pay about the same in a success and in a
+    lift that slips."""
+    held = float(np.mean([f is not None and f <= grip_N for f in forces]))
+    charge = reward.peak_force * grip_N * reward.peak_force_weight(mu) / reference_force_N
+    if reward.peak_force_cap is not None:
+        charge = min(charge, reward.peak_force_cap)
+    return held, held * (reward.success_bonus - charge) - (1.0 - held) * reward.failure_penalty
+
+
+def reward_fixed_grip(forces: Sequence[float | None], mu: float, reward: RewardConfig,
+                      reference_force_N: float) -> tuple[float, float, float]:
+    """The fixed grip a reward prefers for the episodes whose own minimal fixed forces are ``forces``: (grip N, held
+    share, expected terminal return) of the grip that maximises :func:`fixed_grip_return`. The return falls with the
+    grip between two episodes' minimal forces, so the best grip is one of them, or none (0 N: every episode fails)."""
+    candidates = [0.0] + sorted(float(f) for f in forces if f is not None)
+    best = max(candidates, key=lambda g: fixed_grip_return(forces, g, mu, reward, reference_force_N)[1])
+    return (best, *fixed_grip_return(forces, best, mu, reward, reference_force_N))
 
 
 def _hindsight_cell(forces: dict[str, list[float | None]], minimal: dict[float, float]) -> dict[str, Any]:
