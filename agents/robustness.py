@@ -153,13 +153,14 @@ def fixed_grip_return(forces: Sequence[float | None], grip_N: float, mu: float, 
                       reference_force_N: float) -> tuple[float, float]:
     """(held share, expected terminal return) of a grip of ``grip_N`` fixed for the episodes whose own minimal fixed
     forces are ``forces`` (None: none holds), at friction ``mu``, under ``reward``: the success bonus less the
-    peak-force charge (friction-scaled and capped as the task charges it) where the grip holds, the failure penalty
+    peak-force charge (friction-scaled, with its knee, as the task charges it) where the grip holds, the failure penalty
     where it does not. The shaping terms are left out: progress and hold pay about the same in a success and in a
     lift that slips."""
     held = float(np.mean([f is not None and f <= grip_N for f in forces]))
     charge = reward.peak_force * grip_N * reward.peak_force_weight(mu) / reference_force_N
-    if reward.peak_force_cap is not None:
-        charge = min(charge, reward.peak_force_cap)
+    if reward.peak_force_knee is not None:
+        knee = reward.peak_force_knee
+        charge = min(charge, knee) + reward.peak_force_beyond_knee * max(charge - knee, 0.0)
     return held, held * (reward.success_bonus - charge) - (1.0 - held) * reward.failure_penalty
 
 

@@ -75,11 +75,14 @@ class RewardConfig:
     #: peak pinch relative to what the friction needs: an excess of 0.5 N costs 3x more at mu 0.9 than at
     #: mu 0.3, as the evaluation's ratio to the oracle counts it. None: the same charge per N at every mu.
     peak_force_mu_ref: Positive | None = None
-    #: if set, the largest peak-force charge of an episode, points (after the friction scaling). Below
-    #: success_bonus + failure_penalty it keeps every success worth more than any failure whatever the grip, so a
-    #: steeper charge per N cannot make failing pay (at 20 points per N uncapped, an early 3 N grip at mu 0.9 cost
-    #: 135 points and one robust seed learned never to lift). None: uncapped.
-    peak_force_cap: NonNegative | None = None
+    #: if set, the peak-force charge of an episode (points, after the friction scaling) above which it rises at
+    #: ``peak_force_beyond_knee`` of its slope: a charge steep where the learned grips sit and gentler beyond, so
+    #: that a steeper charge per N does not make an early heavy grip cost more than failing (at 20 points per N
+    #: throughout, a 3 N grip at mu 0.9 cost 135 points and one robust seed learned never to lift). None: one slope.
+    peak_force_knee: NonNegative | None = None
+    #: the charge's slope beyond ``peak_force_knee``, a fraction of the slope below it (0: the knee caps the charge;
+    #: a cap leaves heavier grips uncharged, and a robust training then gripped at the 5 N limit)
+    peak_force_beyond_knee: NonNegative = 1.0
     #: per second of pinch force equal to the reference force (scales linearly with force; every step)
     force_per_s: NonNegative = 0.0
     #: per step in which the peak nodal stress exceeds the damage threshold

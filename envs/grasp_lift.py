@@ -144,7 +144,7 @@ class GraspLiftEnv(gym.Env):
 
     peak_force with ``peak_force_timing="as_made"``: the same total, charged as the peak rises, refunded without
     success; with ``peak_force_mu_ref``: times mu / mu_ref, so the charge follows the ratio to the minimal slip-free
-    force ~ 1 / mu; with ``peak_force_cap``: at most that many points per episode.
+    force ~ 1 / mu; with ``peak_force_knee``: above that many points at ``peak_force_beyond_knee`` of the slope.
 
     Returns (``msdgrasp evaluate --policy zero --policy idle --policy fixed --mu-grid 0.3:0.9:0.1``, 10
     episodes per mu, mean over mu; the reactive and oracle rows come with every evaluation):

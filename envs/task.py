@@ -314,10 +314,11 @@ def pinned(value, default):
 
 
 @njit(cache=True, error_model="numpy")
-def capped_peak_charge(w, e, peak_pinch, weight):
+def kneed_peak_charge(w, e, peak_pinch, weight):
     """The peak-force charge, points, of an episode whose peak pinch is ``peak_pinch`` N (``weight``: the
-    friction scaling), at most ``w.peak_force_cap``."""
-    return min(w.peak_force * (peak_pinch * weight) / e.reference_force_N, w.peak_force_cap)
+    friction scaling), its slope times ``w.peak_force_beyond_knee`` above ``w.peak_force_knee`` points."""
+    charge = w.peak_force * (peak_pinch * weight) / e.reference_force_N
+    return min(charge, w.peak_force_knee) + w.peak_force_beyond_knee * max(charge - w.peak_force_knee, 0.0)
 
 
 @njit(cache=True, error_model="numpy")
@@ -598,16 +599,16 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     # (e.g. never touching the tissue) included: not touching is then no safe haven
     unsuccessful = (terminated or truncated) and not success
     peak_weight = pinned(ts.mu[b] / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
-    if math.isnan(w.peak_force_cap):
+    if math.isnan(w.peak_force_knee):
         if w.peak_force_timing_as_made:  # charged as made, refunded without success
             peak_charge = peak_rise - (ts.peak_pinch[b] if unsuccessful else 0.0)
         else:
             peak_charge = ts.peak_pinch[b] if success else 0.0
         peak_charge = w.peak_force * (peak_charge * peak_weight) / e.reference_force_N
-    else:  # the episode's charge at most the cap: as made, the rise of the capped charge
-        charge_now = capped_peak_charge(w, e, ts.peak_pinch[b], peak_weight)
+    else:  # the charge with a knee: as made, the rise of the episode's charge
+        charge_now = kneed_peak_charge(w, e, ts.peak_pinch[b], peak_weight)
         if w.peak_force_timing_as_made:
-            peak_charge = charge_now - capped_peak_charge(w, e, ts.peak_pinch[b] - peak_rise, peak_weight)
+            peak_charge = charge_now - kneed_peak_charge(w, e, ts.peak_pinch[b] - peak_rise, peak_weight)
             peak_charge -= charge_now if unsuccessful else 0.0
         else:
             peak_charge = charge_now if success else 0.0

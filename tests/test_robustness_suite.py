@@ -133,7 +133,8 @@ def test_a_fixed_grip_holds_the_share_of_episodes_whose_own_minimal_force_it_rea
 
 def test_the_reward_prefers_the_fixed_grip_where_its_charge_meets_the_failures_it_avoids():
     """Episodes needing 1..20 N, success +50, failure -10, c points per N: the expected return of a grip of k N is
-    (60 k - c k^2) / 20 - 10, best at k = 30 / c; a cap on the charge makes the grip that holds every episode best."""
+    (60 k - c k^2) / 20 - 10, best at k = 30 / c; a cap on the charge makes the grip that holds every episode best,
+    a gentler slope beyond a knee a grip between."""
     from msdgrasp.agents.robustness import fixed_grip_return, reward_fixed_grip
     from msdgrasp.envs.core import RewardConfig
 
@@ -143,11 +144,17 @@ def test_the_reward_prefers_the_fixed_grip_where_its_charge_meets_the_failures_i
     assert (grip, held, ret) == (15.0, 0.75, pytest.approx(12.5))
     scaled = RewardConfig(peak_force=10.0, peak_force_mu_ref=0.4)  # at mu 0.6: 3 points per N
     assert reward_fixed_grip(needs[:-1], 0.6, scaled, 5.0)[:2] == (10.0, 0.5)
-    capped = RewardConfig(peak_force=10.0, peak_force_cap=20.0)  # 2 points per N up to 10 N
+    capped = RewardConfig(peak_force=10.0, peak_force_knee=20.0, peak_force_beyond_knee=0.0)  # 2 per N up to 10 N
     assert reward_fixed_grip(needs[:-1], 0.5, capped, 5.0) == (20.0, 1.0, pytest.approx(30.0))
     held, ret = fixed_grip_return(needs, 20.0, 0.5, capped, 5.0)  # the unheld episode fails at any grip
     assert held == pytest.approx(20 / 21) and ret == pytest.approx(20 / 21 * 30.0 - 10 / 21)
     assert reward_fixed_grip([None, None], 0.5, plain, 5.0) == (0.0, 0.0, -10.0)
+    # 4 points per N up to 5 N (20 points), 2 per N beyond: above 5 N the return is (50 k - 2 k^2) / 20 - 10, best at
+    # 12.5 N (12 and 13 tie), where 4 points per N throughout would be best at 7.5 N
+    kneed = RewardConfig(peak_force=20.0, peak_force_knee=20.0, peak_force_beyond_knee=0.5)
+    grip, held, ret = reward_fixed_grip(needs[:-1], 0.5, kneed, 5.0)
+    assert grip in (12.0, 13.0) and ret == pytest.approx(5.6)
+    assert fixed_grip_return(needs, 10.0, 0.5, kneed, 5.0)[1] == pytest.approx(10 / 21 * 20.0 - 11 / 21 * 10.0)
 
 
 def test_the_suite_reports_the_hindsight_oracle_where_the_placement_changes(tmp_path, monkeypatch):

@@ -203,28 +203,31 @@ def test_peak_force_scaled_by_mu_charges_the_same_grip_more_where_friction_needs
         RewardConfig(peak_force_mu_ref=0.0)
 
 
-def test_peak_force_cap_bounds_the_charge_so_no_grip_makes_failing_pay():
-    """reward.peak_force_cap: a success is charged min(charge, cap); a charge below the cap is the uncapped one to
-    the bit; charged as made, the capped charge is paid as the peak rises and refunded without success."""
+def test_peak_force_knee_bends_the_charge_so_a_steep_charge_need_not_make_failing_pay():
+    """reward.peak_force_knee: a success is charged min(x, knee) + beyond x max(x - knee, 0) for the plain charge x
+    (0: a cap, keeping the success above the failure); a charge below the knee is the plain one to the bit; charged
+    as made, the bent charge is paid as the peak rises and refunded without success."""
     mus = [0.2, 0.8]  # a 1 N grip fails at mu 0.2 and succeeds at 0.8
     steep = dict(peak_force=500.0, peak_force_mu_ref=0.4)  # 100 points per N at mu 0.4, 200 at mu 0.8
-    plain = GraspLiftConfig(reward=RewardConfig(**steep))
-    capped = GraspLiftConfig(reward=RewardConfig(**steep, peak_force_cap=55.0))
-    loose = GraspLiftConfig(reward=RewardConfig(**steep, peak_force_cap=1e6))
-    runs = {name: _episodes(GraspLiftVectorEnv(2, cfg), FixedForcePolicy(cfg, 1.0), mus)
-            for name, cfg in (("plain", plain), ("capped", capped), ("loose", loose))}
+    configs = {"plain": {}, "capped": {"peak_force_knee": 55.0, "peak_force_beyond_knee": 0.0},
+               "bent": {"peak_force_knee": 55.0, "peak_force_beyond_knee": 0.1}, "loose": {"peak_force_knee": 1e6}}
+    runs = {}
+    for name, knee in configs.items():
+        cfg = GraspLiftConfig(reward=RewardConfig(**steep, **knee))
+        runs[name] = _episodes(GraspLiftVectorEnv(2, cfg), FixedForcePolicy(cfg, 1.0), mus)
     assert list(runs["plain"]["success"]) == list(runs["capped"]["success"]) == [False, True]
-    uncapped_charge = -runs["plain"]["peak_force"][1]
-    assert uncapped_charge > 55.0  # the steep charge makes this success worth less than a failure...
+    charge = -runs["plain"]["peak_force"][1]
+    assert charge > 60.0  # the steep charge makes this success worth less than a failure...
     assert runs["plain"]["return"][1] < runs["plain"]["return"][0]
     assert runs["capped"]["peak_force"][1] == -55.0  # ...the cap keeps it above
     assert runs["capped"]["return"][1] > runs["capped"]["return"][0]
-    np.testing.assert_array_equal(runs["loose"]["return"], runs["plain"]["return"])  # below the cap: unchanged
-    made = GraspLiftConfig(reward=RewardConfig(**steep, peak_force_cap=55.0, peak_force_timing="as_made"))
+    assert -runs["bent"]["peak_force"][1] == pytest.approx(55.0 + 0.1 * (charge - 55.0), rel=1e-12)
+    np.testing.assert_array_equal(runs["loose"]["return"], runs["plain"]["return"])  # below the knee: unchanged
+    made = GraspLiftConfig(reward=RewardConfig(**steep, **configs["bent"], peak_force_timing="as_made"))
     as_made = _episodes(GraspLiftVectorEnv(2, made), FixedForcePolicy(made, 1.0), mus)
-    np.testing.assert_allclose(as_made["return"], runs["capped"]["return"], atol=1e-9)
-    with pytest.raises(ConfigError, match="peak_force_cap"):
-        RewardConfig(peak_force_cap=-1.0)
+    np.testing.assert_allclose(as_made["return"], runs["bent"]["return"], atol=1e-9)
+    with pytest.raises(ConfigError, match="peak_force_knee"):
+        RewardConfig(peak_force_knee=-1.0)
 
 
 def test_peak_force_charged_as_made_has_the_same_returns_and_pays_when_the_force_rises():
