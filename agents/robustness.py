@@ -174,6 +174,24 @@ def reward_fixed_grip(forces: Sequence[float | None], mu: float, reward: RewardC
     return (best, *fixed_grip_return(forces, best, mu, reward, reference_force_N))
 
 
+def reward_fixed_grip_table(suite: dict[str, Any], reward: RewardConfig, reference_force_N: float,
+                            compare_ratio: float = 1.5) -> str:
+    """A markdown table, per hindsight condition of a suite result (``suite_robustness.json``) and mu, of the fixed
+    grip ``reward`` prefers for that condition's episodes (:func:`reward_fixed_grip`): its ratio to the nominal
+    oracle's minimal force, the share it holds and its expected terminal return, beside the return of a grip of
+    ``compare_ratio`` times the oracle's minimal force: how much the reward asks a policy to give up for a margin."""
+    minimal, names = suite["oracle_minimal_force_N"], suite["conditions"]
+    lines = [f"| condition | mu | reward's grip / oracle min | held | return | return at {compare_ratio:g}x |",
+             "|---|---|---|---|---|---|"]
+    for condition, cell in zip(names, suite["hindsight"]):
+        name = condition["name"] if isinstance(condition, dict) else condition
+        for mu, forces in (cell or {}).get("episode_minimal_force_N", {}).items():
+            grip, held, ret = reward_fixed_grip(forces, float(mu), reward, reference_force_N)
+            wide = fixed_grip_return(forces, compare_ratio * minimal[mu], float(mu), reward, reference_force_N)[1]
+            lines.append(f"| {name} | {mu} | {grip / minimal[mu]:.2f} | {held:.2f} | {ret:.1f} | {wide:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
 def _hindsight_cell(forces: dict[str, list[float | None]], minimal: dict[float, float]) -> dict[str, Any]:
     """What the hindsight oracle needs in one condition: the share of episodes some fixed force holds; the mean over
     mu of their mean minimal force over the nominal oracle's (the force ratio a policy that grips each episode with

@@ -135,7 +135,7 @@ def test_the_reward_prefers_the_fixed_grip_where_its_charge_meets_the_failures_i
     """Episodes needing 1..20 N, success +50, failure -10, c points per N: the expected return of a grip of k N is
     (60 k - c k^2) / 20 - 10, best at k = 30 / c; a cap on the charge makes the grip that holds every episode best,
     a gentler slope beyond a knee a grip between."""
-    from msdgrasp.agents.robustness import fixed_grip_return, reward_fixed_grip
+    from msdgrasp.agents.robustness import fixed_grip_return, reward_fixed_grip, reward_fixed_grip_table
     from msdgrasp.envs.core import RewardConfig
 
     needs = [float(k) for k in range(20, 0, -1)] + [None]  # and one episode no fixed force holds
@@ -155,6 +155,11 @@ def test_the_reward_prefers_the_fixed_grip_where_its_charge_meets_the_failures_i
     grip, held, ret = reward_fixed_grip(needs[:-1], 0.5, kneed, 5.0)
     assert grip in (12.0, 13.0) and ret == pytest.approx(5.6)
     assert fixed_grip_return(needs, 10.0, 0.5, kneed, 5.0)[1] == pytest.approx(10 / 21 * 20.0 - 11 / 21 * 10.0)
+    # the table over a suite result's hindsight cells, the oracle's minimal force 10 N at mu 0.5: 15 N is 1.5x
+    suite = {"oracle_minimal_force_N": {"0.5": 10.0}, "conditions": [{"name": "nominal"}, {"name": "latency"}],
+             "hindsight": [{"episode_minimal_force_N": {"0.5": needs[:-1]}}, None]}
+    table = reward_fixed_grip_table(suite, plain, 5.0)
+    assert table.splitlines()[2] == "| nominal | 0.5 | 1.50 | 0.75 | 12.5 | 12.5 |" and len(table.splitlines()) == 3
 
 
 def test_the_suite_reports_the_hindsight_oracle_where_the_placement_changes(tmp_path, monkeypatch):
