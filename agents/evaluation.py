@@ -13,6 +13,9 @@ Per (policy, mu) row:
 ``mean_peak_pinch_N``      mean over episodes of the episode's peak pinch force, N
 ``max_peak_pinch_N``       largest peak pinch force of any episode, N
 ``mean_pinch_N``           mean over episodes of the episode's mean pinch force (all its steps), N
+``mean_setpoint_change_N``  mean over episodes of the mean |change| of the commanded pinch-force set-point
+                           from one agent step to the next, N (NaN without a force set-point): a policy that
+                           drives the force loop bang-bang, 0 N and 5 N in turn, moves it by up to 5 N a step
 ``mean_slip_mm``           mean total slip distance between jaws and tissue, mm
 ``mean_peak_stress_kPa``   mean peak nodal contact stress, kPa
 ``mean_time_to_lift_s``    mean time until the lift target was first reached, over the episodes
@@ -183,6 +186,7 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         "peak_pinch_N": np.zeros(B),
         "peak_pinch_before_pull_N": np.zeros(B),
         "pinch_sum_N": np.zeros(B),
+        "setpoint_change_sum_N": np.zeros(B),
         "return": np.zeros(B),
         "steps": np.zeros(B, dtype=np.int64),
         "slip_mm": np.zeros(B),
@@ -191,6 +195,9 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         "time_to_lift_s": np.full(B, np.nan),
         "outcome": np.full(B, "timeout", dtype=object),
     }
+    # the pinch-force set-point the policy commands (jaw_action = force), to measure how much it moves step to step
+    force_setpoints = env.config.jaw_action == "force"
+    previous_setpoint = np.full(B, np.nan)
     for _ in range(env.config.max_episode_steps + 1):
         act = np.asarray(policy.act(obs), dtype=np.float64).reshape(B, 2)
         if not np.all(np.isfinite(act[~done])):
@@ -203,6 +210,11 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         obs, rew, term, trunc, inf = core.step(act, advance=np.flatnonzero(~done))
         live = ~done
         out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
+        if force_setpoints:
+            setpoint = core.pinch_setpoint(np.clip(act[:, 0], -1.0, 1.0))
+            moved = live & np.isfinite(previous_setpoint)
+            out["setpoint_change_sum_N"][moved] += np.abs(setpoint - previous_setpoint)[moved]
+            previous_setpoint = np.where(live, setpoint, previous_setpoint)
         # where the peak is set: the grip before the grasper has pulled PULL_STARTED_M (closing, squeezing)
         before = live & (inf["travel_m"] < PULL_STARTED_M)
         out["peak_pinch_before_pull_N"][before] = np.maximum(out["peak_pinch_before_pull_N"][before],
@@ -235,6 +247,9 @@ def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
         if done.all():
             break
     out["mean_pinch_N"] = out.pop("pinch_sum_N") / np.maximum(out["steps"], 1)
+    # mean |change| of the pinch set-point from one agent step to the next (NaN without a force set-point)
+    change = out.pop("setpoint_change_sum_N") / np.maximum(out["steps"] - 1, 1)
+    out["setpoint_change_N"] = change if force_setpoints else np.full(B, np.nan)
     return {k: v[:n] for k, v in out.items()}
 
 
@@ -252,6 +267,7 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
         "max_peak_pinch_N": float(np.max(ep["peak_pinch_N"])),
         "mean_peak_pinch_before_pull_N": float(np.mean(ep["peak_pinch_before_pull_N"])),
         "mean_pinch_N": float(np.mean(ep["mean_pinch_N"])),
+        "mean_setpoint_change_N": float(np.mean(ep["setpoint_change_N"])),
         "mean_return": float(np.mean(ep["return"])),
         "mean_slip_mm": float(np.mean(ep["slip_mm"])),
         "mean_peak_stress_kPa": float(np.mean(ep["peak_stress_kPa"])),
@@ -265,6 +281,7 @@ def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
             "peak_pinch_N": [float(v) for v in ep["peak_pinch_N"]],
             "peak_pinch_before_pull_N": [float(v) for v in ep["peak_pinch_before_pull_N"]],
             "mean_pinch_N": [float(v) for v in ep["mean_pinch_N"]],
+            "setpoint_change_N": [float(v) for v in ep["setpoint_change_N"]],
             "return": [float(v) for v in ep["return"]],
             "slip_mm": [float(v) for v in ep["slip_mm"]],
             "peak_stress_kPa": [float(v) for v in ep["peak_stress_kPa"]],

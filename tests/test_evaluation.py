@@ -7,6 +7,7 @@ values only and the CLI run at two more; episodes are few.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import csv
 import io
 import json
@@ -184,9 +185,12 @@ def _hand_episode(env: GraspLiftEnv, seed: int, mu: float) -> dict[str, float]:
     policy = FixedForcePolicy(CONFIG)
     obs, info = env.reset(seed=seed, options={"mu": mu})
     policy.reset([info])
-    pinches, stresses, ttl, before_pull = [], [], float("nan"), 0.0
+    pinches, stresses, ttl, before_pull, setpoints = [], [], float("nan"), 0.0, []
     for step in range(1, CONFIG.max_episode_steps + 1):
-        obs, _, terminated, truncated, info = env.step(policy.act(obs[None])[0])
+        action = policy.act(obs[None])[0]
+        setpoints.append((0.5 * (np.clip(action[0], -1, 1) + 1)) ** CONFIG.pinch_action_exponent
+                         * CONFIG.max_pinch_force_N)
+        obs, _, terminated, truncated, info = env.step(action)
         pinches.append(info["pinch_force_N"])
         if info["travel_m"] < PULL_STARTED_M:  # the grasper has not started pulling yet
             before_pull = max(before_pull, info["pinch_force_N"])
@@ -196,7 +200,7 @@ def _hand_episode(env: GraspLiftEnv, seed: int, mu: float) -> dict[str, float]:
         if terminated or truncated:
             break
     return {"success": bool(info["is_success"]), "peak_pinch_N": max(pinches), "mean_pinch_N": float(np.mean(pinches)),
-            "peak_pinch_before_pull_N": before_pull,
+            "peak_pinch_before_pull_N": before_pull, "setpoint_change_N": float(np.mean(np.abs(np.diff(setpoints)))),
             "slip_mm": info["slip_distance_m"] * 1e3, "peak_stress_kPa": max(stresses) * 1e-3, "time_to_lift_s": ttl,
             "steps": step}
 
@@ -211,8 +215,8 @@ def test_json_values_match_episodes_run_by_hand(cli_run):
     per = row["per_episode"]
     assert per["success"] == [h["success"] for h in hand]
     assert per["steps"] == [h["steps"] for h in hand]
-    for key in ("peak_pinch_N", "peak_pinch_before_pull_N", "mean_pinch_N", "slip_mm", "peak_stress_kPa",
-                "time_to_lift_s"):
+    for key in ("peak_pinch_N", "peak_pinch_before_pull_N", "mean_pinch_N", "setpoint_change_N", "slip_mm",
+                "peak_stress_kPa", "time_to_lift_s"):
         assert per[key] == pytest.approx([h[key] for h in hand], rel=1e-6, nan_ok=True), key
     assert row["success_rate"] == pytest.approx(np.mean([h["success"] for h in hand]))
     assert row["mean_peak_pinch_N"] == pytest.approx(np.mean([h["peak_pinch_N"] for h in hand]), rel=1e-6)
@@ -341,3 +345,26 @@ def test_an_episodes_result_does_not_depend_on_the_batch_it_runs_in():
     apart = evaluate_policy(pol, [0.3, 0.6, 0.9], episodes=6, config=cfg, seed=3, n_envs=4)
     assert [r["mu"] for r in together] == [0.3, 0.6, 0.9] and all(r["episodes"] == 6 for r in together)
     assert json.dumps(together, sort_keys=True) == json.dumps(apart, sort_keys=True)
+
+
+class _BangBang:
+    """Pinch set-point 5 N and 0 N in turn (the force loop then runs at its speed limit both ways), no pull."""
+
+    name = "bangbang"
+
+    def reset(self, infos):
+        self.k = 0
+
+    def act(self, obs):
+        self.k += 1
+        return np.tile([1.0 if self.k % 2 else -1.0, -1.0], (len(obs), 1))
+
+
+def test_the_setpoint_change_measures_how_far_the_policy_moves_its_pinch_setpoint_each_step():
+    """A policy that commands 5 N and 0 N in turn moves its set-point by 5 N every step; a fixed force by none."""
+    cfg = dataclasses.replace(CONFIG, time_limit_s=0.2)
+    (row,) = evaluate_policy(_BangBang(), [0.5], episodes=2, config=cfg)
+    assert row["mean_setpoint_change_N"] == pytest.approx(cfg.max_pinch_force_N)
+    assert row["per_episode"]["setpoint_change_N"] == pytest.approx([cfg.max_pinch_force_N] * 2)
+    (row,) = evaluate_policy(FixedForcePolicy(cfg), [0.5], episodes=2, config=cfg)
+    assert row["mean_setpoint_change_N"] == 0.0

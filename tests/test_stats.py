@@ -24,7 +24,8 @@ def test_summary_rows_carry_intervals_that_contain_their_estimates():
 
     ep = {"success": np.array([True] * 7 + [False] * 3), "peak_pinch_N": np.linspace(1.0, 2.0, 10),
           "peak_pinch_before_pull_N": np.linspace(0.5, 1.0, 10),
-          "mean_pinch_N": np.ones(10), "return": np.zeros(10), "slip_mm": np.zeros(10),
+          "mean_pinch_N": np.ones(10), "setpoint_change_N": np.zeros(10), "return": np.zeros(10),
+          "slip_mm": np.zeros(10),
           "peak_stress_kPa": np.zeros(10), "time_above_damage_s": np.zeros(10), "time_to_lift_s": np.full(10, 2.0),
           "steps": np.full(10, 100),
           "outcome": np.array(["success"] * 7 + ["slipped"] * 3)}
