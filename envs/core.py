@@ -83,6 +83,10 @@ class RewardConfig:
     #: the charge's slope beyond ``peak_force_knee``, a fraction of the slope below it (0: the knee caps the charge;
     #: a cap leaves heavier grips uncharged, and a robust training then gripped at the 5 N limit)
     peak_force_beyond_knee: NonNegative = 1.0
+    #: per N of change of the pinch-force set-point from one agent step to the next (jaw_action = force; every
+    #: step): a force-loop command that moves as little as the grip needs. Without it the learned policies drive
+    #: the loop bang-bang (0 N and 5 N in turn), so the pinch integrates their decisions on noisy readings
+    setpoint_change: NonNegative = 0.0
     #: per second of pinch force equal to the reference force (scales linearly with force; every step)
     force_per_s: NonNegative = 0.0
     #: per step in which the peak nodal stress exceeds the damage threshold

@@ -139,6 +139,7 @@ class GraspLiftEnv(gym.Env):
     | peak_force | on success: -50 x episode peak pinch / 5 N (options below) | -2 (0.2 N) ... -50 (5 N) |
     | success | +50 once, on success | +50 |
     | failure | -10 once, when the episode ends without success (lost grasp, damage, blow-up, time limit) | -10 |
+    | setpoint_change | -w x change of the pinch set-point since the last step, N (off by default: w = 0) | 0 |
     | damage | -5 per step with peak nodal stress above ``damage_stress_pa`` (terminates) | |
     | grasp, force | off by default (shaping to a first grip for ``jaw_action="speed"``; cost per N s of pinch) | 0 |
 

@@ -86,8 +86,9 @@ assert OBS["prev_action_pull"] == I_PREV_ACTION + 1
 N_OBS = len(OBS_NAMES)
 
 #: the reward terms (``info["reward_terms"]`` keys; columns of ``TaskState.terms``)
-REWARD_TERMS = ("progress", "hold", "grasp", "slip", "force", "peak_force", "damage", "success", "failure")
-(R_PROGRESS, R_HOLD, R_GRASP, R_SLIP, R_FORCE, R_PEAK_FORCE, R_DAMAGE, R_SUCCESS, R_FAILURE) = (
+REWARD_TERMS = ("progress", "hold", "grasp", "slip", "force", "peak_force", "setpoint_change", "damage", "success",
+                "failure")
+(R_PROGRESS, R_HOLD, R_GRASP, R_SLIP, R_FORCE, R_PEAK_FORCE, R_SETPOINT_CHANGE, R_DAMAGE, R_SUCCESS, R_FAILURE) = (
     REWARD_TERMS.index(n) for n in REWARD_TERMS)
 
 #: an episode's random draws, columns of ``TaskState.draws`` (after :func:`draw_episode`: the values)
@@ -619,6 +620,11 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     t[R_SLIP] = -w.slip_per_mm * slip * 1e3
     t[R_FORCE] = -w.force_per_s * (pinch / e.reference_force_N) * dt
     t[R_PEAK_FORCE] = -peak_charge
+    # the pinch set-point's move since the last step of this episode (force set-points only)
+    moved = 0.0
+    if e.jaw_action_force and ts.steps[b] > 1:
+        moved = abs(pinch_setpoint(e, ts.act[b, 0]) - pinch_setpoint(e, ts.prev_action[b, 0]))
+    t[R_SETPOINT_CHANGE] = -w.setpoint_change * moved
     t[R_DAMAGE] = -w.damage * (1.0 if damaged else 0.0)
     t[R_SUCCESS] = w.success_bonus * (1.0 if success else 0.0)
     t[R_FAILURE] = -w.failure_penalty * (1.0 if unsuccessful else 0.0)

@@ -62,8 +62,8 @@ AXES = {"latency_steps": (1, 1), "pinch_ceiling_N": 1.5, "slip_sensing": "binary
 def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core(axes):
     config = _config()
     # (with the axes, the privileged robustness entries too: compared with the observation; and the peak-force
-    # charge with a knee at 1 point, which the closing jaws pass)
-    knee = {"peak_force_knee": 1.0, "peak_force_beyond_knee": 0.5} if axes else {}
+    # charge with a knee at 1 point, which the closing jaws pass, and the set-point's moves charged)
+    knee = {"peak_force_knee": 1.0, "peak_force_beyond_knee": 0.5, "setpoint_change": 0.5} if axes else {}
     config = from_dict(GraspLiftConfig, {**to_dict(config), "privileged_perturbations": bool(axes),
                                          "randomization": {**to_dict(config.randomization), **axes},
                                          "reward": {**to_dict(config.reward), **knee}})

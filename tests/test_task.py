@@ -6,6 +6,8 @@ Each test runs short batched episodes of the coarse spleen (one numba call per s
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -228,6 +230,24 @@ def test_peak_force_knee_bends_the_charge_so_a_steep_charge_need_not_make_failin
     np.testing.assert_allclose(as_made["return"], runs["bent"]["return"], atol=1e-9)
     with pytest.raises(ConfigError, match="peak_force_knee"):
         RewardConfig(peak_force_knee=-1.0)
+
+
+def test_setpoint_change_charges_each_move_of_the_pinch_setpoint_and_nothing_for_a_steady_one():
+    """reward.setpoint_change: w per N the commanded pinch set-point moves from one step to the next of the same
+    episode: 5 N and 0 N in turn pay 5 w a step from the second step on, a fixed set-point nothing."""
+    cfg = GraspLiftConfig(reward=RewardConfig(setpoint_change=0.1), time_limit_s=0.2)
+    env = GraspLiftVectorEnv(2, cfg)
+    env.reset(seed=0)
+    for k in range(6):
+        jaw = 1.0 if k % 2 else -1.0
+        _, _, _, _, info = env.core.step(np.array([[jaw, -1.0], [0.3, -1.0]]))
+        charged = info["reward_terms"]["setpoint_change"]
+        assert charged[0] == pytest.approx(0.0 if k == 0 else -0.1 * cfg.max_pinch_force_N, abs=1e-12)
+        assert charged[1] == 0.0
+    plain = GraspLiftVectorEnv(2, dataclasses.replace(cfg, reward=RewardConfig()))
+    plain.reset(seed=0)
+    _, _, _, _, info = plain.core.step(np.array([[1.0, -1.0], [-1.0, -1.0]]))
+    assert np.all(info["reward_terms"]["setpoint_change"] == 0.0)
 
 
 def test_peak_force_charged_as_made_has_the_same_returns_and_pays_when_the_force_rises():
