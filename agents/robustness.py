@@ -32,6 +32,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig, setpoint_interface
+from ..envs.task import config_record, peak_charge_points
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
     ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
@@ -157,10 +158,8 @@ def fixed_grip_return(forces: Sequence[float | None], grip_N: float, mu: float, 
     where it does not. The shaping terms are left out: progress and hold pay about the same in a success and in a
     lift that slips."""
     held = float(np.mean([f is not None and f <= grip_N for f in forces]))
-    charge = reward.peak_force * grip_N * reward.peak_force_weight(mu) / reference_force_N
-    if reward.peak_force_knee is not None:
-        knee = reward.peak_force_knee
-        charge = min(charge, knee) + reward.peak_force_beyond_knee * max(charge - knee, 0.0)
+    # the task's own charge (envs/task.py), run as Python on the reward's record
+    charge = peak_charge_points.py_func(config_record(reward), reference_force_N, grip_N, reward.peak_force_weight(mu))
     return held, held * (reward.success_bonus - charge) - (1.0 - held) * reward.failure_penalty
 
 

@@ -315,10 +315,13 @@ def pinned(value, default):
 
 
 @njit(cache=True, error_model="numpy")
-def kneed_peak_charge(w, e, peak_pinch, weight):
-    """The peak-force charge, points, of an episode whose peak pinch is ``peak_pinch`` N (``weight``: the
-    friction scaling), its slope times ``w.peak_force_beyond_knee`` above ``w.peak_force_knee`` points."""
-    charge = w.peak_force * (peak_pinch * weight) / e.reference_force_N
+def peak_charge_points(w, reference_force_N, peak_pinch, weight):
+    """The peak-force charge, points, of an episode whose peak pinch is ``peak_pinch`` N (``w``: the reward record;
+    ``weight``: the friction scaling), its slope times ``w.peak_force_beyond_knee`` above ``w.peak_force_knee``
+    points where that is set (not NaN)."""
+    charge = w.peak_force * (peak_pinch * weight) / reference_force_N
+    if math.isnan(w.peak_force_knee):
+        return charge
     return min(charge, w.peak_force_knee) + w.peak_force_beyond_knee * max(charge - w.peak_force_knee, 0.0)
 
 
@@ -607,9 +610,10 @@ def update(p, s, out, ts, b, finite, volume_ratio):
             peak_charge = ts.peak_pinch[b] if success else 0.0
         peak_charge = w.peak_force * (peak_charge * peak_weight) / e.reference_force_N
     else:  # the charge with a knee: as made, the rise of the episode's charge
-        charge_now = kneed_peak_charge(w, e, ts.peak_pinch[b], peak_weight)
+        charge_now = peak_charge_points(w, e.reference_force_N, ts.peak_pinch[b], peak_weight)
         if w.peak_force_timing_as_made:
-            peak_charge = charge_now - kneed_peak_charge(w, e, ts.peak_pinch[b] - peak_rise, peak_weight)
+            peak_charge = charge_now - peak_charge_points(w, e.reference_force_N, ts.peak_pinch[b] - peak_rise,
+                                                          peak_weight)
             peak_charge -= charge_now if unsuccessful else 0.0
         else:
             peak_charge = charge_now if success else 0.0

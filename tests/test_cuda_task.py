@@ -58,7 +58,7 @@ def _close(name: str, gpu_value, cpu_value, rtol: float = TASK_RTOL) -> None:
 AXES = {"latency_steps": (1, 1), "pinch_ceiling_N": 1.5, "slip_sensing": "binary"}
 
 
-@pytest.mark.parametrize("axes", [{}, AXES], ids=["nominal", "latency_ceiling_binary_slip_capped_charge"])
+@pytest.mark.parametrize("axes", [{}, AXES], ids=["nominal", "latency_ceiling_binary_slip_kneed_charge_setpoint_moves"])
 def test_the_gpu_task_steps_rewards_ends_and_resets_as_the_cpu_core(axes):
     config = _config()
     # (with the axes, the privileged robustness entries too: compared with the observation; and the peak-force
