@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig, pinch_action, setpoint_interface
+from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_interface
 from ..envs.task import OBS, obs_group
 from ..physics.config import needs_extra
 
@@ -101,7 +101,7 @@ class FixedForcePolicy:
             target = np.where(self._grasped, np.minimum(travel + step, cfg.max_travel_m), 0.0)
             pull = 2.0 * target / cfg.max_travel_m - 1.0
         elif cfg.pull_action == "forward_speed":
-            pull = np.where(self._grasped, 2.0 * self.pull - 1.0, -1.0)
+            pull = np.where(self._grasped, pull_action(self.pull, cfg), -1.0)
         else:
             pull = np.where(self._grasped, self.pull, 0.0)
         return np.stack([np.broadcast_to(jaw, pull.shape), pull], axis=1).astype(np.float32)
@@ -180,7 +180,7 @@ class SlipFeedbackPolicy:
         self._held += (touching | (self._held > 0)).astype(np.int64)
         slip_mm = frame[:, _LIFT_SLIP] * cfg.lift_slip_tolerance_m * 1e3
         self.force = np.maximum(self.force, np.minimum(self.initial + self.gain * slip_mm, self.max_force))
-        pull = np.where(self._held > self.settle_steps, 2.0 * self.pull - 1.0, -1.0)
+        pull = np.where(self._held > self.settle_steps, pull_action(self.pull, cfg), -1.0)
         return np.stack([pinch_action(self.force, cfg), pull], axis=1).astype(np.float32)
 
 

@@ -199,6 +199,11 @@ class GraspLiftConfig:
     #: (action 0: half the largest force); p = 2 spends more of the action range on light grips (action 0:
     #: a quarter of it, 1.25 N at 5 N)
     pinch_action_exponent: Annotated[Real, Ge(1), Le(4)] = 1.0
+    #: shape of the forward-speed pull action (pull_action = forward_speed): speed = ((a + 1) / 2) ** q x the top
+    #: speed. q = 1 is linear (action 0: half the top speed, 10 mm/s); q = 2 spends more of the action range on slow
+    #: pulls (action 0: a quarter of it, 5 mm/s), where a grasp needs less grip (the oracle's minimal force is 0.81x
+    #: that of a 10 mm/s pull at mu 0.3-0.8; docs/design.md)
+    pull_action_exponent: Annotated[Real, Ge(1), Le(4)] = 1.0
     #: gain of the 1 kHz force loop: closing speed per newton of force error, m/s/N (limited to the
     #: grasper's max closing speed)
     force_loop_gain_m_s_per_N: Annotated[Real, Gt(0), Le(1)] = 0.02
@@ -314,6 +319,13 @@ def setpoint_interface(config: GraspLiftConfig) -> bool:
     """Whether the task is commanded by a pinch-force set-point and a forward pull speed (the benchmark task's
     interface; the one the slip-feedback controller drives)."""
     return config.jaw_action == "force" and config.pull_action == "forward_speed"
+
+
+def pull_action(speed_fraction: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:
+    """The pull action (pull_action = forward_speed) whose speed is ``speed_fraction`` of the arm's top speed,
+    clipped to [-1, 1]: the inverse of :func:`.task.pull_speed_fraction`."""
+    frac = np.clip(np.asarray(speed_fraction, dtype=np.float64), 0.0, 1.0)
+    return 2.0 * frac ** (1.0 / config.pull_action_exponent) - 1.0
 
 
 def pinch_action(force_N: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:

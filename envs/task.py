@@ -407,6 +407,12 @@ def pinch_setpoint(env, a):
 
 
 @njit(cache=True, error_model="numpy")
+def pull_speed_fraction(env, a):
+    """Pull speed, a fraction of the arm's top speed, of pull action ``a`` in [-1, 1] (pull_action = forward_speed)."""
+    return (0.5 * (a + 1.0)) ** env.pull_action_exponent
+
+
+@njit(cache=True, error_model="numpy")
 def travel_setpoint(env, a):
     """Pull-distance set-point (m) of pull action ``a`` in [-1, 1] (pull_action = travel)."""
     return 0.5 * (a + 1.0) * env.max_travel_m
@@ -441,7 +447,7 @@ def command(p, s, ts, b, a0, a1):
         ts.travel_target[b] = target
         speed = min(max((target - travel(p, s, ts, b)) / p.agent_dt, -p.max_pull), p.max_pull)
     elif e.pull_action_forward_speed:
-        speed = 0.5 * (a1 + 1.0) * p.max_pull
+        speed = pull_speed_fraction(e, a1) * p.max_pull
     else:
         speed = a1 * p.max_pull
     for c in range(3):

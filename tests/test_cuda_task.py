@@ -25,6 +25,7 @@ def _config(**changes) -> GraspLiftConfig:
     data = {
         "resolution": 60, "physics_steps_per_action": 2, "time_limit_s": 0.016,  # 8 agent steps
         "privileged_obs": True, "privileged_nodes": 4, "obs_history": 2, "pinch_action_exponent": 2.0,
+        "pull_action_exponent": 2.0,
         "pull_action": "forward_speed", "terminate_on_damage": False,  # (the 60-node mesh's nodal stress is high)
         "reward": {"peak_force_mu_ref": 0.4, "force_per_s": 1.0, "grasp": 2.0, "peak_force_timing": "as_made"},
         "randomization": {"pose_offset_m": 0.0, "pose_tilt_deg": 0.0, "pose_azimuth_deg": 0.0, "sensor_noise_N": 0.0,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents.controllers import FixedForcePolicy
-from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, RewardConfig, pinch_action
+from msdgrasp.envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, RewardConfig, pinch_action, pull_action
 from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
 from msdgrasp.physics.config import ConfigError
 
@@ -112,8 +112,25 @@ def test_forward_speed_pull_maps_the_action_to_zero_to_top_speed():
     assert lift["success"].all()
 
 
+@pytest.mark.parametrize("exponent, speed_at_zero_mm_s", [(1.0, 10.0), (2.0, 5.0)])
+def test_pull_action_exponent_shapes_the_pull_speed(exponent, speed_at_zero_mm_s):
+    """pull_action = forward_speed: speed = ((a + 1) / 2) ** q x 20 mm/s. The grasper moves by that speed each step
+    (action 0: 20 / 2**q mm/s), and pull_action (what the controllers use) inverts it, so a controller's pull speed
+    does not depend on q."""
+    cfg = GraspLiftConfig(pull_action="forward_speed", pull_action_exponent=exponent)
+    env = GraspLiftVectorEnv(2, cfg)
+    run = _episodes(env, lambda obs: np.array([[-1.0, 0.0], [-1.0, 1.0]]), [0.5, 0.5])
+    step_mm = np.diff(run["travel"][:20], axis=0) * 1e3
+    np.testing.assert_allclose(step_mm[:, 0], speed_at_zero_mm_s * cfg.agent_dt_s, rtol=1e-6)
+    np.testing.assert_allclose(step_mm[:, 1], 20.0 * cfg.agent_dt_s, rtol=1e-6)
+    fractions = np.linspace(0.0, 1.0, 9)
+    np.testing.assert_allclose((0.5 * (pull_action(fractions, cfg) + 1.0)) ** exponent, fractions, atol=1e-12)
+    assert pull_action(0.25, cfg) == pytest.approx(0.0 if exponent == 2.0 else -0.5)
+
+
 @pytest.mark.parametrize("field, value, match", [
-    ("pinch_action_exponent", 0.5, "pinch_action_exponent"),
+    ("pinch_action_exponent", 0.5, "pinch_action_exponent"), ("pull_action_exponent", 0.9, "pull_action_exponent"),
+    ("pull_action_exponent", 5.0, "pull_action_exponent"),
     ("jaw_action", "torque", "jaw_action"), ("pull_action", "position", "pull_action"),
     ("max_pinch_force_N", 0.0, "max_pinch_force_N"), ("max_travel_m", 0.5, "max_travel_m"),
     ("obs_history", 0, "obs_history"), ("force_loop_gain_m_s_per_N", -1.0, "force_loop_gain"),
