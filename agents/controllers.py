@@ -20,6 +20,7 @@ A policy maps observations to actions for a batch of episodes::
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -390,9 +391,34 @@ def idle_action(config: GraspLiftConfig) -> np.ndarray:
     return np.array([-1.0 if config.jaw_action == "force" else 0.0, 0.0 if config.pull_action == "speed" else -1.0])
 
 
+#: the settings a ``slipfeedback:key=value,...`` spec may give (SlipFeedbackPolicy's arguments)
+SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N"}
+
+
+def slipfeedback_options(spec: str) -> dict[str, float]:
+    """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec (keys: initial (N), gain
+    (N per mm of slip), pull (fraction of the top pull speed), max (N)); ValueError naming the key on a bad one."""
+    body = spec.split(":", 1)[1]
+    options: dict[str, float] = {}
+    for part in body.split(","):
+        key, sep, value = part.partition("=")
+        key = key.strip()
+        if not sep or key not in SLIPFEEDBACK_KEYS:
+            raise ValueError(f"policy {spec!r}: 'slipfeedback:key=value,...' takes keys "
+                             f"{', '.join(SLIPFEEDBACK_KEYS)}; got {part!r}")
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number):
+            raise ValueError(f"policy {spec!r}: {key} expects a number, got {value!r}")
+        options[SLIPFEEDBACK_KEYS[key]] = number
+    return options
+
+
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
-    """'fixed' | 'fixed:<N>' | 'reactive' | 'slipfeedback' | 'oracle' | 'zero' | 'idle' | a path to a saved model of
-    any learner (run by the learner recorded beside it)."""
+    """'fixed' | 'fixed:<N>' | 'reactive' | 'slipfeedback' | 'slipfeedback:key=value,...' | 'oracle' | 'zero' |
+    'idle' | a path to a saved model of any learner (run by the learner recorded beside it)."""
     config = config or GraspLiftConfig()
     if spec == "zero":
         return ConstantPolicy([0.0, 0.0], "zero")
@@ -409,6 +435,10 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
         return SlipReactivePolicy(config)
     if spec == "slipfeedback":
         return SlipFeedbackPolicy(config)
+    if spec.startswith("slipfeedback:"):
+        policy = SlipFeedbackPolicy(config, **slipfeedback_options(spec))
+        policy.name = spec
+        return policy
     if spec == "oracle":
         return OraclePolicy(config)
     from .learners.base import learner_of_model

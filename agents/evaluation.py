@@ -42,9 +42,11 @@ from typing import Any
 
 import numpy as np
 
-from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
+from ..envs.core import (  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
+    DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig, benchmark_config,
+)
 from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
-from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
+from .controllers import OraclePolicy, SlipFeedbackPolicy, idle_action, make_policy, minimal_force, slipfeedback_options
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
 from .stats import bootstrap_ci, wilson_interval
@@ -58,7 +60,8 @@ UNSEEN_MU = 0.5
 ALWAYS = ("reactive", "oracle")
 MAX_GRID_VALUES = 101
 MU_MAX = 10.0  # the env accepts mu in [0, 10]
-BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "slipfeedback", "oracle", "zero", "idle")
+BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "slipfeedback", "slipfeedback:key=value,...", "oracle", "zero",
+                    "idle")
 _NAMED = ("fixed", "reactive", "slipfeedback", "oracle", "zero", "idle")
 
 CSV_COLUMNS = (
@@ -358,6 +361,13 @@ def check_policy_spec(spec: str) -> None:
         if not (math.isfinite(force) and force > 0):
             raise ConfigError(f"policy {spec!r}: 'fixed:<N>' expects a positive force in newtons, got {value!r}")
         return
+    if spec.startswith("slipfeedback:"):
+        try:
+            options = slipfeedback_options(spec)
+            SlipFeedbackPolicy(benchmark_config(), **options)
+        except ValueError as exc:
+            raise ConfigError(str(exc) if str(exc).startswith("policy") else f"policy {spec!r}: {exc}") from None
+        return
     path = Path(spec)
     if path.is_dir():
         raise ConfigError(f"policy {spec!r}: {path} is a folder, not a saved model file ({model_kinds()})")
@@ -446,6 +456,8 @@ def display_name(name: str) -> str:
         return "slip-reactive"
     if name == "slipfeedback":
         return "slip-feedback"
+    if name.startswith("slipfeedback:"):
+        return f"slip-feedback ({name.split(':', 1)[1]})"
     if name == "oracle":
         return "oracle (min. force + 10%)"
     if name.startswith("fixed") and name.endswith("N"):

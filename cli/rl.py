@@ -385,7 +385,8 @@ def add_rl_commands(sub) -> None:
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
-                        "fixed:<N> | reactive | slipfeedback | oracle (repeatable; default: the model of the default "
+                        "fixed:<N> | reactive | slipfeedback[:initial=N,gain=N,pull=F,max=N] | oracle (repeatable; "
+                        "default: the model of the default "
                         "learner's run in logs/train, else of every logs/train/seed_*/; none there is an error). "
                         "reactive and oracle are always added")
     e.add_argument("--mu-grid", default=None,
@@ -413,8 +414,8 @@ def add_rl_commands(sub) -> None:
 
     co = sub.add_parser("collect", help="record a policy's episodes as a Minari dataset (demonstrations)")
     co.add_argument("--policy", required=True, metavar="SPEC",
-                    help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | slipfeedback | oracle "
-                         "(the default training's task)")
+                    help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | "
+                         "slipfeedback[:key=value,...] | oracle (the default training's task)")
     co.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
                     help="a controller's episodes are drawn from this training's task (default: the default "
                          "training's)")

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents.controllers import SlipFeedbackPolicy, make_policy
-from msdgrasp.agents.evaluation import evaluate_policy
+from msdgrasp.agents.evaluation import check_policy_spec, evaluate_policy
 from msdgrasp.envs.core import GraspLiftConfig, benchmark_config
 from msdgrasp.envs.task import OBS, obs_group
+from msdgrasp.physics.config import ConfigError
 
 TASK = benchmark_config()
 
@@ -93,3 +94,27 @@ def test_it_lifts_with_a_lighter_grip_than_the_slip_reactive_controller_under_fo
         before = a["per_episode"]["peak_pinch_before_pull_N"]
         assert all(0.0 < f <= 0.55 * 1.05 for f in before), before
         assert all(f <= p for f, p in zip(before, a["per_episode"]["peak_pinch_N"]))
+
+
+def test_a_spec_sets_its_parameters_and_a_bad_one_is_refused_naming_the_key():
+    pol = make_policy("slipfeedback:initial=0.7,gain=0.8,pull=0.25", TASK)
+    assert (pol.initial, pol.gain, pol.pull) == (0.7, 0.8, 0.25)
+    assert pol.name == "slipfeedback:initial=0.7,gain=0.8,pull=0.25"
+    check_policy_spec("slipfeedback:pull=0.25")
+    for spec, needle in (("slipfeedback:speed=0.2", "takes keys initial, gain, pull, max"),
+                         ("slipfeedback:pull=fast", "pull expects a number"),
+                         ("slipfeedback:pull=0", "pull must be in"), ("slipfeedback:gain=-1", "gain_N_per_mm")):
+        with pytest.raises(ConfigError, match=needle):
+            check_policy_spec(spec)
+
+
+def test_a_slower_pull_lifts_with_less_grip():
+    """At 5 mm/s instead of 10 mm/s the tissue's load on the grasp is smaller, and the same feedback law holds it
+    with a lighter grip (the oracle's minimal fixed force: 0.81x at mu 0.3-0.8, docs/design.md)."""
+    mus = [0.4, 0.7]
+    fast = evaluate_policy(make_policy("slipfeedback", TASK), mus, 2, TASK)
+    slow = evaluate_policy(make_policy("slipfeedback:pull=0.25", TASK), mus, 2, TASK)
+    for a, b in zip(slow, fast):
+        assert a["success_rate"] == 1.0, a["outcomes"]
+        assert a["mean_peak_pinch_N"] < b["mean_peak_pinch_N"]
+        assert a["mean_time_to_lift_s"] > b["mean_time_to_lift_s"]
