@@ -345,6 +345,12 @@ def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: Gr
 # ------------------------------------------------------------------------------------------------
 
 
+def is_controller(spec: str) -> bool:
+    """Whether a policy spec names a built-in controller (``fixed:<N>`` and ``slipfeedback:...`` included), not a
+    saved model."""
+    return spec in _NAMED or spec.startswith(("fixed:", "slipfeedback:"))
+
+
 def check_policy_spec(spec: str) -> None:
     """Raise ConfigError for an unusable spec (bad ``fixed:<N>``, unknown name, missing model file)."""
     if not isinstance(spec, str) or not spec.strip():
@@ -567,7 +573,7 @@ def _curve_record(config: GraspLiftConfig, mus: Sequence[float], forces: Sequenc
 
 def _model_paths(policies: Sequence[str]) -> list[Path]:
     """The saved models among policy specs (the controllers' names left out)."""
-    return [Path(spec) for spec in policies if not (spec in _NAMED or spec.startswith("fixed:"))]
+    return [Path(spec) for spec in policies if not is_controller(spec)]
 
 
 def task_of(policies: Sequence[str], config: GraspLiftConfig | None) -> tuple[GraspLiftConfig, str | None]:
@@ -738,7 +744,7 @@ PolicyPayload = tuple[str, str, dict[str, bytes] | None]
 def _payload(spec: str, name: str) -> PolicyPayload:
     """What a job needs to rebuild a policy on any machine: a built-in spec, or the model's files (the model
     and the file that records its learner and config, :meth:`~.learners.Learner.model_files`)."""
-    if spec in _NAMED or spec.startswith("fixed:"):
+    if is_controller(spec):
         return spec, name, None
     path = Path(spec)
     files = learner_of_model(path).model_files(path)
