@@ -201,7 +201,7 @@ class GraspLiftConfig:
     pinch_action_exponent: Annotated[Real, Ge(1), Le(4)] = 1.0
     #: shape of the forward-speed pull action (pull_action = forward_speed): speed = ((a + 1) / 2) ** q x the top
     #: speed. q = 1 is linear (action 0: half the top speed, 10 mm/s); q = 2 spends more of the action range on slow
-    #: pulls (action 0: a quarter of it, 5 mm/s), where a grasp needs less grip (the oracle's minimal force is 0.81x
+    #: pulls (action 0: a quarter of it, 5 mm/s), where a grasp needs less grip (the oracle's minimal force: 0.81-0.83x
     #: that of a 10 mm/s pull at mu 0.3-0.8; docs/design.md)
     pull_action_exponent: Annotated[Real, Ge(1), Le(4)] = 1.0
     #: gain of the 1 kHz force loop: closing speed per newton of force error, m/s/N (limited to the

@@ -110,7 +110,7 @@ def test_a_spec_sets_its_parameters_and_a_bad_one_is_refused_naming_the_key():
 
 def test_a_slower_pull_lifts_with_less_grip():
     """At 5 mm/s instead of 10 mm/s the tissue's load on the grasp is smaller, and the same feedback law holds it
-    with a lighter grip (the oracle's minimal fixed force: 0.81x at mu 0.3-0.8, docs/design.md)."""
+    with a lighter grip (the oracle's minimal fixed force: 0.81-0.83x at mu 0.3-0.8, docs/design.md)."""
     mus = [0.4, 0.7]
     fast = evaluate_policy(make_policy("slipfeedback", TASK), mus, 2, TASK)
     slow = evaluate_policy(make_policy("slipfeedback:pull=0.25", TASK), mus, 2, TASK)
