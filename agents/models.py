@@ -18,6 +18,7 @@ from typing_extensions import TypedDict
 from ..envs.core import (
     GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization, setpoint_interface,
 )
+from .controllers import SlipFeedbackPolicy, slipfeedback_options
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
     read_yaml, replace,
@@ -26,6 +27,8 @@ from ..physics.config import (
 PositiveInt = Annotated[Int, Ge(1)]
 Unit = Annotated[Real, Ge(0), Le(1)]
 _Scale = Annotated[Real, Ge(0), Le(2)]
+#: the controllers a residual policy may correct (besides a ``slipfeedback:key=value,...`` spec)
+RESIDUAL_BASES = ("slipfeedback", "reactive", "fixed")
 
 
 @with_config(RECORD_CONFIG)
@@ -143,8 +146,10 @@ class TrainConfig:
     actor_privileged: tuple[Literal["mu", "perturbations"], ...] = ()
     #: residual policy (agents/residual.py): the model's action is a correction added to this controller's,
     #: clip(controller + residual_scale x model, -1, 1), in training and wherever the model runs; the controller
-    #: needs the task's interface (slipfeedback: a force set-point and a pull speed). None: the model acts alone
-    residual_base: Literal["slipfeedback", "reactive", "fixed"] | None = None
+    #: needs the task's interface (slipfeedback: a force set-point and a pull speed). slipfeedback, reactive, fixed,
+    #: or a slip-feedback controller with its settings (``slipfeedback:initial=0.7,gain=0.8,pull=0.25``, the
+    #: policy spec of ``msdgrasp evaluate``). None: the model acts alone
+    residual_base: Str | None = None
     #: the largest correction, in action units (the action range is [-1, 1]): one for both actions, or one per
     #: action (jaw, pull); 0 leaves that action to the controller
     residual_scale: Annotated[Real, Gt(0), Le(2)] | tuple[_Scale, _Scale] = 0.5
@@ -213,7 +218,15 @@ class TrainConfig:
             if self.bc_teacher is not None:
                 raise ConfigError("give either residual_base (learn a correction on a controller) or bc_teacher "
                                   "(clone a controller first), not both")
-            if self.residual_base == "slipfeedback" and not setpoint_interface(self.env):
+            if self.residual_base not in RESIDUAL_BASES and not self.residual_base.startswith("slipfeedback:"):
+                raise ConfigError(f"residual_base = {self.residual_base!r} is not a controller; choose one of "
+                                  f"{', '.join(RESIDUAL_BASES)} or 'slipfeedback:key=value,...'")
+            if self.residual_base.startswith("slipfeedback:"):
+                try:
+                    SlipFeedbackPolicy(self.env, **slipfeedback_options(self.residual_base))
+                except ValueError as exc:
+                    raise ConfigError(f"residual_base: {exc}") from None
+            if self.residual_base.startswith("slipfeedback") and not setpoint_interface(self.env):
                 raise ConfigError("residual_base: slipfeedback needs env.jaw_action: force and env.pull_action: "
                                   f"forward_speed, got {self.env.jaw_action!r} / {self.env.pull_action!r}")
         if self.init_model is not None and self.bc_teacher is not None:

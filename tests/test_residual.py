@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msdgrasp.agents.controllers import SlipFeedbackPolicy
+from msdgrasp.agents.controllers import ConstantPolicy, SlipFeedbackPolicy
 from msdgrasp.agents.models import TrainConfig
 from msdgrasp.agents.residual import ResidualPolicy, compose, residual_venv
 from msdgrasp.physics.config import ConfigError, from_dict
@@ -73,6 +73,8 @@ def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(t
 @pytest.mark.parametrize("over, needle", [
     ({"bc_teacher": "reactive"}, "either residual_base"),
     ({"residual_base": "oracle"}, "residual_base"),
+    ({"residual_base": "slipfeedback:speed=0.2"}, "residual_base: .*takes keys initial, gain, pull, max"),
+    ({"residual_base": "slipfeedback:pull=2"}, "residual_base"),
     ({"residual_scale": 0.0}, "residual_scale"),
     ({"residual_scale": [0.5, -0.1]}, "residual_scale"),
     ({"asymmetric_critic": False, "env": {"pull_action": "travel"}}, "residual_base: slipfeedback needs"),
@@ -80,3 +82,13 @@ def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(t
 def test_bad_residual_settings_are_refused_naming_the_field(over, needle):
     with pytest.raises(ConfigError, match=needle):
         from_dict(TrainConfig, {**SHORT, **over})
+
+
+def test_a_residual_on_a_slip_feedback_controller_with_its_settings():
+    """residual_base takes the evaluation's spec of a slip-feedback controller with its settings: the model runs on
+    that controller (its pull speed and gain), wherever it runs."""
+    from msdgrasp.agents.residual import with_residual
+
+    config = from_dict(TrainConfig, {**SHORT, "residual_base": "slipfeedback:initial=0.7,gain=0.8,pull=0.25"})
+    policy = with_residual(ConstantPolicy([0.0, 0.0], "zero"), config)
+    assert (policy.base.initial, policy.base.gain, policy.base.pull) == (0.7, 0.8, 0.25)
