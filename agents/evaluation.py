@@ -625,8 +625,8 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
 
     Every spec is validated (and every model loaded) before any episode runs or anything is written.
     The slip-reactive and oracle baselines are always added. Without ``config`` the task is the one the
-    model(s) were trained on (their saved config), else the default. Each policy also runs at
-    ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass outside the training ranges).
+    model(s) were trained on (their saved config), else (controllers only) the default training's. Each policy also
+    runs at ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass outside the training ranges).
     With ``runner`` (:mod:`.parallel`: local processes or Ray) every (policy, mu) cell, unseen condition and
     minimal-force bisection is its own job, models travel to the jobs as bytes (no shared disk needed), and
     the numbers are the same as without (same episodes, same seeds); recordings are made here.
@@ -640,7 +640,8 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         check_policy_spec(spec)
     # the baselines are always there: a learned policy is never shown alone
     policies += [b for b in ALWAYS if b not in policies]
-    config, trained_on = task_of(policies, config)
+    # controllers alone run on the default training's task, as in the suite (not on the env's version-0 defaults)
+    config, trained_on = task_of(policies, config) if config is not None else trained_task_of(policies)
     mus = [float(m) for m in mus]
     if not mus:
         raise ConfigError("the mu grid is empty")

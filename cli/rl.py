@@ -278,7 +278,7 @@ def _cmd_clone(args: argparse.Namespace) -> int:
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from ..envs.grasp_lift import GraspLiftEnv
-    from ..agents.evaluation import build_policy, check_policy_spec, record_policy_episode, task_of
+    from ..agents.evaluation import build_policy, check_policy_spec, record_policy_episode, trained_task_of
 
     if not (math.isfinite(args.mu) and 0.0 <= args.mu <= 10.0):
         raise _usage(f"--mu must be in [0, 10], got {args.mu}")
@@ -297,7 +297,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         check_still_path(args.still)
     spec = args.policy
     check_policy_spec(spec)
-    config, _ = task_of([spec], None)  # a model runs on the task it was trained on
+    config, _ = trained_task_of([spec])  # a model runs on the task it was trained on, a controller on the default's
     policy = build_policy(spec, config)
     env = GraspLiftEnv(config)
     try:

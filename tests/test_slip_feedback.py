@@ -129,3 +129,15 @@ def test_a_spec_runs_as_a_controller_in_evaluations_and_the_suite():
     payload = _payload(spec, spec)
     assert payload[2] is None
     assert _policy_of(payload, TASK).gain == 0.8
+
+
+def test_evaluate_runs_controllers_alone_on_the_default_training_s_task(tmp_path):
+    """`msdgrasp evaluate --policy slipfeedback` (controllers only, no model to take the task from) runs on the
+    default training's task, as the suite does: the slip-feedback controller needs its interface."""
+    from msdgrasp.agents.evaluation import evaluate
+    from msdgrasp.agents.models import TrainConfig
+
+    result = evaluate(["slipfeedback:pull=0.25"], [0.5], 1, tmp_path, progress=False, conditions=())
+    assert result["config"] == TrainConfig().env
+    ours = result["results"][0]
+    assert ours["name"] == "slipfeedback:pull=0.25" and ours["rows"][0]["success_rate"] == 1.0
