@@ -20,7 +20,6 @@ A policy maps observations to actions for a batch of episodes::
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -30,6 +29,7 @@ import numpy as np
 from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_interface
 from ..envs.task import OBS, obs_group
 from ..physics.config import needs_extra
+from .controller_settings import SlipFeedbackSettings, slipfeedback_options
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -146,16 +146,7 @@ class SlipFeedbackPolicy:
         if not setpoint_interface(self.config):
             raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
                              f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
-        if not 0 < initial_force_N <= max_force_N:
-            raise ValueError(f"initial_force_N must be in (0, max_force_N={max_force_N}], got {initial_force_N!r}")
-        if not gain_N_per_mm >= 0:
-            raise ValueError(f"gain_N_per_mm must be >= 0, got {gain_N_per_mm!r}")
-        if not 0 < pull <= 1:
-            raise ValueError(f"pull must be in (0, 1], got {pull!r}")
-        if contact_jaws not in (1, 2, 3):
-            raise ValueError(f"contact_jaws must be 1, 2 or 3, got {contact_jaws!r}")
-        if not (isinstance(settle_steps, int) and settle_steps >= 0):
-            raise ValueError(f"settle_steps must be an integer >= 0, got {settle_steps!r}")
+        SlipFeedbackSettings(initial_force_N, gain_N_per_mm, max_force_N, pull, contact_jaws, settle_steps)
         self.initial = float(initial_force_N)
         self.gain = float(gain_N_per_mm)
         self.max_force = float(max_force_N)
@@ -389,31 +380,6 @@ class ConstantPolicy:
 def idle_action(config: GraspLiftConfig) -> np.ndarray:
     """The action that leaves the tissue alone: jaws at zero force (or still), no pull."""
     return np.array([-1.0 if config.jaw_action == "force" else 0.0, 0.0 if config.pull_action == "speed" else -1.0])
-
-
-#: the settings a ``slipfeedback:key=value,...`` spec may give (SlipFeedbackPolicy's arguments)
-SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N"}
-
-
-def slipfeedback_options(spec: str) -> dict[str, float]:
-    """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec (keys: initial (N), gain
-    (N per mm of slip), pull (fraction of the top pull speed), max (N)); ValueError naming the key on a bad one."""
-    body = spec.split(":", 1)[1]
-    options: dict[str, float] = {}
-    for part in body.split(","):
-        key, sep, value = part.partition("=")
-        key = key.strip()
-        if not sep or key not in SLIPFEEDBACK_KEYS:
-            raise ValueError(f"policy {spec!r}: 'slipfeedback:key=value,...' takes keys "
-                             f"{', '.join(SLIPFEEDBACK_KEYS)}; got {part!r}")
-        try:
-            number = float(value)
-        except ValueError:
-            number = math.nan
-        if not math.isfinite(number):
-            raise ValueError(f"policy {spec!r}: {key} expects a number, got {value!r}")
-        options[SLIPFEEDBACK_KEYS[key]] = number
-    return options
 
 
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:

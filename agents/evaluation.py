@@ -42,11 +42,10 @@ from typing import Any
 
 import numpy as np
 
-from ..envs.core import (  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
-    DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig, benchmark_config,
-)
+from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
 from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
-from .controllers import OraclePolicy, SlipFeedbackPolicy, idle_action, make_policy, minimal_force, slipfeedback_options
+from .controller_settings import slipfeedback_options
+from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
 from .stats import bootstrap_ci, wilson_interval
@@ -369,10 +368,9 @@ def check_policy_spec(spec: str) -> None:
         return
     if spec.startswith("slipfeedback:"):
         try:
-            options = slipfeedback_options(spec)
-            SlipFeedbackPolicy(benchmark_config(), **options)
+            slipfeedback_options(spec)
         except ValueError as exc:
-            raise ConfigError(str(exc) if str(exc).startswith("policy") else f"policy {spec!r}: {exc}") from None
+            raise ConfigError(str(exc)) from None
         return
     path = Path(spec)
     if path.is_dir():

@@ -18,7 +18,7 @@ from typing_extensions import TypedDict
 from ..envs.core import (
     GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization, setpoint_interface,
 )
-from .controllers import SlipFeedbackPolicy, slipfeedback_options
+from .controller_settings import slipfeedback_options
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
     read_yaml, replace,
@@ -223,7 +223,7 @@ class TrainConfig:
                                   f"{', '.join(RESIDUAL_BASES)} or 'slipfeedback:key=value,...'")
             if self.residual_base.startswith("slipfeedback:"):
                 try:
-                    SlipFeedbackPolicy(self.env, **slipfeedback_options(self.residual_base))
+                    slipfeedback_options(self.residual_base)
                 except ValueError as exc:
                     raise ConfigError(f"residual_base: {exc}") from None
             if self.residual_base.startswith("slipfeedback") and not setpoint_interface(self.env):

@@ -1,0 +1,63 @@
+"""Settings of the built-in controllers, checked where they are given: in a policy spec
+(``slipfeedback:key=value,...``), in a training config (``residual_base``) or in code. Imports nothing of the
+package, so that the training config can check a controller without loading the controllers."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+#: the settings a ``slipfeedback:key=value,...`` spec may give, and the SlipFeedbackPolicy argument each sets
+SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N"}
+
+
+@dataclasses.dataclass(frozen=True)
+class SlipFeedbackSettings:
+    """The slip-feedback controller's settings (``agents.controllers.SlipFeedbackPolicy``); ValueError naming the
+    field on a bad one."""
+
+    initial_force_N: float = 0.55  # the grip until the tissue slips, N
+    gain_N_per_mm: float = 1.0  # the grip added per mm of slip since lifting began
+    max_force_N: float = 4.0  # the largest grip, N
+    pull: float = 0.5  # pull speed, a fraction of the arm's top speed
+    contact_jaws: int = 2  # jaws touching before the pull may start
+    settle_steps: int = 6  # agent steps the jaws hold before the pull starts
+
+    def __post_init__(self) -> None:
+        if not 0 < self.initial_force_N <= self.max_force_N:
+            raise ValueError(f"initial_force_N must be in (0, max_force_N={self.max_force_N}], "
+                             f"got {self.initial_force_N!r}")
+        if not self.gain_N_per_mm >= 0:
+            raise ValueError(f"gain_N_per_mm must be >= 0, got {self.gain_N_per_mm!r}")
+        if not 0 < self.pull <= 1:
+            raise ValueError(f"pull must be in (0, 1], got {self.pull!r}")
+        if self.contact_jaws not in (1, 2, 3):
+            raise ValueError(f"contact_jaws must be 1, 2 or 3, got {self.contact_jaws!r}")
+        if not (isinstance(self.settle_steps, int) and self.settle_steps >= 0):
+            raise ValueError(f"settle_steps must be an integer >= 0, got {self.settle_steps!r}")
+
+
+def slipfeedback_options(spec: str) -> dict[str, float]:
+    """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec (keys: initial (N), gain
+    (N per mm of slip), pull (fraction of the top pull speed), max (N)), checked; ValueError naming the key or the
+    field on a bad one."""
+    body = spec.split(":", 1)[1]
+    options: dict[str, float] = {}
+    for part in body.split(","):
+        key, sep, value = part.partition("=")
+        key = key.strip()
+        if not sep or key not in SLIPFEEDBACK_KEYS:
+            raise ValueError(f"policy {spec!r}: 'slipfeedback:key=value,...' takes keys "
+                             f"{', '.join(SLIPFEEDBACK_KEYS)}; got {part!r}")
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not math.isfinite(number):
+            raise ValueError(f"policy {spec!r}: {key} expects a number, got {value!r}")
+        options[SLIPFEEDBACK_KEYS[key]] = number
+    try:
+        SlipFeedbackSettings(**options)
+    except ValueError as exc:
+        raise ValueError(f"policy {spec!r}: {exc}") from None
+    return options
