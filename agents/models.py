@@ -18,11 +18,11 @@ from typing_extensions import TypedDict
 from ..envs.core import (
     GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization, setpoint_interface,
 )
-from .controller_settings import slipfeedback_options
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
     read_yaml, replace,
 )
+from .controller_settings import slipfeedback_options
 
 PositiveInt = Annotated[Int, Ge(1)]
 Unit = Annotated[Real, Ge(0), Le(1)]
