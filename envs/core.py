@@ -321,18 +321,24 @@ def setpoint_interface(config: GraspLiftConfig) -> bool:
     return config.jaw_action == "force" and config.pull_action == "forward_speed"
 
 
+def _action_of_fraction(fraction: np.ndarray | float, exponent: float) -> np.ndarray:
+    """The action in [-1, 1] that commands ``fraction`` (clipped to [0, 1]) of its range: the inverse of
+    :func:`.task.shaped_fraction`."""
+    frac = np.clip(np.asarray(fraction, dtype=np.float64), 0.0, 1.0)
+    return 2.0 * frac ** (1.0 / exponent) - 1.0
+
+
 def pull_action(speed_fraction: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:
     """The pull action (pull_action = forward_speed) whose speed is ``speed_fraction`` of the arm's top speed,
     clipped to [-1, 1]: the inverse of :func:`.task.pull_speed_fraction`."""
-    frac = np.clip(np.asarray(speed_fraction, dtype=np.float64), 0.0, 1.0)
-    return 2.0 * frac ** (1.0 / config.pull_action_exponent) - 1.0
+    return _action_of_fraction(speed_fraction, config.pull_action_exponent)
 
 
 def pinch_action(force_N: np.ndarray | float, config: GraspLiftConfig) -> np.ndarray:
     """The jaw action whose pinch-force set-point is ``force_N`` (jaw_action = force), clipped to [-1, 1]:
     the inverse of :func:`.task.pinch_setpoint`."""
-    frac = np.clip(np.asarray(force_N, dtype=np.float64) / config.max_pinch_force_N, 0.0, 1.0)
-    return 2.0 * frac ** (1.0 / config.pinch_action_exponent) - 1.0
+    return _action_of_fraction(np.asarray(force_N, dtype=np.float64) / config.max_pinch_force_N,
+                               config.pinch_action_exponent)
 
 
 def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, tilt_deg: float,

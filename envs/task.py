@@ -401,15 +401,22 @@ def rest_action(env):
 
 
 @njit(cache=True, error_model="numpy")
+def shaped_fraction(a, exponent):
+    """The fraction in [0, 1] of its range that action ``a`` in [-1, 1] commands: ((a + 1) / 2) ** exponent (an
+    exponent above 1 spends more of the action range on the low end)."""
+    return (0.5 * (a + 1.0)) ** exponent
+
+
+@njit(cache=True, error_model="numpy")
 def pinch_setpoint(env, a):
     """Pinch-force set-point (N) of jaw action ``a`` in [-1, 1] (jaw_action = force); ``env``: the config record."""
-    return (0.5 * (a + 1.0)) ** env.pinch_action_exponent * env.max_pinch_force_N
+    return shaped_fraction(a, env.pinch_action_exponent) * env.max_pinch_force_N
 
 
 @njit(cache=True, error_model="numpy")
 def pull_speed_fraction(env, a):
     """Pull speed, a fraction of the arm's top speed, of pull action ``a`` in [-1, 1] (pull_action = forward_speed)."""
-    return (0.5 * (a + 1.0)) ** env.pull_action_exponent
+    return shaped_fraction(a, env.pull_action_exponent)
 
 
 @njit(cache=True, error_model="numpy")
