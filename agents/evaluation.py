@@ -876,7 +876,7 @@ def format_unseen(unseen: list[dict[str, Any]]) -> str:
 def format_table(results: list[dict[str, Any]]) -> str:
     """A compact text table of the evaluation rows."""
     head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'/oracle':>7} {'max N':>6} {'mean N':>6} " \
-           f"{'slip mm':>7} {'stress kPa':>10} {'t_lift s':>8}"
+           f"{'slip mm':>7} {'stress kPa':>10} {'t_lift s':>8} {'return':>7}"
     lines = [head, "-" * len(head)]
     for pol in results:
         for r in pol["rows"]:
@@ -886,6 +886,6 @@ def format_table(results: list[dict[str, Any]]) -> str:
                 f"{pol['name'][:16]:<16} {r['mu']:>5.2f} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f} "
                 f"{r.get('peak_pinch_over_oracle_min', float('nan')):>7.2f} {r['max_peak_pinch_N']:>6.2f} "
                 f"{r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
-                f"{r['mean_peak_stress_kPa']:>10.1f} {ttl_s:>8}"
+                f"{r['mean_peak_stress_kPa']:>10.1f} {ttl_s:>8} {r['mean_return']:>7.2f}"
             )
     return "\n".join(lines)

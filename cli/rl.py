@@ -217,10 +217,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.n_envs is not None and args.n_envs < 1:
         raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
+    task = _training_task(args.training_task, policies) if args.training_task is not None else None
     _require_plots("evaluate")
     # without --ray / --address / --workers the evaluation runs in this process, as it always did
     runner = _runner(args) if _runner_asked(args) else None
-    result = evaluate(policies, mus, args.episodes, args.out, seed=args.seed, record=args.record,
+    result = evaluate(policies, mus, args.episodes, args.out, config=task, seed=args.seed, record=args.record,
                       progress=not args.quiet, n_envs=args.n_envs, video=args.video,
                       conditions=() if args.no_unseen else UNSEEN_CONDITIONS, runner=runner)
     print(format_table(result["results"]))
@@ -233,12 +234,28 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _training_task(path: Path, policies: list[str]):
+    """``--training-task CONFIG``: the episodes that training config draws (its task with its perturbations at
+    their full ranges, as its validation runs). Controllers only: a model runs on the task it was trained on."""
+    from ..agents.evaluation import is_controller
+    from ..agents.learners.sb3_layout import load_train_config
+
+    models = [spec for spec in policies if not is_controller(spec)]
+    if models:
+        raise _usage("--training-task runs controllers only (a model runs on the task it was trained on); "
+                     f"got {models[0]}")
+    if not path.is_file():
+        raise _usage(f"--training-task: no such file: {path}")
+    return load_train_config(path, "--training-task").training_task()
+
+
 def _cmd_suite(args: argparse.Namespace) -> int:
     """``evaluate --suite NAME``: the versioned protocol fixes its conditions, mu and episodes."""
     from ..agents.robustness import run_suite
 
     fixed = [flag for flag, given in (("--mu-grid", args.mu_grid), ("--no-unseen", args.no_unseen),
-                                      ("--n-envs", args.n_envs), ("--record", args.record), ("--video", args.video))
+                                      ("--n-envs", args.n_envs), ("--record", args.record), ("--video", args.video),
+                                      ("--training-task", args.training_task))
              if given]
     if fixed:
         raise _usage(f"evaluate --suite {args.suite}: the suite fixes its conditions, mu and batches; drop "
@@ -400,6 +417,10 @@ def add_rl_commands(sub) -> None:
                    help="with --suite: also search each episode's minimal fixed force in the nominal and placement "
                         "conditions (the hindsight oracle: what gripping every episode with just enough would "
                         "reach; about 3 CPU-minutes per condition and mu)")
+    e.add_argument("--training-task", type=Path, default=None, metavar="CONFIG",
+                   help="run the controllers on the episodes this training config draws: its task with its "
+                        "perturbations at their full ranges, where its validation runs (mean return in "
+                        "evaluation.json and the table: what that training's reward makes of each controller)")
     e.add_argument("--no-unseen", action="store_true",
                    help="skip the unseen tissues (stiffness 0.6 / 1.5, mass 0.8 / 1.25 at mu 0.5)")
     e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")

@@ -368,3 +368,36 @@ def test_the_setpoint_change_measures_how_far_the_policy_moves_its_pinch_setpoin
     assert row["per_episode"]["setpoint_change_N"] == pytest.approx([cfg.max_pinch_force_N] * 2)
     (row,) = evaluate_policy(FixedForcePolicy(cfg), [0.5], episodes=2, config=cfg)
     assert row["mean_setpoint_change_N"] == 0.0
+
+
+ROBUST_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "train" / "experiments" / "R-robust-privileged.yaml"
+
+
+def test_cli_evaluate_training_task_runs_controllers_on_the_episodes_that_training_draws(tmp_path):
+    from msdgrasp.agents.models import TrainConfig
+
+    rc, stdout, stderr = _run_main(["evaluate", "--training-task", str(ROBUST_CONFIG), "--policy", "fixed",
+                                    "--mu-grid", "0.5", "--episodes", "1", "--out", str(tmp_path), "--quiet",
+                                    "--no-unseen"])
+    assert rc == 0, stderr
+    drawn = TrainConfig.load(ROBUST_CONFIG).training_task().randomization
+    assert drawn.sensor_noise_N > TrainConfig().env.randomization.sensor_noise_N  # the perturbations, not the task's
+    data = json.loads((tmp_path / "evaluation.json").read_text())
+    assert data["config"]["randomization"]["sensor_noise_N"] == drawn.sensor_noise_N
+    assert data["config"]["randomization"]["pose_offset_m"] == drawn.pose_offset_m
+    # the table shows what the training's reward makes of each controller
+    assert "return" in stdout.splitlines()[0]
+    assert all(math.isfinite(r["rows"][0]["mean_return"]) for r in data["results"])
+
+
+def test_cli_evaluate_training_task_refuses_models_and_the_suite(tmp_path):
+    rc, _, err = _run_main(["evaluate", "--training-task", str(ROBUST_CONFIG), "--policy", str(tmp_path / "m.zip"),
+                            "--out", str(tmp_path / "x")])
+    assert rc == 2 and "--training-task runs controllers only" in err and len(err.strip().splitlines()) == 1
+    rc, _, err = _run_main(["evaluate", "--suite", "robustness", "--training-task", str(ROBUST_CONFIG),
+                            "--out", str(tmp_path / "y")])
+    assert rc == 2 and "drop --training-task" in err
+    rc, _, err = _run_main(["evaluate", "--training-task", str(tmp_path / "none.yaml"), "--policy", "fixed",
+                            "--out", str(tmp_path / "z")])
+    assert rc == 2 and "no such file" in err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "z").exists()
