@@ -153,6 +153,10 @@ class TrainConfig:
     #: the largest correction, in action units (the action range is [-1, 1]): one for both actions, or one per
     #: action (jaw, pull); 0 leaves that action to the controller
     residual_scale: Annotated[Real, Gt(0), Le(2)] | tuple[_Scale, _Scale] = 0.5
+    #: how the correction acts: "add" (both ways: clip(controller + scale x model, -1, 1)) or "raise" (only up:
+    #: clip(controller + scale x max(model, 0), -1, 1)), so the policy can add grip where the controller's is
+    #: too light but never take away the grip the controller holds the grasps with
+    residual_mode: Literal["add", "raise"] = "add"
     #: the PPO block replaces SB3's defaults key by key (a key left out gets SB3's default, not this one's)
     ppo: PPOKwargs = field(default_factory=lambda: PPOKwargs(
         learning_rate=1e-3, n_steps=128, batch_size=1024, n_epochs=10, gamma=0.999, gae_lambda=0.95,

@@ -1,8 +1,9 @@
 """Residual policies: a learned correction added to a controller's action.
 
 A model trained with ``residual_base`` (:class:`~.models.TrainConfig`) does not act alone: its output r in [-1, 1]
-is added to the controller's action a_c, ``a = clip(a_c + residual_scale * r, -1, 1)`` (:func:`compose`), in
-training (:func:`residual_venv`, around the SB3 vector env: PPO learns over r) and wherever the model runs
+is added to the controller's action a_c, ``a = clip(a_c + residual_scale * r, -1, 1)`` (:func:`compose`; with
+``residual_mode: raise`` only its positive part, ``max(r, 0)``: a correction that can raise the grip, never lower
+it), in training (:func:`residual_venv`, around the SB3 vector env: PPO learns over r) and wherever the model runs
 (:func:`with_residual`, around the loaded policy: evaluation, validation, the robustness suite, recording,
 demonstrations). The controller keeps its own state per episode. An untrained network outputs r ~ 0, so a
 residual training starts from the controller's behaviour and learns what it lacks (residual reinforcement
@@ -18,21 +19,26 @@ import numpy as np
 
 from .controllers import make_policy
 
-def compose(base: np.ndarray, residual: np.ndarray, scale: float | Sequence[float]) -> np.ndarray:
+def compose(base: np.ndarray, residual: np.ndarray, scale: float | Sequence[float], mode: str = "add") -> np.ndarray:
     """The action sent: the controller's ``base`` plus ``scale`` (one, or one per action) times the learned
-    ``residual``, clipped to [-1, 1]."""
+    ``residual`` (``mode`` "raise": its positive part only), clipped to [-1, 1]."""
+    if mode not in ("add", "raise"):
+        raise ValueError(f"residual mode must be 'add' or 'raise', got {mode!r}")
     scale = np.asarray(scale, dtype=np.float64)
-    return np.clip(np.asarray(base, dtype=np.float64) + scale * np.asarray(residual, dtype=np.float64),
-                   -1.0, 1.0).astype(np.float32)
+    residual = np.asarray(residual, dtype=np.float64)
+    if mode == "raise":
+        residual = np.maximum(residual, 0.0)
+    return np.clip(np.asarray(base, dtype=np.float64) + scale * residual, -1.0, 1.0).astype(np.float32)
 
 
 class ResidualPolicy:
     """A policy (``inner``, the trained model) acting as a correction on the controller ``base``."""
 
-    def __init__(self, inner: Any, base: Any, scale: float | Sequence[float]) -> None:
+    def __init__(self, inner: Any, base: Any, scale: float | Sequence[float], mode: str = "add") -> None:
         self.inner = inner
         self.base = base
         self.scale = scale
+        self.mode = mode
         self.name = inner.name
 
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
@@ -43,7 +49,7 @@ class ResidualPolicy:
         self.base.reset_one(index, info)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        return compose(self.base.act(obs), self.inner.act(obs), self.scale)
+        return compose(self.base.act(obs), self.inner.act(obs), self.scale, self.mode)
 
 
 def with_residual(policy: Any, config: Any) -> Any:
@@ -51,7 +57,7 @@ def with_residual(policy: Any, config: Any) -> Any:
     base = getattr(config, "residual_base", None)
     if base is None:
         return policy
-    return ResidualPolicy(policy, make_policy(base, config.env), config.residual_scale)
+    return ResidualPolicy(policy, make_policy(base, config.env), config.residual_scale, config.residual_mode)
 
 
 def residual_venv(venv: Any, config: Any) -> Any:
@@ -66,6 +72,7 @@ def residual_venv(venv: Any, config: Any) -> Any:
             super().__init__(venv)
             self.base = make_policy(config.residual_base, config.training_task())
             self.scale = config.residual_scale
+            self.mode = config.residual_mode
             self._obs: np.ndarray | None = None
 
         def reset(self) -> np.ndarray:
@@ -75,7 +82,7 @@ def residual_venv(venv: Any, config: Any) -> Any:
             return obs
 
         def step_async(self, actions: np.ndarray) -> None:
-            self.venv.step_async(compose(self.base.act(self._obs), actions, self.scale))
+            self.venv.step_async(compose(self.base.act(self._obs), actions, self.scale, self.mode))
 
         def step_wait(self):
             obs, rewards, dones, infos = self.venv.step_wait()

@@ -30,6 +30,20 @@ def test_compose_adds_the_scaled_correction_and_clips_to_the_action_range():
     assert np.allclose(compose(base, np.ones((2, 2)), (0.5, 0.0)), [[0.1, 0.0], [1.0, -1.0]])
 
 
+def test_a_raising_correction_never_lowers_the_controllers_action():
+    rng = np.random.default_rng(1)
+    base = rng.uniform(-1.0, 1.0, size=(64, 2))
+    residual = rng.uniform(-1.0, 1.0, size=(64, 2))
+    out = compose(base, residual, (0.3, 0.0), mode="raise")
+    assert np.all(out[:, 0] >= np.float32(base[:, 0]) - 1e-6)  # the grip only goes up
+    assert np.allclose(out[:, 1], base[:, 1])  # scale 0: the pull is the controller's
+    up = residual[:, 0] > 0
+    assert np.allclose(out[up, 0], np.clip(base[up, 0] + 0.3 * residual[up, 0], -1, 1))
+    assert np.allclose(out[~up, 0], base[~up, 0])
+    with pytest.raises(ValueError, match="'add' or 'raise'"):
+        compose(base, residual, 0.3, mode="lower")
+
+
 def test_the_training_env_sends_the_controllers_action_plus_the_correction():
     from msdgrasp.envs.sb3 import GraspLiftSB3VecEnv
 
@@ -77,6 +91,7 @@ def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(t
     ({"residual_base": "slipfeedback:pull=2"}, "residual_base"),
     ({"residual_scale": 0.0}, "residual_scale"),
     ({"residual_scale": [0.5, -0.1]}, "residual_scale"),
+    ({"residual_mode": "lower"}, "residual_mode"),
     ({"asymmetric_critic": False, "env": {"pull_action": "travel"}}, "residual_base: slipfeedback needs"),
 ])
 def test_bad_residual_settings_are_refused_naming_the_field(over, needle):
@@ -92,3 +107,22 @@ def test_a_residual_on_a_slip_feedback_controller_with_its_settings():
     config = from_dict(TrainConfig, {**SHORT, "residual_base": "slipfeedback:initial=0.7,gain=0.8,pull=0.25"})
     policy = with_residual(ConstantPolicy([0.0, 0.0], "zero"), config)
     assert (policy.base.initial, policy.base.gain, policy.base.pull) == (0.7, 0.8, 0.25)
+
+
+def test_a_raising_residual_model_acts_as_its_controller_where_it_would_lower_the_grip():
+    """residual_mode: raise travels with the model's config: a correction of -1 leaves the controller's action."""
+    from msdgrasp.agents.residual import with_residual
+    from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+
+    config = from_dict(TrainConfig, {**SHORT, "residual_mode": "raise"})
+    policy = with_residual(ConstantPolicy([-1.0, -1.0], "lower"), config)
+    assert policy.mode == "raise"
+    env = GraspLiftVectorEnv(1, config.env)
+    obs, _ = env.reset(seed=0)
+    twin = SlipFeedbackPolicy(config.env)
+    policy.reset([{}])
+    twin.reset([{}])
+    for _ in range(20):
+        action = policy.act(obs)
+        assert np.allclose(action, twin.act(obs))
+        obs, *_ = env.step(action)
