@@ -20,7 +20,7 @@ from ..envs.core import (
 )
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
-    read_yaml, replace,
+    read_extending_yaml, replace,
 )
 from .controller_settings import slipfeedback_options
 
@@ -253,4 +253,6 @@ class TrainConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
-        return from_dict(cls, read_yaml(path), where=Path(path).name)
+        """The training config at ``path``, strictly; ``extends:`` builds it on another file
+        (:func:`~msdgrasp.physics.config.read_extending_yaml`)."""
+        return from_dict(cls, read_extending_yaml(path), where=Path(path).name)

@@ -34,7 +34,7 @@ from annotated_types import Ge, Le
 from ..envs.core import OBS_NAMES, GraspLiftConfig, GraspLiftCore, actor_mask
 from ..physics.config import (
     Bool, ConfigError, Int, NonNegative, Positive, Real, atomic_write, atomic_write_text, config_dataclass, from_dict,
-    read_yaml, to_dict,
+    read_extending_yaml, to_dict,
 )
 from .controllers import TorchScriptPolicy
 from .learners.rsl_layout import LAYOUT, NAME, RUNNER_CHECKPOINT, meta_path
@@ -112,7 +112,8 @@ class TorchPPOConfig:
 
     @classmethod
     def load(cls, path: str | Path) -> "TorchPPOConfig":
-        return from_dict(cls, read_yaml(path), where=Path(path).name)
+        """The config at ``path``, strictly; ``extends:`` builds it on another file (see :meth:`TrainConfig.load`)."""
+        return from_dict(cls, read_extending_yaml(path), where=Path(path).name)
 
     def runner_cfg(self) -> dict[str, Any]:
         """rsl-rl's runner configuration of this run."""

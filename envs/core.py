@@ -19,8 +19,8 @@ import numpy as np
 from annotated_types import Ge, Gt, Le, Lt
 
 from ..physics.config import (
-    Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict, read_yaml,
-    replace, to_dict,
+    Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
+    read_extending_yaml, replace, to_dict,
 )
 from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
@@ -262,8 +262,9 @@ class GraspLiftConfig:
     def from_yaml(cls, path: str | Path) -> "GraspLiftConfig":
         """The task of the ``env:`` section of a YAML file (a training config's, e.g. configs/train/ppo.yaml),
         strictly: the section is required (no default task is assumed) and its keys are checked. The file's
-        other keys are the training's, checked by the training config's loader."""
-        data = read_yaml(path)
+        other keys are the training's, checked by the training config's loader. ``extends:`` builds the file on
+        another (:func:`~msdgrasp.physics.config.read_extending_yaml`)."""
+        data = read_extending_yaml(path)
         if "env" not in data:
             raise ConfigError(f"{path}: no 'env:' section; put the task's keys under env: (e.g. env: {{scene: spleen, "
                               f"privileged_obs: true}}; see configs/train/ppo.yaml)")

@@ -35,7 +35,8 @@ T = TypeVar("T")
 __all__ = [
     "RECORD_CONFIG", "Bool", "ConfigError", "Int", "NonNegative", "Positive", "Real", "Str", "atomic_write",
     "ConfigFile", "GRASPER_FILE", "TISSUE_FILE", "atomic_write_text", "builtin_config", "check_choice", "check_range",
-    "config_dataclass", "from_dict", "load_config", "read_config_file", "read_yaml", "replace",
+    "config_dataclass", "from_dict", "load_config", "merge_mappings", "read_config_file", "read_extending_yaml",
+    "read_yaml", "replace",
     "save_figure", "to_dict", "write_yaml", "MissingExtraError", "needs_extra", "require_extra",
 ]
 
@@ -311,6 +312,77 @@ def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path} must contain a mapping at the top level")
     return data
+
+
+#: the top-level key by which a config file builds on another (:func:`read_extending_yaml`)
+EXTENDS = "extends"
+
+
+def merge_mappings(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over`` deep-merged onto ``base`` (neither is changed): a key whose value is a mapping in both merges key by
+    key; any other value of ``over`` (a scalar, a list, null, a mapping over a non-mapping) replaces ``base``'s."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_mappings(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _nested_extends(data: Any, where: str) -> str | None:
+    """The dotted path of the first ``extends`` key below the top level of ``data`` (None: there is none)."""
+    items = data.items() if isinstance(data, dict) else enumerate(data) if isinstance(data, list) else ()
+    for key, value in items:
+        path = f"{where}.{key}" if where else str(key)
+        if isinstance(value, dict) and EXTENDS in value:
+            return f"{path}.{EXTENDS}"
+        found = _nested_extends(value, path)
+        if found is not None:
+            return found
+    return None
+
+
+def read_extending_yaml(path: str | os.PathLike,
+                        prepare: Callable[[dict[str, Any], Path], dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The top-level mapping of a config file that may build on another one (a training config).
+
+    A top-level ``extends: <file>`` names the parent, relative to this file's folder; the result is the parent's
+    mapping (itself read this way, so a parent may extend another) deep-merged with this file's
+    (:func:`merge_mappings`: this file's values win, mappings merge key by key, lists and scalars replace), without
+    the ``extends`` key. The merged mapping is then checked by the record's loader as any other file's, so an
+    unknown key is refused wherever in the chain it was written. ``prepare(data, file)``, where given, is applied to
+    each file's own mapping before it is merged (e.g. to resolve the paths a file names against its own folder).
+
+    Besides :func:`read_yaml`'s errors (naming the file read), a parent that does not exist, a cycle, an ``extends``
+    that is not a non-empty string and an ``extends`` below the top level each raise a one-line
+    :class:`ConfigError` naming the file and the field; nothing falls back to defaults."""
+    return _read_extending(Path(path), prepare, ())
+
+
+def _read_extending(path: Path, prepare: Callable[[dict[str, Any], Path], dict[str, Any]] | None,
+                    chain: tuple[Path, ...]) -> dict[str, Any]:
+    data = read_yaml(path)
+    nested = _nested_extends(data, "")
+    if nested is not None:
+        raise ConfigError(f"{path}: {nested}: '{EXTENDS}' is only allowed at the top level of a config file")
+    extends = EXTENDS in data
+    parent_name = data.pop(EXTENDS, None)
+    if prepare is not None:
+        data = prepare(data, path)
+    if not extends:
+        return data
+    if not isinstance(parent_name, str) or not parent_name.strip():
+        raise ConfigError(f"{path}: {EXTENDS} must be the path of the config file this one builds on (relative to "
+                          f"{path.parent}), got {parent_name!r}")
+    parent = path.parent / parent_name
+    chain = (*chain, path.resolve())
+    if parent.resolve() in chain:
+        names = " -> ".join(str(p) for p in (*chain, parent.resolve()))
+        raise ConfigError(f"{path}: {EXTENDS}: {parent_name!r} makes a cycle: {names}")
+    if not parent.is_file():
+        raise ConfigError(f"{path}: {EXTENDS}: config file not found: {parent}")
+    return merge_mappings(_read_extending(parent, prepare, chain), data)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -189,15 +189,17 @@ class Learner(ABC):
 
 
 def read_train_yaml(path: Path) -> dict[str, Any]:
-    """A training YAML's data, its ``env:`` section's tissue / grasper files resolved against the YAML's folder
-    (a config and the files it names move together)."""
-    from ...physics.config import read_yaml
+    """A training YAML's data, its ``extends:`` chain merged, each file's ``env:`` tissue / grasper files resolved
+    against that file's folder (a config and the files it names move together)."""
+    from ...physics.config import read_extending_yaml
     from ...physics.scenario import resolve_scene_paths
 
-    data = read_yaml(path)
-    if "env" in data:
-        data["env"] = resolve_scene_paths(data["env"], path)
-    return data
+    def resolve(data: dict[str, Any], file: Path) -> dict[str, Any]:
+        if "env" in data:
+            data["env"] = resolve_scene_paths(data["env"], file)
+        return data
+
+    return read_extending_yaml(path, prepare=resolve)
 
 
 def check_env_files(config: Any, path: Path) -> Any:
