@@ -7,8 +7,13 @@ from __future__ import annotations
 import dataclasses
 import math
 
+#: the longest a pinch-gated pull waits for the pinch reading beyond the contact rule, agent steps (1 s at 30 Hz): a
+#: force sensor that reads low (bias, a weak force loop) delays the pull, never stalls it
+GATE_WAIT_STEPS = 30
+
 #: the settings a ``slipfeedback:key=value,...`` spec may give, and the SlipFeedbackPolicy argument each sets
-SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N"}
+SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N",
+                     "gate": "pinch_gate", "oracle": "oracle_margin"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,6 +27,12 @@ class SlipFeedbackSettings:
     pull: float = 0.5  # pull speed, a fraction of the arm's top speed
     contact_jaws: int = 2  # jaws touching before the pull may start
     settle_steps: int = 6  # agent steps the jaws hold before the pull starts
+    # the pull also waits until the pinch reading reaches this fraction of the set-point (0: it does not wait), at
+    # most GATE_WAIT_STEPS agent steps beyond settle_steps
+    pinch_gate: float = 0.0
+    # > 0: the initial grip is this multiple of the oracle's minimal fixed force at the episode's friction and this
+    # pull speed (the controller is told mu, as the oracle is); 0: initial_force_N
+    oracle_margin: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 < self.initial_force_N <= self.max_force_N:
@@ -35,11 +46,16 @@ class SlipFeedbackSettings:
             raise ValueError(f"contact_jaws must be 1, 2 or 3, got {self.contact_jaws!r}")
         if not (isinstance(self.settle_steps, int) and self.settle_steps >= 0):
             raise ValueError(f"settle_steps must be an integer >= 0, got {self.settle_steps!r}")
+        if not 0 <= self.pinch_gate <= 1:
+            raise ValueError(f"pinch_gate must be in [0, 1], got {self.pinch_gate!r}")
+        if not (self.oracle_margin == 0 or 0.5 <= self.oracle_margin <= 3):
+            raise ValueError(f"oracle_margin must be 0 (off) or in [0.5, 3], got {self.oracle_margin!r}")
 
 
 def slipfeedback_options(spec: str) -> dict[str, float]:
     """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec (keys: initial (N), gain
-    (N per mm of slip), pull (fraction of the top pull speed), max (N)), checked; ValueError naming the key or the
+    (N per mm of slip), pull (fraction of the top pull speed), max (N), gate (fraction of the set-point the pinch
+    reading reaches before the pull), oracle (initial grip as a multiple of the oracle's minimal force)), checked; ValueError naming the key or the
     field on a bad one."""
     body = spec.split(":", 1)[1]
     options: dict[str, float] = {}

@@ -29,7 +29,7 @@ import numpy as np
 from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_interface
 from ..envs.task import OBS, obs_group
 from ..physics.config import needs_extra
-from .controller_settings import SlipFeedbackSettings, slipfeedback_options
+from .controller_settings import GATE_WAIT_STEPS, SlipFeedbackSettings, slipfeedback_options
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -137,42 +137,74 @@ class SlipFeedbackPolicy:
     ``settle_steps`` steps, then the pull starts) and the slip since lifting began (``lift_slip``), never a force
     reading, so force-sensor noise and bias leave its actions unchanged. Needs a force-set-point jaw and a
     forward-speed pull (the benchmark task's interface).
+
+    Two options change that. ``pinch_gate`` > 0: the pull also waits until the pinch reading reaches that fraction
+    of the set-point (at most ``GATE_WAIT_STEPS`` steps longer), so the grip is there before the tissue is loaded;
+    the controller then reads the force sensors. ``oracle_margin`` > 0: each episode's initial grip is that multiple
+    of the oracle's minimal fixed force at the episode's friction and this pull speed (:func:`minimal_force`, told
+    mu by the reset info as :class:`OraclePolicy` is): a reference for what knowing the friction is worth, not a
+    controller a grasper could run.
     """
 
     def __init__(self, config: GraspLiftConfig | None = None, initial_force_N: float = 0.55,
                  gain_N_per_mm: float = 1.0, max_force_N: float = 4.0, pull: float = 0.5, contact_jaws: int = 2,
-                 settle_steps: int = 6) -> None:
+                 settle_steps: int = 6, pinch_gate: float = 0.0, oracle_margin: float = 0.0) -> None:
         self.config = config or GraspLiftConfig()
         if not setpoint_interface(self.config):
             raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
                              f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
-        SlipFeedbackSettings(initial_force_N, gain_N_per_mm, max_force_N, pull, contact_jaws, settle_steps)
+        SlipFeedbackSettings(initial_force_N, gain_N_per_mm, max_force_N, pull, contact_jaws, settle_steps,
+                             pinch_gate, oracle_margin)
         self.initial = float(initial_force_N)
         self.gain = float(gain_N_per_mm)
         self.max_force = float(max_force_N)
         self.pull = float(pull)
         self.contact_jaws = int(contact_jaws)
         self.settle_steps = int(settle_steps)
+        self.pinch_gate = float(pinch_gate)
+        self.oracle_margin = float(oracle_margin)
         self.name = "slipfeedback"
-        self.reset([{}])
+        self._size(1)
+
+    def _size(self, n: int) -> None:
+        self.start = np.full(n, self.initial)  # each episode's initial grip, N
+        self.force = self.start.copy()
+        self._held = np.zeros(n, dtype=np.int64)  # steps since the jaws first held
+        self._pulling = np.zeros(n, dtype=bool)
+
+    def initial_force(self, info: dict[str, Any]) -> float:
+        """The initial grip (N) of an episode with reset info ``info``."""
+        if not self.oracle_margin:
+            return self.initial
+        if "mu" not in info:
+            raise ValueError("the slip-feedback controller with oracle_margin needs the episode's mu in the reset info")
+        force = minimal_force(self.config, round(float(info["mu"]), 3), self.pull, ORACLE_TOLERANCE_N)
+        return min(self.oracle_margin * force, self.max_force)
 
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
-        self.force = np.full(len(infos), self.initial)
-        self._held = np.zeros(len(infos), dtype=np.int64)  # steps since the jaws first held
+        self._size(len(infos))
+        self.start[:] = [self.initial_force(info) for info in infos]
+        self.force[:] = self.start
 
     def reset_one(self, index: int, info: dict[str, Any]) -> None:
         """Start a new episode in batch slot ``index`` only (the others keep their state)."""
-        self.force[index] = self.initial
+        self.start[index] = self.force[index] = self.initial_force(info)
         self._held[index] = 0
+        self._pulling[index] = False
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         cfg = self.config
         frame = _current_frame(obs, cfg)
         touching = (frame[:, _CONTACT] > 0.0).sum(axis=1) >= self.contact_jaws
         self._held += (touching | (self._held > 0)).astype(np.int64)
+        ready = self._held > self.settle_steps
+        if self.pinch_gate:
+            pinch = frame[:, _NORMAL].sum(axis=1) * cfg.reference_force_N
+            ready &= (pinch >= self.pinch_gate * self.force) | (self._held > self.settle_steps + GATE_WAIT_STEPS)
+        self._pulling |= ready
         slip_mm = frame[:, _LIFT_SLIP] * cfg.lift_slip_tolerance_m * 1e3
-        self.force = np.maximum(self.force, np.minimum(self.initial + self.gain * slip_mm, self.max_force))
-        pull = np.where(self._held > self.settle_steps, pull_action(self.pull, cfg), -1.0)
+        self.force = np.maximum(self.force, np.minimum(self.start + self.gain * slip_mm, self.max_force))
+        pull = np.where(self._pulling, pull_action(self.pull, cfg), -1.0)
         return np.stack([pinch_action(self.force, cfg), pull], axis=1).astype(np.float32)
 
 
@@ -187,6 +219,10 @@ class OraclePolicy(FixedForcePolicy):
 
     def setpoint(self, info: dict[str, Any]) -> float:
         return (1.0 + self.margin) * minimal_force(self.config, round(float(info["mu"]), 3), self.pull, self.tolerance)
+
+
+#: the tolerance of the minimal force a slip-feedback controller told mu starts from, N
+ORACLE_TOLERANCE_N = 0.02
 
 
 @functools.lru_cache(maxsize=8)

@@ -63,6 +63,61 @@ def test_it_pulls_only_once_the_jaws_have_held_for_the_settling_steps():
     assert pulls[:5] == [-1.0] * 5 and pulls[5:] == [0.0] * 3  # two jaws touch from step 2; pull (10 mm/s) after 3
 
 
+def _held_frame(pinch_N: float) -> np.ndarray:
+    """Three jaws touching, the pinch reading ``pinch_N`` in all (a third on each jaw)."""
+    obs = _frame()
+    obs[0, obs_group("contact_fraction")] = 0.5
+    obs[0, obs_group("normal_force")] = pinch_N / 3 / TASK.reference_force_N
+    return obs
+
+
+def test_a_pinch_gated_pull_waits_for_the_grip_and_then_keeps_pulling():
+    """With pinch_gate the pull starts only once the pinch reading reaches that share of the set-point (the
+    contact rule met too), and a later dip of the reading does not stop it."""
+    pol = SlipFeedbackPolicy(TASK, initial_force_N=1.0, pinch_gate=0.9, settle_steps=2)
+    pol.reset([{}])
+    readings = [0.2, 0.5, 0.7, 0.85, 0.92, 0.6, 0.3]
+    pulls = [float(pol.act(_held_frame(p))[0, 1]) for p in readings]
+    assert pulls == [-1.0] * 4 + [0.0] * 3
+
+
+def test_a_pinch_gate_delays_the_pull_but_a_reading_that_stays_low_cannot_stall_it():
+    """A sensor that reads low (a negative bias) holds the pull back at most GATE_WAIT_STEPS steps."""
+    from msdgrasp.agents.controller_settings import GATE_WAIT_STEPS
+
+    pol = SlipFeedbackPolicy(TASK, initial_force_N=1.0, pinch_gate=0.9, settle_steps=2)
+    pol.reset([{}])
+    pulls = [float(pol.act(_held_frame(0.5))[0, 1]) for _ in range(2 + GATE_WAIT_STEPS + 3)]
+    first = pulls.index(0.0)
+    assert first == 2 + GATE_WAIT_STEPS and all(p == 0.0 for p in pulls[first:])
+
+
+def test_told_mu_it_starts_each_episode_at_a_margin_over_the_oracle_s_force(monkeypatch):
+    """oracle_margin: each episode's initial grip is that multiple of the minimal fixed force at the episode's mu
+    and the controller's own pull speed (capped at its largest grip); an episode without mu is refused."""
+    import msdgrasp.agents.controllers as controllers
+
+    asked = []
+
+    def fake_minimal_force(config, mu, pull, tolerance_N):
+        asked.append((mu, pull, tolerance_N))
+        return 0.5 / mu
+
+    monkeypatch.setattr(controllers, "minimal_force", fake_minimal_force)
+    pol = SlipFeedbackPolicy(TASK, oracle_margin=1.2, pull=0.3, max_force_N=3.0)
+    pol.reset([{"mu": 0.5}, {"mu": 0.25}, {"mu": 0.1}])
+    assert pol.force == pytest.approx([1.2, 2.4, 3.0])
+    assert asked[0] == (0.5, 0.3, controllers.ORACLE_TOLERANCE_N)
+    pol.reset_one(2, {"mu": 1.0})
+    assert pol.force == pytest.approx([1.2, 2.4, 0.6])
+    obs = _frame(3)
+    obs[:, OBS["lift_slip"]] = 1.0 / (TASK.lift_slip_tolerance_m * 1e3)  # 1 mm of slip: + gain x 1 mm on each start
+    pol.act(obs)
+    assert pol.force == pytest.approx([2.2, 3.0, 1.6])
+    with pytest.raises(ValueError, match="needs the episode's mu"):
+        pol.reset([{}])
+
+
 @pytest.mark.parametrize("kwargs, needle", [
     ({"initial_force_N": 0.0}, "initial_force_N"),
     ({"initial_force_N": 5.0, "max_force_N": 4.0}, "initial_force_N"),
@@ -70,6 +125,10 @@ def test_it_pulls_only_once_the_jaws_have_held_for_the_settling_steps():
     ({"pull": 0.0}, "pull"),
     ({"contact_jaws": 4}, "contact_jaws"),
     ({"settle_steps": -1}, "settle_steps"),
+    ({"pinch_gate": 1.5}, "pinch_gate"),
+    ({"pinch_gate": -0.1}, "pinch_gate"),
+    ({"oracle_margin": 0.2}, "oracle_margin"),
+    ({"oracle_margin": 4.0}, "oracle_margin"),
 ])
 def test_bad_parameters_are_refused_naming_the_field(kwargs, needle):
     with pytest.raises(ValueError, match=needle):
@@ -106,7 +165,7 @@ def test_a_spec_sets_its_parameters_and_a_bad_one_is_refused_naming_the_key():
     assert (pol.initial, pol.gain, pol.pull) == (0.7, 0.8, 0.25)
     assert pol.name == "slipfeedback:initial=0.7,gain=0.8,pull=0.25"
     check_policy_spec("slipfeedback:pull=0.25")
-    for spec, needle in (("slipfeedback:speed=0.2", "takes keys initial, gain, pull, max"),
+    for spec, needle in (("slipfeedback:speed=0.2", "takes keys initial, gain, pull, max, gate, oracle"),
                          ("slipfeedback:pull=fast", "pull expects a number"),
                          ("slipfeedback:pull=0", "pull must be in"), ("slipfeedback:gain=-1", "gain_N_per_mm")):
         with pytest.raises(ConfigError, match=needle):
