@@ -53,10 +53,10 @@ class SlipFeedbackSettings:
 
 
 def slipfeedback_options(spec: str) -> dict[str, float]:
-    """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec (keys: initial (N), gain
-    (N per mm of slip), pull (fraction of the top pull speed), max (N), gate (fraction of the set-point the pinch
-    reading reaches before the pull), oracle (initial grip as a multiple of the oracle's minimal force)), checked; ValueError naming the key or the
-    field on a bad one."""
+    """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec, checked; ValueError naming
+    the key or the field on a bad one. Keys: initial (N), gain (N per mm of slip), pull (fraction of the top pull
+    speed), max (N), gate (the share of the set-point the pinch reading reaches before the pull), oracle (the initial
+    grip as a multiple of the oracle's minimal force at the episode's mu)."""
     body = spec.split(":", 1)[1]
     options: dict[str, float] = {}
     for part in body.split(","):
