@@ -221,15 +221,33 @@ def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, 
             "rows": rows}
 
 
+def select_conditions(suite: str, only: Sequence[str]) -> tuple[Condition, ...]:
+    """The conditions of ``suite`` that ``only`` names, in the protocol's order: each entry an axis (every condition
+    of it) or a condition's exact name. ConfigError naming the entry, the axes and the names, on one that matches
+    nothing."""
+    conditions = SUITES[suite]
+    axes = list(dict.fromkeys(c.axis for c in conditions))
+    wanted = set()
+    for entry in only:
+        hits = [k for k, c in enumerate(conditions) if entry in (c.axis, c.name)]
+        if not hits:
+            raise ConfigError(f"condition {entry!r} is not in suite {suite!r}: give an axis ({', '.join(axes)}) or a "
+                              f"condition's name ({'; '.join(c.name for c in conditions)})")
+        wanted.update(hits)
+    return tuple(c for k, c in enumerate(conditions) if k in wanted)
+
+
 def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int = EPISODES,
               seed: int = 0, runner: Runner | None = None, progress: bool = True,
-              hindsight: bool = False) -> dict[str, Any]:
+              hindsight: bool = False, only: Sequence[str] | None = None) -> dict[str, Any]:
     """Run ``suite`` on every policy spec and the baselines; write ``suite_<suite>.json`` and
     ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and every model loaded before any
     episode runs. ``runner``: each (policy, condition) a job (local processes or Ray), same numbers as without.
     ``hindsight``: also search each episode's minimal fixed force in the conditions of HINDSIGHT_AXES
     (:func:`.controllers.episode_minimal_forces`; about 3 CPU-minutes per condition and mu): what a policy that
-    grips every episode with just enough force would reach there."""
+    grips every episode with just enough force would reach there. ``only``: run these of the suite's conditions
+    alone (:func:`select_conditions`: axes or condition names); the result says it is a subset, whose scores are
+    not the suite's."""
     if suite not in SUITES:
         raise ConfigError(f"suite = {suite!r} is not known; choose one of {', '.join(map(repr, SUITES))}")
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
@@ -237,6 +255,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
+    conditions = SUITES[suite] if only is None else select_conditions(suite, only)
     specs = expand_policy_specs(policies)
     for spec in specs:
         check_policy_spec(spec)
@@ -247,7 +266,6 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     ranges = trained_ranges_of(specs)
     built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
     names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]
-    conditions = SUITES[suite]
     payloads = [_payload(spec, name) for spec, name in zip(specs, names)]
     jobs, where = [], []
     for p, payload in enumerate(payloads):
@@ -304,6 +322,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     order = sorted(range(len(board)), key=lambda p: (-board[p]["score"], board[p]["mean_force_ratio"]))
     result = {
         "suite": suite, "version": SUITE_VERSION, "episodes": int(episodes), "seed": int(seed),
+        "subset": len(conditions) < len(SUITES[suite]),
         "seconds": round(time.perf_counter() - t0, 2), "runner": "this process" if runner is None else runner.label,
         "task_from": trained_on or "the default training's task (TrainConfig().env)", "config": to_dict(config),
         "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
@@ -329,7 +348,9 @@ def _num(x: float, fmt: str) -> str:
 
 def leaderboard_markdown(result: dict[str, Any]) -> str:
     """The leaderboard and the per-condition table of a suite result."""
-    lines = [f"# Robustness suite `{result['suite']}` v{result['version']}", "",
+    subset = (f" (a subset of the protocol: {len(result['conditions'])} of {len(SUITES[result['suite']])} "
+              "conditions; its scores are not the suite's)") if result.get("subset") else ""
+    lines = [f"# Robustness suite `{result['suite']}` v{result['version']}{subset}", "",
              f"{len(result['conditions'])} conditions, {result['episodes']} episodes per mu "
              f"(mu {', '.join(f'{m:g}' for m in MUS)} unless the condition sets it), seeds {result['seed']}.."
              f"{result['seed'] + result['episodes'] - 1}; task: {result['task_from']}. "

@@ -211,6 +211,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         return _cmd_suite(args)
     if args.hindsight:
         raise _usage("--hindsight needs --suite robustness (it searches the suite's episodes)")
+    if args.condition:
+        raise _usage("--condition needs --suite robustness (it picks the suite's conditions)")
     mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
@@ -265,7 +267,7 @@ def _cmd_suite(args: argparse.Namespace) -> int:
     policies = args.policy or _default_policies()
     runner = _runner(args) if _runner_asked(args) else None
     result = run_suite(policies, args.out, args.suite, episodes=args.episodes, seed=args.seed, runner=runner,
-                       progress=not args.quiet, hindsight=args.hindsight)
+                       progress=not args.quiet, hindsight=args.hindsight, only=args.condition)
     print(Path(result["files"]["markdown"]).read_text())
     print(json.dumps(result["files"], indent=2))
     return 0
@@ -414,6 +416,10 @@ def add_rl_commands(sub) -> None:
                    help="run a versioned protocol instead of the mu grid: robustness (sensing, actuation, placement, "
                         "friction and tissue outside training; agents/robustness.py): suite_<name>.json and "
                         "leaderboard_<name>.md in --out")
+    e.add_argument("--condition", action="append", default=None, metavar="AXIS|NAME",
+                   help="with --suite: run only these conditions (repeatable): an axis (nominal, sensing, actuation, "
+                        "placement, friction, tissue) or a condition's name as the leaderboard writes it; the "
+                        "result is marked a subset")
     e.add_argument("--hindsight", action="store_true",
                    help="with --suite: also search each episode's minimal fixed force in the nominal and placement "
                         "conditions (the hindsight oracle: what gripping every episode with just enough would "

@@ -184,3 +184,33 @@ def test_the_suite_reports_the_hindsight_oracle_where_the_placement_changes(tmp_
     assert "| hindsight |" in board and "| 0.50 / 1.20 / - |" in board
     rc, _, err = _run_main(["evaluate", "--policy", "fixed", "--hindsight", "--out", str(tmp_path / "y")])
     assert rc == 2 and "--hindsight needs --suite" in err
+
+
+def test_a_subset_of_the_conditions_runs_alone_and_says_so(tmp_path, monkeypatch):
+    """--condition picks conditions by axis or by name; the result and its leaderboard say it is a subset, and a
+    name the suite does not have is refused (exit 2) before anything is written."""
+    stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
+                Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)),
+                Condition("actuation", "pinch ceiling 3 N", {"pinch_ceiling_N": 3.0}, mus=(0.5,)))
+    monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
+    assert [c.name for c in robustness.select_conditions("robustness", ["actuation"])] == [
+        "latency 3 steps", "pinch ceiling 3 N"]
+    assert [c.name for c in robustness.select_conditions("robustness", ["pinch ceiling 3 N", "nominal"])] == [
+        "nominal", "pinch ceiling 3 N"]  # (the protocol's order)
+    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)
+    from msdgrasp.agents import controllers
+
+    monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)
+    rc, out, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--episodes", "1",
+                              "--condition", "latency 3 steps", "--out", str(tmp_path), "--quiet"])
+    assert rc == 0, err
+    data = json.loads((tmp_path / "suite_robustness.json").read_text())
+    assert data["subset"] is True and [c["name"] for c in data["conditions"]] == ["latency 3 steps"]
+    assert all(len(r["cells"]) == 1 for r in data["results"])
+    assert "a subset of the protocol: 1 of 3 conditions" in (tmp_path / "leaderboard_robustness.md").read_text()
+    rc, _, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--condition", "latency",
+                            "--out", str(tmp_path / "x")])
+    assert rc == 2 and "condition 'latency' is not in suite 'robustness'" in err and "actuation" in err
+    assert not (tmp_path / "x").exists()
+    rc, _, err = _run_main(["evaluate", "--policy", "fixed", "--condition", "nominal", "--out", str(tmp_path / "y")])
+    assert rc == 2 and "--condition needs --suite" in err
