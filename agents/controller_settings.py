@@ -13,7 +13,10 @@ GATE_WAIT_STEPS = 30
 
 #: the settings a ``slipfeedback:key=value,...`` spec may give, and the SlipFeedbackPolicy argument each sets
 SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N",
-                     "gate": "pinch_gate", "oracle": "oracle_margin"}
+                     "gate": "pinch_gate", "oracle": "oracle_margin", "margin": "estimate_margin",
+                     "estimator": "friction_estimator"}
+#: the spec keys whose value is a path, not a number
+PATH_KEYS = ("estimator",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +36,9 @@ class SlipFeedbackSettings:
     # > 0: the initial grip is this multiple of the oracle's minimal fixed force at the episode's friction and this
     # pull speed (the controller is told mu, as the oracle is); 0: initial_force_N
     oracle_margin: float = 0.0
+    # with a friction estimator: the grip set before the pull is this multiple of the minimal fixed force at the
+    # estimated friction
+    estimate_margin: float = 1.2
 
     def __post_init__(self) -> None:
         if not 0 < self.initial_force_N <= self.max_force_N:
@@ -50,21 +56,30 @@ class SlipFeedbackSettings:
             raise ValueError(f"pinch_gate must be in [0, 1], got {self.pinch_gate!r}")
         if not (self.oracle_margin == 0 or 0.5 <= self.oracle_margin <= 3):
             raise ValueError(f"oracle_margin must be 0 (off) or in [0.5, 3], got {self.oracle_margin!r}")
+        if not 0.5 <= self.estimate_margin <= 3:
+            raise ValueError(f"estimate_margin must be in [0.5, 3], got {self.estimate_margin!r}")
 
 
-def slipfeedback_options(spec: str) -> dict[str, float]:
+def slipfeedback_options(spec: str) -> dict[str, float | str]:
     """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec, checked; ValueError naming
     the key or the field on a bad one. Keys: initial (N), gain (N per mm of slip), pull (fraction of the top pull
     speed), max (N), gate (the share of the set-point the pinch reading reaches before the pull), oracle (the initial
-    grip as a multiple of the oracle's minimal force at the episode's mu)."""
+    grip as a multiple of the oracle's minimal force at the episode's mu), estimator (the path of a friction estimator:
+    the grip set before the pull from the friction it estimates while the jaws close), margin (that grip over the
+    minimal force at the estimate)."""
     body = spec.split(":", 1)[1]
-    options: dict[str, float] = {}
+    options: dict[str, float | str] = {}
     for part in body.split(","):
         key, sep, value = part.partition("=")
         key = key.strip()
         if not sep or key not in SLIPFEEDBACK_KEYS:
             raise ValueError(f"policy {spec!r}: 'slipfeedback:key=value,...' takes keys "
                              f"{', '.join(SLIPFEEDBACK_KEYS)}; got {part!r}")
+        if key in PATH_KEYS:
+            if not value.strip():
+                raise ValueError(f"policy {spec!r}: {key} expects a file path, got {value!r}")
+            options[SLIPFEEDBACK_KEYS[key]] = value.strip()
+            continue
         try:
             number = float(value)
         except ValueError:
@@ -73,7 +88,7 @@ def slipfeedback_options(spec: str) -> dict[str, float]:
             raise ValueError(f"policy {spec!r}: {key} expects a number, got {value!r}")
         options[SLIPFEEDBACK_KEYS[key]] = number
     try:
-        SlipFeedbackSettings(**options)
+        SlipFeedbackSettings(**{k: v for k, v in options.items() if k != "friction_estimator"})
     except ValueError as exc:
         raise ValueError(f"policy {spec!r}: {exc}") from None
     return options

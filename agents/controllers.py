@@ -20,6 +20,7 @@ A policy maps observations to actions for a batch of episodes::
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -30,6 +31,7 @@ from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_int
 from ..envs.task import OBS, obs_group
 from ..physics.config import needs_extra
 from .controller_settings import GATE_WAIT_STEPS, SlipFeedbackSettings, slipfeedback_options
+from .friction import FrictionEstimator, closing_features
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -143,18 +145,29 @@ class SlipFeedbackPolicy:
     the controller then reads the force sensors. ``oracle_margin`` > 0: each episode's initial grip is that multiple
     of the oracle's minimal fixed force at the episode's friction and this pull speed (:func:`minimal_force`, told
     mu by the reset info as :class:`OraclePolicy` is): a reference for what knowing the friction is worth, not a
-    controller a grasper could run.
+    controller a grasper could run. ``friction_estimator`` (a :class:`.friction.FrictionEstimator`, with a pinch
+    gate): the jaws close to the estimator's probe grip; when the gate opens, the friction is estimated from the frames
+    seen while closing, the set-point rises to ``estimate_margin`` x the minimal fixed force at the estimate, and the
+    pull waits for the pinch to reach the gate's share of that (``mu_estimate`` holds each episode's estimate).
     """
 
     def __init__(self, config: GraspLiftConfig | None = None, initial_force_N: float = 0.55,
                  gain_N_per_mm: float = 1.0, max_force_N: float = 4.0, pull: float = 0.5, contact_jaws: int = 2,
-                 settle_steps: int = 6, pinch_gate: float = 0.0, oracle_margin: float = 0.0) -> None:
+                 settle_steps: int = 6, pinch_gate: float = 0.0, oracle_margin: float = 0.0,
+                 estimate_margin: float = 1.2, friction_estimator: FrictionEstimator | None = None) -> None:
         self.config = config or GraspLiftConfig()
         if not setpoint_interface(self.config):
             raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
                              f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
         SlipFeedbackSettings(initial_force_N, gain_N_per_mm, max_force_N, pull, contact_jaws, settle_steps,
-                             pinch_gate, oracle_margin)
+                             pinch_gate, oracle_margin, estimate_margin)
+        if friction_estimator is not None:
+            if not pinch_gate or oracle_margin:
+                raise ValueError("friction_estimator needs pinch_gate > 0 (the estimate is made when the gate opens) "
+                                 "and oracle_margin 0 (told mu, nothing is estimated)")
+            if not math.isclose(initial_force_N, friction_estimator.probe_force_N):
+                raise ValueError(f"initial_force_N must be the friction estimator's probe grip, "
+                                 f"{friction_estimator.probe_force_N} N, got {initial_force_N!r}")
         self.initial = float(initial_force_N)
         self.gain = float(gain_N_per_mm)
         self.max_force = float(max_force_N)
@@ -163,6 +176,8 @@ class SlipFeedbackPolicy:
         self.settle_steps = int(settle_steps)
         self.pinch_gate = float(pinch_gate)
         self.oracle_margin = float(oracle_margin)
+        self.estimate_margin = float(estimate_margin)
+        self.estimator = friction_estimator
         self.name = "slipfeedback"
         self._size(1)
 
@@ -171,6 +186,9 @@ class SlipFeedbackPolicy:
         self.force = self.start.copy()
         self._held = np.zeros(n, dtype=np.int64)  # steps since the jaws first held
         self._pulling = np.zeros(n, dtype=bool)
+        self.mu_estimate = np.full(n, np.nan)  # with a friction estimator: each episode's estimate
+        self._frames: list[list[np.ndarray]] = [[] for _ in range(n)]  # the frames seen while closing
+        self._regrip = np.full(n, -1, dtype=np.int64)  # steps since the estimate raised the grip (-1: not yet)
 
     def initial_force(self, info: dict[str, Any]) -> float:
         """The initial grip (N) of an episode with reset info ``info``."""
@@ -191,6 +209,9 @@ class SlipFeedbackPolicy:
         self.start[index] = self.force[index] = self.initial_force(info)
         self._held[index] = 0
         self._pulling[index] = False
+        self.mu_estimate[index] = np.nan
+        self._frames[index] = []
+        self._regrip[index] = -1
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         cfg = self.config
@@ -201,11 +222,30 @@ class SlipFeedbackPolicy:
         if self.pinch_gate:
             pinch = frame[:, _NORMAL].sum(axis=1) * cfg.reference_force_N
             ready &= (pinch >= self.pinch_gate * self.force) | (self._held > self.settle_steps + GATE_WAIT_STEPS)
+        if self.estimator is not None:
+            ready = self._estimate(frame, ready, pinch)
         self._pulling |= ready
         slip_mm = frame[:, _LIFT_SLIP] * cfg.lift_slip_tolerance_m * 1e3
         self.force = np.maximum(self.force, np.minimum(self.start + self.gain * slip_mm, self.max_force))
         pull = np.where(self._pulling, pull_action(self.pull, cfg), -1.0)
         return np.stack([pinch_action(self.force, cfg), pull], axis=1).astype(np.float32)
+
+    def _estimate(self, frame: np.ndarray, gate_open: np.ndarray, pinch: np.ndarray) -> np.ndarray:
+        """Record the closing, estimate the friction where the gate first opens and raise the grip from it; the
+        episodes whose pull may start: the raised grip reached (the gate's share of it, or GATE_WAIT_STEPS)."""
+        closing = np.isnan(self.mu_estimate)
+        for b in np.flatnonzero(closing):
+            self._frames[b].append(np.array(frame[b], dtype=np.float64))
+        for b in np.flatnonzero(closing & gate_open):
+            mu = self.estimator.mu(closing_features(np.array(self._frames[b])))
+            self.mu_estimate[b] = mu
+            self.start[b] = max(self.start[b], min(self.estimate_margin * self.estimator.grip_N(mu), self.max_force))
+            self.force[b] = max(self.force[b], self.start[b])
+            self._regrip[b] = 0
+            self._frames[b] = []
+        regrip = self._regrip >= 0
+        self._regrip[regrip] += 1
+        return regrip & ((pinch >= self.pinch_gate * self.force) | (self._regrip > GATE_WAIT_STEPS))
 
 
 class OraclePolicy(FixedForcePolicy):
@@ -438,7 +478,11 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
     if spec == "slipfeedback":
         return SlipFeedbackPolicy(config)
     if spec.startswith("slipfeedback:"):
-        policy = SlipFeedbackPolicy(config, **slipfeedback_options(spec))
+        options = slipfeedback_options(spec)
+        if "friction_estimator" in options:
+            options["friction_estimator"] = est = FrictionEstimator.load(str(options["friction_estimator"]))
+            options.setdefault("initial_force_N", est.probe_force_N)
+        policy = SlipFeedbackPolicy(config, **options)
         policy.name = spec
         return policy
     if spec == "oracle":

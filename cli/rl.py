@@ -295,6 +295,27 @@ def _cmd_clone(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit_friction(args: argparse.Namespace) -> int:
+    from ..agents.friction_fit import fit_friction_estimator
+    from ..agents.models import TrainConfig
+
+    if args.episodes < 2:
+        raise _usage(f"--episodes must be >= 2, got {args.episodes}")
+    if not 0 < args.probe <= 5:
+        raise _usage(f"--probe must be in (0, 5] N, got {args.probe}")
+    if not 0 < args.pull <= 1:
+        raise _usage(f"--pull must be in (0, 1], got {args.pull}")
+    if args.out.suffix != ".json":
+        raise _usage(f"--out must be a .json file, got {args.out}")
+    config = TrainConfig.load(args.config)
+    what = f"{args.config}: {args.episodes} episodes of its training task, reset seeds from {args.seed}"
+    est, report = fit_friction_estimator(config.training_task(), args.episodes, args.seed, args.probe, args.pull,
+                                         table_task=config.env, fitted_on=what)
+    est.save(args.out)
+    print(json.dumps({"out": str(args.out), **report}, indent=2))
+    return 0
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
     from ..envs.grasp_lift import GraspLiftEnv
     from ..agents.evaluation import build_policy, check_policy_spec, record_policy_episode, trained_task_of
@@ -455,6 +476,19 @@ def add_rl_commands(sub) -> None:
                     help="datasets folder (default logs/datasets; load with MINARI_DATASETS_PATH=<it>)")
     co.add_argument("--quiet", action="store_true", help="no progress output")
     co.set_defaults(func=_cmd_collect)
+
+    ff = sub.add_parser("fit-friction", help="fit a friction estimator (the closing's sensing -> mu) for "
+                                             "slipfeedback:estimator=PATH")
+    ff.add_argument("--config", type=Path, required=True, metavar="TRAIN.yaml",
+                    help="its training task gives the episodes (their sensing and placement errors); its env the "
+                         "minimal-force table")
+    ff.add_argument("--episodes", type=int, default=768, help="episodes to fit on (default 768)")
+    ff.add_argument("--seed", type=int, default=20000, help="episode i is reset with seed + i (default 20000)")
+    ff.add_argument("--probe", type=float, default=0.7, help="the grip the jaws close to, N (default 0.7)")
+    ff.add_argument("--pull", type=float, default=0.3,
+                    help="the controller's pull speed, a fraction of the top speed, for the force table (default 0.3)")
+    ff.add_argument("--out", type=Path, required=True, help="the estimator's file (.json)")
+    ff.set_defaults(func=_cmd_fit_friction)
 
     cl = sub.add_parser("clone", help="behaviour cloning of a Minari dataset made by collect (the offline baseline)")
     cl.add_argument("dataset_id", metavar="DATASET_ID", help="the dataset's Minari id (collect prints it)")

@@ -1,0 +1,59 @@
+"""Fitting a friction estimator (:class:`.friction.FrictionEstimator`) on a training's randomised task: the closing
+seen by the slip-feedback controller with a probe grip, mu known from each episode's draws."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ..envs.core import GraspLiftConfig
+from ..envs.task import N_OBS
+from .controllers import SlipFeedbackPolicy, minimal_force
+from .friction import MU_GRID, FrictionEstimator, closing_features, fit_ridge
+
+
+def collect_closing_features(task: GraspLiftConfig, episodes: int, seed: int, probe_force_N: float,
+                             batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The closing features and the true mu of ``episodes`` episodes of ``task`` (reset seeds seed, seed + 1, ...),
+    each seen by the slip-feedback controller closing to ``probe_force_N`` with a pinch-gated pull."""
+    from ..envs.grasp_lift import GraspLiftVectorEnv
+
+    features, mus = [], []
+    for start in range(0, episodes, batch):
+        n = min(batch, episodes - start)
+        env = GraspLiftVectorEnv(n, task)
+        obs, info = env.reset(seed=seed + start)
+        pol = SlipFeedbackPolicy(task, initial_force_N=probe_force_N, gain_N_per_mm=0.0, pinch_gate=0.9)
+        pol.reset([{}] * n)
+        frames: list[list[np.ndarray]] = [[] for _ in range(n)]
+        for _ in range(task.max_episode_steps):
+            before = pol._pulling.copy()
+            action = pol.act(obs)
+            for i in np.flatnonzero(~before):
+                frames[i].append(np.asarray(obs[i], dtype=np.float64)[-N_OBS:])
+            if pol._pulling.all():
+                break
+            obs, *_ = env.step(action)
+        features += [closing_features(np.array(f)) for f in frames]
+        mus += list(np.asarray(info["mu"], dtype=np.float64))
+    return np.array(features), np.array(mus)
+
+
+def fit_friction_estimator(task: GraspLiftConfig, episodes: int = 768, seed: int = 20000, probe_force_N: float = 0.7,
+                           pull: float = 0.3, ridge: float = 1.0, mu_grid: Sequence[float] = MU_GRID,
+                           table_task: GraspLiftConfig | None = None,
+                           fitted_on: str = "") -> tuple[FrictionEstimator, dict[str, Any]]:
+    """Fit an estimator on ``episodes`` episodes of ``task`` (the randomised task whose sensing it must read) and
+    tabulate the oracle's minimal fixed force at ``mu_grid`` and ``pull`` on ``table_task`` (the benchmark task;
+    default ``task``); returns it and its fit's report (relative errors on the fitting episodes)."""
+    x, mu = collect_closing_features(task, episodes, seed, probe_force_N)
+    mean, scale, weights = fit_ridge(x, mu, ridge)
+    table = tuple(minimal_force(table_task or task, m, pull, 0.05) for m in mu_grid)
+    est = FrictionEstimator(tuple(mean), tuple(scale), tuple(weights), float(probe_force_N), float(pull),
+                            tuple(float(m) for m in mu_grid), tuple(float(f) for f in table), fitted_on)
+    rel = np.abs(np.array([est.mu(f) for f in x]) / mu - 1)
+    report = {"episodes": int(len(mu)), "median_relative_error": float(np.median(rel)),
+              "p90_relative_error": float(np.percentile(rel, 90))}
+    return est, report
