@@ -28,7 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_interface
-from ..envs.task import OBS, obs_group
+from ..envs.task import N_OBS, OBS, obs_group
 from ..physics.config import needs_extra
 from .controller_settings import GATE_WAIT_STEPS, SlipFeedbackSettings, slipfeedback_options
 from .friction import FrictionEstimator, closing_features
@@ -234,8 +234,8 @@ class SlipFeedbackPolicy:
         """Record the closing, estimate the friction where the gate first opens and raise the grip from it; the
         episodes whose pull may start: the raised grip reached (the gate's share of it, or GATE_WAIT_STEPS)."""
         closing = np.isnan(self.mu_estimate)
-        for b in np.flatnonzero(closing):
-            self._frames[b].append(np.array(frame[b], dtype=np.float64))
+        for b in np.flatnonzero(closing):  # (the task's entries; privileged ones follow them)
+            self._frames[b].append(np.array(frame[b, :N_OBS], dtype=np.float64))
         for b in np.flatnonzero(closing & gate_open):
             mu = self.estimator.mu(closing_features(np.array(self._frames[b])))
             self.mu_estimate[b] = mu

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig
 from ..envs.task import N_OBS
-from .controllers import SlipFeedbackPolicy, minimal_force
+from .controllers import SlipFeedbackPolicy, _current_frame, minimal_force
 from .friction import MU_GRID, FrictionEstimator, closing_features, fit_ridge
 
 
@@ -31,8 +31,9 @@ def collect_closing_features(task: GraspLiftConfig, episodes: int, seed: int, pr
         for _ in range(task.max_episode_steps):
             before = pol._pulling.copy()
             action = pol.act(obs)
+            frame = _current_frame(obs, task)[:, :N_OBS]  # (the task's entries; privileged ones follow them)
             for i in np.flatnonzero(~before):
-                frames[i].append(np.asarray(obs[i], dtype=np.float64)[-N_OBS:])
+                frames[i].append(np.asarray(frame[i], dtype=np.float64))
             if pol._pulling.all():
                 break
             obs, *_ = env.step(action)

@@ -127,6 +127,12 @@ def test_the_closing_is_collected_from_the_task_s_episodes_with_their_friction()
     lo, hi = TASK.randomization.mu_range
     assert np.all((mu >= lo) & (mu <= hi)) and len(set(mu)) == 3
     assert np.all(x[:, -1] > 1)  # (several frames before the gate opens: the jaws close first)
+    # with the privileged entries after the task's (an asymmetric critic's task), the features are the same
+    import dataclasses
+
+    y, _ = collect_closing_features(dataclasses.replace(TASK, privileged_obs=not TASK.privileged_obs), 3, seed=7,
+                                    probe_force_N=0.7, batch=2)
+    assert np.array_equal(x, y)
 
 
 def test_fit_friction_refuses_bad_arguments_before_it_runs(tmp_path, capsys):
