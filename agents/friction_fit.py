@@ -9,15 +9,31 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..envs.task import N_OBS
-from .controllers import SlipFeedbackPolicy, _current_frame, minimal_force
-from .friction import MU_GRID, FrictionEstimator, closing_features, fit_ridge
+from .controllers import SlipFeedbackPolicy, minimal_force
+from .friction import MU_GRID, FrictionEstimator, fit_ridge
+
+
+class _FeatureTap:
+    """Stands in for an estimator in the controller that collects: keeps the features the controller computes when
+    its gate opens (so a fit reads exactly what the deployed controller will) and leaves its grip at the probe."""
+
+    def __init__(self, probe_force_N: float) -> None:
+        self.probe_force_N = probe_force_N
+        self.features: list[np.ndarray] = []
+
+    def mu(self, features: np.ndarray) -> float:
+        self.features.append(features)
+        return 1.0
+
+    def grip_N(self, mu: float) -> float:
+        return 0.0
 
 
 def collect_closing_features(task: GraspLiftConfig, episodes: int, seed: int, probe_force_N: float,
                              batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """The closing features and the true mu of ``episodes`` episodes of ``task`` (reset seeds seed, seed + 1, ...),
-    each seen by the slip-feedback controller closing to ``probe_force_N`` with a pinch-gated pull."""
+    each as the slip-feedback controller with a friction estimator computes them, closing to ``probe_force_N``
+    with a pinch-gated pull."""
     from ..envs.grasp_lift import GraspLiftVectorEnv
 
     features, mus = [], []
@@ -25,19 +41,23 @@ def collect_closing_features(task: GraspLiftConfig, episodes: int, seed: int, pr
         n = min(batch, episodes - start)
         env = GraspLiftVectorEnv(n, task)
         obs, info = env.reset(seed=seed + start)
-        pol = SlipFeedbackPolicy(task, initial_force_N=probe_force_N, gain_N_per_mm=0.0, pinch_gate=0.9)
+        tap = _FeatureTap(probe_force_N)
+        pol = SlipFeedbackPolicy(task, initial_force_N=probe_force_N, gain_N_per_mm=0.0, pinch_gate=0.9,
+                                 friction_estimator=tap)
         pol.reset([{}] * n)
-        frames: list[list[np.ndarray]] = [[] for _ in range(n)]
+        order: list[int] = []  # the episode of each feature vector, in the order the controller computed them
         for _ in range(task.max_episode_steps):
-            before = pol._pulling.copy()
+            closing = np.isnan(pol.mu_estimate)
             action = pol.act(obs)
-            frame = _current_frame(obs, task)[:, :N_OBS]  # (the task's entries; privileged ones follow them)
-            for i in np.flatnonzero(~before):
-                frames[i].append(np.asarray(frame[i], dtype=np.float64))
-            if pol._pulling.all():
+            order += list(np.flatnonzero(closing & ~np.isnan(pol.mu_estimate)))  # (ascending, as it estimates)
+            if not np.isnan(pol.mu_estimate).any():
                 break
             obs, *_ = env.step(action)
-        features += [closing_features(np.array(f)) for f in frames]
+        if len(order) != n:
+            raise RuntimeError(f"{n - len(order)} of {n} episodes never opened the gate within the episode")
+        batch_features = np.empty((n, len(tap.features[0])))
+        batch_features[order] = tap.features
+        features += list(batch_features)
         mus += list(np.asarray(info["mu"], dtype=np.float64))
     return np.array(features), np.array(mus)
 
