@@ -425,8 +425,8 @@ def add_rl_commands(sub) -> None:
     e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
-                        "fixed:<N> | reactive | slipfeedback[:initial=N,gain=N,pull=F,max=N,gate=F,oracle=X] "
-                        "| oracle (repeatable; "
+                        "fixed:<N> | reactive | slipfeedback[:initial=N,gain=N,pull=F,max=N,gate=F,oracle=X,"
+                        "estimator=FILE,margin=X] | oracle (repeatable; "
                         "default: the model of the default "
                         "learner's run in logs/train, else of every logs/train/seed_*/; none there is an error). "
                         "reactive and oracle are always added")
