@@ -31,7 +31,7 @@ from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_int
 from ..envs.task import N_OBS, OBS, obs_group
 from ..physics.config import needs_extra
 from .controller_settings import GATE_WAIT_STEPS, SlipFeedbackSettings, slipfeedback_options
-from .friction import FrictionEstimator, closing_features
+from .friction import FrictionEstimator, closing_features, estimator_path
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -189,6 +189,11 @@ class SlipFeedbackPolicy:
         self.mu_estimate = np.full(n, np.nan)  # with a friction estimator: each episode's estimate
         self._frames: list[list[np.ndarray]] = [[] for _ in range(n)]  # the frames seen while closing
         self._regrip = np.full(n, -1, dtype=np.int64)  # steps since the estimate raised the grip (-1: not yet)
+
+    @property
+    def pulling(self) -> np.ndarray:
+        """Per episode, whether the pull has started (after the contact rule, the gate and any regrip)."""
+        return self._pulling.copy()
 
     def initial_force(self, info: dict[str, Any]) -> float:
         """The initial grip (N) of an episode with reset info ``info``."""
@@ -480,7 +485,8 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
     if spec.startswith("slipfeedback:"):
         options = slipfeedback_options(spec)
         if "friction_estimator" in options:
-            options["friction_estimator"] = est = FrictionEstimator.load(str(options["friction_estimator"]))
+            path = estimator_path(str(options["friction_estimator"]))
+            options["friction_estimator"] = est = FrictionEstimator.load(path)
             options.setdefault("initial_force_N", est.probe_force_N)
         policy = SlipFeedbackPolicy(config, **options)
         policy.name = spec

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..envs.task import N_OBS, obs_group
-from ..physics.config import ConfigError, atomic_write_text
+from ..physics.config import ConfigError, atomic_write_text, builtin_config
 
 #: the per-jaw observation groups the features read
 FEATURE_GROUPS = ("normal_force", "tangential_force", "contact_fraction", "slip_speed", "slipping_fraction",
@@ -30,6 +30,15 @@ N_FEATURES = 3 * 3 * len(FEATURE_GROUPS) + 1
 #: the friction values at which a fit tabulates the minimal fixed force (log-log interpolation between them)
 MU_GRID = (0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.65, 0.8, 1.0, 1.5)
 FORMAT = "msdgrasp-friction-estimator-1"
+
+#: the name of the estimator shipped with the package (``configs/friction/estimator.json``, fitted by
+#: ``msdgrasp fit-friction --config configs/train/experiments/R-robust-gamma1-noiselevels.yaml``) in a policy spec
+BUILTIN_ESTIMATOR = "builtin"
+
+
+def estimator_path(value: str) -> Path:
+    """The file an ``estimator=`` value names: ``builtin``, the package's estimator, or a path."""
+    return builtin_config("friction/estimator.json") if value == BUILTIN_ESTIMATOR else Path(value)
 
 
 def closing_features(frames: np.ndarray) -> np.ndarray:

@@ -157,6 +157,10 @@ class TrainConfig:
     #: clip(controller + scale x max(model, 0), -1, 1)), so the policy can add grip where the controller's is
     #: too light but never take away the grip the controller holds the grasps with
     residual_mode: Literal["add", "raise"] = "add"
+    #: when the correction acts: "reset" (from each episode's first step) or "pull" (from the step a slip-feedback
+    #: controller starts its pull; before it, the controller's action alone, so a friction estimator reads the
+    #: closing at its own probe grip)
+    residual_start: Literal["reset", "pull"] = "reset"
     #: the PPO block replaces SB3's defaults key by key (a key left out gets SB3's default, not this one's)
     ppo: PPOKwargs = field(default_factory=lambda: PPOKwargs(
         learning_rate=1e-3, n_steps=128, batch_size=1024, n_epochs=10, gamma=0.999, gae_lambda=0.95,
@@ -233,6 +237,9 @@ class TrainConfig:
             if self.residual_base.startswith("slipfeedback") and not setpoint_interface(self.env):
                 raise ConfigError("residual_base: slipfeedback needs env.jaw_action: force and env.pull_action: "
                                   f"forward_speed, got {self.env.jaw_action!r} / {self.env.pull_action!r}")
+        if self.residual_start == "pull" and not (self.residual_base or "").startswith("slipfeedback"):
+            raise ConfigError(f"residual_start: pull needs a slip-feedback residual_base (the controller whose pull "
+                              f"starts the correction), got residual_base {self.residual_base!r}")
         if self.init_model is not None and self.bc_teacher is not None:
             raise ConfigError("give either init_model (start from a trained model) or bc_teacher (clone a teacher "
                               "first), not both")

@@ -93,6 +93,8 @@ def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(t
     ({"residual_scale": [0.5, -0.1]}, "residual_scale"),
     ({"residual_mode": "lower"}, "residual_mode"),
     ({"asymmetric_critic": False, "env": {"pull_action": "travel"}}, "residual_base: slipfeedback needs"),
+    ({"residual_start": "gate"}, "residual_start"),
+    ({"residual_start": "pull", "residual_base": "reactive"}, "residual_start: pull needs a slip-feedback"),
 ])
 def test_bad_residual_settings_are_refused_naming_the_field(over, needle):
     with pytest.raises(ConfigError, match=needle):
@@ -126,3 +128,42 @@ def test_a_raising_residual_model_acts_as_its_controller_where_it_would_lower_th
         action = policy.act(obs)
         assert np.allclose(action, twin.act(obs))
         obs, *_ = env.step(action)
+
+
+@pytest.mark.parametrize("where", ["policy", "training env"])
+def test_a_correction_from_the_pull_leaves_the_closing_to_the_controller(where):
+    """residual_start: pull: until the controller starts pulling, the action sent is the controller's alone (the
+    correction of +1 is dropped); from that step on, the correction is added; in training and wherever it runs."""
+    from msdgrasp.agents.residual import with_residual
+    from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+    from msdgrasp.envs.sb3 import GraspLiftSB3VecEnv
+
+    config = from_dict(TrainConfig, {**SHORT, "residual_start": "pull", "residual_scale": [0.3, 0.0]})
+    twin = SlipFeedbackPolicy(config.training_task() if where == "training env" else config.env)
+    if where == "policy":
+        policy = with_residual(ConstantPolicy([1.0, 1.0], "up"), config)
+        env = GraspLiftVectorEnv(2, config.env)
+        obs, _ = env.reset(seed=0)
+        policy.reset([{}, {}])
+    else:
+        venv = residual_venv(GraspLiftSB3VecEnv(2, config.training_task(), seed=0), config)
+        obs = venv.reset()
+    twin.reset([{}, {}])
+    corrected = np.zeros(2, dtype=bool)
+    for _ in range(60):
+        expected = twin.act(obs)
+        pulling = twin.pulling
+        if where == "policy":
+            action = policy.act(obs)
+            obs, _, term, trunc, _ = env.step(action)
+            done = term | trunc
+        else:
+            obs, _, done, _ = venv.step(np.ones((2, 2), dtype=np.float32))
+            action = venv.core.act
+        assert np.allclose(action[~pulling], expected[~pulling], atol=1e-6)
+        assert np.allclose(action[pulling], compose(expected[pulling], np.ones((int(pulling.sum()), 2)),
+                                                    (0.3, 0.0)), atol=1e-6)
+        corrected |= pulling
+        for i in np.flatnonzero(done):
+            twin.reset_one(int(i), {})
+    assert corrected.all()  # both episodes reached their pull within 2 s
