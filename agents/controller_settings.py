@@ -64,9 +64,9 @@ def slipfeedback_options(spec: str) -> dict[str, float | str]:
     """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec, checked; ValueError naming
     the key or the field on a bad one. Keys: initial (N), gain (N per mm of slip), pull (fraction of the top pull
     speed), max (N), gate (the share of the set-point the pinch reading reaches before the pull), oracle (the initial
-    grip as a multiple of the oracle's minimal force at the episode's mu), estimator (the path of a friction estimator, or
-    ``builtin``, the package's: the grip set before the pull from the friction it estimates while the jaws close), margin (that grip over the
-    minimal force at the estimate)."""
+    grip as a multiple of the oracle's minimal force at the episode's mu), estimator (the path of a friction
+    estimator, or ``builtin``, the package's: the grip set before the pull from the friction it estimates while the
+    jaws close), margin (that grip over the minimal force at the estimate)."""
     body = spec.split(":", 1)[1]
     options: dict[str, float | str] = {}
     for part in body.split(","):

@@ -86,9 +86,9 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
     check_policy_spec(policy)
     task, trained_on = trained_task_of([policy])
     if trained_on is None:  # a controller: the given training's task, or the default training's
-        from .models import TrainConfig
+        from .models import TrainConfig, default_training
 
-        training = TrainConfig() if train_config is None else TrainConfig.load(train_config)
+        training = default_training() if train_config is None else TrainConfig.load(train_config)
         task, config = training.env, training.training_task()
         task_from = f"{train_config if train_config is not None else 'the default training'}'s randomised task"
     elif train_config is not None:

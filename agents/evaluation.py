@@ -598,19 +598,19 @@ def trained_ranges_of(policies: Sequence[str]) -> RandomizationConfig:
     else its task's); with controllers alone, the default training's."""
     for path in _model_paths(policies):
         return learner_of_model(path).model_training_task(path).randomization
-    from .models import TrainConfig
+    from .models import default_training
 
-    return TrainConfig().training_task().randomization
+    return default_training().training_task().randomization
 
 
 def trained_task_of(policies: Sequence[str]) -> tuple[GraspLiftConfig, str | None]:
     """:func:`task_of` without a given task, except that controllers alone run on the default training's task
-    (``TrainConfig().env``: the task the results are about), not on the env's defaults."""
+    (``default_training().env``: the task the results are about), not on the env's defaults."""
     config, trained_on = task_of(policies, None)
     if trained_on is None:
-        from .models import TrainConfig
+        from .models import default_training
 
-        config = TrainConfig().env
+        config = default_training().env
     return config, trained_on
 
 

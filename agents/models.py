@@ -1,8 +1,8 @@
 """The SB3 learners' training config (no training code here), and the task a saved model was trained on.
 
-:class:`TrainConfig` is one SB3 training run's full description (``configs/train/ppo.yaml`` spells out its
-defaults). Loading a model is its learner's (:mod:`.learners`): the learner recorded beside the model
-says how, never a guess.
+:class:`TrainConfig` is one SB3 training run's full description (``configs/train/ppo_scratch.yaml`` spells out
+its defaults; ``configs/train/ppo.yaml``, the default run, extends it). Loading a model is its learner's
+(:mod:`.learners`): the learner recorded beside the model says how, never a guess.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ..envs.core import (
 )
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
-    read_extending_yaml, replace,
+    builtin_config, read_extending_yaml, replace,
 )
 from .controller_settings import slipfeedback_options
 
@@ -85,9 +85,9 @@ class SACKwargs(TypedDict, total=False):
 class TrainConfig:
     """A training run (hyper-parameters are passed to the SB3 algorithm as given).
 
-    These defaults ARE the default run: ``configs/train/ppo.yaml`` spells the same values out (a test
-    checks that both agree), so ``msdgrasp train`` with or without ``--config configs/train/ppo.yaml``
-    trains the same thing.
+    These defaults are PPO from scratch on the task's own randomisation: ``configs/train/ppo_scratch.yaml`` spells
+    the same values out (a test checks that both agree). The default run, ``configs/train/ppo.yaml``
+    (:func:`default_training`), extends it.
     """
 
     algo: Literal["ppo", "sac"] = "ppo"
@@ -263,3 +263,14 @@ class TrainConfig:
         """The training config at ``path``, strictly; ``extends:`` builds it on another file
         (:func:`~msdgrasp.physics.config.read_extending_yaml`)."""
         return from_dict(cls, read_extending_yaml(path), where=Path(path).name)
+
+
+#: the built-in config of the default run (``msdgrasp train`` without ``--config``)
+DEFAULT_TRAINING = "train/ppo.yaml"
+
+
+def default_training() -> TrainConfig:
+    """The default training run (``configs/train/ppo.yaml``: a learned correction on the slip-feedback controller with
+    the built-in friction estimate, under the robustness perturbations). :class:`TrainConfig`'s own defaults are PPO
+    from scratch on the task's randomisation (``configs/train/ppo_scratch.yaml``), which it extends."""
+    return TrainConfig.load(builtin_config(DEFAULT_TRAINING))

@@ -351,6 +351,8 @@ def profile_substeps(quick: bool, progress: Callable[[str], None] = lambda s: No
 
 
 def _default_train_config():
+    # PPO from scratch (configs/train/ppo_scratch.yaml): the learner's own cost; the default run adds a controller's
+    # per-step work on top (docs/performance.md)
     from ..agents.models import TrainConfig
 
     return TrainConfig()

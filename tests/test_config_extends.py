@@ -32,16 +32,16 @@ def _file(path: Path, text: str) -> Path:
 
 
 def _base(folder: Path, name: str = "base.yaml") -> Path:
-    """A copy of configs/train/ppo.yaml (the default run) in ``folder``."""
+    """A copy of configs/train/ppo_scratch.yaml (TrainConfig's defaults spelled out) in ``folder``."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / name
-    path.write_text(builtin_config("train/ppo.yaml").read_text())
+    path.write_text(builtin_config("train/ppo_scratch.yaml").read_text())
     return path
 
 
 def _expected(changes: dict) -> dict:
-    """The default run's config with ``changes`` (a nested mapping of new values) applied by hand."""
-    return to_dict(from_dict(TrainConfig, merge_mappings(read_yaml(builtin_config("train/ppo.yaml")), changes)))
+    """The from-scratch config with ``changes`` (a nested mapping of new values) applied by hand."""
+    return to_dict(from_dict(TrainConfig, merge_mappings(read_yaml(builtin_config("train/ppo_scratch.yaml")), changes)))
 
 
 # =================================================================================================

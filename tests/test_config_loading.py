@@ -41,7 +41,7 @@ def _grasper() -> dict:
 
 
 def _train() -> dict:
-    return read_yaml(builtin_config("train/ppo.yaml"))
+    return read_yaml(builtin_config("train/ppo_scratch.yaml"))
 
 
 def _renamed(data: dict, old: str, new: str) -> dict:
@@ -230,7 +230,7 @@ def test_a_sweep_reads_its_base_config_beside_it_not_through_the_working_directo
 
     folder = tmp_path / "study"
     folder.mkdir()
-    base = read_yaml(builtin_config("train/ppo.yaml"))
+    base = read_yaml(builtin_config("train/ppo_scratch.yaml"))
     (folder / "base.yaml").write_text(yaml.safe_dump({**base, "total_timesteps": 4096}))
     (folder / "sweep.yaml").write_text("base: base.yaml\ngrid: {ppo.learning_rate: [0.001]}\nseeds: '0'\n")
     elsewhere = tmp_path / "elsewhere"

@@ -21,7 +21,7 @@ from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, read
 def test_the_shipped_configs_are_the_defaults_and_train_the_sb3_task():
     assert TorchPPOConfig.load(builtin_config("train/rsl_ppo.yaml")) == TorchPPOConfig()
     assert TorchPPOConfig().env == TrainConfig().env
-    sb3_env = from_dict(GraspLiftConfig, read_yaml(builtin_config("train/ppo.yaml"))["env"])
+    sb3_env = from_dict(GraspLiftConfig, read_yaml(builtin_config("train/ppo_scratch.yaml"))["env"])
     assert from_dict(GraspLiftConfig, read_yaml(builtin_config("train/rsl_ppo.yaml"))["env"]) == sb3_env
     # the CPU-sized run: the defaults but for where it runs and its size, on twice the SB3 training's step
     # budget (on the same budget, experiments/rsl-0m9.yaml, 3 of 5 seeds gripped >= 1.5x the oracle's force)

@@ -74,13 +74,30 @@ def test_bc_value_fit_must_be_a_boolean():
         from_dict(TrainConfig, {"bc_value_fit": "yes"})
 
 
-def test_default_training_config_loads_strictly():
-    config = from_dict(TrainConfig, read_yaml(builtin_config("train/ppo.yaml")))
+def test_the_from_scratch_config_spells_out_the_dataclass_defaults():
+    config = from_dict(TrainConfig, read_yaml(builtin_config("train/ppo_scratch.yaml")))
     # one source of truth: the shipped YAML spells out exactly the dataclass defaults; PPO from scratch
     assert config == TrainConfig()
-    assert config.algo == "ppo" and config.bc_teacher is None
+    assert config.algo == "ppo" and config.bc_teacher is None and config.residual_base is None
     with pytest.raises(ConfigError, match="bogus"):
-        from_dict(TrainConfig, {**read_yaml(builtin_config("train/ppo.yaml")), "bogus": 1})
+        from_dict(TrainConfig, {**read_yaml(builtin_config("train/ppo_scratch.yaml")), "bogus": 1})
+
+
+def test_the_default_run_corrects_the_estimating_controller_under_the_suites_perturbations():
+    """configs/train/ppo.yaml (msdgrasp train without --config) is the from-scratch config with a correction on the
+    slip-feedback controller that grips by the built-in friction estimate, acting from the pull, trained under the
+    robustness suite's in-range perturbations (0.08 N of noise, 5 mm / 10 deg placement, a step of latency), on the
+    same task."""
+    from msdgrasp.agents.models import default_training
+    from msdgrasp.agents.robustness import CONDITIONS, inside_ranges
+
+    config = default_training()
+    assert config == TrainConfig.load(builtin_config("train/ppo.yaml"))
+    assert config.env == TrainConfig().env  # the benchmark task: only the training differs
+    assert "estimator=builtin" in config.residual_base and config.residual_start == "pull"
+    ranges = config.training_task().randomization
+    inside = {c.name for c in CONDITIONS if inside_ranges(c, ranges)}
+    assert {"force noise 0.08 N", "latency 1 step", "grasp up to 5 mm off, 10 deg tilt, 10 deg turn"} <= inside
 
 
 # =================================================================================================

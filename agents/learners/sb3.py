@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from .base import Learner, RunSummary, TrainOverrides, check_env_files, numbered_files, read_train_yaml, register
 from .sb3_layout import (
-    DEFAULT_CONFIG, FINAL_MODEL, LAYOUT, SUFFIX, load_train_config, read_summary, required_config_path, load_model,
+    FINAL_MODEL, LAYOUT, SUFFIX, load_train_config, read_summary, required_config_path, load_model,
     model_train_config,
 )
 
@@ -59,8 +59,9 @@ class SB3Learner(Learner):
 
     def make_config(self, path: Path | None, overrides: TrainOverrides) -> "TrainConfig":
         from ...physics.config import builtin_config
+        from ..models import DEFAULT_TRAINING
 
-        path = Path(path) if path is not None else builtin_config(DEFAULT_CONFIG)
+        path = Path(path) if path is not None else builtin_config(DEFAULT_TRAINING)
         data = read_train_yaml(path)
         if overrides.learner is not None:  # the command line's choice over the config's algo
             data["algo"] = overrides.learner

@@ -22,8 +22,6 @@ LAYOUT = RunLayout(model="best_model.zip", fallback_model="final_model.zip", sum
                    model_description="<name>.zip with <name>.yaml or the run's config.yaml beside it")
 #: the final model of a run (validated last; shipped where the run kept no best)
 FINAL_MODEL = LAYOUT.fallback_model
-#: the built-in training config (``msdgrasp train`` without ``--config``)
-DEFAULT_CONFIG = "train/ppo.yaml"
 SUFFIX = Path(LAYOUT.model).suffix
 
 
