@@ -1,5 +1,5 @@
 """Demonstrations as Minari datasets (``msdgrasp collect``): a policy's episodes on the randomised task (the task its
-training drew its episodes from: the default training's for a controller), written by
+training drew its episodes from; for a controller the benchmark task, or a training config's), written by
 Minari itself (``minari.create_dataset_from_buffers`` with the registered env), so ``minari.load_dataset`` reads them
 back and ``dataset.recover_environment()`` rebuilds the task they were collected on. The episodes are gathered into
 Minari's ``EpisodeBuffer`` here rather than by its ``DataCollector`` wrapper, which needs JAX (``minari[create]``,
@@ -74,7 +74,8 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
             progress: bool = True, train_config: str | Path | None = None) -> dict[str, Any]:
     """Record ``episodes`` episodes of ``policy`` (a spec as ``msdgrasp evaluate`` takes) into a Minari dataset
     under ``out_dir``; returns the card. The episodes are drawn from the task the policy's training drew from; for a
-    controller, that of the training config file ``train_config`` (default: the default training's). Everything is
+    controller, that of the training config file ``train_config`` (default: the benchmark task, ``TrainConfig().env``,
+    with its own randomisation). Everything is
     checked before an episode runs."""
     minari = _minari()
     import gymnasium as gym
@@ -85,12 +86,12 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
     check_policy_spec(policy)
     task, trained_on = trained_task_of([policy])
-    if trained_on is None:  # a controller: the given training's task, or the default training's
-        from .models import TrainConfig, default_training
+    if trained_on is None:  # a controller: the given training's task, or the benchmark task's own randomisation
+        from .models import TrainConfig
 
-        training = default_training() if train_config is None else TrainConfig.load(train_config)
+        training = TrainConfig() if train_config is None else TrainConfig.load(train_config)
         task, config = training.env, training.training_task()
-        task_from = f"{train_config if train_config is not None else 'the default training'}'s randomised task"
+        task_from = f"{train_config}'s randomised task" if train_config is not None else "the benchmark task"
     elif train_config is not None:
         raise ConfigError(f"policy {policy!r} is a saved model: its episodes are drawn from its own training's task; "
                           "drop --config")

@@ -324,7 +324,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         "suite": suite, "version": SUITE_VERSION, "episodes": int(episodes), "seed": int(seed),
         "subset": len(conditions) < len(SUITES[suite]),
         "seconds": round(time.perf_counter() - t0, 2), "runner": "this process" if runner is None else runner.label,
-        "task_from": trained_on or "the default training's task (configs/train/ppo.yaml's env)",
+        "task_from": trained_on or "the benchmark task (TrainConfig().env)",
         "config": to_dict(config),
         "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
         "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},

@@ -464,10 +464,10 @@ def add_rl_commands(sub) -> None:
     co = sub.add_parser("collect", help="record a policy's episodes as a Minari dataset (demonstrations)")
     co.add_argument("--policy", required=True, metavar="SPEC",
                     help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | "
-                         "slipfeedback[:key=value,...] | oracle (the default training's task)")
+                         "slipfeedback[:key=value,...] | oracle (the benchmark task)")
     co.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
-                    help="a controller's episodes are drawn from this training's task (default: the default "
-                         "training's)")
+                    help="a controller's episodes are drawn from this training's randomised task (default: the "
+                         "benchmark task's own randomisation)")
     co.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
     co.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i (default 0)")
     co.add_argument("--dataset-id", default=None,

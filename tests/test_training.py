@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents.training import TrainConfig, _discounted_returns, behaviour_clone, collect_demonstrations
-from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, read_yaml
+from msdgrasp.physics.config import ConfigError, builtin_config, from_dict, read_yaml, replace
 
 
 def test_discounted_returns_restart_at_episode_ends_and_unknown_tails_are_nan():
@@ -87,13 +87,16 @@ def test_the_default_run_corrects_the_estimating_controller_under_the_suites_per
     """configs/train/ppo.yaml (msdgrasp train without --config) is the from-scratch config with a correction on the
     slip-feedback controller that grips by the built-in friction estimate, acting from the pull, trained under the
     robustness suite's in-range perturbations (0.08 N of noise, 5 mm / 10 deg placement, a step of latency), on the
-    same task."""
+    same task dynamics and actor observation (its reward charges the peak force as it is made, and its critic reads
+    the perturbations)."""
     from msdgrasp.agents.models import default_training
     from msdgrasp.agents.robustness import CONDITIONS, inside_ranges
 
     config = default_training()
     assert config == TrainConfig.load(builtin_config("train/ppo.yaml"))
-    assert config.env == TrainConfig().env  # the benchmark task: only the training differs
+    task = TrainConfig().env
+    assert replace(config.env, reward=task.reward, privileged_perturbations=False) == task
+    assert config.env.reward.peak_force_timing == "as_made"
     assert "estimator=builtin" in config.residual_base and config.residual_start == "pull"
     ranges = config.training_task().randomization
     inside = {c.name for c in CONDITIONS if inside_ranges(c, ranges)}
