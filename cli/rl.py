@@ -426,7 +426,7 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
                         "fixed:<N> | reactive | slipfeedback[:initial=N,gain=N,pull=F,max=N,gate=F,oracle=X,"
-                        "estimator=FILE,margin=X] | oracle (repeatable; "
+                        "estimator=FILE|builtin,margin=X] | oracle (repeatable; "
                         "default: the model of the default "
                         "learner's run in logs/train, else of every logs/train/seed_*/; none there is an error). "
                         "reactive and oracle are always added")
