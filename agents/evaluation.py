@@ -604,9 +604,9 @@ def trained_ranges_of(policies: Sequence[str]) -> RandomizationConfig:
 
 
 def trained_task_of(policies: Sequence[str]) -> tuple[GraspLiftConfig, str | None]:
-    """:func:`task_of` without a given task, except that controllers alone run on the default training's task
-    (``TrainConfig().env``, the benchmark task: the dynamics and observation the results are about; the default run's
-    config differs from it only in its reward and its critic's inputs), not on the env's defaults."""
+    """:func:`task_of` without a given task, except that controllers alone run on the benchmark task
+    (``TrainConfig().env``: the dynamics and observation the results are about; the default run's task differs from it
+    only in its reward and its critic's inputs), not on the env's defaults."""
     config, trained_on = task_of(policies, None)
     if trained_on is None:
         from .models import TrainConfig

@@ -8,9 +8,8 @@ it), in training (:func:`residual_venv`, around the SB3 vector env: PPO learns o
 demonstrations). The controller keeps its own state per episode. With ``residual_start: pull`` the correction
 acts only once the controller pulls (:func:`correction_mask`): a slip-feedback controller with a friction estimator
 reads the closing at its probe grip, so the estimate sees the frames it was fitted on. An untrained network outputs
-r ~ 0, so a
-residual training starts from the controller's behaviour and learns what it lacks (residual reinforcement
-learning: Johannink et al., ICRA 2019; Silver et al., arXiv:1812.06298).
+r ~ 0, so a residual training starts from the controller's behaviour and learns what it lacks (residual
+reinforcement learning: Johannink et al., ICRA 2019; Silver et al., arXiv:1812.06298).
 """
 
 from __future__ import annotations
