@@ -31,7 +31,7 @@ from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_int
 from ..envs.task import N_OBS, OBS, obs_group
 from ..physics.config import needs_extra
 from .controller_settings import GATE_WAIT_STEPS, SlipFeedbackSettings, slipfeedback_options
-from .friction import FrictionEstimator, closing_features, estimator_path
+from .friction import FrictionEstimator, closing_features, with_estimator
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -483,12 +483,7 @@ def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
     if spec == "slipfeedback":
         return SlipFeedbackPolicy(config)
     if spec.startswith("slipfeedback:"):
-        options = slipfeedback_options(spec)
-        if "friction_estimator" in options:
-            path = estimator_path(str(options["friction_estimator"]))
-            options["friction_estimator"] = est = FrictionEstimator.load(path)
-            options.setdefault("initial_force_N", est.probe_force_N)
-        policy = SlipFeedbackPolicy(config, **options)
+        policy = SlipFeedbackPolicy(config, **with_estimator(slipfeedback_options(spec)))
         policy.name = spec
         return policy
     if spec == "oracle":

@@ -46,6 +46,7 @@ from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
 from .controller_settings import slipfeedback_options
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
+from .friction import with_estimator
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
 from .stats import bootstrap_ci, wilson_interval
@@ -368,7 +369,7 @@ def check_policy_spec(spec: str) -> None:
         return
     if spec.startswith("slipfeedback:"):
         try:
-            slipfeedback_options(spec)
+            with_estimator(slipfeedback_options(spec))  # (a named estimator file loads, or the spec is refused)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         return

@@ -14,6 +14,8 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import Any
+
 import numpy as np
 
 from ..envs.task import N_OBS, obs_group
@@ -39,6 +41,16 @@ BUILTIN_ESTIMATOR = "builtin"
 def estimator_path(value: str) -> Path:
     """The file an ``estimator=`` value names: ``builtin``, the package's estimator, or a path."""
     return builtin_config("friction/estimator.json") if value == BUILTIN_ESTIMATOR else Path(value)
+
+
+def with_estimator(options: dict[str, Any]) -> dict[str, Any]:
+    """The slip-feedback options ``options`` (``controller_settings.slipfeedback_options``) with the friction estimator
+    they name loaded in place of its name (ConfigError naming the file where it is missing or not one) and the
+    initial grip, unless given, its probe grip; ``options`` unchanged where they name none."""
+    if "friction_estimator" not in options:
+        return options
+    est = FrictionEstimator.load(estimator_path(str(options["friction_estimator"])))
+    return {"initial_force_N": est.probe_force_N, **options, "friction_estimator": est}
 
 
 def closing_features(frames: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from ..physics.config import (
     builtin_config, read_extending_yaml, replace,
 )
 from .controller_settings import slipfeedback_options
+from .friction import with_estimator
 
 PositiveInt = Annotated[Int, Ge(1)]
 Unit = Annotated[Real, Ge(0), Le(1)]
@@ -230,8 +231,8 @@ class TrainConfig:
                 raise ConfigError(f"residual_base = {self.residual_base!r} is not a controller; choose one of "
                                   f"{', '.join(RESIDUAL_BASES)} or 'slipfeedback:key=value,...'")
             if self.residual_base.startswith("slipfeedback:"):
-                try:
-                    slipfeedback_options(self.residual_base)
+                try:  # (a named friction estimator's file loads, or the config is refused)
+                    with_estimator(slipfeedback_options(self.residual_base))
                 except ValueError as exc:
                     raise ConfigError(f"residual_base: {exc}") from None
             if self.residual_base.startswith("slipfeedback") and not setpoint_interface(self.env):

@@ -135,6 +135,14 @@ def test_the_closing_is_collected_from_the_task_s_episodes_with_their_friction()
     assert np.array_equal(x, y)
 
 
+def test_a_policy_spec_naming_a_missing_estimator_is_refused_before_anything_runs(tmp_path):
+    from msdgrasp.agents.evaluation import check_policy_spec
+
+    with pytest.raises(ConfigError, match="friction estimator .*nope.json: no such file"):
+        check_policy_spec(f"slipfeedback:estimator={tmp_path / 'nope.json'},gate=0.9")
+    check_policy_spec("slipfeedback:estimator=builtin,gate=0.9")
+
+
 def test_fit_friction_refuses_bad_arguments_before_it_runs(tmp_path, capsys):
     from msdgrasp.cli.main import main
 

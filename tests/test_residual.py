@@ -94,6 +94,7 @@ def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(t
     ({"residual_mode": "lower"}, "residual_mode"),
     ({"asymmetric_critic": False, "env": {"pull_action": "travel"}}, "residual_base: slipfeedback needs"),
     ({"residual_start": "gate"}, "residual_start"),
+    ({"residual_base": "slipfeedback:estimator=nope.json,gate=0.9"}, "residual_base: friction estimator nope.json"),
     ({"residual_start": "pull", "residual_base": "reactive"}, "residual_start: pull needs a slip-feedback"),
 ])
 def test_bad_residual_settings_are_refused_naming_the_field(over, needle):
