@@ -19,7 +19,8 @@ Each build is a copy of the package under its own name on ``sys.path`` (numba ca
     PYTHONPATH=/tmp/ab python -m msdgrasp.benchmarks.interleaved msd_base,msd_new --rounds 200
 
 (the name ``msdgrasp`` is the installed build itself). Each worker compiles or loads its kernels before the
-first round.
+first round. ``--env`` times the envs the same way instead: the single env (``GraspLiftEnv``, as ``gym.make`` gives
+it) and the native vector env of 64, random actions, us per agent step (per env).
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ import time
 def _worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
     """A build's worker: build the grasp, say ``ready``, then one timed round per line read from stdin; each
     reply is one line of JSON [us per simulated ms of one tissue, us per simulated ms per tissue of the batch]."""
+    if name.startswith("env:"):
+        _env_worker(name[4:], steps_one, steps_batch, batch)
+        return
     bench = importlib.import_module(name + ".benchmarks.bench")
     simulation = importlib.import_module(name + ".physics.simulation")
     scene, one = bench._grasped("coarse", 2.0, 2.0)
@@ -50,6 +54,41 @@ def _worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
         one.step(steps_one)
         t1 = time.perf_counter()
         many.step(steps_batch)
+        t2 = time.perf_counter()
+        print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
+
+
+def _env_worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
+    """:func:`_worker` of the envs (``--env``): the Gymnasium env as ``gym.make`` gives it and the native vector env
+    of ``batch`` envs, random actions in [-1, 1], autoreset; each reply [us per agent step of the single env, us per
+    agent step per env of the vector env]."""
+    import numpy as np
+
+    module = importlib.import_module(name + ".envs.grasp_lift")
+    single = module.GraspLiftEnv()
+    vector = module.GraspLiftVectorEnv(batch)
+    single.reset(seed=0)
+    vector.reset(seed=0)
+    rng = np.random.default_rng(0)
+
+    def run_single(n: int) -> None:
+        for _ in range(n):
+            _, _, terminated, truncated, _ = single.step(rng.uniform(-1.0, 1.0, 2).astype(np.float32))
+            if terminated or truncated:
+                single.reset()
+
+    def run_vector(n: int) -> None:
+        for _ in range(n):
+            vector.step(rng.uniform(-1.0, 1.0, (batch, 2)).astype(np.float32))
+
+    run_single(5)  # compile or load the kernels
+    run_vector(2)
+    print("ready", flush=True)
+    for _ in sys.stdin:
+        t0 = time.perf_counter()
+        run_single(steps_one)
+        t1 = time.perf_counter()
+        run_vector(steps_batch)
         t2 = time.perf_counter()
         print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
 
@@ -97,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
                                      description=__doc__.split("\n")[0])
     parser.add_argument("packages", nargs="?", help="comma-separated package names on sys.path (msdgrasp: this build)")
     parser.add_argument("--rounds", type=int, default=200)
+    parser.add_argument("--env", action="store_true",
+                        help="time the envs instead of the physics: the single env (20 agent steps per round) and the "
+                             "vector env of 64 (2 steps per round), us per agent step (per env)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # (a build's worker process)
     parser.add_argument("--steps", default="40,2,64", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -114,10 +156,18 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError as exc:
             parser.error(f"package {name!r} cannot be imported: {exc}")
     try:
-        results = interleaved(names, args.rounds)
+        if args.env:
+            results = interleaved([f"env:{n}" for n in names], args.rounds, steps_one=20, steps_batch=2)
+            results = {name[4:]: r for name, r in results.items()}
+        else:
+            results = interleaved(names, args.rounds)
     except ValueError as exc:
         parser.error(f"--{exc}")
-    print(f"{'build':14s} one tissue us/ms: median / q1 / min | per tissue of 64: median / q1 / min")
+    if args.env:
+        print(f"{'build':14s} single env us per agent step: median / q1 / min | vector env of 64, per env: "
+              "median / q1 / min")
+    else:
+        print(f"{'build':14s} one tissue us/ms: median / q1 / min | per tissue of 64: median / q1 / min")
     for name, r in results.items():
         print(f"{name:14s} {r['one_median']:7.1f} {r['one_q1']:7.1f} {r['one_min']:7.1f} | "
               f"{r['batch_median']:6.1f} {r['batch_q1']:6.1f} {r['batch_min']:6.1f}")

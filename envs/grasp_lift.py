@@ -43,13 +43,30 @@ def check_render_mode(render_mode: str | None, env: str) -> str | None:
 def env_info(infos: dict[str, Any], i: int) -> dict[str, Any]:
     """Env i's step info as a single env reports it (Python scalars; the reward terms as a dict; ``error`` after a
     numerical failure), from the core's batched infos. The vector env builds its infos from these, so both agree."""
-    info = {k: (v[i] if not isinstance(v, dict) else {kk: float(vv[i]) for kk, vv in v.items()})
-            for k, v in infos.items()}
-    info = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in info.items()}
+    # (ndarray.item(i): the Python scalar of v[i].item() in one call, a third of the time of an info per step)
+    info = {k: ({kk: float(vv.item(i)) for kk, vv in v.items()} if isinstance(v, dict)
+                else v.item(i) if isinstance(v, np.ndarray) else v[i]) for k, v in infos.items()}
     if info["numerical_failure"]:
         info["error"] = ("numerical failure: the tissue state became non-finite (blow-up) or a tet inverted "
                          f"(min volume ratio {info['min_volume_ratio']:.3g}); episode terminated")
     return info
+
+
+def _batched_info(infos: dict[str, Any], rows: np.ndarray) -> dict[str, Any]:
+    """The vector info that Gymnasium's ``VectorEnv._add_info`` builds from :func:`env_info` of the envs ``rows``
+    (a (B,) mask), from the core's batched infos at once: each key's array in the dtype of its Python scalars
+    (float64, bool, int64), zero where ``rows`` is False, with its ``_key`` mask; the reward terms nested."""
+    out: dict[str, Any] = {}
+    for key, value in infos.items():
+        if isinstance(value, dict):
+            out[key] = _batched_info(value, rows)
+        else:
+            kind = value.dtype.kind
+            array = value.astype(np.bool_ if kind == "b" else np.int64 if kind in "iu" else np.float64)
+            array[~rows] = 0
+            out[key] = array
+        out[f"_{key}"] = rows.copy()
+    return out
 
 
 def _require_reset(env: Any) -> None:
@@ -63,7 +80,7 @@ def _check_action(action: Any, batch: int | None) -> np.ndarray:
     shape = (2,) if batch is None else (batch, 2)
     if a.shape != shape:
         raise ValueError(f"action must have shape {shape} (jaw closing, pull), got {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise ValueError(f"action contains NaN or inf: {a.tolist()}")
     return a
 
@@ -323,20 +340,28 @@ class GraspLiftVectorEnv(VectorEnv):
         streams = {i: self.core.rngs[i].bit_generator.state for i in pending}
         obs, reward, terminated, truncated, infos = self.core.step(a)
         obs, reward = obs.copy(), reward.copy()
-        info: dict[str, Any] = {}
-        for i in range(self.num_envs):
-            if i in streams:
-                self.core.rngs[i].bit_generator.state = streams[i]
-                one = self.core.info_at_reset(i, self.core.reset(i))
+        # the envs whose info is not this step's readout (reset now, ended and reset, or failed with an error
+        # message) go through Gymnasium's _add_info one by one, in their order; the rest take their entries of
+        # the batched readout at once (the same keys, masks, dtypes and values: 1 to 2 ms less per step at 64 envs)
+        special: dict[int, list[dict[str, Any]]] = {}
+        for i in pending:
+            self.core.rngs[i].bit_generator.state = streams[i]
+            special[i] = [self.core.info_at_reset(i, self.core.reset(i))]
+            obs[i] = self.core.obs[i]
+            reward[i], terminated[i], truncated[i] = 0.0, False, False
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            for i in np.flatnonzero(terminated | truncated):
+                special[i] = [{"final_obs": obs[i].copy(), "final_info": env_info(infos, i)},
+                              self.core.info_at_reset(i, self.core.reset(i))]
                 obs[i] = self.core.obs[i]
-                reward[i], terminated[i], truncated[i] = 0.0, False, False
-            else:
-                one = env_info(infos, i)
-                if self.autoreset_mode == AutoresetMode.SAME_STEP and (terminated[i] or truncated[i]):
-                    info = self._add_info(info, {"final_obs": obs[i].copy(), "final_info": one}, i)
-                    one = self.core.info_at_reset(i, self.core.reset(i))
-                    obs[i] = self.core.obs[i]
-            info = self._add_info(info, one, i)
+        for i in np.flatnonzero(infos["numerical_failure"]):
+            special.setdefault(i, [env_info(infos, i)])
+        regular = np.ones(self.num_envs, dtype=bool)
+        regular[list(special)] = False
+        info = _batched_info(infos, regular) if regular.any() else {}
+        for i in sorted(special):
+            for one in special[i]:
+                info = self._add_info(info, one, int(i))
         self._autoreset = terminated | truncated
         return obs, reward, terminated, truncated, info
 

@@ -159,6 +159,26 @@ def _compare_infos(got, want, where):
             np.testing.assert_array_equal(g, w, err_msg=f"{where}/{key}")
 
 
+def test_the_batched_info_is_gymnasiums_add_info_of_each_envs_info():
+    """The vector env's info of the envs with an ordinary step, built from the core's batch at once, equals
+    Gymnasium's _add_info over each env's own info; an env whose info differs (here one with a numerical failure and
+    its error message, and one left out, as a reset env is) is added by _add_info on top, as the step does."""
+    from msdgrasp.envs.grasp_lift import _batched_info, env_info
+
+    venv = GraspLiftVectorEnv(4)
+    venv.reset(seed=0)
+    infos = venv.core.step(np.zeros((4, 2)))[4]
+    infos["numerical_failure"][2] = True
+    want: dict = {}
+    for i in (0, 1, 2):
+        want = venv._add_info(want, env_info(infos, i), i)
+    assert "error" in want and want["_error"].tolist() == [False, False, True, False]
+    rows = np.array([True, True, False, False])
+    got = venv._add_info(_batched_info(infos, rows), env_info(infos, 2), 2)
+    _compare_infos(got, want, "batched")
+    assert got["_reward_terms"].tolist() == [True, True, True, False]
+
+
 @pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
 def test_the_native_vector_env_is_gymnasiums_sync_vector_env_of_single_envs(mode):
     """Same seeds and actions: observations, rewards, flags and infos (keys, masks, dtypes, values) equal those of
