@@ -94,6 +94,37 @@ def _rep_springs(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp, scratch, l
 
 
 @njit(cache=True, error_model="numpy")
+def _rep_springs_as(x, v, springs, ks, rates, fv, dl_prev, f, tmp, units, reps):
+    """:func:`_rep_springs` of a lane block in the arithmetic of ``units`` (one, tiny): float32 arrays with float32
+    units compile the same spring code for float32."""
+    decay, gain = rates
+    one, tiny = units
+    for _ in range(reps):
+        spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp, one, tiny)
+
+
+def _spring_pass_float32(springs, x, v, ks, decay, gain, fv, dl, min_time, repeats) -> dict:
+    """What float32 arithmetic does to the lane block's spring pass (the largest phase), on float32 copies of the
+    same state: its time per substep, and its forces' largest deviation from float64's, relative to the largest
+    spring force. The physics stays float64: this measures the option, it does not take it."""
+    c32 = np.float32
+    s32 = Springs(springs.edges, *(np.asarray(a, dtype=c32) for a in springs[1:7]), springs.use_dashpot,
+                  springs.use_sls)
+    x32, v32, ks32 = x.astype(c32), v.astype(c32), ks.astype(c32)
+    rates, units = (c32(decay), c32(gain)), (c32(1.0), c32(1e-15))
+    f64 = np.zeros_like(x)
+    _rep_springs_as(x, v, springs, ks, (decay, gain), fv.copy(), dl.copy(), f64, np.empty((3, x.shape[2])),
+                    (1.0, 1e-15), 1)
+    f32 = np.zeros_like(x32)
+    tmp = np.empty((3, x.shape[2]), dtype=c32)
+    _rep_springs_as(x32, v32, s32, ks32, rates, fv.astype(c32), dl.astype(c32), f32, tmp, units, 1)
+    err = float(np.max(np.abs(f32 - f64)) / np.max(np.abs(f64)))
+    fv32, dl32 = fv.astype(c32), dl.astype(c32)
+    us = _us(lambda k: _rep_springs_as(x32, v32, s32, ks32, rates, fv32, dl32, f32, tmp, units, k), min_time, repeats)
+    return {"us_per_substep": _r(us), "force_rel_err": _r(err)}
+
+
+@njit(cache=True, error_model="numpy")
 def _rep_nodes(model, x, v, f, meff, damp_inv, fa, ms, lane0, dt, anchor_out, lanes, reps):
     # (the node update's cost does not depend on the positions: repeating it on a copy that drifts is fair)
     work = (meff, damp_inv, fa)
@@ -238,6 +269,7 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
     fv_c, dl_c = fv.copy(), dl.copy()
     rows["springs"] = _us(lambda k: _rep_springs(x, v, springs, ks, decay, gain, fv_c, dl_c, f, tmp, scratch, lanes, k),
                           min_time, repeats)
+    float32 = _spring_pass_float32(springs, x, v, ks, decay, gain, fv, dl, min_time, repeats) if lanes else None
     # the substep's real forces, from the real state
     f = f0.copy()
     _rep_springs(x, v, springs, ks, decay, gain, fv, dl, f, tmp, scratch, lanes, 1)
@@ -322,6 +354,7 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
         "remainder_us": _r(whole - total),
         "sum_over_whole": _r(total / whole),
         "per_tissue_whole_us_per_substep": _r(whole / nb),
+        "springs_float32": float32,
     }
 
 
@@ -596,6 +629,11 @@ def markdown_table(report: dict) -> str:
               f"{one['tets_below_barrier_threshold']} / {batch['tets_below_barrier_threshold']} flagged; the full "
               f"flag pass that remakes the watch list (where a node has left its budget) "
               f"{one['barrier_full_flag_pass_us']} / {batch['barrier_full_flag_pass_us']} us, not in the phases.",
+              "", f"The batch's spring pass in float32 arithmetic (the same code on float32 copies of the state; the "
+              f"physics stays float64): {batch['springs_float32']['us_per_substep']} us "
+              f"({_r(batch['springs_float32']['us_per_substep'] / batch['tissues'])} per tissue) against "
+              f"{batch['phases_us_per_substep']['springs']}, forces within "
+              f"{batch['springs_float32']['force_rel_err']} of float64's (relative to the largest).",
               "", "Per agent step, ms (share of the SB3 vector env's step):", "",
               "| n_envs | physics | task | finite + volume | Python rest | SB3 vec step | agent steps/s |",
               "|---|---|---|---|---|---|---|"]

@@ -135,7 +135,7 @@ def _simulate_kernel(m, s, out, w, n_steps):
                 # fv, dl_prev and kv read as their own types, so float32 storage keeps float32 arithmetic)
                 w.fe[b, e, 0], w.fe[b, e, 1], w.fe[b, e, 2], fve, dle = _spring_body(
                     d, (m.rest_length[e], m.k1[e], m.k2[e], m.dlc[e]), ks, dash,
-                    (s.fv[b, e], s.dl_prev[b, e], kve, decay, gain), flags)
+                    (s.fv[b, e], s.dl_prev[b, e], kve, decay, gain), flags, 1.0, 1e-15)
                 if m.use_sls:
                     s.fv[b, e], s.dl_prev[b, e] = fve, dle
             if tid == 0:

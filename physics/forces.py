@@ -37,7 +37,8 @@ def spring_force(dl: float, k1: float, k2: float, dlc: float) -> float:
     if adl <= dlc:
         return k1 * dl + k2 * dl * dl * dl
     a = k1 * dlc + k2 * dlc * dlc * dlc
-    b = k1 + 3.0 * k2 * dlc * dlc
+    # (k2 + k2 + k2: 3 k2 rounded once, bitwise 3.0 * k2, without a float64 literal that would promote float32 args)
+    b = k1 + (k2 + k2 + k2) * dlc * dlc
     f = a + b * (adl - dlc)
     return f if dl > 0.0 else -f
 
@@ -58,24 +59,26 @@ def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.n
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def spring_body(d, law, ks, dash, maxwell, flags):
+def spring_body(d, law, ks, dash, maxwell, flags, one=1.0, tiny=1e-15):
     """One spring's force on its first node and its new Maxwell state: the arithmetic every spring loop
     (one tissue, lanes, the GPU kernel) runs per spring, in one order, so their results are bitwise equal.
 
     d (dx, dy, dz): x_j - x_i, m; law (rest length m, k1 N/m, k2 N/m^3, dl_c m); ks: stiffness scale;
     dash (v_j - v_i (3 floats) m/s, c N s/m): read only with dashpots; maxwell (F_v N, dl at the last substep
     m, k_v N/m, e^(-dt/tau), (tau/dt)(1 - e^(-dt/tau))): read only with the Maxwell branch; flags
-    (use_dashpot, use_sls). Returns (fx, fy, fz, F_v, dl): the force on node i (minus it on node j) and the
-    Maxwell state to store. A spring between coincident nodes (length < 1e-15 m, only in a collapsed mesh)
-    has no direction: it adds nothing and keeps its Maxwell state.
+    (use_dashpot, use_sls); one, tiny: 1 and 1e-15 in the arithmetic's type (float32 inputs with np.float32
+    ones compute in float32: no float64 literal promotes them). Returns (fx, fy, fz, F_v, dl): the force on node i
+    (minus it on node j) and the Maxwell state to store. A spring between coincident nodes (length < 1e-15 m, only in a
+    collapsed mesh) has no direction: it adds nothing and keeps its Maxwell state.
     """
     dx, dy, dz = d
     rest, k1, k2, dlc = law
     fv, dl_prev, kv, decay, gain = maxwell
     use_dashpot, use_sls = flags
     length = math.sqrt(dx * dx + dy * dy + dz * dz)
-    ok = length >= 1e-15
-    inv = 1.0 / length
+    ok = length >= tiny
+    inv = one / length
+    zero = one - one
     ux = dx * inv
     uy = dy * inv
     uz = dz * inv
@@ -89,7 +92,7 @@ def spring_body(d, law, ks, dash, maxwell, flags):
     if use_dashpot:
         rel = dash[0] * ux + dash[1] * uy + dash[2] * uz
         fs += ks * dash[3] * rel
-    return fs * ux if ok else 0.0, fs * uy if ok else 0.0, fs * uz if ok else 0.0, fv, dl_prev
+    return fs * ux if ok else zero, fs * uy if ok else zero, fs * uz if ok else zero, fv, dl_prev
 
 
 @njit(cache=True, error_model="numpy")
@@ -190,39 +193,45 @@ def spring_loop_lanes(
     dl_prev: np.ndarray,  # (E,L) elongation at the previous substep, m (state, updated)
     f: np.ndarray,  # (N,3,L) out: forces are ADDED here
     tmp: np.ndarray,  # (3,L) scratch
+    one: float = 1.0,  # 1 and 1e-15 in the arithmetic's type: np.float32 ones with float32 arrays compute in float32
+    tiny: float = 1e-15,
 ) -> None:
     """:func:`spring_loop` for L tissues at once (lane layout); bitwise equal to it per tissue."""
     # one copy of the loop per combination of the flags, each compiled with them constant: with run-time flags
     # LLVM computed both sides of the dashpot's select and read v (the spring pass 1.2x slower at 64 lanes)
     if springs.use_dashpot:
         if springs.use_sls:
-            _spring_lanes_pass(x, v, springs, kscale, decay, gain, fv, dl_prev, f, tmp, True, True)
+            _spring_lanes_pass(x, v, springs, kscale, (decay, gain), fv, dl_prev, f, tmp, True, True, (one, tiny))
         else:
-            _spring_lanes_pass(x, v, springs, kscale, decay, gain, fv, dl_prev, f, tmp, True, False)
+            _spring_lanes_pass(x, v, springs, kscale, (decay, gain), fv, dl_prev, f, tmp, True, False, (one, tiny))
     elif springs.use_sls:
-        _spring_lanes_pass(x, v, springs, kscale, decay, gain, fv, dl_prev, f, tmp, False, True)
+        _spring_lanes_pass(x, v, springs, kscale, (decay, gain), fv, dl_prev, f, tmp, False, True, (one, tiny))
     else:
-        _spring_lanes_pass(x, v, springs, kscale, decay, gain, fv, dl_prev, f, tmp, False, False)
+        _spring_lanes_pass(x, v, springs, kscale, (decay, gain), fv, dl_prev, f, tmp, False, False, (one, tiny))
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _spring_lanes_pass(x, v, springs, kscale, decay, gain, fv, dl_prev, f, tmp, use_dashpot, use_sls) -> None:
-    """The body of :func:`spring_loop_lanes` with the flags given (constants where it inlines this)."""
+def _spring_lanes_pass(x, v, springs, kscale, rates, fv, dl_prev, f, tmp, use_dashpot, use_sls, units) -> None:
+    """The body of :func:`spring_loop_lanes` with the flags given (constants where it inlines this); rates (decay,
+    gain) and units (one, tiny) as its arguments."""
+    decay, gain = rates
     edges = springs.edges
     flags = (use_dashpot, use_sls)
     nl = x.shape[2]
+    one, tiny = units
+    zero = one - one  # (the unused entries in the arithmetic's type)
     for e in range(edges.shape[0]):
         i = edges[e, 0]
         j = edges[e, 1]
         law = (springs.rest_length[e], springs.k1[e], springs.k2[e], springs.dlc[e])
-        kve = springs.kv[e] if use_sls else 0.0
-        cd = springs.cdash[e] if use_dashpot else 0.0
+        kve = springs.kv[e] if use_sls else zero
+        cd = springs.cdash[e] if use_dashpot else zero
         for b in range(nl):
             d = (x[j, 0, b] - x[i, 0, b], x[j, 1, b] - x[i, 1, b], x[j, 2, b] - x[i, 2, b])
             dash = (v[j, 0, b] - v[i, 0, b], v[j, 1, b] - v[i, 1, b], v[j, 2, b] - v[i, 2, b], cd) if use_dashpot \
-                else (0.0, 0.0, 0.0, 0.0)
+                else (zero, zero, zero, zero)
             fx, fy, fz, fve, dle = spring_body(d, law, kscale[b], dash, (fv[e, b], dl_prev[e, b], kve, decay, gain),
-                                               flags)
+                                               flags, one, tiny)
             if use_sls:
                 fv[e, b] = fve
                 dl_prev[e, b] = dle

@@ -246,6 +246,11 @@ def test_profile_substep_phases_add_up(tmp_path, monkeypatch, capsys):
         assert row["contact_nodes"] > 0  # the jaws hold the tissue while the contacts are timed
         assert _positive(row["whole_us_per_substep"])
         assert 0.5 < row["sum_of_phases_us"] / row["whole_us_per_substep"] < 2.0, row
+    # the float32 spring pass of the batch: timed, and its forces float64's but for float32's rounding: the positions'
+    # (2^-24 of ~0.1 m, ~1e-8 m) against the largest elongation under the grasp (millimetres), ~1e-5; 1e3 ulp bounds it
+    float32 = sub["rows"][1]["springs_float32"]
+    assert sub["rows"][0]["springs_float32"] is None and _positive(float32["us_per_substep"])
+    assert 0.0 < float32["force_rel_err"] < 1e3 * 2.0**-24, float32
     monkeypatch.setattr(profile, "profile_substeps", lambda quick, progress: sub)
     monkeypatch.setattr(profile, "profile_agent_step", lambda quick, progress: {
         "rows": [], "policy_inference": {"policy": "p", "net_arch": [64, 64], "obs_dim": 1, "torch_threads": 1,
