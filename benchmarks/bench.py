@@ -165,6 +165,7 @@ def bench_contact(resolution, min_time: float, repeats: int, settle_s: float, cl
     contacts_single = int(sim1.jaw_contact_counts[0, :, 0].sum())
     simb = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
     _clone(sim1, simb)
+    float32 = bench_float32(scene, sim1, min_time, repeats, batch) if resolution == "coarse" else None
     batched = _sim_time(simb, min_time, repeats)
     us1 = single["median_s"] * 1e6
     usb = batched["median_s"] * 1e6
@@ -185,10 +186,40 @@ def bench_contact(resolution, min_time: float, repeats: int, settle_s: float, cl
         f"batch{batch}_per_tissue_us_per_ms": _r(usb / batch),
         f"batch{batch}_realtime_factor_per_tissue": _r(1000.0 * batch / usb),
         "finite": bool(sim1.finite().all() and simb.finite().all()),
+        "float32": float32,
         "settle_s": settle_s,
         "close_s": close_s,
         "setup_s": _r(setup),
     }
+
+
+#: simulated time over which ``bench_float32`` compares float32 with float64 from the same grasp, ms
+FLOAT32_COMPARE_MS = 200
+
+
+def bench_float32(scene, grasped, min_time: float, repeats: int, batch: int = BATCH) -> dict:
+    """``Simulation(precision="float32")`` on the grasp ``grasped`` holds: us per simulated ms for one tissue and per
+    tissue of a batch (timed from clones of the grasp), and its error against float64 from the same state over
+    :data:`FLOAT32_COMPARE_MS` ms of the hold: the largest position difference (m), the pinch's relative difference,
+    and the share of nodes in the same contact state (free / stick / slip)."""
+    from ..physics.simulation import Simulation
+
+    def clone(b: int, precision: str) -> Simulation:
+        sim = Simulation(scene.model, b, dt=DT_OUTER, grasper=scene.grasper, precision=precision)
+        _clone(grasped, sim)
+        return sim
+
+    one, many = clone(1, "float32"), clone(batch, "float32")
+    single, batched = _sim_time(one, min_time, repeats), _sim_time(many, min_time, repeats)
+    a, b = clone(1, "float64"), clone(1, "float32")
+    a.step(FLOAT32_COMPARE_MS)
+    b.step(FLOAT32_COMPARE_MS)
+    return {"single_us_per_ms": _r(single["median_s"] * 1e6),
+            f"batch{batch}_per_tissue_us_per_ms": _r(batched["median_s"] * 1e6 / batch),
+            "compare_ms": FLOAT32_COMPARE_MS,
+            "max_position_error_m": float(f"{np.abs(b.x - a.x).max():.3g}"),
+            "pinch_rel_error": float(f"{abs(b.pinch_force[0] / a.pinch_force[0] - 1.0):.3g}"),
+            "same_contact_state": _r(float(np.mean(a.contact_state == b.contact_state)))}
 
 
 def bench_numpy(resolution, min_time: float, repeats: int, numba_us_per_ms: float | None) -> dict:

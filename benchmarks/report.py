@@ -168,6 +168,15 @@ def markdown(report: dict) -> str:
                          f"{r['single_us_per_ms']} | {r['single_realtime_factor']} | {r.get('overhead_single', '-')} | "
                          f"{r[f'batch{b}_total_us_per_ms']} | {r[f'batch{b}_per_tissue_us_per_ms']} |")
         lines.append("")
+        for r in ph["contact"]:
+            if r.get("float32"):
+                f = r["float32"]
+                lines += [f"float32 (`Simulation(precision=\"float32\")`, {r['resolution']}): "
+                          f"{f['single_us_per_ms']} us per simulated ms for one tissue, "
+                          f"{f[f'batch{b}_per_tissue_us_per_ms']} per tissue of {b}; against float64 from the same "
+                          f"grasp over {f['compare_ms']} ms: positions within {f['max_position_error_m']} m, pinch "
+                          f"within {f['pinch_rel_error']} relative, {f['same_contact_state']} of the nodes in the "
+                          "same contact state.", ""]
     if ph.get("numpy_reference"):
         nr = ph["numpy_reference"]
         cc = nr["cross_check"]

@@ -107,6 +107,8 @@ def spring_loop(
     dl_prev: np.ndarray,  # (E,) elongation at the previous substep, m (state, updated; likewise)
     f: np.ndarray,  # (N,3) out: forces are ADDED here
     scratch: np.ndarray,  # (9,E) work space; rows 3-5 zero (or finite) when there are no dashpots
+    one: float = 1.0,  # 1 and 1e-15 in the arithmetic's type (as spring_body's)
+    tiny: float = 1e-15,
 ) -> None:
     """The one-tissue spring loop: springs (+ dashpots, + Maxwell branches) added to ``f``, momentum-exact.
     ``springs.kv``, ``springs.cdash``, ``fv`` and ``dl_prev`` need E entries even where unused (zeros).
@@ -134,7 +136,7 @@ def spring_loop(
         fx, fy, fz, fve, dle = spring_body((scratch[0, e], scratch[1, e], scratch[2, e]),
                                            (rest_length[e], k1[e], k2[e], dlc[e]), kscale,
                                            (scratch[3, e], scratch[4, e], scratch[5, e], cdash[e]),
-                                           (fv[e], dl_prev[e], kv[e], decay, gain), flags)
+                                           (fv[e], dl_prev[e], kv[e], decay, gain), flags, one, tiny)
         if use_sls:
             fv[e] = fve
             dl_prev[e] = dle

@@ -120,10 +120,10 @@ def simulate(model: SimModel, state: SimState, out: SimReadout, n_steps: int) ->
             fvl = fv[lane0].reshape((ne, 1))
             dll = dl_prev[lane0].reshape((ne, 1))
         else:
-            xl = np.empty((n, 3, nl))
-            vl = np.empty((n, 3, nl))
-            fvl = np.empty((ne, nl))
-            dll = np.empty((ne, nl))
+            xl = np.empty((n, 3, nl), dtype=x.dtype)
+            vl = np.empty((n, 3, nl), dtype=x.dtype)
+            fvl = np.empty((ne, nl), dtype=fv.dtype)
+            dll = np.empty((ne, nl), dtype=fv.dtype)
             _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, True)
         _advance_block(lane0, xl, vl, fvl, dll, model, state, out, n_steps)
         if nl > 1:
@@ -168,7 +168,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     ne = fv.shape[0]
     lanes = nl > 1
     dt = m.dt_outer / n_sub
-    f = np.empty((n, 3, nl))
+    f = np.empty((n, 3, nl), dtype=x.dtype)
     # one tissue: plain C-contiguous (N,3) views, the layout the one-tissue kernels are fastest on (in a lane
     # block they are unused; the reshape there only gives numba one type for both branches)
     x_one = x.reshape((n, 3 * nl)) if lanes else x.reshape((n, 3))
@@ -179,17 +179,26 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     meff = np.empty((n, nl))
     damp_inv = np.empty((n, nl))
     fa = np.empty((3, nl))  # anchor spring force of one node
-    tmp = np.empty((3, nl))
-    spring_scratch = np.zeros((9, 0 if lanes else ne))
+    tmp = np.empty((3, nl), dtype=x.dtype)
+    spring_scratch = np.zeros((9, 0 if lanes else ne), dtype=x.dtype)
+    # the springs' scalars in the state's type (a float32 state computes its springs in float32; float64: as they are)
+    units = np.empty(4, dtype=x.dtype)  # 1, 1e-15, e^(-dt/tau), (tau/dt)(1 - e^(-dt/tau))
     # the springs with kv of E entries: the one-tissue loop reads it unconditionally (zeros without the branch);
     # their dashpots act in their own implicit pass after the node update, not in the force loop
     springs = Springs(m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash,
-                      m.kv if m.kv.shape[0] == ne else np.zeros(ne), False, m.use_sls)
+                      m.kv if m.kv.shape[0] == ne else np.zeros(ne, dtype=m.kv.dtype), False, m.use_sls)
     ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
     ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
     res = np.empty(6)
     decay = math.exp(-dt / m.tau)
     gain = m.tau / dt * (1.0 - decay)
+    units[0] = 1.0
+    units[1] = 1e-15
+    units[2] = decay
+    units[3] = gain
+    ks_springs = np.empty(nl, dtype=x.dtype)
+    for lane in range(nl):
+        ks_springs[lane] = ks[lane]
     flags = np.zeros((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the barrier's threshold
     n_flagged = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the barrier's threshold
     flags_one = flags.reshape(tets.shape[0] * nl)  # one tissue: a contiguous 1-D view (faster than (T,1))
@@ -207,7 +216,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     cand = np.empty(0, dtype=np.int8)  # (no separate test pass on the CPU: jaw_contacts tests where it resolves)
     _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv)
     node_work = (meff, damp_inv, fa)
-    f0 = np.empty((n, 3, nl))  # gravity + external forces: constant during the call
+    f0 = np.empty((n, 3, nl), dtype=x.dtype)  # gravity + external forces: constant during the call
     f_flat = f.reshape(n * 3 * nl)
     f0_flat = f0.reshape(n * 3 * nl)
     for lane in range(nl):
@@ -234,10 +243,11 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
                 f_flat[k] = f0_flat[k]
             if lanes:
-                spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp)
+                spring_loop_lanes(x, v, springs, ks_springs, units[2], units[3], fv, dl_prev, f, tmp, units[0],
+                                  units[1])
             else:
-                spring_loop(x_one, v_one, springs, ks[0], decay, gain, fv.reshape(ne), dl_prev.reshape(ne), f_one,
-                            spring_scratch)
+                spring_loop(x_one, v_one, springs, ks_springs[0], units[2], units[3], fv.reshape(ne),
+                            dl_prev.reshape(ne), f_one, spring_scratch, units[0], units[1])
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
             if lanes:
                 _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, anchor_out)

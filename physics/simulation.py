@@ -36,6 +36,7 @@ from .contact import (
 from .grasper import GrasperParams, GrasperPose
 from .integrator import all_finite, simulate
 from .forces import WATCH_DELTA, min_volume_ratios
+from .device_layout import PRECISIONS, with_precision
 from .records import SimModel, SimReadout, SimState
 from .tissue import TissueModel, check_dt
 from .viscoelastic import elongations
@@ -102,6 +103,13 @@ class Simulation:
         (:mod:`.cuda_step`: one thread block per tissue, same records; the state is copied to the GPU and
         back around each call, so everything else is unchanged). ``NUMBA_ENABLE_CUDASIM=1`` runs the CUDA
         kernel in numba's simulator on the CPU.
+    precision : "float64" | "float32"
+        The float type of the arrays of one entry per node, spring or tet (positions, velocities, Maxwell state,
+        external forces, contact forces and the material arrays: :data:`.device_layout.FLOAT32_FIELDS`); the
+        springs then compute in float32 (the largest phase of a substep), the rest of the step in float64 on the
+        float32 arrays. float64 (the default) is the physics every experiment, env and result in this package
+        uses; float32 is an option for throughput, its error against float64 stated in docs/performance.md
+        (``msdgrasp bench physics``). On the CUDA backend it is the GPU kernel's own float32 storage.
     """
 
     def __init__(
@@ -117,6 +125,7 @@ class Simulation:
         min_mass_scale: float = 1.0,
         safety: float = SUBSTEP_SAFETY,
         backend: str = "cpu",
+        precision: str = "float64",
     ) -> None:
         if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
             raise ConfigError(f"batch_size must be an integer >= 1, got {batch_size!r}")
@@ -125,7 +134,11 @@ class Simulation:
         check_range("min_mass_scale", min_mass_scale, 0.0, None, lo_inclusive=False)
         check_range("safety", safety, 0.0, None, lo_inclusive=False)
         check_choice("backend", backend, BACKENDS)
+        check_choice("precision", precision, PRECISIONS)
         self.backend = backend
+        self.precision = precision
+        real = np.float32 if precision == "float32" else np.float64
+        self._model_record: tuple[tuple[int, ...], SimModel] | None = None  # (float32: the model cast once)
         self._cuda = None  # physics.cuda_step.CudaBatch, made at the first step
         self.model = model
         self.batch_size = B = int(batch_size)
@@ -150,15 +163,15 @@ class Simulation:
         #: every tet again (:data:`.forces.WATCH_DELTA` of the mean spring length; 0: every substep; bitwise the same)
         self.watch_delta = WATCH_DELTA * float(np.mean(model.rest_length)) if len(model.rest_length) else 0.0
         n_springs = len(model.edges)
-        self.fv = np.zeros((B, n_springs))  # Maxwell-branch force per spring, N
-        self.dl_prev = np.zeros((B, n_springs))  # spring elongation at the last substep, m
+        self.fv = np.zeros((B, n_springs), dtype=real)  # Maxwell-branch force per spring, N
+        self.dl_prev = np.zeros((B, n_springs), dtype=real)  # spring elongation at the last substep, m
 
-        self.x = np.empty((B, n, 3))
-        self.v = np.empty((B, n, 3))
+        self.x = np.empty((B, n, 3), dtype=real)
+        self.v = np.empty((B, n, 3), dtype=real)
         self.t = np.zeros(B)
         self.kscale = np.ones(B)
         self.mscale = np.ones(B)
-        self.f_ext = np.zeros((B, n, 3))
+        self.f_ext = np.zeros((B, n, 3), dtype=real)
 
         self.grasper = grasper
         gp = grasper or GrasperParams()
@@ -196,7 +209,7 @@ class Simulation:
         self.plate_out = np.zeros((B, P, 3))
         self.anchor_out = np.zeros((B, 3))
         self.contact_state = np.zeros((B, n), dtype=np.int8)
-        self.contact_force = np.zeros((B, n, 3))
+        self.contact_force = np.zeros((B, n, 3), dtype=real)
         self.held = np.zeros((B, n), dtype=np.int8)
         self._finite = np.ones(B, dtype=np.bool_)
         self.reset()
@@ -298,7 +311,7 @@ class Simulation:
     def kernel_model(self) -> SimModel:
         """The constant half of a kernel call: mesh, material, grasper geometry, plates, time stepping."""
         tm, gp = self.model, self.grasper
-        return SimModel(
+        record = SimModel(
             x_rest=tm.rest_positions, edges=tm.edges, rest_length=tm.rest_length, k1=tm.k1, k2=tm.k2, dlc=tm.dlc,
             cdash=tm.cdash, use_dashpot=self.use_dashpot, use_sls=self.use_sls, kv=tm.kv,
             tau=float(tm.params.relaxation_time_s),
@@ -312,6 +325,13 @@ class Simulation:
             jaw_depth=float(gp.jaw_depth_m) if gp else 0.0,
             pl_normal=self.pl_normal, pl_mu=self.pl_mu, dt_outer=self.dt, n_sub=self.n_sub,
         )
+        if self.precision == "float64":
+            return record
+        # float32: the arrays cast once, again only where a caller has replaced one since (keyed on the arrays)
+        key = tuple(id(a) for a in record)
+        if self._model_record is None or self._model_record[0] != key:
+            self._model_record = (key, with_precision(record, self.precision))
+        return self._model_record[1]
 
     def kernel_state(self) -> SimState:
         """The batch's state arrays (the kernel advances them in place)."""
@@ -352,7 +372,7 @@ class Simulation:
             if self._cuda is None:
                 from .cuda_step import CudaBatch  # imports numba.cuda only when asked for
 
-                self._cuda = CudaBatch(self.kernel_model(), state, out)
+                self._cuda = CudaBatch(self.kernel_model(), state, out, precision=self.precision)
             else:  # the host arrays are the truth between calls: whatever a caller changed goes up
                 self._cuda.upload(state, out)
             self._cuda.step(int(n_steps))

@@ -61,6 +61,12 @@ def test_bench_physics_quick_json(bench_quick):
             assert _positive(r[key]), (r["resolution"], key, r[key])
         assert isinstance(r["overhead_single"], float)
         assert r["finite"] is True
+    # the float32 option on the coarse spleen: timed, and its error against float64 stated (test_float32.py bounds it)
+    f32 = {r["resolution"]: r["float32"] for r in ph["contact"]}
+    assert f32["medium"] is None and f32["fine"] is None
+    for key in ("single_us_per_ms", f"batch{bench.BATCH}_per_tissue_us_per_ms", "max_position_error_m"):
+        assert _positive(f32["coarse"][key]), (key, f32["coarse"])
+    assert 0.0 <= f32["coarse"]["pinch_rel_error"] < 1.0 and 0.0 < f32["coarse"]["same_contact_state"] <= 1.0
     assert _positive(ph["scaling"]["exponent_us_per_ms_vs_nodes"])
     nr = ph["numpy_reference"]
     assert nr["cross_check"]["max_rel_diff_forces"] < 1e-10
