@@ -138,7 +138,7 @@ class Simulation:
         self.backend = backend
         self.precision = precision
         real = np.float32 if precision == "float32" else np.float64
-        self._model_record: tuple[tuple[int, ...], SimModel] | None = None  # (float32: the model cast once)
+        self._model_record: tuple[SimModel, SimModel] | None = None  # (float32: the model and its cast)
         self._cuda = None  # physics.cuda_step.CudaBatch, made at the first step
         self.model = model
         self.batch_size = B = int(batch_size)
@@ -327,11 +327,13 @@ class Simulation:
         )
         if self.precision == "float64":
             return record
-        # float32: the arrays cast once, again only where a caller has replaced one since (keyed on the arrays)
-        key = tuple(id(a) for a in record)
-        if self._model_record is None or self._model_record[0] != key:
-            self._model_record = (key, with_precision(record, self.precision))
-        return self._model_record[1]
+        # float32: the arrays cast once, again where a caller has replaced one since (the record kept, so an array
+        # replaced is never mistaken for a new one at the same address)
+        cached = self._model_record
+        if cached is None or any(a is not b if isinstance(a, np.ndarray) else a != b
+                                 for a, b in zip(cached[0], record)):
+            self._model_record = cached = (record, with_precision(record, self.precision))
+        return cached[1]
 
     def kernel_state(self) -> SimState:
         """The batch's state arrays (the kernel advances them in place)."""

@@ -32,6 +32,12 @@ def test_float64_is_the_default_and_a_bad_precision_is_refused(grasp):
     assert held.precision == "float64" and held.x.dtype == held.fv.dtype == np.float64
     with pytest.raises(ConfigError, match="precision"):
         Simulation(scene.model, 1, precision="float16")
+    # float32's model record is cast once, and again where a caller has replaced an array since
+    sim = Simulation(scene.model, 1, dt=DT_OUTER, grasper=scene.grasper, precision="float32")
+    first = sim.kernel_model()
+    assert sim.kernel_model() is first and first.mass.dtype == np.float32
+    sim.pl_mu = np.full_like(sim.pl_mu, 0.3)
+    assert sim.kernel_model().pl_mu is sim.pl_mu
 
 
 @pytest.mark.parametrize("batch", [1, LANE_MIN])
