@@ -100,12 +100,14 @@ def fit(noisy_curves, mesh, base_params):
 
 
 #: the viscoelastic round trip: a standard linear solid with tau between the two tests' durations
-#: (4.8 s and 0.48 s at 120 / 1200 mm/min to 20 %), a light nodal drag that the fit leaves alone
+#: (4.8 s and 0.48 s at 120 / 1200 mm/min to 20 %), a light nodal drag that the fit leaves alone, and no spring
+#: dashpots (their implicit pass, a Gauss-Seidel chain over the springs, is most of a substep's time on the sphere;
+#: the rate dependence here is the Maxwell branch's alone)
 TRUE_VE = {"k1_n_per_m": 250.0, "k2_n_per_m3": 2.5e7, "dl_c_m": 2.0e-3, "relaxation_strength": 1.0,
            "relaxation_time_s": 1.0}
 GUESS_VE = {"k1_n_per_m": 325.0, "k2_n_per_m3": 1.75e7, "dl_c_m": 2.6e-3, "relaxation_strength": 0.6,
             "relaxation_time_s": 1.5}
-VE_FIXED = {"b0_n_s_per_m": 0.01, "b1_n_s_per_m2": 0.01, "spring_damping_time_s": 1e-3}
+VE_FIXED = {"b0_n_s_per_m": 0.01, "b1_n_s_per_m2": 0.01, "spring_damping_time_s": 0.0}
 
 
 @pytest.fixture(scope="module")
