@@ -20,7 +20,10 @@ Each build is a copy of the package under its own name on ``sys.path`` (numba ca
 
 (the name ``msdgrasp`` is the installed build itself). Each worker compiles or loads its kernels before the
 first round. ``--env`` times the envs the same way instead: the single env (``GraspLiftEnv``, as ``gym.make`` gives
-it) and the native vector env of 64, random actions, us per agent step (per env).
+it) and the native vector env of 64, random actions, us per agent step (per env). ``--sphere`` times the paper's
+compression instead: the coarse sphere of ``tissue/sphere.yaml`` (Maxwell branch and spring dashpots) pressed 1 mm
+between the plates, then pressed on at 6 mm/min, one tissue and a batch of two (the compression experiment's two
+rates), us per simulated ms (per tissue).
 """
 
 from __future__ import annotations
@@ -40,6 +43,9 @@ def _worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
     reply is one line of JSON [us per simulated ms of one tissue, us per simulated ms per tissue of the batch]."""
     if name.startswith("env:"):
         _env_worker(name[4:], steps_one, steps_batch, batch)
+        return
+    if name.startswith("sphere:"):
+        _sphere_worker(name[7:], steps_one, steps_batch, batch)
         return
     bench = importlib.import_module(name + ".benchmarks.bench")
     simulation = importlib.import_module(name + ".physics.simulation")
@@ -93,6 +99,36 @@ def _env_worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None
         print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
 
 
+def _sphere_worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
+    """:func:`_worker` of the sphere's compression (``--sphere``): the coarse sphere of ``tissue/sphere.yaml``
+    between two plates as :func:`~.experiments.compression.run_compression` builds it, one tissue and ``batch``
+    tissues, pressed 1 mm at 60 mm/min, then the top plate moving at 6 mm/min through the rounds."""
+    config = importlib.import_module(name + ".physics.config")
+    compression = importlib.import_module(name + ".experiments.compression")
+    mesh_gen = importlib.import_module(name + ".physics.mesh_gen")
+    simulation = importlib.import_module(name + ".physics.simulation")
+    mesh = mesh_gen.sphere_mesh(0.05, "coarse")
+    model = compression.compression_model(mesh, compression.load_tissue_params(config.builtin_config(
+        "tissue/sphere.yaml")))
+    z, mu = mesh.nodes[:, 2], compression.CompressionConfig().plate_mu
+    plates = [simulation.Plate((0.0, 0.0, float(z.min())), (0.0, 0.0, 1.0), mu=mu),
+              simulation.Plate((0.0, 0.0, float(z.max())), (0.0, 0.0, -1.0), mu=mu)]
+    sims = [simulation.Simulation(model, n, dt=1e-3, plates=plates) for n in (1, batch)]
+    for sim in sims:  # 1 mm at 60 mm/min (compiles or loads the kernels), then 6 mm/min
+        sim.pl_vel[:, 1, 2] = -1e-3
+        sim.step(1000)
+        sim.pl_vel[:, 1, 2] = -1e-4
+    one, many = sims
+    print("ready", flush=True)
+    for _ in sys.stdin:
+        t0 = time.perf_counter()
+        one.step(steps_one)
+        t1 = time.perf_counter()
+        many.step(steps_batch)
+        t2 = time.perf_counter()
+        print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
+
+
 def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_batch: int = 2,
                 batch: int = 64) -> dict[str, dict[str, float]]:
     """Per package: ``one_*`` (one tissue, ``steps_one`` ms per call) and ``batch_*`` (per tissue of ``batch``,
@@ -139,6 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--env", action="store_true",
                         help="time the envs instead of the physics: the single env (20 agent steps per round) and the "
                              "vector env of 64 (2 steps per round), us per agent step (per env)")
+    parser.add_argument("--sphere", action="store_true",
+                        help="time the paper's sphere compression instead (tissue/sphere.yaml: Maxwell branch and "
+                             "spring dashpots): one tissue and a batch of two, 40 simulated ms per round each, us per "
+                             "simulated ms (per tissue)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # (a build's worker process)
     parser.add_argument("--steps", default="40,2,64", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -155,8 +195,13 @@ def main(argv: list[str] | None = None) -> int:
             importlib.import_module(name + ".physics.simulation")
         except ImportError as exc:
             parser.error(f"package {name!r} cannot be imported: {exc}")
+    if args.env and args.sphere:
+        parser.error("--env and --sphere: give one of them")
     try:
-        if args.env:
+        if args.sphere:
+            results = interleaved([f"sphere:{n}" for n in names], args.rounds, steps_one=40, steps_batch=40, batch=2)
+            results = {name[7:]: r for name, r in results.items()}
+        elif args.env:
             results = interleaved([f"env:{n}" for n in names], args.rounds, steps_one=20, steps_batch=2)
             results = {name[4:]: r for name, r in results.items()}
         else:
@@ -166,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.env:
         print(f"{'build':14s} single env us per agent step: median / q1 / min | vector env of 64, per env: "
               "median / q1 / min")
+    elif args.sphere:
+        print(f"{'build':14s} one sphere us/ms: median / q1 / min | per tissue of 2: median / q1 / min")
     else:
         print(f"{'build':14s} one tissue us/ms: median / q1 / min | per tissue of 64: median / q1 / min")
     for name, r in results.items():

@@ -310,23 +310,48 @@ def implicit_spring_dashpots(
     spring in edge order (Gauss-Seidel): each spring's relative speed along itself r becomes r / (1 + c dt W),
     W = 1/m_i + 1/m_j, by equal and opposite impulses (momentum exact), and x moves with v. Backward Euler on
     each spring's own mode: unconditionally stable and only dissipative, so the dashpots do not bound the
-    substep (an explicit dashpot of 1 ms x K1 took the sphere from 4 to 18 substeps per ms)."""
-    for e in range(edges.shape[0]):
+    substep (an explicit dashpot of 1 ms x K1 took the sphere from 4 to 18 substeps per ms).
+
+    The pass is one dependency chain (each spring reads the nodes the springs before it moved): node i of a run of
+    consecutive springs with the same first node (most of them, in the meshes' edge order) is held in registers
+    and stored once at the end of its run, so the chain does not wait for its stores (1.35x on the coarse sphere).
+    Its arithmetic and order are unchanged: the result is bitwise that of kicking both nodes through memory (a
+    spring's second node is never its first)."""
+    ne = edges.shape[0]
+    if ne == 0:
+        return
+    as_x = x.dtype.type  # (the held values round as a store into x would: float32 storage stays bitwise)
+    ci = edges[0, 0]  # the node held: (p, u) its position and velocity, wi its inverse mass
+    p = (x[ci, 0], x[ci, 1], x[ci, 2])
+    u = (v[ci, 0], v[ci, 1], v[ci, 2])
+    wi = 0.0 if fixed[ci] else 1.0 / meff[ci]
+    for e in range(ne):
+        i, j = edges[e, 0], edges[e, 1]
+        if i != ci:
+            x[ci, 0], x[ci, 1], x[ci, 2] = p
+            v[ci, 0], v[ci, 1], v[ci, 2] = u
+            ci = i
+            p = (x[ci, 0], x[ci, 1], x[ci, 2])
+            u = (v[ci, 0], v[ci, 1], v[ci, 2])
+            wi = 0.0 if fixed[ci] else 1.0 / meff[ci]
         c = ks * cdash[e]
         if c == 0.0:
             continue
-        i, j = edges[e, 0], edges[e, 1]
-        dx, dy, dz = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
+        dx, dy, dz = x[j, 0] - p[0], x[j, 1] - p[1], x[j, 2] - p[2]
         length = math.sqrt(dx * dx + dy * dy + dz * dz)
         if length < 1e-15:
             continue
         ux, uy, uz = dx / length, dy / length, dz / length
-        wi = 0.0 if fixed[i] else 1.0 / meff[i]
         wj = 0.0 if fixed[j] else 1.0 / meff[j]
-        r = (v[j, 0] - v[i, 0]) * ux + (v[j, 1] - v[i, 1]) * uy + (v[j, 2] - v[i, 2]) * uz
+        r = (v[j, 0] - u[0]) * ux + (v[j, 1] - u[1]) * uy + (v[j, 2] - u[2]) * uz
         lam = c * dt * r / (1.0 + c * dt * (wi + wj))  # impulse on node i along u (on node j: minus it), N s
-        _kick(x, v, i, wi, lam, (ux, uy, uz), dt, anchor)
+        dvx, dvy, dvz = _impulse(wi, lam, (ux, uy, uz), dt, anchor)  # node i: _kick on the held values
+        if wi != 0.0:
+            u = (as_x(u[0] + dvx), as_x(u[1] + dvy), as_x(u[2] + dvz))
+            p = (as_x(p[0] + dt * dvx), as_x(p[1] + dt * dvy), as_x(p[2] + dt * dvz))
         _kick(x, v, j, wj, -lam, (ux, uy, uz), dt, anchor)
+    x[ci, 0], x[ci, 1], x[ci, 2] = p
+    v[ci, 0], v[ci, 1], v[ci, 2] = u
 
 
 # -------------------------------------------------------------------------------------------------
@@ -682,22 +707,30 @@ def implicit_volume_barrier_lanes(x, v, meff, pins, tets, rest_volume, kvol, j_c
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _kick(x, v, i, w, s, g, dt, anchor) -> None:
-    """Node i's share s g (N s) of an implicit impulse (a tet's barrier, a spring's dashpot): its velocity changes
-    by w s g and its position with it; an anchored node (w = 0) passes the force s g / dt to its anchor."""
+def _impulse(w, s, g, dt, anchor):
+    """A node's share s g (N s) of an implicit impulse (a tet's barrier, a spring's dashpot), w its inverse mass:
+    returns its velocity change w s g (its position moves dt times that); an anchored node (w = 0) does not move
+    and passes the force s g / dt to its anchor."""
     gx, gy, gz = g
     if w == 0.0:
         anchor[0] -= s * gx / dt
         anchor[1] -= s * gy / dt
         anchor[2] -= s * gz / dt
-        return
-    dvx, dvy, dvz = w * s * gx, w * s * gy, w * s * gz
-    v[i, 0] += dvx
-    v[i, 1] += dvy
-    v[i, 2] += dvz
-    x[i, 0] += dt * dvx
-    x[i, 1] += dt * dvy
-    x[i, 2] += dt * dvz
+        return 0.0, 0.0, 0.0
+    return w * s * gx, w * s * gy, w * s * gz
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _kick(x, v, i, w, s, g, dt, anchor) -> None:
+    """:func:`_impulse` applied to node i of x and v, in place."""
+    dvx, dvy, dvz = _impulse(w, s, g, dt, anchor)
+    if w != 0.0:
+        v[i, 0] += dvx
+        v[i, 1] += dvy
+        v[i, 2] += dvz
+        x[i, 0] += dt * dvx
+        x[i, 1] += dt * dvy
+        x[i, 2] += dt * dvz
 
 
 @njit(cache=True, error_model="numpy")
