@@ -91,3 +91,67 @@ def test_node_bodies_are_symplectic_euler_with_implicit_damping_and_a_preloaded_
     fa = anchor_spring_force(xc, xr, 1.1, 8.0, np.array([0.0, 0.0, 0.01]))
     np.testing.assert_allclose(fa, -8.0 * (np.array(xc) - xr - 1.1 * np.array([0.0, 0.0, 0.01])), rtol=1e-12)
     assert math.isfinite(sum(fa))
+
+
+def _dashpots_by_definition(x, v, meff, fixed, edges, cdash, ks, dt, anchor):
+    """The spring dashpots' implicit pass as its docstring defines it, node values read from and written to memory
+    at every use: spring after spring in edge order, the relative speed along the spring r -> r / (1 + c dt W) by
+    equal and opposite impulses, x moving with v, an anchored node passing the force to its anchor. (Compiled by
+    numba, as the kernel is, so both follow numba's typing of float32 storage.)"""
+    for e in range(edges.shape[0]):
+        c = ks * cdash[e]
+        if c == 0.0:
+            continue
+        i, j = edges[e, 0], edges[e, 1]
+        dx, dy, dz = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if length < 1e-15:
+            continue
+        u = (dx / length, dy / length, dz / length)
+        wi = 0.0 if fixed[i] else 1.0 / meff[i]
+        wj = 0.0 if fixed[j] else 1.0 / meff[j]
+        r = (v[j, 0] - v[i, 0]) * u[0] + (v[j, 1] - v[i, 1]) * u[1] + (v[j, 2] - v[i, 2]) * u[2]
+        lam = c * dt * r / (1.0 + c * dt * (wi + wj))
+        for node, w, s in ((i, wi, lam), (j, wj, -lam)):
+            for k in range(3):
+                if w == 0.0:
+                    anchor[k] -= s * u[k] / dt
+                else:
+                    dv = w * s * u[k]
+                    v[node, k] = v[node, k] + dv
+                    x[node, k] = x[node, k] + dt * dv
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_implicit_dashpot_pass_is_gauss_seidel_in_edge_order_to_the_bit(dtype, sphere_coarse):
+    """However the kernel keeps its nodes (it holds a run's first node in registers), the pass is bitwise the
+    Gauss-Seidel sweep of its definition: with anchored nodes, springs without a dashpot, a collapsed spring, and
+    float32 storage rounding every stored value. And it only damps: no free node gains relative speed overall."""
+    from msdgrasp.physics.forces import implicit_spring_dashpots
+
+    rng = np.random.default_rng(3)
+    edges = sphere_coarse.edges
+    n = sphere_coarse.n_nodes
+    x0 = sphere_coarse.nodes.astype(dtype)
+    x0[edges[7, 1]] = x0[edges[7, 0]]  # a collapsed spring: no direction, no impulse
+    v0 = (0.05 * rng.standard_normal((n, 3))).astype(dtype)
+    meff = (3e-4 * rng.uniform(0.5, 1.5, n)).astype(dtype)
+    fixed = np.zeros(n, dtype=np.bool_)
+    fixed[rng.choice(n, 12, replace=False)] = True
+    cdash = np.full(len(edges), 0.25, dtype=dtype)
+    cdash[rng.choice(len(edges), 30, replace=False)] = 0.0
+    runs = []
+    from numba import njit
+
+    for kernel in (implicit_spring_dashpots, njit(error_model="numpy")(_dashpots_by_definition)):
+        x, v, anchor = x0.copy(), v0.copy(), np.zeros(3)
+        for _ in range(3):
+            kernel(x, v, meff, fixed, edges, cdash, 1.3, 3e-4, anchor)
+        runs.append((x, v, anchor))
+    for got, want in zip(*runs):
+        np.testing.assert_array_equal(got, want)
+    x, v, _ = runs[0]
+    assert not np.array_equal(v, v0) and np.array_equal(v[fixed], v0[fixed]) and np.array_equal(x[fixed], x0[fixed])
+    rel = [np.abs(((vv[edges[:, 1]] - vv[edges[:, 0]]) * (sphere_coarse.nodes[edges[:, 1]] - sphere_coarse.nodes[
+        edges[:, 0]])).sum(axis=1)).sum() for vv in (v0.astype(np.float64), v.astype(np.float64))]
+    assert rel[1] < 0.5 * rel[0], rel
