@@ -181,7 +181,7 @@ def test_a_sweep_on_ray_writes_ranked_per_point_multi_seed_reports_equal_to_loca
 
 
 def test_ray_evaluation_equals_the_in_process_evaluation(tmp_path, local_ray):
-    kw = dict(mus=[0.3, 0.6], episodes=2, progress=False, conditions=({"stiffness_scale": 1.5},))
+    kw = dict(mus=[0.3, 0.6], episodes=1, progress=False, conditions=({"stiffness_scale": 1.5},))
     seq = evaluate(["fixed"], out_dir=tmp_path / "seq", **kw)
     par = evaluate(["fixed"], out_dir=tmp_path / "ray", runner=Runner.ray(), **kw)
     assert ([r["name"] for r in par["results"]] == [r["name"] for r in seq["results"]]
