@@ -18,6 +18,7 @@ from typing_extensions import TypedDict
 from ..envs.core import (
     GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization, setpoint_interface,
 )
+from ..physics.device_layout import Precision
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
     builtin_config, read_extending_yaml, replace,
@@ -95,6 +96,10 @@ class TrainConfig:
     total_timesteps: PositiveInt = 900_000
     #: 32 batched envs: the physics runs 1.6x more agent steps/s per core than at 16 (SIMD across tissues)
     n_envs: PositiveInt = 32
+    #: the training env's tissue arrays (``Simulation(precision=...)``): "float64" or "float32", an option for the
+    #: speed of the rollouts (docs/performance.md, "float32 on the CPU"). Validation, model selection and every
+    #: evaluation run float64, the physics the results are about, whatever this says
+    precision: Precision = "float64"
     seed: Int = 0
     checkpoint_every: PositiveInt = 25_000
     torch_threads: PositiveInt = 1

@@ -65,7 +65,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     torch.set_num_threads(config.torch_threads)
     write_yaml(out / LAYOUT.config, to_dict(config))
     # (built on the widest randomisation it will draw from: the curriculum's end)
-    venv = residual_venv(GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=config.seed), config)
+    venv = residual_venv(GraspLiftSB3VecEnv(config.n_envs, config.training_task(), seed=config.seed,
+                                            precision=config.precision), config)
     if resume:
         path, _ = _latest_model(out)
         model = algo_class(config.algo).load(path, env=venv, device="cpu", tensorboard_log=str(out / "tb"))
@@ -124,6 +125,7 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     succ = list(model.ep_success_buffer) if model.ep_success_buffer is not None else []
     summary = {
         "algo": config.algo,
+        "precision": venv.core.precision,
         "timesteps": int(model.num_timesteps),
         "resumed_from": int(start_steps) if resume else None,
         "wall_time_s": round(wall, 1),

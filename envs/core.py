@@ -418,9 +418,13 @@ def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> Non
 
 
 class GraspLiftCore:
-    """Batched GraspLift dynamics, observations and rewards. Arrays in, arrays out."""
+    """Batched GraspLift dynamics, observations and rewards. Arrays in, arrays out.
 
-    def __init__(self, config: GraspLiftConfig | None = None, num_envs: int = 1) -> None:
+    ``precision``: the storage of the tissue's per-node, per-spring and per-tet arrays (:class:`.Simulation`'s):
+    "float64", the physics of every result and evaluation, or "float32", a learner's option for the speed of its
+    rollouts (``TrainConfig.precision``, ``TorchPPOConfig.precision``; the GPU core takes the same argument)."""
+
+    def __init__(self, config: GraspLiftConfig | None = None, num_envs: int = 1, precision: str = "float64") -> None:
         self.config = cfg = config or GraspLiftConfig()
         self.num_envs = B = int(num_envs)
         if B < 1:
@@ -439,8 +443,9 @@ class GraspLiftCore:
         rnd = self._built_randomization = cfg.randomization
         self.sim = self.scene.simulation(
             B, dt=PHYSICS_DT_S, max_stiffness_scale=max(1.0, rnd.stiffness_scale_range[1]),
-            min_mass_scale=min(1.0, rnd.mass_scale_range[0]), safety=cfg.substep_safety,
+            min_mass_scale=min(1.0, rnd.mass_scale_range[0]), safety=cfg.substep_safety, precision=precision,
         )
+        self.precision = self.sim.precision
         g = self.scene.grasper
         self.max_close = g.max_closing_speed_m_s
         self.max_pull = g.max_pull_speed_m_s if cfg.max_pull_speed_m_s is None else cfg.max_pull_speed_m_s

@@ -67,6 +67,9 @@ class GraspLiftSB3VecEnv(VecEnv):
         Seeds of the first ``reset()``: sub-env i gets ``seed + i`` (None: fresh entropy).
     render_mode : "rgb_array" | None
         ``render()`` tiles the frames of all sub-envs (``get_images()`` gives them one by one).
+    precision : "float64" | "float32"
+        The tissue arrays' storage (:class:`~msdgrasp.envs.core.GraspLiftCore`): float32 is a training's option
+        for the speed of its rollouts, float64 the physics of every result.
     """
 
     @property
@@ -75,9 +78,9 @@ class GraspLiftSB3VecEnv(VecEnv):
         return self.core.config
 
     def __init__(self, num_envs: int, config: GraspLiftConfig | dict | None = None, seed: int | None = None,
-                 render_mode: str | None = "rgb_array", **overrides: Any) -> None:
+                 render_mode: str | None = "rgb_array", precision: str = "float64", **overrides: Any) -> None:
         check_render_mode(render_mode, type(self).__name__)
-        self.core = GraspLiftCore(_config(config, **overrides), int(num_envs))
+        self.core = GraspLiftCore(_config(config, **overrides), int(num_envs), precision)
         self._render_mode = render_mode
         obs_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
         act_space = spaces.Box(-1.0, 1.0, (2,), np.float32)

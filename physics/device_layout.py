@@ -7,7 +7,7 @@ numba-cuda / numpy pairing that must run before a kernel is compiled.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Literal, NamedTuple, get_args
 
 import numpy as np
 
@@ -42,8 +42,9 @@ def installed_version(name: str) -> str | None:
 
 
 
-#: the float types of the per-node, per-spring and per-tet arrays (see :data:`FLOAT32_FIELDS`)
-PRECISIONS = ("float64", "float32")
+#: the float types of the per-node, per-spring and per-tet arrays (see :data:`FLOAT32_FIELDS`): a config field's type
+Precision = Literal["float64", "float32"]
+PRECISIONS = get_args(Precision)
 #: the arrays stored in float32 when ``precision="float32"``: those of one entry per node, spring or tet,
 #: the memory the step streams through. Per-tissue values (time, friction, scales, the grasper and its force
 #: loop, the jaw, plate and anchor sums) stay float64: a clock summed at every substep would drift in float32,

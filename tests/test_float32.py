@@ -1,6 +1,7 @@
 """``Simulation(precision="float32")`` on the CPU: an option for throughput, never the physics the package's results
 use. It must really be float32 (a float64 constant promoting the springs back would leave it float64 at float32's
-memory), keep float64 the default, and track float64 through a grasp within what the task can tell apart."""
+memory), keep float64 the default, and track float64 through a grasp within what the task can tell apart. A training
+may roll out in float32 (``TrainConfig.precision``); its validation, which picks the model, runs float64."""
 
 from __future__ import annotations
 
@@ -58,3 +59,30 @@ def test_float32_tracks_float64_through_a_held_grasp(grasp, batch):
     np.testing.assert_allclose(b.pinch_force, a.pinch_force, rtol=1e-2)
     assert (a.pinch_force > 0.5).all()  # (a real grasp was compared)
     assert (np.mean(a.contact_state == b.contact_state, axis=1) >= 0.95).all()
+
+
+def test_a_float32_training_rolls_out_in_float32_and_validates_in_float64(tmp_path, monkeypatch):
+    """``TrainConfig.precision = "float32"``: the training env's tissue arrays are float32; every core the validation
+    (model selection) builds is float64, the physics of the results."""
+    from msdgrasp.agents.models import TrainConfig
+    from msdgrasp.agents.training import train
+    from msdgrasp.envs import core as core_module
+    from msdgrasp.physics.config import from_dict
+
+    built = []
+    init = core_module.GraspLiftCore.__init__
+
+    def recording_init(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        built.append((self.num_envs, self.precision, self.sim.x.dtype, self.sim.fv.dtype))
+
+    monkeypatch.setattr(core_module.GraspLiftCore, "__init__", recording_init)
+    config = from_dict(TrainConfig, {"n_envs": 2, "precision": "float32", "total_timesteps": 256,
+                                     "checkpoint_every": 128, "validation_episodes": 1, "validation_mu": [0.5],
+                                     "ppo": {"n_steps": 128, "batch_size": 128, "n_epochs": 1, "use_sde": True}})
+    summary = train(config, tmp_path / "run", progress=False)
+    assert summary["precision"] == "float32" and summary["timesteps"] >= 256
+    assert built[0] == (2, "float32", np.float32, np.float32)  # the training env
+    assert len(built) >= 2 and all(b[1:] == ("float64", np.float64, np.float64) for b in built[1:]), built
+    with pytest.raises(ConfigError, match="precision"):
+        from_dict(TrainConfig, {"precision": "float16"})

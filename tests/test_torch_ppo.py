@@ -44,10 +44,11 @@ def test_the_command_line_picks_the_config_sized_for_where_it_runs():
     assert torch_config_path("my.yaml", "cpu").name == "my.yaml"
 
 
-def test_float32_is_a_gpu_option():
-    with pytest.raises(ConfigError, match=r"precision = 'float32' needs backend: cuda"):
-        TorchPPOConfig(backend="cpu", precision="float32")
-    assert TorchPPOConfig(precision="float32").precision == "float32"
+def test_float32_is_an_option_of_either_backend_and_other_precisions_are_refused():
+    for backend in ("cpu", "cuda"):
+        assert TorchPPOConfig(backend=backend, precision="float32").precision == "float32"
+    with pytest.raises(ConfigError, match=r"precision"):
+        TorchPPOConfig(backend="cpu", precision="float16")
 
 
 def test_squashed_actions_are_a_tanh_gaussian_whose_density_integrates_to_one():
