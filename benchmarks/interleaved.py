@@ -54,12 +54,18 @@ def _worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
     bench._clone(one, many)
     one.step(1)  # compile or load the kernels
     many.step(1)
+    _serve(one.step, many.step, steps_one, steps_batch, batch)
+
+
+def _serve(run_one, run_many, steps_one: int, steps_batch: int, batch: int) -> None:
+    """Say ``ready``, then per line read from stdin one timed round: ``run_one(steps_one)``, ``run_many(steps_batch)``;
+    reply one line of JSON [us per step of the one, us per step per member of the ``batch``]."""
     print("ready", flush=True)
     for _ in sys.stdin:
         t0 = time.perf_counter()
-        one.step(steps_one)
+        run_one(steps_one)
         t1 = time.perf_counter()
-        many.step(steps_batch)
+        run_many(steps_batch)
         t2 = time.perf_counter()
         print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
 
@@ -89,14 +95,7 @@ def _env_worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None
 
     run_single(5)  # compile or load the kernels
     run_vector(2)
-    print("ready", flush=True)
-    for _ in sys.stdin:
-        t0 = time.perf_counter()
-        run_single(steps_one)
-        t1 = time.perf_counter()
-        run_vector(steps_batch)
-        t2 = time.perf_counter()
-        print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
+    _serve(run_single, run_vector, steps_one, steps_batch, batch)
 
 
 def _sphere_worker(name: str, steps_one: int, steps_batch: int, batch: int) -> None:
@@ -118,15 +117,7 @@ def _sphere_worker(name: str, steps_one: int, steps_batch: int, batch: int) -> N
         sim.pl_vel[:, 1, 2] = -1e-3
         sim.step(1000)
         sim.pl_vel[:, 1, 2] = -1e-4
-    one, many = sims
-    print("ready", flush=True)
-    for _ in sys.stdin:
-        t0 = time.perf_counter()
-        one.step(steps_one)
-        t1 = time.perf_counter()
-        many.step(steps_batch)
-        t2 = time.perf_counter()
-        print(json.dumps([(t1 - t0) / steps_one * 1e6, (t2 - t1) / steps_batch / batch * 1e6]), flush=True)
+    _serve(sims[0].step, sims[1].step, steps_one, steps_batch, batch)
 
 
 def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_batch: int = 2,
