@@ -24,6 +24,7 @@ from ..physics.config import (
 )
 from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
+from ..physics.device_layout import Precision
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_NOISE, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
@@ -424,7 +425,8 @@ class GraspLiftCore:
     "float64", the physics of every result and evaluation, or "float32", a learner's option for the speed of its
     rollouts (``TrainConfig.precision``, ``TorchPPOConfig.precision``; the GPU core takes the same argument)."""
 
-    def __init__(self, config: GraspLiftConfig | None = None, num_envs: int = 1, precision: str = "float64") -> None:
+    def __init__(self, config: GraspLiftConfig | None = None, num_envs: int = 1,
+                 precision: Precision = "float64") -> None:
         self.config = cfg = config or GraspLiftConfig()
         self.num_envs = B = int(num_envs)
         if B < 1:

@@ -40,6 +40,7 @@ import numpy as np
 from gymnasium import spaces
 
 from ..physics.config import needs_extra
+from ..physics.device_layout import Precision
 from .core import GraspLiftConfig, GraspLiftCore
 from .grasp_lift import _check_action, _config, check_render_mode
 
@@ -78,7 +79,7 @@ class GraspLiftSB3VecEnv(VecEnv):
         return self.core.config
 
     def __init__(self, num_envs: int, config: GraspLiftConfig | dict | None = None, seed: int | None = None,
-                 render_mode: str | None = "rgb_array", precision: str = "float64", **overrides: Any) -> None:
+                 render_mode: str | None = "rgb_array", precision: Precision = "float64", **overrides: Any) -> None:
         check_render_mode(render_mode, type(self).__name__)
         self.core = GraspLiftCore(_config(config, **overrides), int(num_envs), precision)
         self._render_mode = render_mode
