@@ -10,7 +10,9 @@ The environment is set at import time, i.e. before any test module imports rerun
 * NUMBA_CACHE_DIR (unless already set) is ``physics/__pycache__/numba-tests`` (kept between runs, so
   the second run is fast) or, when the package folder is not writable, the run's temporary folder.
   Stale kernels are no concern: ``msdgrasp.physics.numba_cache`` keys every physics kernel on all physics
-  sources (tests/test_numba_cache.py).
+  sources (tests/test_numba_cache.py);
+* under xdist (``pytest -n N``, N >= 2) the controller compiles the common kernels into that cache before the
+  workers start (:func:`pytest_configure`), so they are compiled once, not once per worker.
 """
 
 from __future__ import annotations
@@ -80,3 +82,35 @@ def compiled_kernel(sphere_coarse):
     sim.step(1)
     assert np.all(sim.finite())
     return True
+
+
+# What an xdist controller compiles before its workers start, in two parallel processes. From an empty cache
+# each worker, and each subprocess a test starts meanwhile, would compile the same kernels at once (the env's
+# path alone takes 105 s on one core); compiled once here, they all load them from NUMBA_CACHE_DIR. The first compiles the env's path (the scene's simulate, float64, and the task kernels),
+# the second the float32 simulate (tests/test_float32.py, the CUDA tests' float32 reference).
+_WARM_UP = (
+    "from msdgrasp.envs.grasp_lift import GraspLiftEnv\n"
+    "env = GraspLiftEnv()\nenv.reset(seed=0)\nenv.step(env.action_space.sample())\n",
+    "from msdgrasp.physics.mesh_gen import spleen_mesh\n"
+    "from msdgrasp.physics.simulation import Simulation\n"
+    "from msdgrasp.physics.tissue import TissueModel, TissueParams\n"
+    "sim = Simulation(TissueModel.from_params(spleen_mesh('coarse'), TissueParams()), 1, precision='float32')\n"
+    "sim.step(1)\n",
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """On an xdist controller (``pytest -n N``, N >= 2), compile the common kernels into numba's cache first."""
+    import subprocess
+    import sys
+
+    workers = getattr(config.option, "numprocesses", None)
+    if hasattr(config, "workerinput") or not isinstance(workers, int) or workers < 2:
+        return
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              text=True) for code in _WARM_UP]
+    for proc in procs:
+        _, err = proc.communicate()
+        if proc.returncode != 0:  # the tests that build these will fail with the full error; say it here too
+            print(f"conftest: compiling the kernels ahead failed (exit {proc.returncode}): {err[-2000:]}",
+                  file=sys.stderr)
