@@ -84,19 +84,12 @@ def compiled_kernel(sphere_coarse):
     return True
 
 
-# What an xdist controller compiles before its workers start, in two parallel processes. From an empty cache
-# each worker, and each subprocess a test starts meanwhile, would compile the same kernels at once (the env's
-# path alone takes 105 s on one core); compiled once here, they all load them from NUMBA_CACHE_DIR. The first compiles the env's path (the scene's simulate, float64, and the task kernels),
-# the second the float32 simulate (tests/test_float32.py, the CUDA tests' float32 reference).
-_WARM_UP = (
-    "from msdgrasp.envs.grasp_lift import GraspLiftEnv\n"
-    "env = GraspLiftEnv()\nenv.reset(seed=0)\nenv.step(env.action_space.sample())\n",
-    "from msdgrasp.physics.mesh_gen import spleen_mesh\n"
-    "from msdgrasp.physics.simulation import Simulation\n"
-    "from msdgrasp.physics.tissue import TissueModel, TissueParams\n"
-    "sim = Simulation(TissueModel.from_params(spleen_mesh('coarse'), TissueParams()), 1, precision='float32')\n"
-    "sim.step(1)\n",
-)
+# What an xdist controller compiles before its workers start, in two parallel processes: the env's path (the scene's
+# simulate in float64 and the task kernels) and the float32 simulate (tests/test_float32.py, the CUDA tests' float32
+# reference), the workloads of `python -m msdgrasp.benchmarks.compile_time`. From an empty cache each worker, and each
+# subprocess a test starts meanwhile, would compile the same kernels at once (the env's path alone takes ~110 s on one
+# core); compiled once here, they all load them from NUMBA_CACHE_DIR.
+_WARM_UP = ("env", "float32")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -107,8 +100,10 @@ def pytest_configure(config: pytest.Config) -> None:
     workers = getattr(config.option, "numprocesses", None)
     if hasattr(config, "workerinput") or not isinstance(workers, int) or workers < 2:
         return
-    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                              text=True) for code in _WARM_UP]
+    from msdgrasp.benchmarks.compile_time import WORKLOADS
+
+    procs = [subprocess.Popen([sys.executable, "-c", WORKLOADS[what]], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True) for what in _WARM_UP]
     for proc in procs:
         _, err = proc.communicate()
         if proc.returncode != 0:  # the tests that build these will fail with the full error; say it here too

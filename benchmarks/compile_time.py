@@ -1,0 +1,117 @@
+"""Cold compilation: what numba compiles on a first run from an empty cache, and how long each function takes.
+
+A fresh install compiles every kernel on its first call (numba then caches them in ``NUMBA_CACHE_DIR`` or next to
+the sources, and later processes load them in about a second). That first call is what a new user, a fresh CI
+clone and the first seed of a training pay. This runs a workload in a child process with an empty temporary
+``NUMBA_CACHE_DIR``, records numba's compile events and reports, per compiled function, its inclusive time (with the
+callees it compiled on the way), its exclusive time and how many signatures were compiled, plus the wall time::
+
+    python -m msdgrasp.benchmarks.compile_time [--what env|float32] [--top 25] [--out logs/bench/compile.json]
+
+``env``: ``GraspLiftEnv()``, reset and one step (what ``gym.make``'s first step compiles: the scene's ``simulate`` in
+float64 and the task kernels); ``float32``: one step of a float32 ``Simulation`` of the coarse spleen.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+#: the workloads: code run in the child after the recorder is installed
+WORKLOADS = {
+    "env": ("from msdgrasp.envs.grasp_lift import GraspLiftEnv\n"
+            "env = GraspLiftEnv()\nenv.reset(seed=0)\nenv.step(env.action_space.sample())\n"),
+    "float32": ("from msdgrasp.physics.mesh_gen import spleen_mesh\n"
+                "from msdgrasp.physics.simulation import Simulation\n"
+                "from msdgrasp.physics.tissue import TissueModel, TissueParams\n"
+                "model = TissueModel.from_params(spleen_mesh('coarse'), TissueParams())\n"
+                "Simulation(model, 1, precision='float32').step(1)\n"),
+}
+
+# Installed in the child before the workload: a listener on numba's compile events that keeps a stack of the
+# compilations in progress, so a callee's time is subtracted from its caller's exclusive time.
+_RECORDER = """
+import json, sys, time
+from numba.core import event as _event
+_stack, _records = [], {}
+class _Listener(_event.Listener):
+    def on_start(self, e):
+        _stack.append([time.perf_counter(), 0.0])
+    def on_end(self, e):
+        t0, callees = _stack.pop()
+        took = time.perf_counter() - t0
+        f = e.data["dispatcher"].py_func
+        r = _records.setdefault(f.__module__ + "." + f.__qualname__, [0.0, 0.0, 0])
+        r[0] += took
+        r[1] += took - callees
+        r[2] += 1
+        if _stack:
+            _stack[-1][1] += took
+_event.register("numba:compile", _Listener())
+_t0 = time.perf_counter()
+"""
+
+_REPORT = """
+_wall = time.perf_counter() - _t0
+print(json.dumps({"wall_s": _wall, "functions": _records}))
+"""
+
+
+def measure(code: str, timeout_s: float = 1800.0) -> dict[str, Any]:
+    """Run ``code`` in a fresh interpreter with an empty numba cache; its compile events, per function
+    ``{"inclusive_s", "exclusive_s", "signatures"}`` sorted by exclusive time, and ``wall_s`` (the code's wall time,
+    compilation included). Raises RuntimeError with the child's error if it fails."""
+    with tempfile.TemporaryDirectory(prefix="msdgrasp-compile-") as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        proc = subprocess.run([sys.executable, "-c", _RECORDER + code + _REPORT], capture_output=True, text=True,
+                              env=env, timeout=timeout_s)
+    if proc.returncode != 0:
+        raise RuntimeError(f"the workload failed (exit {proc.returncode}): {proc.stderr.strip()[-2000:]}")
+    raw = json.loads(proc.stdout.strip().splitlines()[-1])
+    functions = {name: {"inclusive_s": round(inc, 3), "exclusive_s": round(exc, 3), "signatures": n}
+                 for name, (inc, exc, n) in sorted(raw["functions"].items(), key=lambda kv: -kv[1][1])}
+    return {"wall_s": round(raw["wall_s"], 2),
+            "compile_s": round(sum(f["exclusive_s"] for f in functions.values()), 2),
+            "functions": functions}
+
+
+def markdown(report: dict[str, Any], top: int) -> str:
+    """The report as a markdown table of the ``top`` functions by exclusive time."""
+    lines = [f"Cold compilation of `{report['what']}`: {report['wall_s']} s wall, {report['compile_s']} s compiling "
+             f"({len(report['functions'])} functions)", "",
+             "| function | exclusive s | inclusive s | signatures |", "|---|---|---|---|"]
+    for name, f in list(report["functions"].items())[:top]:
+        lines.append(f"| {name} | {f['exclusive_s']} | {f['inclusive_s']} | {f['signatures']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m msdgrasp.benchmarks.compile_time",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--what", choices=sorted(WORKLOADS), default="env", help="the workload (default: env)")
+    parser.add_argument("--top", type=int, default=25, help="functions in the table (default: 25)")
+    parser.add_argument("--out", type=Path, help="also write the report as JSON (and .md beside it)")
+    args = parser.parse_args(argv)
+    if args.top < 1:
+        parser.error(f"--top must be >= 1, got {args.top}")
+    if args.out is not None and not args.out.parent.is_dir():
+        parser.error(f"--out: folder {str(args.out.parent)!r} does not exist")
+    report = {"what": args.what, **measure(WORKLOADS[args.what])}
+    md = markdown(report, args.top)
+    print(md, end="")
+    if args.out is not None:
+        from ..physics.config import atomic_write_text
+
+        atomic_write_text(args.out, json.dumps(report, indent=2) + "\n")
+        atomic_write_text(args.out.with_suffix(".md"), md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
