@@ -8,6 +8,9 @@ callees it compiled on the way), its exclusive time and how many signatures were
 
     python -m msdgrasp.benchmarks.compile_time [--what env|float32] [--top 25] [--out logs/bench/compile.json]
 
+``--package NAME`` measures another build of the package on ``sys.path`` instead (a copy under its own name, as
+:mod:`.interleaved` takes them), so two builds' compile times can be compared.
+
 ``env``: ``GraspLiftEnv()``, reset and one step (what ``gym.make``'s first step compiles: the scene's ``simulate`` in
 float64 and the task kernels); ``float32``: one step of a float32 ``Simulation`` of the coarse spleen.
 """
@@ -15,6 +18,7 @@ float64 and the task kernels); ``float32``: one step of a float32 ``Simulation``
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
@@ -23,7 +27,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-#: the workloads: code run in the child after the recorder is installed
+#: the workloads: code run in the child after the recorder is installed (``msdgrasp``: the package measured)
 WORKLOADS = {
     "env": ("from msdgrasp.envs.grasp_lift import GraspLiftEnv\n"
             "env = GraspLiftEnv()\nenv.reset(seed=0)\nenv.step(env.action_space.sample())\n"),
@@ -33,6 +37,11 @@ WORKLOADS = {
                 "model = TissueModel.from_params(spleen_mesh('coarse'), TissueParams())\n"
                 "Simulation(model, 1, precision='float32').step(1)\n"),
 }
+
+
+def workload(what: str, package: str = "msdgrasp") -> str:
+    """The code of workload ``what`` on the build ``package``."""
+    return WORKLOADS[what].replace("from msdgrasp.", f"from {package}.")
 
 # Installed in the child before the workload: a listener on numba's compile events that keeps a stack of the
 # compilations in progress, so a callee's time is subtracted from its caller's exclusive time.
@@ -96,13 +105,17 @@ def main(argv: list[str] | None = None) -> int:
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--what", choices=sorted(WORKLOADS), default="env", help="the workload (default: env)")
     parser.add_argument("--top", type=int, default=25, help="functions in the table (default: 25)")
+    parser.add_argument("--package", default="msdgrasp",
+                        help="the build measured: a package name on sys.path (default: msdgrasp, this build)")
     parser.add_argument("--out", type=Path, help="also write the report as JSON (and .md beside it)")
     args = parser.parse_args(argv)
     if args.top < 1:
         parser.error(f"--top must be >= 1, got {args.top}")
+    if not args.package.isidentifier() or importlib.util.find_spec(args.package) is None:
+        parser.error(f"--package {args.package!r} is not an importable package name")
     if args.out is not None and not args.out.parent.is_dir():
         parser.error(f"--out: folder {str(args.out.parent)!r} does not exist")
-    report = {"what": args.what, **measure(WORKLOADS[args.what])}
+    report = {"what": args.what, "package": args.package, **measure(workload(args.what, args.package))}
     md = markdown(report, args.top)
     print(md, end="")
     if args.out is not None:

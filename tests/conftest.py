@@ -100,9 +100,9 @@ def pytest_configure(config: pytest.Config) -> None:
     workers = getattr(config.option, "numprocesses", None)
     if hasattr(config, "workerinput") or not isinstance(workers, int) or workers < 2:
         return
-    from msdgrasp.benchmarks.compile_time import WORKLOADS
+    from msdgrasp.benchmarks.compile_time import workload
 
-    procs = [subprocess.Popen([sys.executable, "-c", WORKLOADS[what]], stdout=subprocess.DEVNULL,
+    procs = [subprocess.Popen([sys.executable, "-c", workload(what)], stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True) for what in _WARM_UP]
     for proc in procs:
         _, err = proc.communicate()

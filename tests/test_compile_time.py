@@ -42,9 +42,16 @@ def test_a_failing_workload_says_why():
 
 @pytest.mark.parametrize("argv, message", [(["--top", "0"], "--top must be >= 1, got 0"),
                                            (["--what", "gpu"], "invalid choice: 'gpu'"),
-                                           (["--out", "no/such/folder/c.json"], "does not exist")])
+                                           (["--out", "no/such/folder/c.json"], "does not exist"),
+                                           (["--package", "no_such_build"], "'no_such_build' is not an importable")])
 def test_bad_options_are_one_line_exit_2_before_anything_runs(argv, message, capsys, monkeypatch):
     monkeypatch.setattr(compile_time, "measure", lambda code: pytest.fail("ran"))
     with pytest.raises(SystemExit) as exc:
         compile_time.main(argv)
     assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_a_workload_runs_on_the_build_it_names():
+    assert "from msdgrasp." in compile_time.workload("env")
+    other = compile_time.workload("float32", "msd_base")
+    assert "msdgrasp" not in other and other.count("from msd_base.") == 3
