@@ -6,6 +6,7 @@ clone and the first seed of a training pay. This runs a workload in a child proc
 ``NUMBA_CACHE_DIR``, records numba's compile events and reports, per compiled function, its inclusive time (with the
 callees it compiled on the way), its exclusive time and how many signatures were compiled, plus the wall time::
 
+    msdgrasp bench compile [--out logs/bench/compile.json]          (the env workload)
     python -m msdgrasp.benchmarks.compile_time [--what env|float32] [--top 25] [--out logs/bench/compile.json]
 
 ``--package NAME`` measures another build of the package on ``sys.path`` instead (a copy under its own name, as
@@ -100,6 +101,43 @@ def markdown(report: dict[str, Any], top: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _report(what: str, package: str, top: int, out: Path | None) -> int:
+    """Measure, print the JSON to stdout and the table to stderr, and write both beside ``out`` (atomically)."""
+    report = {"what": what, "package": package, **measure(workload(what, package))}
+    md = markdown(report, top)
+    print(md, end="", file=sys.stderr)
+    print(json.dumps(report, indent=2))
+    if out is not None:
+        from ..physics.config import atomic_write_text
+
+        atomic_write_text(out, json.dumps(report, indent=2) + "\n")
+        atomic_write_text(out.with_suffix(".md"), md)
+    return 0
+
+
+def _out_problem(out: Path | None) -> str | None:
+    """Why ``out`` cannot be written (its folder is created where missing), before the minutes of measuring."""
+    if out is None:
+        return None
+    if out.is_dir():
+        return f"--out {str(out)!r} is a folder; give a file name such as {str(out / 'compile.json')!r}"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"--out: cannot create folder {str(out.parent)!r}: {exc.strerror or exc}"
+    return None
+
+
+def compile_cli(out: Path | None) -> int:
+    """``msdgrasp bench compile``: the env workload on this build."""
+    out = None if out is None else Path(out)
+    problem = _out_problem(out)
+    if problem:
+        print(f"msdgrasp bench: error: {problem}", file=sys.stderr)
+        return 2
+    return _report("env", "msdgrasp", 25, out)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m msdgrasp.benchmarks.compile_time",
                                      description=__doc__.split("\n")[0])
@@ -113,17 +151,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--top must be >= 1, got {args.top}")
     if not args.package.isidentifier() or importlib.util.find_spec(args.package) is None:
         parser.error(f"--package {args.package!r} is not an importable package name")
-    if args.out is not None and not args.out.parent.is_dir():
-        parser.error(f"--out: folder {str(args.out.parent)!r} does not exist")
-    report = {"what": args.what, "package": args.package, **measure(workload(args.what, args.package))}
-    md = markdown(report, args.top)
-    print(md, end="")
-    if args.out is not None:
-        from ..physics.config import atomic_write_text
-
-        atomic_write_text(args.out, json.dumps(report, indent=2) + "\n")
-        atomic_write_text(args.out.with_suffix(".md"), md)
-    return 0
+    if _out_problem(args.out):
+        parser.error(_out_problem(args.out))
+    return _report(args.what, args.package, args.top, args.out)
 
 
 if __name__ == "__main__":

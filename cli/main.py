@@ -2,7 +2,8 @@
 
     msdgrasp experiment compress|grasp|grasp-sphere ...   the paper's experiments (CSV + PNG)
     msdgrasp calibrate --data CSV ...                      fit the tissue's constants to compression curves
-    msdgrasp bench [physics|grasp|env|gpu|learners|...]    speed benchmarks (JSON); precision: float32's error
+    msdgrasp bench [physics|grasp|env|gpu|learners|...]    speed benchmarks (JSON); precision: float32's error;
+                                                          compile: a cold first run's compilation
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
 
 Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
@@ -73,6 +74,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from ..benchmarks.profile import profile_cli
 
         return profile_cli(bool(args.quick), args.out)
+    if args.what == "compile":  # (a child process with an empty numba cache)
+        from ..benchmarks.compile_time import compile_cli
+
+        return compile_cli(args.out)
     from ..benchmarks.bench import bench_cli
 
     return bench_cli(args)
@@ -144,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="speed benchmarks, printed as JSON")
     b.add_argument("what", nargs="?", default="physics",
-                   choices=["physics", "grasp", "env", "gpu", "precision", "learners", "profile", "all"])
+                   choices=["physics", "grasp", "env", "gpu", "precision", "learners", "profile", "compile", "all"])
     b.add_argument("--quick", action="store_true", help="fewer repetitions (for smoke tests)")
     b.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     b.set_defaults(func=_cmd_bench)

@@ -3,6 +3,9 @@ a child with an empty cache, splits a caller's time from its callees' and counts
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
 from msdgrasp.benchmarks import compile_time
@@ -42,9 +45,11 @@ def test_a_failing_workload_says_why():
 
 @pytest.mark.parametrize("argv, message", [(["--top", "0"], "--top must be >= 1, got 0"),
                                            (["--what", "gpu"], "invalid choice: 'gpu'"),
-                                           (["--out", "no/such/folder/c.json"], "does not exist"),
+                                           (["--out", "."], "is a folder"),
+                                           (["--out", "conftest.py/c.json"], "cannot create folder"),
                                            (["--package", "no_such_build"], "'no_such_build' is not an importable")])
 def test_bad_options_are_one_line_exit_2_before_anything_runs(argv, message, capsys, monkeypatch):
+    monkeypatch.chdir(Path(__file__).parent)
     monkeypatch.setattr(compile_time, "measure", lambda code: pytest.fail("ran"))
     with pytest.raises(SystemExit) as exc:
         compile_time.main(argv)
@@ -55,3 +60,21 @@ def test_a_workload_runs_on_the_build_it_names():
     assert "from msdgrasp." in compile_time.workload("env")
     other = compile_time.workload("float32", "msd_base")
     assert "msdgrasp" not in other and other.count("from msd_base.") == 3
+
+
+def test_msdgrasp_bench_compile_prints_the_json_and_writes_it_with_its_table(tmp_path, capsys, monkeypatch):
+    from msdgrasp.cli.main import main
+
+    seen = []
+    fake = {"wall_s": 2.0, "compile_s": 1.5, "functions": {"m.f": {"inclusive_s": 1.5, "exclusive_s": 1.0,
+                                                                     "signatures": 1},
+                                                             "m.g": {"inclusive_s": 0.5, "exclusive_s": 0.5,
+                                                                     "signatures": 2}}}
+    monkeypatch.setattr(compile_time, "measure", lambda code: seen.append(code) or fake)
+    out = tmp_path / "new" / "compile.json"  # (its folder is made)
+    assert main(["bench", "compile", "--out", str(out)]) == 0
+    assert seen == [compile_time.workload("env")]
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads(out.read_text()) == {"what": "env", "package": "msdgrasp", **fake}
+    assert "| m.f | 1.0 | 1.5 | 1 |" in out.with_suffix(".md").read_text()
+    assert main(["bench", "compile", "--out", str(tmp_path)]) == 2 and "is a folder" in capsys.readouterr().err
