@@ -88,20 +88,25 @@ def compiled_kernel(sphere_coarse):
 # simulate in float64 and the task kernels) and the float32 simulate (tests/test_float32.py, the CUDA tests' float32
 # reference), the workloads of `python -m msdgrasp.benchmarks.compile_time`. From an empty cache each worker, and each
 # subprocess a test starts meanwhile, would compile the same kernels at once (the env's path alone takes ~110 s on one
-# core); compiled once here, they all load them from NUMBA_CACHE_DIR.
+# core), and the compilation would land in the durations of whichever tests came first (`--durations` would name them
+# slow); compiled once here, they all load them from NUMBA_CACHE_DIR. With a warm cache this takes a few seconds.
 _WARM_UP = ("env", "float32")
 
 
+@pytest.hookimpl(trylast=True)
 def pytest_configure(config: pytest.Config) -> None:
     """On an xdist controller (``pytest -n N``, N >= 2), compile the common kernels into numba's cache first."""
     import subprocess
     import sys
+    import time
 
     workers = getattr(config.option, "numprocesses", None)
     if hasattr(config, "workerinput") or not isinstance(workers, int) or workers < 2:
         return
     from msdgrasp.benchmarks.compile_time import workload
 
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    t0 = time.perf_counter()
     procs = [subprocess.Popen([sys.executable, "-c", workload(what)], stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True) for what in _WARM_UP]
     for proc in procs:
@@ -109,3 +114,6 @@ def pytest_configure(config: pytest.Config) -> None:
         if proc.returncode != 0:  # the tests that build these will fail with the full error; say it here too
             print(f"conftest: compiling the kernels ahead failed (exit {proc.returncode}): {err[-2000:]}",
                   file=sys.stderr)
+    if reporter is not None:
+        reporter.write_line(f"compiled or loaded the common numba kernels ({', '.join(_WARM_UP)}) in "
+                            f"{time.perf_counter() - t0:.0f} s, before the workers start")
