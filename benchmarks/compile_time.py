@@ -44,6 +44,7 @@ def workload(what: str, package: str = "msdgrasp") -> str:
     """The code of workload ``what`` on the build ``package``."""
     return WORKLOADS[what].replace("from msdgrasp.", f"from {package}.")
 
+
 # Installed in the child before the workload: a listener on numba's compile events that keeps a stack of the
 # compilations in progress, so a callee's time is subtracted from its caller's exclusive time.
 _RECORDER = """
@@ -151,8 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--top must be >= 1, got {args.top}")
     if not args.package.isidentifier() or importlib.util.find_spec(args.package) is None:
         parser.error(f"--package {args.package!r} is not an importable package name")
-    if _out_problem(args.out):
-        parser.error(_out_problem(args.out))
+    problem = _out_problem(args.out)
+    if problem:
+        parser.error(problem)
     return _report(args.what, args.package, args.top, args.out)
 
 
