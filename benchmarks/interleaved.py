@@ -7,6 +7,11 @@ closed on it: :func:`.bench._grasped`, one tissue and a batch of 64) in a worker
 round times every build once, in a random order, one worker at a time, so drift falls on all of them alike.
 Reported per build: the median, first quartile and minimum over the rounds, in us of compute per simulated ms.
 
+Every worker runs on the same CPU (``--cpu``, by default the lowest this process may use): left to the OS, each
+worker stays on a core of its own, and a difference between the cores' speeds (another job on one of them) reads as
+a difference between the builds; unpinned, the batch of two identical lane paths read 78.8 against 56.5 us per
+simulated ms per tissue in one run.
+
 One process per build, because two copies of the package in one process are not independent: every build
 imported after the first paid about 0.85 ms more per ``Simulation.step`` call (measured: the same build was
 fast when imported first and slow when second, at equal cost per simulated ms), which at 40 ms per call read as
@@ -31,6 +36,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import random
 import statistics
 import subprocess
@@ -120,10 +126,16 @@ def _sphere_worker(name: str, steps_one: int, steps_batch: int, batch: int) -> N
     _serve(sims[0].step, sims[1].step, steps_one, steps_batch, batch)
 
 
+def allowed_cpus() -> list[int] | None:
+    """The CPUs this process may run on, lowest first (None where the OS cannot pin a process)."""
+    return sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+
+
 def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_batch: int = 2,
-                batch: int = 64) -> dict[str, dict[str, float]]:
+                batch: int = 64, cpu: int | None = None) -> dict[str, dict[str, float]]:
     """Per package: ``one_*`` (one tissue, ``steps_one`` ms per call) and ``batch_*`` (per tissue of ``batch``,
-    ``steps_batch`` ms per call) median, first quartile and minimum, us per simulated ms, over ``rounds``."""
+    ``steps_batch`` ms per call) median, first quartile and minimum, us per simulated ms, over ``rounds``. Every
+    worker is pinned to ``cpu`` (None: not pinned)."""
     if rounds < 4:
         raise ValueError(f"rounds must be >= 4 (quartiles), got {rounds}")
     workers = {}
@@ -131,6 +143,8 @@ def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_bat
         for name in packages:  # one after the other: compiling builds do not compete for the cores
             steps = f"{steps_one},{steps_batch},{batch}"
             argv = [sys.executable, "-m", __spec__.name, "--worker", name, "--steps", steps]
+            if cpu is not None:
+                argv += ["--cpu", str(cpu)]
             proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
             workers[name] = proc
             if proc.stdout.readline().strip() != "ready":
@@ -170,12 +184,22 @@ def main(argv: list[str] | None = None) -> int:
                         help="time the paper's sphere compression instead (tissue/sphere.yaml: Maxwell branch and "
                              "spring dashpots): one tissue and a batch of two, 40 simulated ms per round each, us per "
                              "simulated ms (per tissue)")
+    parser.add_argument("--cpu", type=int, default=None,
+                        help="the CPU every build's worker runs on (default: the lowest this process may use)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # (a build's worker process)
     parser.add_argument("--steps", default="40,2,64", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
+        if args.cpu is not None:
+            os.sched_setaffinity(0, {args.cpu})
         _worker(args.worker, *(int(s) for s in args.steps.split(",")))
         return 0
+    cpus = allowed_cpus()
+    if cpus is None and args.cpu is not None:
+        parser.error("--cpu: this OS cannot pin a process to a CPU; leave --cpu out")
+    if cpus is not None and args.cpu is not None and args.cpu not in cpus:
+        parser.error(f"--cpu must be one of the CPUs this process may use, {cpus}; got {args.cpu}")
+    cpu = args.cpu if args.cpu is not None else (cpus[0] if cpus else None)
     if not args.packages:
         parser.error("packages: give one or more comma-separated package names")
     names = [p for p in args.packages.split(",") if p]
@@ -190,15 +214,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--env and --sphere: give one of them")
     try:
         if args.sphere:
-            results = interleaved([f"sphere:{n}" for n in names], args.rounds, steps_one=40, steps_batch=40, batch=2)
+            results = interleaved([f"sphere:{n}" for n in names], args.rounds, steps_one=40, steps_batch=40, batch=2,
+                                  cpu=cpu)
             results = {name[7:]: r for name, r in results.items()}
         elif args.env:
-            results = interleaved([f"env:{n}" for n in names], args.rounds, steps_one=20, steps_batch=2)
+            results = interleaved([f"env:{n}" for n in names], args.rounds, steps_one=20, steps_batch=2, cpu=cpu)
             results = {name[4:]: r for name, r in results.items()}
         else:
-            results = interleaved(names, args.rounds)
+            results = interleaved(names, args.rounds, cpu=cpu)
     except ValueError as exc:
         parser.error(f"--{exc}")
+    print("every build's worker on CPU " + (str(cpu) if cpu is not None else "the OS chose (not pinned)"))
     if args.env:
         print(f"{'build':14s} single env us per agent step: median / q1 / min | vector env of 64, per env: "
               "median / q1 / min")
