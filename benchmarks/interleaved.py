@@ -8,9 +8,11 @@ round times every build once, in a random order, one worker at a time, so drift 
 Reported per build: the median, first quartile and minimum over the rounds, in us of compute per simulated ms.
 
 Every worker runs on the same CPU (``--cpu``, by default the lowest this process may use): left to the OS, each
-worker stays on a core of its own, and a difference between the cores' speeds (another job on one of them) reads as
-a difference between the builds; unpinned, the batch of two identical lane paths read 78.8 against 56.5 us per
-simulated ms per tissue in one run.
+worker stays on a core of its own, and a difference between the cores' speeds would read as a difference between the
+builds. The same build still differs from process to process in the batch row at its default 2 ms per call (medians
+58-60 against 74-76 us per simulated ms per tissue in six processes of one build; at 33 ms per call 40-44 in
+every process: the spread is in a call's set-up, not in the substeps), so ``--batch-ms 33`` (an agent step per
+call) is the setting to judge a change of the batch's substeps by.
 
 One process per build, because two copies of the package in one process are not independent: every build
 imported after the first paid about 0.85 ms more per ``Simulation.step`` call (measured: the same build was
@@ -184,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="time the paper's sphere compression instead (tissue/sphere.yaml: Maxwell branch and "
                              "spring dashpots): one tissue and a batch of two, 40 simulated ms per round each, us per "
                              "simulated ms (per tissue)")
+    parser.add_argument("--batch-ms", type=int, default=None,
+                        help="simulated ms per timed call of the batch (default 2; 33 is an agent step)")
     parser.add_argument("--cpu", type=int, default=None,
                         help="the CPU every build's worker runs on (default: the lowest this process may use)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # (a build's worker process)
@@ -212,6 +216,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"package {name!r} cannot be imported: {exc}")
     if args.env and args.sphere:
         parser.error("--env and --sphere: give one of them")
+    if args.batch_ms is not None and (args.env or args.sphere):
+        parser.error("--batch-ms times the physics' batch: not with --env or --sphere")
+    if args.batch_ms is not None and args.batch_ms < 1:
+        parser.error(f"--batch-ms must be >= 1, got {args.batch_ms}")
     try:
         if args.sphere:
             results = interleaved([f"sphere:{n}" for n in names], args.rounds, steps_one=40, steps_batch=40, batch=2,
@@ -221,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
             results = interleaved([f"env:{n}" for n in names], args.rounds, steps_one=20, steps_batch=2, cpu=cpu)
             results = {name[4:]: r for name, r in results.items()}
         else:
-            results = interleaved(names, args.rounds, cpu=cpu)
+            results = interleaved(names, args.rounds, steps_batch=args.batch_ms or 2, cpu=cpu)
     except ValueError as exc:
         parser.error(f"--{exc}")
     print("every build's worker on CPU " + (str(cpu) if cpu is not None else "the OS chose (not pinned)"))

@@ -151,7 +151,8 @@ def soak_run(tmp_path_factory):
 @pytest.mark.parametrize("argv, match", [(["msdgrasp", "--rounds", "3"], "--rounds must be >= 4 (quartiles), got 3"),
                                          (["msdgrasp,no_such_build"], "'no_such_build' cannot be imported"),
                                          (["msdgrasp", "--env", "--sphere"], "--env and --sphere: give one of them"),
-                                         (["msdgrasp", "--cpu", "100000"], "--cpu must be one of the CPUs")])
+                                         (["msdgrasp", "--cpu", "100000"], "--cpu must be one of the CPUs"),
+                                         (["msdgrasp", "--batch-ms", "0"], "--batch-ms must be >= 1")])
 def test_interleaved_ab_refuses_bad_input_before_timing(argv, match, capsys):
     from msdgrasp.benchmarks.interleaved import main
 
