@@ -134,6 +134,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.seeds is not None and not learner.parallel_seeds and _runner_asked(args):
         raise _usage(f"--ray, --address and --workers run seeds in parallel; learner {learner.name} trains its seeds "
                      "one after the other (on the one GPU)")
+    # the config first (its loading imports no learner library: a typo is reported in about a second), then the
+    # learner's libraries, which take seconds to import, before anything is trained or written
+    if args.resume is not None:
+        config = learner.resume_config(args.resume, overrides)
+    else:
+        config = learner.make_config(args.config, overrides)
+        learner = learner_of_config(config)  # (the config's algo where --learner named none)
     try:
         learner.check_available()
     except ImportError as exc:
@@ -141,12 +148,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         _require_plots("train --seeds")
     if args.resume is not None:
-        config = learner.resume_config(args.resume, overrides)
         summary = learner.train(config, args.resume, resume=True, progress=not args.quiet)
         print(json.dumps(summary, indent=2))
         return 0
-    config = learner.make_config(args.config, overrides)
-    learner = learner_of_config(config)  # (the config's algo where --learner named none)
     out = args.out if args.out is not None else learner.default_out
     if args.seeds is None:
         print(json.dumps(learner.train(config, out, progress=not args.quiet), indent=2))

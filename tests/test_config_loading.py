@@ -103,6 +103,18 @@ def test_a_bad_tissue_grasper_or_training_config_is_one_line_exit_2_and_nothing_
     _assert_one_line_error(r, cfg, key, out)
 
 
+def test_a_training_config_is_checked_before_the_learner_libraries_are_imported(tmp_path):
+    """A typo in a training config is reported before torch and the learners' libraries load (seconds of imports):
+    `msdgrasp train` checks the config first, the libraries after."""
+    cfg = _write(tmp_path / "typo.yaml", _with_key(_train(), "ppo", "learning_rat", 1e-3))
+    code = ("import sys\nfrom msdgrasp.cli.main import main\n"
+            f"rc = main(['train', '--config', {str(cfg)!r}, '--out', {str(tmp_path / 'out')!r}, '--quiet'])\n"
+            "print(rc, sorted(m for m in ('torch', 'stable_baselines3', 'rsl_rl') if m in sys.modules))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=os.environ.copy(), timeout=300)
+    assert r.stdout.split("\n")[-2] == "2 []", (r.stdout, r.stderr)
+    assert "unknown key 'learning_rat'" in r.stderr and not (tmp_path / "out").exists()
+
+
 def test_errors_list_what_is_allowed(tmp_path):
     """The message says what to write instead: the allowed sections, the allowed keys, what a missing section holds."""
     with pytest.raises(ConfigError, match=r"unknown section 'tisue'.*allowed sections: mesh, tissue, calibration"):
