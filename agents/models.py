@@ -136,6 +136,11 @@ class TrainConfig:
     #: success rate, then lowest mean peak pinch) is kept as ``best_model.zip``. 0 disables it.
     validation_episodes: Annotated[Int, Ge(0)] = 6
     validation_mu: Annotated[tuple[Annotated[Real, Ge(0), Le(2)], ...], MinLen(1)] = (0.2, 0.3, 0.5, 0.7, 0.9)
+    #: early stopping: the training ends once this many validations in a row have not beaten the best one (the key
+    #: above), instead of running on to total_timesteps. The learning-rate schedule and the randomisation ramp still
+    #: count to total_timesteps, so a stopped run is the full run's beginning, step for step, and ships its best
+    #: model unless a later checkpoint would have beaten it. None: every run goes to total_timesteps.
+    validation_patience: PositiveInt | None = None
     #: learning-rate schedule: "constant", or "linear" (from the algorithm's learning_rate down to 0 at
     #: total_timesteps; a resumed run anneals over the steps that remain)
     lr_schedule: Literal["constant", "linear"] = "linear"
@@ -212,6 +217,9 @@ class TrainConfig:
                                                                   level))
 
     def __post_init__(self) -> None:
+        if self.validation_patience is not None and self.validation_episodes == 0:
+            raise ConfigError(f"validation_patience: {self.validation_patience} needs validation_episodes >= 1 (it "
+                              "counts validations), got validation_episodes 0; set validation_patience: null")
         if self.actor_hidden:
             if not self.asymmetric_critic:
                 raise ConfigError("actor_hidden needs asymmetric_critic: true (the actor's mask hides the entries)")

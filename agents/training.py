@@ -12,6 +12,9 @@
   evaluate and deploy;
 * ``tb/``: TensorBoard logs.
 
+With ``validation_patience`` set (the default run's 3), the run ends once that many validations in a row have not
+beaten the best; ``train_summary.json``'s ``stopped_early`` says where.
+
 ``--resume DIR`` continues from the newest checkpoint (or final model) in DIR with the config saved
 there; the step count continues (SB3 ``reset_num_timesteps=False``).
 """
@@ -88,6 +91,8 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
                 path = _save_atomic(self.model, out / LAYOUT.checkpoint.format(self.num_timesteps))
                 selector.consider(self.model, path)
                 self.next += self.every
+                # (False ends model.learn here, before this rollout's update: the final model is this checkpoint)
+                return not selector.patience_spent()
             return True
 
     def follow_ramp() -> None:  # the env's randomisation where config.randomization_ramp is at this step count
@@ -113,15 +118,17 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
     start_steps = model.num_timesteps
     remaining = config.total_timesteps - start_steps
     t0 = time.perf_counter()
-    if remaining > 0:
+    if remaining > 0 and not selector.patience_spent():  # (a resumed run that had stopped early stays stopped)
         model.learn(
             remaining, callback=callbacks, progress_bar=progress,
             reset_num_timesteps=not resume, tb_log_name="run",
         )
     wall = time.perf_counter() - t0
+    stopped_early = selector.patience_spent()
     final = _save_atomic(model, out / FINAL_MODEL)
     write_yaml(final.with_suffix(".yaml"), to_dict(config))
-    selector.consider(model, final)
+    if not stopped_early:  # (stopped early, the final model is the checkpoint validated last)
+        selector.consider(model, final)
     succ = list(model.ep_success_buffer) if model.ep_success_buffer is not None else []
     summary = {
         "algo": config.algo,
@@ -135,6 +142,9 @@ def train(config: TrainConfig, out_dir: str | Path, *, resume: bool = False, pro
         "final_model": str(final),
         "best_model": str(out / LAYOUT.model) if selector.best else None,
         "best_validation": selector.best,
+        # early stopping (validation_patience): where the run ended; None: it ran to total_timesteps
+        "stopped_early": ({"timesteps": int(model.num_timesteps), "validation_patience": config.validation_patience}
+                          if stopped_early else None),
     }
     atomic_write(out / LAYOUT.summary, lambda p: p.write_text(json.dumps(summary, indent=2)))
     venv.close()
@@ -244,6 +254,15 @@ class BestModel:
                 self.history, self.best = list(data["history"]), data["best"]
             except (ValueError, KeyError, TypeError) as exc:
                 raise ConfigError(f"--resume: {log} is corrupt ({exc}); delete it to restart model selection") from None
+
+    def patience_spent(self) -> bool:
+        """Early stopping's rule: whether the last ``config.validation_patience`` validations (where it is set) have
+        none of them beaten the best one. Read from the history, so a resumed run keeps it."""
+        patience = getattr(self.config, "validation_patience", None)
+        if patience is None or self.best is None:
+            return False
+        since_best = len(self.history) - 1 - max(k for k, rec in enumerate(self.history) if rec == self.best)
+        return since_best >= patience
 
     @staticmethod
     def _key(rec: dict[str, Any]) -> tuple[float, float]:

@@ -180,12 +180,66 @@ def test_resume_continues_the_step_count(short_run, tmp_path):
         json.loads((src / "validation.json").read_text())["history"])
 
 
+def _policy_weights(path):
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    return load_from_zip_file(path, device="cpu")[1]["policy"]
+
+
+def _same_weights(a, b) -> bool:
+    import torch
+
+    return set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_early_stopping_ends_where_validation_stops_improving_as_the_full_runs_beginning(tmp_path):
+    """validation_patience P: the run ends at the first checkpoint after which P validations in a row have not beaten
+    the best, before that rollout's update (its final model is that checkpoint). Everything up to there is the full
+    run's, step for step (the learning-rate schedule still counts to total_timesteps), so it ships the full run's best
+    model wherever no later checkpoint beats it. A resumed run that had stopped stays stopped."""
+    import json
+
+    from msdgrasp.agents.training import train
+
+    cfg = {**SHORT, "total_timesteps": 1024, "validation_mu": [0.5]}  # a checkpoint every 256 steps: four
+    full_dir, stop_dir = tmp_path / "full", tmp_path / "stop"
+    full = train(from_dict(TrainConfig, cfg), full_dir, progress=False)
+    hist = json.loads((full_dir / "validation.json").read_text())["history"][:-1]  # (the checkpoints; not final)
+
+    def key(rec):
+        return rec["success_rate"], -rec["force_cost_N"]
+
+    # where patience 1 must stop: the first checkpoint that does not beat every one before it
+    k = next((k for k in range(1, len(hist)) if key(hist[k]) <= max(key(r) for r in hist[:k])), None)
+    assert k is not None, "this recipe's validation improved at every checkpoint: nothing here to stop early"
+    stop = train(from_dict(TrainConfig, {**cfg, "validation_patience": 1}), stop_dir, progress=False)
+    steps = hist[k]["timesteps"]
+    assert stop["stopped_early"] == {"timesteps": steps, "validation_patience": 1} and stop["timesteps"] == steps
+    assert full["stopped_early"] is None and full["timesteps"] >= 1024
+    got = json.loads((stop_dir / "validation.json").read_text())["history"]
+    assert [(r["timesteps"], key(r)) for r in got] == [(r["timesteps"], key(r)) for r in hist[:k + 1]]
+    best = max(hist[:k + 1], key=key)
+    assert key(stop["best_validation"]) == key(best)
+    last = _policy_weights(stop_dir / "checkpoints" / f"model_{steps}.zip")
+    assert _same_weights(last, _policy_weights(full_dir / "checkpoints" / f"model_{steps}.zip"))  # step for step
+    assert _same_weights(last, _policy_weights(stop_dir / "final_model.zip"))  # no update after the stop
+    assert _same_weights(_policy_weights(stop_dir / "best_model.zip"),
+                         _policy_weights(full_dir / "checkpoints" / f"model_{best['timesteps']}.zip"))
+    # resumed, it trains no further
+    again = train(from_dict(TrainConfig, {**cfg, "validation_patience": 1}), stop_dir, resume=True, progress=False)
+    assert again["timesteps"] == steps and again["stopped_early"] == stop["stopped_early"]
+    assert len(json.loads((stop_dir / "validation.json").read_text())["history"]) == k + 1
+    with pytest.raises(ConfigError, match="validation_patience: 2 needs validation_episodes >= 1"):
+        from_dict(TrainConfig, {**cfg, "validation_patience": 2, "validation_episodes": 0})
+
+
 @pytest.mark.parametrize("over, needle", [
     ({"algo": "dqn"}, "algo"),
     ({"total_timesteps": "many"}, "total_timesteps"),
     ({"validation_mu": []}, "validation_mu"),
     ({"validation_mu": [0.3, 5.0]}, "validation_mu"),
     ({"validation_episodes": -1}, "validation_episodes"),
+    ({"validation_patience": 0}, r"validation_patience = 0 is out of range; allowed \[1, inf\)"),
     ({"learning_rat": 0.1}, "learning_rat"),
     ({"ppo": {"learning_rat": 0.1}}, "ppo: unknown key 'learning_rat'; allowed keys: batch_size"),  # a typo inside
     ({"ppo": [1, 2]}, "ppo must be a mapping"),
