@@ -136,7 +136,9 @@ def _row_metrics(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dic
 
 
 #: the per-seed metrics every multi-seed result aggregates
-AGGREGATED = ("success_ref", "success_mu0.2", "peak_pinch_ref_N", "peak_pinch_over_oracle_min", "train_wall_s")
+#: (timesteps: the agent steps each seed trained, fewer than total_timesteps where validation_patience stopped it)
+AGGREGATED = ("success_ref", "success_mu0.2", "peak_pinch_ref_N", "peak_pinch_over_oracle_min", "train_wall_s",
+              "timesteps")
 
 
 def check_run_args(out: Path, seeds: Sequence[int], episodes: int) -> None:
@@ -183,7 +185,7 @@ def train_points(configs: Sequence[Any], folders: Sequence[Path], seeds: Sequenc
             label = f"config {where[k - len(tasks)][0]} " if len(configs) > 1 else ""
             print(f"{label}seed {res['seed']}: success {m['success_ref']:.3f} over mu 0.3-0.9, "
                   f"{m['success_mu0.2']:.2f} at mu 0.2, mean peak pinch {m['peak_pinch_ref_N']:.2f} N "
-                  f"({res['train_wall_s']:.0f} s training)", file=sys.stderr)
+                  f"({res['train_wall_s']:.0f} s training, {res['train']['timesteps']} steps)", file=sys.stderr)
 
     results = runner.run(jobs, on_done=done)
     bases, seed_results = results[: len(tasks)], results[len(tasks):]

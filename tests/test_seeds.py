@@ -57,9 +57,12 @@ def test_a_tiny_two_seed_run_writes_per_seed_and_aggregate_results(tmp_path):
     ratios = [r["peak_pinch_over_oracle_min"] for r in data["per_seed"]]
     assert data["aggregate"]["peak_pinch_over_oracle_min"]["mean"] == pytest.approx(np.mean(ratios))
     assert data["aggregate"]["peak_pinch_over_oracle_min"]["min"] == pytest.approx(min(ratios))
+    # and how far each seed trained (fewer steps than total_timesteps where early stopping ended it)
+    assert data["aggregate"]["timesteps"]["mean"] == pytest.approx(np.mean([r["timesteps"] for r in data["per_seed"]]))
     # the baselines are part of every multi-seed result; the oracle succeeds on the nominal-ish tissue
     assert set(data["baselines"]) == {"reactive", "oracle"}
     assert data["baselines"]["oracle"]["success_by_mu"]["0.5"] == 1.0
     md = (tmp_path / "seeds.md").read_text()
     assert "PPO (seed 0)" in md and "PPO (seed 1)" in md and "slip-reactive" in md and "bootstrap" in md
+    assert "| timesteps |" in md
     assert res["files"]["json"] == str(tmp_path / "seeds.json")
