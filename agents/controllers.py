@@ -29,9 +29,10 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_interface
 from ..envs.task import N_OBS, OBS, obs_group
-from ..physics.config import needs_extra
+from ..physics.config import needs_extra, to_dict
 from .controller_settings import GATE_WAIT_STEPS, SlipFeedbackSettings, slipfeedback_options
 from .friction import FrictionEstimator, closing_features, with_estimator
+from .result_cache import cached_float
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
 _NORMAL = obs_group("normal_force")
@@ -284,6 +285,17 @@ def _max_pull_speed(config: GraspLiftConfig) -> float:
 
 @functools.lru_cache(maxsize=256)
 def _minimal_force_cached(config: GraspLiftConfig, mu: float, pull: float, tolerance: float) -> float:
+    """:func:`_minimal_force_search`, kept for the process and, across processes, on disk (:mod:`.result_cache`:
+    keyed on the config, the package's files and the numerical stack; a config naming its own tissue or grasper
+    file is searched every time, as the key cannot see that file's edits)."""
+    key = {"config": to_dict(config), "mu": mu, "pull": pull, "tolerance_N": tolerance}
+    own_files = config.tissue_config is not None or config.grasper_config is not None
+    return cached_float("oracle_minimal_force", key, lambda: _minimal_force_search(config, mu, pull, tolerance),
+                        cacheable=not own_files)
+
+
+def _minimal_force_search(config: GraspLiftConfig, mu: float, pull: float, tolerance: float) -> float:
+    """The bisection behind :func:`minimal_force`."""
     from ..envs.grasp_lift import GraspLiftVectorEnv
 
     lo, hi = 0.2, 2.0 * config.reference_force_N
