@@ -467,6 +467,23 @@ def paper_rate_curves(sphere_coarse, compiled_kernel):
     return run_compression(sphere_coarse, SPHERE_PARAMS, cfg)
 
 
+def test_each_rate_of_a_compression_is_the_rate_alone(sphere_coarse, compiled_kernel):
+    """The rates of one run are independent tissues of a batch: each curve is bitwise the one of its rate run alone,
+    although the faster rate finishes first and stops there while the slower runs on."""
+    # (12 samples: the 600 and 60 mm/min rates sample every 12 and 120 steps, alone as in the pair)
+    cfg = CompressionConfig(rates_mm_per_min=(60.0, 600.0), deformation_fraction=0.03, samples=12)
+    both = run_compression(sphere_coarse, SPHERE_PARAMS, cfg)
+    for curve in both:
+        [alone] = run_compression(sphere_coarse, SPHERE_PARAMS,
+                                  replace(cfg, rates_mm_per_min=(curve.rate_mm_per_min,)))
+        for field in ("time_s", "deformation_mm", "force_N", "force_top_N", "force_bottom_N", "min_volume_ratio",
+                      "tilt_deg"):
+            np.testing.assert_array_equal(getattr(curve, field), getattr(alone, field), err_msg=field)
+        # sampled to the final deformation, once
+        assert curve.deformation_mm[-1] == pytest.approx(0.03 * np.ptp(sphere_coarse.nodes[:, 2]) * 1e3, rel=0.02)
+        assert np.all(np.diff(curve.deformation_mm) > 0)
+
+
 def test_compression_is_rate_dependent_in_the_mean_plate_force(paper_rate_curves, sphere_coarse):
     """Fig. 5: the 60 mm/min curve is stiffer, and the stiffening is the material's (the Maxwell branch of a
     standard linear solid), not a drag: both plates carry the same force (the sample is quasi-static), and
