@@ -505,17 +505,19 @@ def test_compression_is_rate_dependent_in_the_mean_plate_force(paper_rate_curves
 
 
 def test_without_the_maxwell_branch_the_rate_does_not_matter(sphere_coarse, compiled_kernel):
-    """The nodal drag is small: with g = 0, the paper's rates (6 and 60 mm/min) give the same mean plate
-    force, averaged over 2-15 % deformation, within 5 % (measured 3.6 %; the Maxwell branch makes 10-47 %;
-    the paper's absolute damping made the rate dependence a drag on the moving plate). Pointwise the
-    curves differ where the coarse mesh's polar facets snap through, at slightly different deformations."""
+    """The nodal drag and the spring dashpots are small: with g = 0, 60 and 600 mm/min give the same mean plate
+    force, averaged over 2-15 % deformation, within 2 % (measured 0.08 %; at the paper's 6 and 60 mm/min 0.008 %;
+    the Maxwell branch makes 10-47 % there; the paper's absolute damping made the rate dependence a drag on the moving
+    plate). Without the branch every rate effect is a drag or an inertia, which grow with the rate, so ten times the
+    paper's rates is the stricter check (and a tenth of the simulated time). Pointwise the curves differ where the
+    coarse mesh's polar facets snap through, at slightly different deformations."""
     p = replace(SPHERE_PARAMS, relaxation_strength=0.0)
-    slow, fast = run_compression(sphere_coarse, p, CompressionConfig(rates_mm_per_min=(6.0, 60.0),
+    slow, fast = run_compression(sphere_coarse, p, CompressionConfig(rates_mm_per_min=(60.0, 600.0),
                                                                       deformation_fraction=0.15))
     height = float(np.ptp(sphere_coarse.nodes[:, 2])) * 1e3
     d = np.linspace(0.02, 0.15, 131) * height
     f_slow = np.interp(d, slow.deformation_mm, slow.force_N).mean()
-    assert np.interp(d, fast.deformation_mm, fast.force_N).mean() == pytest.approx(f_slow, rel=0.05)
+    assert np.interp(d, fast.deformation_mm, fast.force_N).mean() == pytest.approx(f_slow, rel=0.02)
 
 
 def test_small_strain_stiffening(resolution_curves, compiled_kernel):
