@@ -4,7 +4,9 @@ The environment is set at import time, i.e. before any test module imports rerun
 
 * HOME and the XDG config/data/cache dirs point into a per-run temporary folder, so nothing a test
   triggers (rerun, matplotlib, torch, tensorboard caches or telemetry state) reads or writes the real
-  user's home; removed at exit;
+  user's home; removed at exit. The package's result cache (the oracle's minimal forces,
+  ``msdgrasp.agents.result_cache``) lives there too: shared by the run's workers and subprocesses, never
+  read from an earlier run;
 * MPLBACKEND=Agg (no display needed);
 * NUMBA_ENABLE_CUDASIM=1 unless set: the CUDA kernels run in numba's simulator (CI has no GPU);
 * NUMBA_CACHE_DIR (unless already set) is ``physics/__pycache__/numba-tests`` (kept between runs, so
