@@ -43,7 +43,6 @@ from ..physics.forces import (
     displacement_spread,
     flag_watched,
     implicit_volume_barrier_lanes,
-    implicit_volume_barrier_watched,
     spring_loop,
     spring_loop_lanes,
     watch_barrier,
@@ -192,20 +191,14 @@ def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, visit, anc
     """The barrier's implicit step on the flagged tets (run False: only the restore of their nodes); visit:
     (flags (T,L), n_flagged (L,), watch, n_watch) as the flag pass left them."""
     flags, n_flagged, watch, n_watch = visit
-    n = x.shape[0]
-    nt = model.tets.shape[0]
     for _ in range(reps):
         _restore(x, v, x0, v0, nodes)
         if not run:
             continue
-        if lanes:
+        if lanes or n_flagged[0] > 0:  # (as the integrator: one tissue is its (N,3,1) block)
             anchor_vol[:] = 0.0
             implicit_volume_barrier_lanes(x, v, meff, (model.fixed, held), model.tets, model.rest_volume, model.kvol,
                                           model.vol_threshold, ks, dt, (flags, watch, n_watch), anchor_vol)
-        elif n_flagged[0] > 0:
-            implicit_volume_barrier_watched(x.reshape((n, 3)), v.reshape((n, 3)), meff[:, 0], (model.fixed, held[0]),
-                                            model.tets, model.rest_volume, model.kvol, model.vol_threshold, ks[0],
-                                            dt, (flags.reshape(nt), watch, n_watch), anchor_vol[0])
 
 
 # ------------------------------------------------------------------------------------------------

@@ -346,11 +346,26 @@ def implicit_spring_dashpots(
         wj = 0.0 if fixed[j] else 1.0 / meff[j]
         r = (v[j, 0] - u[0]) * ux + (v[j, 1] - u[1]) * uy + (v[j, 2] - u[2]) * uz
         lam = c * dt * r / (1.0 + c * dt * (wi + wj))  # impulse on node i along u (on node j: minus it), N s
-        dvx, dvy, dvz = _impulse(wi, lam, (ux, uy, uz), dt, anchor)  # node i: _kick on the held values
-        if wi != 0.0:
+        dvx, dvy, dvz, fx, fy, fz = node_impulse(wi, lam, ux, uy, uz, dt)  # node i: the held values
+        if wi == 0.0:
+            anchor[0] -= fx
+            anchor[1] -= fy
+            anchor[2] -= fz
+        else:
             u = (as_x(u[0] + dvx), as_x(u[1] + dvy), as_x(u[2] + dvz))
             p = (as_x(p[0] + dt * dvx), as_x(p[1] + dt * dvy), as_x(p[2] + dt * dvz))
-        _kick(x, v, j, wj, -lam, (ux, uy, uz), dt, anchor)
+        dvx, dvy, dvz, fx, fy, fz = node_impulse(wj, -lam, ux, uy, uz, dt)
+        if wj == 0.0:
+            anchor[0] -= fx
+            anchor[1] -= fy
+            anchor[2] -= fz
+        else:
+            v[j, 0] += dvx
+            v[j, 1] += dvy
+            v[j, 2] += dvz
+            x[j, 0] += dt * dvx
+            x[j, 1] += dt * dvy
+            x[j, 2] += dt * dvz
     x[ci, 0], x[ci, 1], x[ci, 2] = p
     v[ci, 0], v[ci, 1], v[ci, 2] = u
 
@@ -623,38 +638,79 @@ def flag_watched(x, tets, rest_volume, j_c, watch, n_watch, flagged, n_flagged) 
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor) -> None:
-    """Tet t's implicit barrier impulse (see above; the arguments as :func:`implicit_volume_barrier`'s): the
-    body of its loop, which the GPU step also runs on its own list of flagged tets."""
-    fixed, held = pins
-    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol = _tet_edges(x, tets, t)
-    v0 = rest_volume[t]
+def barrier_tet(e, v0, k, j_c, dt, w, held):
+    """The implicit barrier's law for one tet, in scalars (see above): e (9 floats) the edge vectors b - a, c - a,
+    d - a (m); v0 its rest volume (m^3); k its modulus times the tissue's stiffness scale (Pa); j_c the threshold;
+    dt the substep (s); w (4 floats) its nodes' inverse effective masses (1/kg; 0 for an anchored node); held (4
+    bools) whether a jaw or plate holds each node. Returns (on, s, g): on False where the tet is at or above the
+    threshold (then nothing moves), else the impulse s (N s / m^2: node q's velocity changes by s w_q g_q) along the
+    volume gradients g (12 floats, nodes a, b, c, d; m^2). Every barrier loop (one tissue, lanes, the GPU's) calls
+    this and applies :func:`node_impulse` to the four nodes; scalars only, so its loops keep no array references
+    per tet (numba's reference counting of arrays passed into an inlined body cost 3-4x the arithmetic)."""
+    e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z = e
+    vol = _volume6(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z) / 6.0
     jac = vol / v0
     d1, d2 = barrier_slopes(jac, j_c)
-    if d1 == 0.0:  # (moved back above the threshold by an earlier tet's impulse)
-        return
-    k = ks * kvol[t]
     gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
     gax, gay, gaz = -(gbx + gcx + gdx), -(gby + gcy + gdy), -(gbz + gcz + gdz)
-    a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-    wa = 0.0 if fixed[a] else 1.0 / meff[a]
-    wb = 0.0 if fixed[b] else 1.0 / meff[b]
-    wc = 0.0 if fixed[c] else 1.0 / meff[c]
-    wd = 0.0 if fixed[d] else 1.0 / meff[d]
+    g = (gax, gay, gaz, gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz)
+    if d1 == 0.0:  # (above the threshold, or moved back above it by an earlier tet's impulse)
+        return False, 0.0, g
+    wa, wb, wc, wd = w
     # the mode's mobility W counts only the nodes that can follow the impulse: a node a jaw or plate holds
     # receives its share (which its contact then reacts to, inside the friction law) but does not move with
     # it, so counting it would size the impulse as if the tet could open there, and a held apex pressed into
     # a tet would creep through it (measured: the fine spleen inverted in a 2 s hold under a 5 N pinch)
-    ww = ((0.0 if held[a] != 0 else wa) * (gax * gax + gay * gay + gaz * gaz)
-          + (0.0 if held[b] != 0 else wb) * (gbx * gbx + gby * gby + gbz * gbz)
-          + (0.0 if held[c] != 0 else wc) * (gcx * gcx + gcy * gcy + gcz * gcz)
-          + (0.0 if held[d] != 0 else wd) * (gdx * gdx + gdy * gdy + gdz * gdz))
+    ww = ((0.0 if held[0] else wa) * (gax * gax + gay * gay + gaz * gaz)
+          + (0.0 if held[1] else wb) * (gbx * gbx + gby * gby + gbz * gbz)
+          + (0.0 if held[2] else wc) * (gcx * gcx + gcy * gcy + gcz * gcz)
+          + (0.0 if held[3] else wd) * (gdx * gdx + gdy * gdy + gdz * gdz))
     p = k * d1 / (1.0 + dt * dt * k * d2 * ww / v0)
-    s = -dt * p  # impulse along each volume gradient, N s / m^2: dv_i = s w_i g_i
-    _kick(x, v, a, wa, s, (gax, gay, gaz), dt, anchor)
-    _kick(x, v, b, wb, s, (gbx, gby, gbz), dt, anchor)
-    _kick(x, v, c, wc, s, (gcx, gcy, gcz), dt, anchor)
-    _kick(x, v, d, wd, s, (gdx, gdy, gdz), dt, anchor)
+    return True, -dt * p, g
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def node_impulse(w, s, gx, gy, gz, dt):
+    """A node's share s g (N s) of an implicit impulse (a tet's barrier, a spring's dashpot), w its inverse mass
+    (1/kg): (dvx, dvy, dvz, fx, fy, fz), its velocity change w s g (its position moves dt times that), and for an
+    anchored node (w = 0), which does not move, the force s g / dt that its anchor supplies against the impulse
+    is minus (fx, fy, fz). Scalars only (see :func:`barrier_tet`)."""
+    if w == 0.0:
+        return 0.0, 0.0, 0.0, s * gx / dt, s * gy / dt, s * gz / dt
+    return w * s * gx, w * s * gy, w * s * gz, 0.0, 0.0, 0.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor) -> None:
+    """Tet t's implicit barrier impulse on one tissue x, v (N,3) (:func:`barrier_tet` and :func:`node_impulse`; the
+    arguments as :func:`implicit_volume_barrier`'s): the body of its loop, which the GPU step runs on its own list
+    of flagged tets."""
+    fixed, held = pins
+    a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    nodes = (a, b, c, d)
+    w = (0.0 if fixed[a] else 1.0 / meff[a], 0.0 if fixed[b] else 1.0 / meff[b],
+         0.0 if fixed[c] else 1.0 / meff[c], 0.0 if fixed[d] else 1.0 / meff[d])
+    on, s, g = barrier_tet((x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2],
+                            x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2],
+                            x[d, 0] - x[a, 0], x[d, 1] - x[a, 1], x[d, 2] - x[a, 2]),
+                           rest_volume[t], ks * kvol[t], j_c, dt, w,
+                           (held[a] != 0, held[b] != 0, held[c] != 0, held[d] != 0))
+    if not on:
+        return
+    for q in range(4):
+        i = nodes[q]
+        dvx, dvy, dvz, fx, fy, fz = node_impulse(w[q], s, g[3 * q], g[3 * q + 1], g[3 * q + 2], dt)
+        if w[q] == 0.0:
+            anchor[0] -= fx
+            anchor[1] -= fy
+            anchor[2] -= fz
+        else:
+            v[i, 0] += dvx
+            v[i, 1] += dvy
+            v[i, 2] += dvz
+            x[i, 0] += dt * dvx
+            x[i, 1] += dt * dvy
+            x[i, 2] += dt * dvz
 
 
 @njit(cache=True, error_model="numpy")
@@ -680,58 +736,50 @@ def implicit_volume_barrier(
 
 
 @njit(cache=True, error_model="numpy")
-def implicit_volume_barrier_watched(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, visit, anchor) -> None:
-    """:func:`implicit_volume_barrier` visiting only the watched tets: ``visit`` (flagged (T,) int8, watch, n_watch),
-    ``watch[:n_watch]`` in tet order, every flagged tet among them. The same impulses in the same order."""
-    flagged, watch, n_watch = visit
-    for k in range(n_watch):
-        t = watch[k]
-        if flagged[t] != 0:
-            barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor)
-
-
-@njit(cache=True, error_model="numpy")
 def implicit_volume_barrier_lanes(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, visit, anchor) -> None:
-    """:func:`implicit_volume_barrier_watched` for every tissue of a lane block x, v (N,3,L), meff (N,L), ks (L,):
-    pins (fixed (N,) bool, held (L,N) int8), visit (flags (T,L) int8, watch, n_watch), anchor (L,3) N ADDED to per
-    tissue. Tet after tet, the tissues innermost: each tissue sees its tets in the same order and the same arithmetic
-    as alone (bitwise), and the tissues' impulses, independent of each other, overlap in the CPU (15 % faster than
-    tissue after tissue on the bench's grasp)."""
+    """:func:`implicit_volume_barrier` on the watched tets of every tissue of a lane block x, v (N,3,L), meff
+    (N,L), ks (L,) (one tissue: L = 1): pins (fixed (N,) bool, held (L,N) int8), visit (flags (T,L) int8, watch,
+    n_watch: ``watch[:n_watch]`` in tet order, every flagged tet among them), anchor (L,3) N ADDED to per tissue.
+    Tet after tet, the tissues innermost: each tissue sees its tets in the same order and the same arithmetic as
+    alone (bitwise), and the tissues' impulses, independent of each other, overlap in the CPU (15 % faster than
+    tissue after tissue on the bench's grasp). The loop reads and writes the arrays itself and hands
+    :func:`barrier_tet` and :func:`node_impulse` scalars: 4x faster than inlining :func:`barrier_impulse` on
+    views, whose array arguments numba reference-counts per tet (the bench's grasp, one tissue)."""
     fixed, held = pins
     flags, watch, n_watch = visit
     for k in range(n_watch):
         t = watch[k]
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        nodes = (a, b, c, d)
+        v0 = rest_volume[t]
+        kt = kvol[t]
         for lane in range(x.shape[2]):
-            if flags[t, lane] != 0:
-                barrier_impulse(x[:, :, lane], v[:, :, lane], meff[:, lane], (fixed, held[lane]), tets, rest_volume,
-                                kvol, j_c, ks[lane], dt, t, anchor[lane])
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _impulse(w, s, g, dt, anchor):
-    """A node's share s g (N s) of an implicit impulse (a tet's barrier, a spring's dashpot), w its inverse mass:
-    returns its velocity change w s g (its position moves dt times that); an anchored node (w = 0) does not move
-    and passes the force s g / dt to its anchor."""
-    gx, gy, gz = g
-    if w == 0.0:
-        anchor[0] -= s * gx / dt
-        anchor[1] -= s * gy / dt
-        anchor[2] -= s * gz / dt
-        return 0.0, 0.0, 0.0
-    return w * s * gx, w * s * gy, w * s * gz
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _kick(x, v, i, w, s, g, dt, anchor) -> None:
-    """:func:`_impulse` applied to node i of x and v, in place."""
-    dvx, dvy, dvz = _impulse(w, s, g, dt, anchor)
-    if w != 0.0:
-        v[i, 0] += dvx
-        v[i, 1] += dvy
-        v[i, 2] += dvz
-        x[i, 0] += dt * dvx
-        x[i, 1] += dt * dvy
-        x[i, 2] += dt * dvz
+            if flags[t, lane] == 0:
+                continue
+            w = (0.0 if fixed[a] else 1.0 / meff[a, lane], 0.0 if fixed[b] else 1.0 / meff[b, lane],
+                 0.0 if fixed[c] else 1.0 / meff[c, lane], 0.0 if fixed[d] else 1.0 / meff[d, lane])
+            xa0, xa1, xa2 = x[a, 0, lane], x[a, 1, lane], x[a, 2, lane]
+            on, s, g = barrier_tet((x[b, 0, lane] - xa0, x[b, 1, lane] - xa1, x[b, 2, lane] - xa2,
+                                    x[c, 0, lane] - xa0, x[c, 1, lane] - xa1, x[c, 2, lane] - xa2,
+                                    x[d, 0, lane] - xa0, x[d, 1, lane] - xa1, x[d, 2, lane] - xa2),
+                                   v0, ks[lane] * kt, j_c, dt, w,
+                                   (held[lane, a] != 0, held[lane, b] != 0, held[lane, c] != 0, held[lane, d] != 0))
+            if not on:
+                continue
+            for q in range(4):
+                i = nodes[q]
+                dvx, dvy, dvz, fx, fy, fz = node_impulse(w[q], s, g[3 * q], g[3 * q + 1], g[3 * q + 2], dt)
+                if w[q] == 0.0:
+                    anchor[lane, 0] -= fx
+                    anchor[lane, 1] -= fy
+                    anchor[lane, 2] -= fz
+                else:
+                    v[i, 0, lane] += dvx
+                    v[i, 1, lane] += dvy
+                    v[i, 2, lane] += dvz
+                    x[i, 0, lane] += dt * dvx
+                    x[i, 1, lane] += dt * dvy
+                    x[i, 2, lane] += dt * dvz
 
 
 @njit(cache=True, error_model="numpy")

@@ -53,7 +53,6 @@ from .forces import (
     flag_watched,
     implicit_spring_dashpots,
     implicit_volume_barrier_lanes,
-    implicit_volume_barrier_watched,
     spring_loop,
     spring_loop_lanes,
     watch_barrier,
@@ -201,7 +200,6 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
         ks_springs[lane] = ks[lane]
     flags = np.zeros((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the barrier's threshold
     n_flagged = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the barrier's threshold
-    flags_one = flags.reshape(tets.shape[0] * nl)  # one tissue: a contiguous 1-D view (faster than (T,1))
     # the flag pass's watch list (forces.watch_barrier): the tets a full pass found near the threshold, the
     # positions it saw (the first substep makes one; the next comes where a node has moved m.watch_delta)
     watch = np.empty(tets.shape[0], dtype=np.int64)
@@ -278,13 +276,9 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                 else:
                     flag_watched(x, tets, rest_volume, m.vol_threshold, watch, n_watch, flags, n_flagged)
                 anchor_lanes[:] = 0.0
-                if lanes:
+                if lanes or n_flagged[0] > 0:  # (one tissue: its (N,3,1) block)
                     implicit_volume_barrier_lanes(x, v, meff, (fixed, held), tets, rest_volume, kvol, m.vol_threshold,
                                                   ks, dt, (flags, watch, n_watch), anchor_lanes)
-                elif n_flagged[0] > 0:
-                    implicit_volume_barrier_watched(x_one, v_one, meff[:, 0], (fixed, held[0]), tets, rest_volume,
-                                                    kvol, m.vol_threshold, ks[0], dt, (flags_one, watch, n_watch),
-                                                    anchor_lanes[0])
                 if last_sub:
                     for lane in range(nl):
                         if n_flagged[lane] > 0:
