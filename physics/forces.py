@@ -360,12 +360,7 @@ def implicit_spring_dashpots(
             anchor[1] -= fy
             anchor[2] -= fz
         else:
-            v[j, 0] += dvx
-            v[j, 1] += dvy
-            v[j, 2] += dvz
-            x[j, 0] += dt * dvx
-            x[j, 1] += dt * dvy
-            x[j, 2] += dt * dvz
+            kick_node(x, v, j, (dvx, dvy, dvz), dt)
     x[ci, 0], x[ci, 1], x[ci, 2] = p
     v[ci, 0], v[ci, 1], v[ci, 2] = u
 
@@ -681,6 +676,19 @@ def node_impulse(w, s, gx, gy, gz, dt):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def kick_node(x, v, i, dv, dt) -> None:
+    """Node i of x, v (N,3) takes the velocity change dv (3 floats, m/s; :func:`node_impulse`) and moves dt times it.
+    Straight-line code, so numba's reference counts of the arrays it inlines with cancel within one block (a body
+    that branches keeps them: see :func:`barrier_tet`)."""
+    v[i, 0] += dv[0]
+    v[i, 1] += dv[1]
+    v[i, 2] += dv[2]
+    x[i, 0] += dt * dv[0]
+    x[i, 1] += dt * dv[1]
+    x[i, 2] += dt * dv[2]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor) -> None:
     """Tet t's implicit barrier impulse on one tissue x, v (N,3) (:func:`barrier_tet` and :func:`node_impulse`; the
     arguments as :func:`implicit_volume_barrier`'s): the body of its loop, which the GPU step runs on its own list
@@ -705,12 +713,7 @@ def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, a
             anchor[1] -= fy
             anchor[2] -= fz
         else:
-            v[i, 0] += dvx
-            v[i, 1] += dvy
-            v[i, 2] += dvz
-            x[i, 0] += dt * dvx
-            x[i, 1] += dt * dvy
-            x[i, 2] += dt * dvz
+            kick_node(x, v, i, (dvx, dvy, dvz), dt)
 
 
 @njit(cache=True, error_model="numpy")
