@@ -632,6 +632,10 @@ def flag_watched(x, tets, rest_volume, j_c, watch, n_watch, flagged, n_flagged) 
             n_flagged[lane] += 1 if below else 0
 
 
+#: :func:`barrier_tet`'s gradients where the tet does not act (nothing reads them)
+_NO_GRADIENTS = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def barrier_tet(e, v0, k, j_c, dt, w, held):
     """The implicit barrier's law for one tet, in scalars (see above): e (9 floats) the edge vectors b - a, c - a,
@@ -646,11 +650,11 @@ def barrier_tet(e, v0, k, j_c, dt, w, held):
     vol = _volume6(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z) / 6.0
     jac = vol / v0
     d1, d2 = barrier_slopes(jac, j_c)
+    if d1 == 0.0:  # (above the threshold, or moved back above it by an earlier tet's impulse)
+        return False, 0.0, _NO_GRADIENTS
     gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz = _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z)
     gax, gay, gaz = -(gbx + gcx + gdx), -(gby + gcy + gdy), -(gbz + gcz + gdz)
     g = (gax, gay, gaz, gbx, gby, gbz, gcx, gcy, gcz, gdx, gdy, gdz)
-    if d1 == 0.0:  # (above the threshold, or moved back above it by an earlier tet's impulse)
-        return False, 0.0, g
     wa, wb, wc, wd = w
     # the mode's mobility W counts only the nodes that can follow the impulse: a node a jaw or plate holds
     # receives its share (which its contact then reacts to, inside the friction law) but does not move with
