@@ -102,6 +102,29 @@ def _rep_springs_as(x, v, springs, ks, rates, fv, dl_prev, f, tmp, units, reps):
         spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp, one, tiny)
 
 
+@njit(cache=True, error_model="numpy")
+def _rep_divider(l2, out, one, reps):
+    """A square root and a division per entry of ``l2`` (contiguous), in ``one``'s type: the two operations every spring
+    of every tissue needs per substep (its length and the inverse that makes its direction), with nothing else."""
+    for _ in range(reps):
+        for k in range(l2.shape[0]):
+            out[k] = one / math.sqrt(l2[k])
+
+
+def _divider_floor(x, edges, min_time, repeats) -> dict:
+    """us per substep that the springs' square roots and divisions alone take (float64 and float32), on the
+    substep's squared spring lengths of every tissue: the vector divider's floor under any float64 spring pass that
+    keeps the spring law's arithmetic (the spring loops compute exactly these two per spring and tissue)."""
+    d = x[edges[:, 1]] - x[edges[:, 0]]  # (E, 3, L)
+    l2 = np.ascontiguousarray((d * d).sum(axis=1)).reshape(-1)
+    floor = {}
+    for name, typ in (("float64", np.float64), ("float32", np.float32)):
+        a = l2.astype(typ)
+        out = np.empty_like(a)
+        floor[name] = _r(_us(lambda k, a=a, out=out, one=typ(1.0): _rep_divider(a, out, one, k), min_time, repeats))
+    return floor
+
+
 def _spring_pass_float32(springs, x, v, ks, decay, gain, fv, dl, min_time, repeats) -> dict:
     """What float32 arithmetic does to the lane block's spring pass (the largest phase), on float32 copies of the
     same state: its time per substep, and its forces' largest deviation from float64's, relative to the largest
@@ -263,6 +286,7 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
     rows["springs"] = _us(lambda k: _rep_springs(x, v, springs, ks, decay, gain, fv_c, dl_c, f, tmp, scratch, lanes, k),
                           min_time, repeats)
     float32 = _spring_pass_float32(springs, x, v, ks, decay, gain, fv, dl, min_time, repeats) if lanes else None
+    divider = _divider_floor(x, m.edges, min_time, repeats)
     # the substep's real forces, from the real state
     f = f0.copy()
     _rep_springs(x, v, springs, ks, decay, gain, fv, dl, f, tmp, scratch, lanes, 1)
@@ -348,6 +372,7 @@ def profile_substep(sim, min_time: float, repeats: int) -> dict:
         "sum_over_whole": _r(total / whole),
         "per_tissue_whole_us_per_substep": _r(whole / nb),
         "springs_float32": float32,
+        "springs_sqrt_div_us": divider,
     }
 
 
@@ -599,6 +624,17 @@ def run_profile(quick: bool = False, progress: Callable[[str], None] = lambda s:
     return report
 
 
+def _divider_line(one: dict, batch: dict) -> str:
+    """The profile's sentence on the springs' divider floor (:func:`_divider_floor`) of one tissue and the batch."""
+    f1, fb, nb = one["springs_sqrt_div_us"], batch["springs_sqrt_div_us"], batch["tissues"]
+    return ("The springs' square roots and divisions alone (one of each per spring and tissue, nothing else: the "
+            "vector divider's floor under a spring pass that keeps the spring law's arithmetic), us per substep, "
+            f"float64 / float32: one tissue {f1['float64']} / {f1['float32']}, batch {fb['float64']} / {fb['float32']} "
+            f"({_r(fb['float64'] / nb)} / {_r(fb['float32'] / nb)} per tissue); float64 at {one['n_sub']} substeps per "
+            f"ms: {_r(f1['float64'] * one['n_sub'])} us per simulated ms one tissue, "
+            f"{_r(fb['float64'] * batch['n_sub'] / nb)} per tissue of the batch.")
+
+
 def markdown_table(report: dict) -> str:
     """The profile's tables (markdown)."""
     lines = []
@@ -627,6 +663,7 @@ def markdown_table(report: dict) -> str:
               f"({_r(batch['springs_float32']['us_per_substep'] / batch['tissues'])} per tissue) against "
               f"{batch['phases_us_per_substep']['springs']}, forces within "
               f"{batch['springs_float32']['force_rel_err']} of float64's (relative to the largest).",
+              "", _divider_line(one, batch),
               "", "Per agent step, ms (share of the SB3 vector env's step):", "",
               "| n_envs | physics | task | finite + volume | Python rest | SB3 vec step | agent steps/s |",
               "|---|---|---|---|---|---|---|"]

@@ -260,6 +260,11 @@ def test_profile_substep_phases_add_up(tmp_path, monkeypatch, capsys):
     float32 = sub["rows"][1]["springs_float32"]
     assert sub["rows"][0]["springs_float32"] is None and _positive(float32["us_per_substep"])
     assert 0.0 < float32["force_rel_err"] < 1e3 * 2.0**-24, float32
+    # the divider's floor is one part of the spring pass (its square roots and divisions alone): below the whole pass
+    for row in sub["rows"]:
+        floor = row["springs_sqrt_div_us"]
+        assert _positive(floor["float64"]) and _positive(floor["float32"]), floor
+        assert floor["float64"] < row["phases_us_per_substep"]["springs"], row
     monkeypatch.setattr(profile, "profile_substeps", lambda quick, progress: sub)
     monkeypatch.setattr(profile, "profile_agent_step", lambda quick, progress: {
         "rows": [], "policy_inference": {"policy": "p", "net_arch": [64, 64], "obs_dim": 1, "torch_threads": 1,
