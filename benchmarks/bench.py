@@ -85,6 +85,7 @@ def time_per_unit(run: Callable[[int], Any], min_time: float, repeats: int = 3, 
         if len(samples) > 8 * repeats:
             break
     return {"median_s": statistics.median(samples), "best_s": min(samples), "cpu_s": statistics.median(cpu),
+            "best_cpu_s": min(cpu),
             "units": units, "seconds": total}
 
 
