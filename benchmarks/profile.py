@@ -253,13 +253,11 @@ def _us_difference(with_part: Callable[[int], Any], without: Callable[[int], Any
     interleaving lets both see the same machine, where two wall-clock medians taken one after the other read a part
     of ~1 us as zero when a burst of load falls on the subtrahend's timing.
     """
-    with_part(1)
-    without(1)
     best_with = best_without = math.inf
     for _ in range(DIFF_ROUNDS):
-        best_with = min(best_with, time_per_unit(with_part, min_time, repeats, max_units=10**7)["best_cpu_s"])
-        best_without = min(best_without, time_per_unit(without, min_time, repeats, max_units=10**7)["best_cpu_s"])
-    return max(best_with - best_without, 0.0) * 1e6
+        best_with = min(best_with, _us(with_part, min_time, repeats))
+        best_without = min(best_without, _us(without, min_time, repeats))
+    return max(best_with - best_without, 0.0)
 
 
 def profile_substep(sim, min_time: float, repeats: int) -> dict:
