@@ -27,13 +27,16 @@ from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.device_layout import Precision
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .task import (
-    D_AZIMUTH, D_KS, D_MS, D_MU, D_NOISE, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
-    MAX_LATENCY_STEPS, OBS, OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_PERTURBATIONS, REWARD_TERMS, column_drawn,
-    command_batch, draw_episode, obs_group,
+    D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
+    MAX_LATENCY_STEPS, MAX_LIFT_DELAY_STEPS, N_NOISE, OBS, OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_PERTURBATIONS,
+    PRIVILEGED_TRUTH, REWARD_TERMS, column_drawn,
+    command_batch, draw_episode, noise_scales, obs_group,
     perturb_pose, pinch_setpoint, start_episode, task_params, task_state, travel_setpoint, update_batch,
 )
 
 PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
+#: the second entropy word of a sensor noise stream (v2): (seed, SENSOR_STREAM, sensor_seed)
+SENSOR_STREAM = 0x5E25
 #: a published damage threshold for grasped soft tissue, Pa: the safety threshold of compressive stress for human
 #: small bowel and colon under 10 s grasps, 329-330 kPa (logistic regression on histological trauma; 20 samples,
 #: 100-600 kPa; "Tissue stress from laparoscopic grasper use and bowel injury in humans: establishing
@@ -43,6 +46,7 @@ PHYSICS_DT_S = 1e-3  # outer physics step: 1 kHz
 #: evaluations report the time each episode's peak contact pressure spends above it.
 DAMAGE_PRESSURE_PA = 330e3
 LatencySteps = Annotated[Int, Ge(0), Le(MAX_LATENCY_STEPS)]
+LiftDelaySteps = Annotated[Int, Ge(0), Le(MAX_LIFT_DELAY_STEPS)]
 
 
 @config_dataclass
@@ -143,8 +147,17 @@ class RandomizationConfig:
     #: "binary" (1 where any node of the jaw slips, else 0, in both entries: a slip detector), "absent" (zeros)
     slip_sensing: Literal["exact", "binary", "absent"] = "exact"
     #: standard deviation of noise added to the slip-speed entries each step (observation units: the arm's top
-    #: speed); only with slip_sensing "exact"
+    #: speed; with ``sensed_task_state`` to the slipping shares too, clipped to [0, 1]); only with slip_sensing "exact"
     slip_noise: NonNegative = 0.0
+    #: what the lift tracker reports (``sensed_task_state``: the lift entries come from it): "tracked" (a point of the
+    #: grasped region tracked in the laparoscope's image: the region's mean lift along the pull with noise
+    #: ``lift_noise_m`` per frame and ``lift_delay_steps`` frames late) or "absent" (zeros: every entry derived from
+    #: the lift, its lag behind the grasper included, is constant)
+    lift_sensing: Literal["tracked", "absent"] = "tracked"
+    #: standard deviation of the lift tracker's noise per frame, m
+    lift_noise_m: Annotated[Real, Ge(0), Le(0.01)] = 0.0
+    #: the lift tracker's delay, agent steps (image capture and tracking latency)
+    lift_delay_steps: LiftDelaySteps = 0
     #: action latency in agent steps, drawn per episode uniformly from lo..hi: an action takes effect that many
     #: steps after it was sent (the jaw rests and the arm stands still until the first one arrives)
     latency_steps: tuple[LatencySteps, LatencySteps] = (0, 0)
@@ -238,6 +251,11 @@ class GraspLiftConfig:
     lift_started_m: NonNegative = 0.002
     #: add privileged state (mu, scales, node displacements) to the observation
     privileged_obs: Bool = False
+    #: compute the task-state entries of the observation (lift, hold progress, hold slip, lift lag, peak pinch, best
+    #: lift, lift slip) from the sensors (the force sensors, the tactile slip sensor, the lift tracker, the arm's
+    #: encoder) instead of the simulation's truth; the truth then joins the privileged entries (PRIVILEGED_TRUTH).
+    #: Reward and success read the truth either way. True from version 2 of the benchmark task
+    sensed_task_state: Bool = False
     #: nodes subsampled for the privileged displacement observation
     privileged_nodes: Annotated[Int, Ge(1)] = 16
     #: also add the episode's robustness draws to the privileged state (PRIVILEGED_PERTURBATIONS: the pose error,
@@ -274,26 +292,46 @@ class GraspLiftConfig:
         return from_dict(cls, data["env"], where=f"{path}:env")
 
 
-def benchmark_config(scene: str = "spleen") -> GraspLiftConfig:
-    """The benchmark task, version 1 (``msdgrasp/GraspLift-v1``, ``msdgrasp/GraspLiftSphere-v1``): the task every
-    published result is about. Its interface and reward differ from GraspLiftConfig's defaults (version 0) where
-    the training measured better learning (docs/design.md): a pinch action that spends more of its range on
-    light grips (exponent 2: action 0 is a 1.25 N set-point), a pull-speed action (action 0: 10 mm/s) instead of a
-    travel set-point, a peak-pinch charge scaled by mu / 0.4 (it follows the ratio to the minimal slip-free
-    force), friction drawn log-uniformly from 0.2-0.9 (low friction, where grasps fail, comes up more often), and
-    tissue damage at the published threshold DAMAGE_PRESSURE_PA (330 kPa) instead of version 0's unsourced 60 kPa
-    (a jaw placed 5 mm / 10 deg off touches first with one node at about 100 kPa for a few ms, which no published
-    measure calls damage). The default training (agents.models.TrainConfig) trains on it, adding the privileged
-    observations its critic reads (the actor does not) and its own domain randomisation."""
+#: the benchmark task's versions (``msdgrasp/GraspLift-v<k>``); the latest is the one results are about
+BENCHMARK_VERSIONS = (1, 2)
+BENCHMARK_VERSION = BENCHMARK_VERSIONS[-1]
+#: the sensors of version 2's nominal task (RandomizationConfig fields): the tactile slip sensor's noise (the arm's top
+#: speed per frame: 0.02 is 0.4 mm/s), the lift tracker's noise (m per frame) and delay (frames: capture and tracking)
+V2_SENSING = {"slip_noise": 0.02, "lift_noise_m": 0.5e-3, "lift_delay_steps": 2}
+
+
+def benchmark_config(scene: str = "spleen", version: int = BENCHMARK_VERSION) -> GraspLiftConfig:
+    """The benchmark task (``msdgrasp/GraspLift-v<version>``, ``msdgrasp/GraspLiftSphere-v<version>``).
+
+    Version 1: its interface and reward differ from GraspLiftConfig's defaults (version 0) where the training
+    measured better learning (docs/design.md): a pinch action that spends more of its range on light grips
+    (exponent 2: action 0 is a 1.25 N set-point), a pull-speed action (action 0: 10 mm/s) instead of a travel
+    set-point, a peak-pinch charge scaled by mu / 0.4 (it follows the ratio to the minimal slip-free force), friction
+    drawn log-uniformly from 0.2-0.9 (low friction, where grasps fail, comes up more often), and tissue damage at the
+    published threshold DAMAGE_PRESSURE_PA (330 kPa) instead of version 0's unsourced 60 kPa (a jaw placed 5 mm / 10
+    deg off touches first with one node at about 100 kPa for a few ms, which no published measure calls damage).
+
+    Version 2 (the results' task): version 1 whose every observation entry is what a named sensor gives
+    (``sensed_task_state``, :data:`.sensors.SENSORS`): the lift from a tracked point (0.5 mm noise, two frames
+    late), the slip-derived entries from a noisy tactile slip sensor, the peak pinch from the force readings; the
+    truth only in the privileged entries. Physics, actions, reward and success are version 1's.
+
+    The default training (agents.models.TrainConfig) trains on the latest, adding the privileged observations its
+    critic reads (the actor does not) and its own domain randomisation."""
+    if version not in BENCHMARK_VERSIONS:
+        raise ConfigError(f"version must be one of {list(BENCHMARK_VERSIONS)}, got {version!r}")
+    sensing = V2_SENSING if version >= 2 else {}
     return GraspLiftConfig(scene=scene, pinch_action_exponent=2.0, pull_action="forward_speed",
                            damage_stress_pa=DAMAGE_PRESSURE_PA, reward=RewardConfig(peak_force_mu_ref=0.4),
-                           randomization=RandomizationConfig(mu_distribution="log_uniform"))
+                           sensed_task_state=version >= 2,
+                           randomization=RandomizationConfig(mu_distribution="log_uniform", **sensing))
 
 
 def ramp_randomization(start: RandomizationConfig, end: RandomizationConfig, level: float) -> RandomizationConfig:
     """The randomisation a fraction ``level`` (0-1) of the way from ``start`` to ``end`` (a training curriculum):
-    numbers and ranges linearly where both ends have them (latency bounds rounded half up to whole steps), anything
-    else (slip sensing, the mu distribution, a pinch ceiling that one end has not) at ``end``'s once ``level`` > 0."""
+    numbers and ranges linearly where both ends have them (latency bounds and counts rounded half up to whole steps),
+    anything else (slip sensing, the mu distribution, a pinch ceiling that one end has not) at ``end``'s once
+    ``level`` > 0."""
     level = min(max(float(level), 0.0), 1.0)
     if level == 0.0:
         return start
@@ -310,6 +348,8 @@ def ramp_randomization(start: RandomizationConfig, end: RandomizationConfig, lev
         if isinstance(b, tuple) and isinstance(a, tuple):
             mixed = tuple(x + level * (y - x) for x, y in zip(a, b))
             values[f.name] = tuple(int(math.floor(v + 0.5)) for v in mixed) if f.name == "latency_steps" else mixed
+        elif type(f.default) is int:  # a count (lift_delay_steps): whole steps, rounded half up
+            values[f.name] = int(math.floor(a + level * (b - a) + 0.5))
         elif isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
             values[f.name] = a + level * (b - a)
         else:
@@ -471,10 +511,16 @@ class GraspLiftCore:
                                               replace=False))
         #: one observation frame; the observation is the last ``obs_history`` frames, oldest first
         self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0) + (
+            len(PRIVILEGED_TRUTH) if cfg.privileged_obs and cfg.sensed_task_state else 0) + (
             len(PRIVILEGED_PERTURBATIONS) if cfg.privileged_perturbations else 0)
         self.obs_dim = self.frame_dim * cfg.obs_history
 
         self.rngs = [np.random.default_rng() for _ in range(B)]
+        #: the sensors' noise streams: with ``sensed_task_state`` (v2) each env's own, seeded apart from its physics
+        #: (:meth:`seed`'s ``sensor_seed``), so two envs with the same physics seed can read different noise; before
+        #: v2 the physics stream itself (the streams of earlier versions unchanged)
+        self.sensor_rngs = self.rngs if not cfg.sensed_task_state else [np.random.default_rng() for _ in range(B)]
+        self._noise_scales = np.zeros((B, N_NOISE))
         self.params = task_params(self)
         # which draw columns a reset draws (an axis that is off draws nothing): set by the randomisation
         self._drawn = [bool(column_drawn(self.params.env, k)) for k in range(len(DRAW_COLUMNS))]
@@ -507,8 +553,14 @@ class GraspLiftCore:
         self._drawn = [bool(column_drawn(self.params.env, k)) for k in range(len(DRAW_COLUMNS))]
 
     # ------------------------------------------------------------------------------------------
-    def seed(self, index: int, seed: int | None) -> None:
+    def seed(self, index: int, seed: int | None, sensor_seed: int = 0) -> None:
+        """Seed sub-env ``index``'s physics stream with ``seed`` (its draws: friction, tissue, pose, perturbations)
+        and, with ``sensed_task_state``, its sensors' noise stream with (``seed``, ``sensor_seed``)."""
+        check_range("sensor_seed", sensor_seed, 0, None)
         self.rngs[index] = np.random.default_rng(seed)
+        if self.sensor_rngs is not self.rngs:
+            self.sensor_rngs[index] = np.random.default_rng(None if seed is None else [int(seed), SENSOR_STREAM,
+                                                                                      int(sensor_seed)])
 
     def reset(self, index: int, options: dict[str, Any] | None = None) -> dict[str, float]:
         """Reset sub-env ``index``: draw (or pin, via ``options``) friction, scales and pose."""
@@ -550,13 +602,12 @@ class GraspLiftCore:
         sim.step(self.config.physics_steps_per_action, indices=advance)
         finite = sim.finite()
         volume_ratio = sim.min_volume_ratio()
-        rnd = self.config.randomization
+        # the sensors' noise: the drawn columns in order (.task.noise_scale: one rule for both backends)
+        scales = self._noise_scales
+        noise_scales(self.params, ts, scales)
         for b in range(self.num_envs):
-            ts.noise[b, :3] = self.rngs[b].normal(0.0, ts.draws[b, D_NOISE], size=3)  # (the episode's level)
-            if rnd.slip_noise > 0.0:  # (drawn only when used: the nominal task's random stream is unchanged)
-                ts.noise[b, 3:6] = self.rngs[b].normal(0.0, rnd.slip_noise, size=3)
-            if rnd.force_noise == "vector":  # (likewise)
-                ts.noise[b, 6:] = self.rngs[b].normal(0.0, ts.draws[b, D_NOISE], size=6)
+            drawn = scales[b] >= 0.0
+            ts.noise[b, drawn] = scales[b, drawn] * self.sensor_rngs[b].standard_normal(int(drawn.sum()))
         update_batch(self.params, sim.kernel_state(), sim.kernel_readout(), ts, finite, volume_ratio)
         infos = {
             "mu": ts.mu.copy(),

@@ -11,7 +11,8 @@ device arrays (:meth:`CudaGraspLiftCore.arrays`; torch reads them in place, :fun
 Differences from the CPU core, by design: the random numbers come from xoroshiro128+ streams (one per env,
 seeded by ``seed``), not NumPy's per-env generators, so a batch replays its own seed's episodes, not the CPU's
 (both turn uniform and normal variates into draws by one function: the distributions agree,
-tests/test_task_backends.py); a done env is reset in the same step (``terminal_obs`` holds its episode's last
+tests/test_task_backends.py), and one stream per env carries both the physics' draws and the sensors' noise (the
+CPU's v2 envs seed their sensors apart); a done env is reset in the same step (``terminal_obs`` holds its episode's last
 observation, ``truncated`` marks time limits); ``reset(options)`` pins for every later episode.
 """
 
@@ -29,15 +30,15 @@ from ..physics.config import ConfigError, check_choice, check_range
 from ..physics.cuda_step import PRECISIONS, THREADS_PER_BLOCK, CudaBatch, _tet_edges, device_twin, to_device
 from . import task
 from .core import GraspLiftConfig, GraspLiftCore, check_pin
-from .task import D_NOISE, PINNABLE, TaskState, task_state
+from .task import PINNABLE, TaskState, task_state
 
 #: what ``reset(options=...)`` may pin (for every later episode)
 GPU_PINNABLE = ("mu", "stiffness_scale", "mass_scale")
 
 # the GPU twins of task.py's functions (each calling the twins of the numba functions it calls)
-_command, _update, _restore_settled, _draw_episode, _begin_episode, _column_drawn = (
+_command, _update, _restore_settled, _draw_episode, _begin_episode, _column_drawn, _noise_scale = (
     device_twin(getattr(task, n)) for n in ("command", "update", "restore_settled", "draw_episode", "begin_episode",
-                                            "column_drawn"))
+                                            "column_drawn", "noise_scale"))
 
 
 @cuda.jit
@@ -70,15 +71,10 @@ def _task_kernel(m, s, out, p, ts, rng):
         for k in range(1, cuda.blockDim.x):
             lo = lo_sh[k] if lo_sh[k] < lo else lo
             ok = ok & ok_sh[k]
-        r = p.env.randomization
-        for c in range(3):
-            ts.noise[b, c] = ts.draws[b, D_NOISE] * xoroshiro128p_normal_float64(rng, b)  # (the episode's level)
-        if r.slip_noise > 0.0:  # (drawn only when used, as on the CPU)
-            for c in range(3):
-                ts.noise[b, 3 + c] = r.slip_noise * xoroshiro128p_normal_float64(rng, b)
-        if r.force_noise_vector:
-            for c in range(6):
-                ts.noise[b, 6 + c] = ts.draws[b, D_NOISE] * xoroshiro128p_normal_float64(rng, b)
+        for c in range(ts.noise.shape[1]):  # the sensors' noise: the drawn columns in order, as on the CPU
+            sd = _noise_scale(p, ts, b, c)
+            if sd >= 0.0:
+                ts.noise[b, c] = sd * xoroshiro128p_normal_float64(rng, b)
         _update(p, s, out, ts, b, ok == 1, lo)
 
 

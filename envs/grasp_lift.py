@@ -1,5 +1,5 @@
-"""Gymnasium environments: ``msdgrasp/GraspLift-v1`` (spleen) and ``msdgrasp/GraspLiftSphere-v1``, the benchmark
-task; ``-v0``, the first interface."""
+"""Gymnasium environments: ``msdgrasp/GraspLift-v2`` (spleen) and ``msdgrasp/GraspLiftSphere-v2``, the benchmark
+task; ``-v1``, the same task whose actor read the truth; ``-v0``, the first interface."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from ..physics.config import ConfigError, require_extra
-from .core import OBS_NAMES, GraspLiftConfig, GraspLiftCore
+from .core import BENCHMARK_VERSION, OBS_NAMES, GraspLiftConfig, GraspLiftCore
 
 
 def _config(config: GraspLiftConfig | dict | None, **overrides: Any) -> GraspLiftConfig:
@@ -69,6 +69,18 @@ def _batched_info(infos: dict[str, Any], rows: np.ndarray) -> dict[str, Any]:
     return out
 
 
+def _sensor_seed(options: dict[str, Any] | None, seed: Any) -> tuple[dict[str, Any], int]:
+    """The reset options without ``sensor_seed`` and its value (0 when absent): the seed of the sensors' noise stream
+    apart from the physics' (``sensed_task_state``), so that one physics seed can be read through other noise."""
+    options = dict(options or {})
+    value = options.pop("sensor_seed", 0)
+    if value != 0 and seed is None:
+        raise ConfigError("reset options['sensor_seed'] needs a seed: reset(seed=..., options={'sensor_seed': k})")
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise ConfigError(f"reset options['sensor_seed'] must be an integer >= 0, got {value!r}")
+    return options, int(value)
+
+
 def _require_reset(env: Any) -> None:
     """Refuse a step before the first reset (the episode state, mu and the random streams are set there)."""
     if not env._has_reset:
@@ -117,34 +129,52 @@ class GraspLiftEnv(gym.Env):
 
     ## Observation space: ``Box(-inf, inf, (32 x obs_history,), float32)`` (+ privileged, optional)
 
-    One frame (``OBS_NAMES``); with ``obs_history = k`` the last k frames are concatenated, oldest first.
+    One frame (``OBS_NAMES``); with ``obs_history = k`` the last k frames are concatenated, oldest first. Every entry
+    is what a named sensor gives (:data:`.sensors.SENSORS`, the noise models below; :data:`.sensors.ENTRY_SENSORS`,
+    checked by tests/test_sensors.py). From v2 (``sensed_task_state``) the task-state entries 22-27 and 31 are computed
+    from the sensed values; in v0 and v1 they are the simulation's truth (no grasper senses them).
 
-    | index | observation | scaling |
-    |---|---|---|
-    | 0 | jaw opening (R - R_min) / (R_start - R_min) | 1 = open, 0 = closed |
-    | 1 | jaw closing speed | / max closing speed |
-    | 2 | grasper pull distance (travel) | / lift target |
-    | 3 | grasper pull speed | / max pull speed |
-    | 4-6 | normal force of jaw 0, 1, 2 (noisy sensor) | / reference force (5 N) |
-    | 7-9 | tangential force magnitude of jaw 0, 1, 2 (noisy) | / reference force |
-    | 10-12 | contact nodes of jaw 0, 1, 2 | / nodes on the jaw's footprint |
-    | 13-15 | slip speed of the tissue under jaw 0, 1, 2 | / max pull speed |
-    | 16-18 | share of jaw 0, 1, 2's contact nodes that slip (incipient slip, a tactile array's view) | 0-1 |
-    | 19-20 | previous action | as given |
-    | 21 | elapsed time | / time limit |
-    | 22 | tissue lift (mean of the grasped region along the pull) | / lift target |
-    | 23 | hold progress: time held at the target without slip | / hold_time_s |
-    | 24 | slip accumulated during the current hold | / hold_slip_tolerance_m |
-    | 25 | lag of the tissue behind the grasper (travel - lift) | / lift target |
-    | 26 | peak pinch force so far (what the force discount will charge) | / reference force |
-    | 27 | highest lift so far (what progress has paid) | / lift target |
-    | 28-30 | friction utilisation abs(T) / N of jaw 0, 1, 2 (<= mu while sticking) | ratio |
-    | 31 | slip since lifting began | / lift_slip_tolerance_m (above 1 no success is possible) |
-    | 32- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, 16 node displacements | (1) |
-    | 83- | privileged (``privileged_perturbations=True``): the pose error, force biases, latency, gain error | (2) |
+    | index | observation | sensor (v2) | scaling |
+    |---|---|---|---|
+    | 0 | jaw opening (R - R_min) / (R_start - R_min) | jaw_encoder | 1 = open, 0 = closed |
+    | 1 | jaw closing speed | jaw_encoder | / max closing speed |
+    | 2 | grasper pull distance (travel) | arm_encoder | / lift target |
+    | 3 | grasper pull speed | arm_encoder | / max pull speed |
+    | 4-6 | normal force of jaw 0, 1, 2 | force | / reference force (5 N) |
+    | 7-9 | tangential force magnitude of jaw 0, 1, 2 | force | / reference force |
+    | 10-12 | contact nodes of jaw 0, 1, 2 | contact | / nodes on the jaw's footprint |
+    | 13-15 | slip speed of the tissue under jaw 0, 1, 2 | slip | / max pull speed |
+    | 16-18 | share of jaw 0, 1, 2's contact nodes that slip (incipient slip) | slip | 0-1 |
+    | 19-20 | previous action | command | as given |
+    | 21 | elapsed time | clock | / time limit |
+    | 22 | tissue lift (v2: a tracked point's, delayed; v1: the region's true mean) | lift | / lift target |
+    | 23 | hold progress: time the lift has been at the target (v1: without slip, the truth) | lift | / hold_time_s |
+    | 24 | slip accumulated while the lift is at the target | lift, slip | / hold_slip_tolerance_m |
+    | 25 | lag of the tissue behind the grasper (travel - lift; 0 untracked) | lift, arm_encoder | / lift target |
+    | 26 | peak pinch so far (v2: of the summed normal readings; v1: the true pinch) | force | / reference force |
+    | 27 | highest lift so far | lift | / lift target |
+    | 28-30 | friction utilisation abs(T) / N of jaw 0, 1, 2 (<= mu while sticking) | force | ratio |
+    | 31 | slip since lifting began (v2: since the travel passed lift_started_m) | slip, arm_encoder | / 2 mm |
+    | 32- | privileged (``privileged_obs=True``): mu, stiffness scale, mass scale, 16 node displacements | truth | (1) |
+    | 83- | privileged, v2: the truth behind 13-18, 22-27, 31 (``task.PRIVILEGED_TRUTH``) | truth | as the entry |
+    | last 14 | privileged (``privileged_perturbations``): pose error, force biases, latency, gain error | truth | (2) |
 
     (1) as they are; the node displacements / lift target. (2) ``envs.task.PRIVILEGED_PERTURBATIONS``: each about 1
     at the robustness suite's largest levels; all 0 on an unperturbed task.
+
+    The sensors' noise models (``RandomizationConfig`` fields; v2's nominal levels in brackets):
+
+    * jaw_encoder, arm_encoder, contact, command, clock: exact.
+    * force: white Gaussian noise ``sensor_noise_N`` [0.02 N] (per episode uniform from ``sensor_noise_low_N`` where
+      set), a bias per jaw and episode in +-``force_bias_N`` [0], a first-order low-pass ``force_filter_s`` [0], the
+      tangential reading's noise by ``force_noise`` [magnitude].
+    * slip: ``slip_sensing`` exact, with white noise ``slip_noise`` on the speed and (v2) on the share, clipped to
+      [0, 1] [0.02 = 0.4 mm/s]; binary (a detector); absent (zeros).
+    * lift: ``lift_sensing`` tracked, white noise ``lift_noise_m`` per frame, ``lift_delay_steps`` frames late
+      [0.5 mm, 2 frames]; absent (zeros).
+
+    The sensors' noise has its own random stream in v2: ``reset(seed=s, options={"sensor_seed": k})`` reads the same
+    physics (seed s) through other noise.
 
     ## Rewards (each term in ``info["reward_terms"]``, weights in ``RewardConfig``)
 
@@ -189,8 +219,16 @@ class GraspLiftEnv(gym.Env):
     is zeros, never NaN). Truncated at ``time_limit_s`` (10 s = 304 steps).
 
     ## Version history
-    * v1 (``msdgrasp/GraspLift-v1``, ``GraspLiftSphere-v1``; :func:`.core.benchmark_config`): the benchmark task,
-      the one the default training trains on and every result is about: pinch action exponent 2, pull-speed
+    * v2 (``msdgrasp/GraspLift-v2``, ``GraspLiftSphere-v2``; ``benchmark_config(version=2)``): the benchmark task, the
+      one the default training trains on and the results are about. Version 1's physics, actions, reward and success;
+      every observation entry from a named sensor (``sensed_task_state``): the lift from a point tracked in the
+      laparoscope's image (0.5 mm noise per frame, two frames late), the slip entries from a tactile slip sensor
+      with noise (0.02 of the top pull speed, on the slip speed and the slipping share), and every derived entry
+      (peak pinch, lift slip, hold slip, lift lag, hold progress, best lift) computed from those readings; the truth
+      behind them only in the privileged entries. The sensors draw their noise from a stream of their own.
+    * v1 (``msdgrasp/GraspLift-v1``, ``GraspLiftSphere-v1``; ``benchmark_config(version=1)``): the benchmark task of
+      msdgrasp 0.1's results (kept loadable; its actor reads the simulation's true lift, slip and peak pinch):
+      pinch action exponent 2, pull-speed
       action, a peak-pinch charge scaled by mu / 0.4, friction drawn log-uniformly from 0.2-0.9 (the measurements
       behind each are in docs/design.md); the spec states ``max_episode_steps`` (304). Physics: the volume barrier
       integrated implicitly before the contacts (no tet inverts under a 5 N pinch and held nodes stay in their
@@ -228,8 +266,9 @@ class GraspLiftEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
+        options, sensor_seed = _sensor_seed(options, seed)
         if seed is not None:
-            self.core.seed(0, seed)
+            self.core.seed(0, seed, sensor_seed)
         elif not hasattr(self, "_seeded"):
             self.core.seed(0, int(self.np_random.integers(2**63)))
         self._seeded = True
@@ -311,18 +350,21 @@ class GraspLiftVectorEnv(VectorEnv):
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
+        per_env = _per_env_options(options, self.num_envs)
+        sensor_seeds = [0] * self.num_envs
+        for i in range(self.num_envs):
+            per_env[i], sensor_seeds[i] = _sensor_seed(per_env[i], seed)
         if seed is not None:
             seeds = list(seed) if isinstance(seed, (list, tuple)) else [int(seed) + i for i in range(self.num_envs)]
             if len(seeds) != self.num_envs:
                 raise ValueError(f"seed list must have {self.num_envs} entries, got {len(seeds)}")
             for i, s in enumerate(seeds):
-                self.core.seed(i, s)
+                self.core.seed(i, s, sensor_seeds[i])
         elif not self._seeded:
             base = np.random.SeedSequence().entropy
             for i in range(self.num_envs):
                 self.core.seed(i, int(base % (2**63)) + i)
         self._seeded = True
-        per_env = _per_env_options(options, self.num_envs)
         info: dict[str, Any] = {}
         for i in range(self.num_envs):
             info = self._add_info(info, self.core.info_at_reset(i, self.core.reset(i, per_env[i])), i)
@@ -374,27 +416,29 @@ class GraspLiftVectorEnv(VectorEnv):
         return np.stack([render_rgb(self.core, i) for i in range(self.num_envs)])
 
 
-def _benchmark(scene: str, overrides: dict[str, Any]) -> GraspLiftConfig:
+def _benchmark(scene: str, version: int, overrides: dict[str, Any]) -> GraspLiftConfig:
     from .core import benchmark_config
 
     if "config" in overrides:
-        raise ValueError("the v1 ids are a fixed task: change its fields by name (gym.make(id, time_limit_s=5.0)), "
-                         "or build GraspLiftEnv(config=...) for another task")
-    return _config(benchmark_config(scene), **overrides)
+        raise ValueError("the benchmark ids are a fixed task: change its fields by name (gym.make(id, "
+                         "time_limit_s=5.0)), or build GraspLiftEnv(config=...) for another task")
+    return _config(benchmark_config(scene, version), **overrides)
 
 
-def make_benchmark_env(scene: str = "spleen", render_mode: str | None = None, **overrides: Any) -> GraspLiftEnv:
-    """``msdgrasp/GraspLift-v1`` / ``GraspLiftSphere-v1``: :class:`GraspLiftEnv` on the benchmark task
+def make_benchmark_env(scene: str = "spleen", render_mode: str | None = None, version: int = BENCHMARK_VERSION,
+                       **overrides: Any) -> GraspLiftEnv:
+    """``msdgrasp/GraspLift-v<version>`` / ``GraspLiftSphere-v<version>``: :class:`GraspLiftEnv` on the benchmark task
     (:func:`.core.benchmark_config`); keyword arguments change its fields by name."""
-    return GraspLiftEnv(_benchmark(scene, overrides), render_mode)
+    return GraspLiftEnv(_benchmark(scene, version, overrides), render_mode)
 
 
 def make_benchmark_vector_env(num_envs: int = 1, scene: str = "spleen", render_mode: str | None = None,
                               autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
-                              max_episode_steps: int | None = None, **overrides: Any) -> GraspLiftVectorEnv:
-    """The v1 ids' vector entry point: :class:`GraspLiftVectorEnv` on the benchmark task. ``max_episode_steps``
+                              max_episode_steps: int | None = None, version: int = BENCHMARK_VERSION,
+                              **overrides: Any) -> GraspLiftVectorEnv:
+    """The benchmark ids' vector entry point: :class:`GraspLiftVectorEnv` on the benchmark task. ``max_episode_steps``
     (which ``gym.make_vec`` passes from the spec) must be the task's own limit: change ``time_limit_s`` instead."""
-    env = GraspLiftVectorEnv(num_envs, _benchmark(scene, overrides), render_mode, autoreset_mode)
+    env = GraspLiftVectorEnv(num_envs, _benchmark(scene, version, overrides), render_mode, autoreset_mode)
     if max_episode_steps is not None and int(max_episode_steps) != env.config.max_episode_steps:
         raise ValueError(f"max_episode_steps = {max_episode_steps} differs from the task's "
                          f"{env.config.max_episode_steps} (time_limit_s = {env.config.time_limit_s} s); "

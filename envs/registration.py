@@ -6,21 +6,23 @@ the ids, after which::
     import gymnasium as gym
     import msdgrasp  # noqa: F401  (registers the ids)
 
-    env = gym.make("msdgrasp/GraspLift-v1")
-    envs = gym.make_vec("msdgrasp/GraspLift-v1", num_envs=16, vectorization_mode="vector_entry_point")
+    env = gym.make("msdgrasp/GraspLift-v2")
+    envs = gym.make_vec("msdgrasp/GraspLift-v2", num_envs=16, vectorization_mode="vector_entry_point")
 
-or, without the explicit import, ``gym.make("msdgrasp:msdgrasp/GraspLift-v1")`` (Gymnasium imports the
+or, without the explicit import, ``gym.make("msdgrasp:msdgrasp/GraspLift-v2")`` (Gymnasium imports the
 module named before the colon).
 
-``-v1`` is the benchmark task (:func:`.core.benchmark_config`), the one the results are about; ``-v0`` is the
-first interface (GraspLiftConfig's defaults). The version history is in :class:`.grasp_lift.GraspLiftEnv`.
+``-v2`` is the benchmark task (:func:`.core.benchmark_config`), the one the results are about: every observation
+entry from a named sensor. ``-v1`` is the same task whose actor reads the simulation's truth for lift, slip and peak
+pinch (kept loadable for its published results); ``-v0`` is the first interface (GraspLiftConfig's defaults). The
+version history is in :class:`.grasp_lift.GraspLiftEnv`.
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 
-#: the episode limit of the v1 tasks, agent steps (their time limit, 10 s at 33 ms; tests/test_env_api.py checks
+#: the episode limit of the v1 and v2 tasks, agent steps (their time limit, 10 s at 33 ms; tests/test_env_api.py checks
 #: it against benchmark_config().max_episode_steps: written here so that registering imports no physics)
 V1_MAX_EPISODE_STEPS = 304
 
@@ -28,9 +30,15 @@ V1_MAX_EPISODE_STEPS = 304
 IDS = {
     "msdgrasp/GraspLift-v0": ("GraspLiftEnv", "GraspLiftVectorEnv", {}, None),
     "msdgrasp/GraspLiftSphere-v0": ("GraspLiftEnv", "GraspLiftVectorEnv", {"scene": "sphere"}, None),
-    "msdgrasp/GraspLift-v1": ("make_benchmark_env", "make_benchmark_vector_env", {"scene": "spleen"},
+    "msdgrasp/GraspLift-v1": ("make_benchmark_env", "make_benchmark_vector_env", {"scene": "spleen", "version": 1},
                               V1_MAX_EPISODE_STEPS),
-    "msdgrasp/GraspLiftSphere-v1": ("make_benchmark_env", "make_benchmark_vector_env", {"scene": "sphere"},
+    "msdgrasp/GraspLiftSphere-v1": ("make_benchmark_env", "make_benchmark_vector_env", {"scene": "sphere",
+                                                                                        "version": 1},
+                                    V1_MAX_EPISODE_STEPS),
+    "msdgrasp/GraspLift-v2": ("make_benchmark_env", "make_benchmark_vector_env", {"scene": "spleen", "version": 2},
+                              V1_MAX_EPISODE_STEPS),
+    "msdgrasp/GraspLiftSphere-v2": ("make_benchmark_env", "make_benchmark_vector_env", {"scene": "sphere",
+                                                                                        "version": 2},
                                     V1_MAX_EPISODE_STEPS),
 }
 

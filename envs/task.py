@@ -111,9 +111,31 @@ PRIVILEGED_PERTURBATIONS = ("tip_offset_x", "tip_offset_y", "tip_offset_z", "axi
                             "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain_error")
 #: the longest action latency, agent steps (the length of the action queue less one)
 MAX_LATENCY_STEPS = 3
-#: per-step noise columns of ``TaskState.noise``: the three jaws' force readings, their slip speeds, then (with
-#: ``force_noise: vector``) their tangential readings' noise along the tangential force and across it
-N_NOISE = 12
+#: per-step noise columns of ``TaskState.noise``, drawn in this order where :func:`noise_scale` draws them: the three
+#: jaws' force readings (N), their slip speeds (the arm's top speed), (with ``force_noise: vector``) their tangential
+#: readings' noise along the tangential force and across it (N), then (with ``sensed_task_state``) the slipping
+#: shares' noise and the lift tracker's (m)
+NOISE_COLUMNS = ("force_0", "force_1", "force_2", "slip_speed_0", "slip_speed_1", "slip_speed_2",
+                 "tangential_along_0", "tangential_along_1", "tangential_along_2",
+                 "tangential_across_0", "tangential_across_1", "tangential_across_2",
+                 "slipping_0", "slipping_1", "slipping_2", "lift")
+N_NOISE = len(NOISE_COLUMNS)
+N_FORCE, N_SLIP_SPEED, N_ALONG, N_ACROSS, N_SLIPPING, N_LIFT = (NOISE_COLUMNS.index(n) for n in (
+    "force_0", "slip_speed_0", "tangential_along_0", "tangential_across_0", "slipping_0", "lift"))
+#: the longest delay of the lift tracker, agent steps (the length of its ring of measurements less one)
+MAX_LIFT_DELAY_STEPS = 3
+#: the task state as the sensors give it (``sensed_task_state``; columns of ``TaskState.sensed``): the tracked lift
+#: (m, delayed), the highest tracked lift (m, capped at the target), the sensed slip since the arm's travel passed
+#: ``lift_started_m`` (m), the time the tracked lift has been at the target (s), the sensed slip during that time
+#: (m), the highest sum of the three normal-force readings (N)
+SENSED = ("lift", "best_lift", "lift_slip", "hold_time", "hold_slip", "peak_pinch")
+S_LIFT, S_BEST_LIFT, S_LIFT_SLIP, S_HOLD_TIME, S_HOLD_SLIP, S_PEAK_PINCH = range(len(SENSED))
+#: the ground truth behind the sensed task-state entries, for critics and teachers (privileged, with
+#: ``sensed_task_state``), each in its sensed entry's units
+PRIVILEGED_TRUTH = ("true_lift_progress", "true_hold_progress", "true_hold_slip", "true_lift_lag", "true_peak_pinch",
+                    "true_best_lift", "true_lift_slip", "true_slip_speed_0", "true_slip_speed_1", "true_slip_speed_2",
+                    "true_slipping_fraction_0", "true_slipping_fraction_1", "true_slipping_fraction_2")
+N_PRIVILEGED_TRUTH = len(PRIVILEGED_TRUTH)
 
 #: what a reset may pin (columns of ``TaskState.pin``; NaN: drawn, or the config's pose jitter)
 PINNABLE = ("mu", "mu_kinetic", "stiffness_scale", "mass_scale", "pose_offset_m", "pose_tilt_deg", "pose_azimuth_deg")
@@ -278,7 +300,9 @@ class TaskState(NamedTuple):
     episode_slip: np.ndarray  # (B,) m slip of the episode that ended (where done)
     draws: np.ndarray  # (B,len(DRAW_COLUMNS)) this episode's random draws
     pin: np.ndarray  # (B,len(PINNABLE)) pinned values (NaN: drawn)
-    noise: np.ndarray  # (B,N_NOISE) force-sensor noise (N), then slip-sensing noise, of this step's frame
+    noise: np.ndarray  # (B,N_NOISE) this step's sensor noise (NOISE_COLUMNS)
+    sensed: np.ndarray  # (B,len(SENSED)) the task state as the sensors give it (sensed_task_state)
+    lift_track: np.ndarray  # (B,MAX_LIFT_DELAY_STEPS+1) m the lift tracker's measurements, newest first
     queue: np.ndarray  # (B,MAX_LATENCY_STEPS+1,2) the actions sent, newest first (what a latency delays)
     readings: np.ndarray  # (B,6) N: the low-pass filtered normal, then tangential, force readings (force_filter_s)
 
@@ -293,6 +317,7 @@ def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np
         "terminal_obs": ((batch, obs_history * frame_dim), obs_dtype),
         "terms": ((batch, len(REWARD_TERMS)), f), "episode_length": ((batch,), i),
         "draws": ((batch, len(DRAW_COLUMNS)), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, N_NOISE), f),
+        "sensed": ((batch, len(SENSED)), f), "lift_track": ((batch, MAX_LIFT_DELAY_STEPS + 1), f),
         "queue": ((batch, MAX_LATENCY_STEPS + 1, 2), f), "readings": ((batch, 6), f),
     }
     flags = ("lift_started", "terminated", "truncated", "done", "is_success", "lost_grasp", "slipped", "damaged",
@@ -462,9 +487,82 @@ def command(p, s, ts, b, a0, a1):
 
 
 @njit(cache=True, error_model="numpy")
+def noise_scale(p, ts, b, col):
+    """The standard deviation of env b's noise column ``col`` (NOISE_COLUMNS) this step, or -1 where the column is
+    not drawn (a sensor without noise draws nothing, so the nominal task's random stream is what it was before the
+    sensor existed). One rule for both backends: each draws its normal variates for the drawn columns in order."""
+    e = p.env
+    r = e.randomization
+    if col < N_SLIP_SPEED:
+        return ts.draws[b, D_NOISE]  # (the episode's level; drawn even at 0)
+    if col < N_ALONG:
+        return r.slip_noise if r.slip_noise > 0.0 else -1.0
+    if col < N_SLIPPING:
+        return ts.draws[b, D_NOISE] if r.force_noise_vector else -1.0
+    if col < N_LIFT:
+        return r.slip_noise if (e.sensed_task_state and r.slip_sensing_exact and r.slip_noise > 0.0) else -1.0
+    return r.lift_noise_m if (e.sensed_task_state and r.lift_sensing_tracked and r.lift_noise_m > 0.0) else -1.0
+
+
+@njit(cache=True, error_model="numpy")
+def noise_scales(p, ts, scales):
+    """:func:`noise_scale` of every env and column into ``scales`` (B, N_NOISE)."""
+    for b in range(scales.shape[0]):
+        for col in range(N_NOISE):
+            scales[b, col] = noise_scale(p, ts, b, col)
+
+
+@njit(cache=True, error_model="numpy")
+def sense_task_state(p, ts, b, fresh, pinch_read, slip_read, tr, lift_true):
+    """Advance env b's task state as its sensors give it (``ts.sensed``, SENSED) by one frame: ``pinch_read`` the
+    sum of the normal-force readings (N), ``slip_read`` the mean of the slip-speed readings (the arm's top speed),
+    ``tr`` the arm encoder's travel (m), ``lift_true`` the grasped region's true lift (m), which the lift tracker
+    measures with its noise and delay. ``fresh``: a new episode (everything from zero)."""
+    e = p.env
+    r = e.randomization
+    sn = ts.sensed[b]
+    ring = ts.lift_track[b]
+    if fresh:
+        for k in range(sn.shape[0]):
+            sn[k] = 0.0
+        for k in range(ring.shape[0]):
+            ring[k] = 0.0
+        return
+    # the tracker: this frame's measurement enters the ring; the entry lift_delay_steps old is what it reports
+    for k in range(ring.shape[0] - 1, 0, -1):
+        ring[k] = ring[k - 1]
+    ring[0] = lift_true + ts.noise[b, N_LIFT] if r.lift_sensing_tracked else 0.0
+    lift = ring[min(int(r.lift_delay_steps), ring.shape[0] - 1)]
+    tgt = e.lift_target_m
+    sn[S_LIFT] = lift
+    sn[S_BEST_LIFT] = max(sn[S_BEST_LIFT], min(lift, tgt))
+    # the sensed slip of this step (m), integrated as read: the noise averages out instead of piling up
+    slip = slip_read * p.max_pull * p.agent_dt
+    if tr >= e.lift_started_m:  # lifting began by the arm's encoder
+        sn[S_LIFT_SLIP] += slip
+    if lift >= tgt:
+        sn[S_HOLD_TIME] += p.agent_dt
+        sn[S_HOLD_SLIP] += slip
+    else:
+        sn[S_HOLD_TIME] = 0.0
+        sn[S_HOLD_SLIP] = 0.0
+    sn[S_PEAK_PINCH] = max(sn[S_PEAK_PINCH], pinch_read)
+
+
+@njit(cache=True, error_model="numpy")
+def true_slip_readings(p, jo, k):
+    """Jaw k's slip speed (the arm's top speed) and the share of its contact nodes that slip, as they are."""
+    return jo[k, J_SLIP_DIST] / p.agent_dt / p.max_pull, jo[k, J_SLIP] / max(jo[k, J_CONTACT], 1.0)
+
+
+@njit(cache=True, error_model="numpy")
 def observe(p, s, out, ts, b, fresh):
     """Write env b's current frame (sensor noise ``ts.noise[b]``) into its history and observation;
-    ``fresh`` (a reset): the whole history is the current frame."""
+    ``fresh`` (a reset): the whole history is the current frame.
+
+    Every entry is what a named sensor gives (:data:`.sensors.SENSORS`); with ``sensed_task_state`` (v2) the task-state
+    entries (lift, hold, slips, lag, peak pinch, best lift) come from the sensed values too, and the truth behind them
+    goes to the privileged block (PRIVILEGED_TRUTH); without it (v0, v1) they are the simulation's truth."""
     e = p.env
     h = e.obs_history
     fd = p.frame_dim
@@ -485,13 +583,16 @@ def observe(p, s, out, ts, b, fresh):
     r = e.randomization
     # the force readings' low-pass filter weight per agent step (force_filter_s; unused at 0)
     a = 1.0 - math.exp(-p.agent_dt / r.force_filter_s) if r.force_filter_s > 0.0 else 1.0
+    jo_all = out.jaw_out[b]
+    pinch_read = 0.0
+    slip_read = 0.0
     for k in range(3):
-        jo = out.jaw_out[b, k]
-        noise = ts.noise[b, k]
+        jo = jo_all[k]
+        noise = ts.noise[b, N_FORCE + k]
         normal = jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]
         tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
         if r.force_noise_vector:  # |T + n_t|: n_t's components along T and across it
-            ta, tc = tt + ts.noise[b, 6 + k], ts.noise[b, 9 + k]
+            ta, tc = tt + ts.noise[b, N_ALONG + k], ts.noise[b, N_ACROSS + k]
             tangential = math.sqrt(ta * ta + tc * tc)
         else:
             tangential = tt + abs(noise)
@@ -502,32 +603,50 @@ def observe(p, s, out, ts, b, fresh):
                 ts.readings[b, k] += a * (normal - ts.readings[b, k])
                 ts.readings[b, 3 + k] += a * (tangential - ts.readings[b, 3 + k])
             normal, tangential = ts.readings[b, k], ts.readings[b, 3 + k]
+        pinch_read += normal
         o[I_NORMAL + k] = normal / ref
         o[I_TANGENTIAL + k] = tangential / ref
         o[I_CONTACT + k] = min(jo[J_CONTACT] / p.nominal[k], 2.0)
+        speed, share = true_slip_readings(p, jo_all, k)
         if r.slip_sensing_exact:
-            o[I_SLIP_SPEED + k] = jo[J_SLIP_DIST] / p.agent_dt / p.max_pull + ts.noise[b, 3 + k]
+            o[I_SLIP_SPEED + k] = speed + ts.noise[b, N_SLIP_SPEED + k]
             # incipient slip (what a tactile array sees): the share of the jaw's contact nodes that slip
-            o[I_SLIPPING + k] = jo[J_SLIP] / max(jo[J_CONTACT], 1.0)
+            o[I_SLIPPING + k] = share
+            if e.sensed_task_state:  # (v2: the tactile array's share is noisy too, and stays a share)
+                o[I_SLIPPING + k] = min(max(share + ts.noise[b, N_SLIPPING + k], 0.0), 1.0)
         elif r.slip_sensing_binary:  # a slip detector: slipping or not
             o[I_SLIP_SPEED + k] = 1.0 if jo[J_SLIP_DIST] > 0.0 else 0.0
             o[I_SLIPPING + k] = 1.0 if jo[J_SLIP] > 0.0 else 0.0
         else:
             o[I_SLIP_SPEED + k] = 0.0
             o[I_SLIPPING + k] = 0.0
+        slip_read += o[I_SLIP_SPEED + k] / 3.0
         # friction utilisation |T| / N (<= mu while the jaw sticks); 0.05 N keeps it finite off contact
         o[I_FRICTION_USE + k] = o[I_TANGENTIAL + k] / max(o[I_NORMAL + k], 0.05 / ref)
     o[I_PREV_ACTION] = ts.prev_action[b, 0]
     o[I_PREV_ACTION + 1] = ts.prev_action[b, 1]
     o[I_TIME] = ts.steps[b] * p.agent_dt / e.time_limit_s
-    o[I_LIFT] = ts.lift[b] / tgt
-    o[I_HOLD] = ts.hold_progress[b]
-    o[I_HOLD_SLIP] = ts.hold_slip[b] / e.hold_slip_tolerance_m if e.hold_slip_tolerance_m > 0 else 0.0
+    hold_tol = e.hold_slip_tolerance_m
+    # the task-state entries: the truth (v0, v1) or the sensed values (v2), with the truth then privileged
+    lift, best, hold, hold_slip, lift_slip, peak = (ts.lift[b], ts.best_lift[b], ts.hold_progress[b], ts.hold_slip[b],
+                                                    ts.lift_slip[b], ts.peak_pinch[b])
+    lag = tr - lift
+    if e.sensed_task_state:
+        sense_task_state(p, ts, b, fresh, pinch_read, slip_read, tr, ts.lift[b])
+        sn = ts.sensed[b]
+        lift, best, hold_slip, lift_slip, peak = (sn[S_LIFT], sn[S_BEST_LIFT], sn[S_HOLD_SLIP], sn[S_LIFT_SLIP],
+                                                  sn[S_PEAK_PINCH])
+        hold = min(sn[S_HOLD_TIME] / e.hold_time_s, 1.0) if e.hold_time_s > 0 else (1.0 if lift >= tgt else 0.0)
+        # (no tracker: the lag, like every entry derived from it, is constant)
+        lag = tr - lift if r.lift_sensing_tracked else 0.0
+    o[I_LIFT] = lift / tgt
+    o[I_HOLD] = hold
+    o[I_HOLD_SLIP] = hold_slip / hold_tol if hold_tol > 0 else 0.0
     # grasper travel minus tissue lift: how far the tissue has slid out of (or lags) the jaws
-    o[I_LIFT_LAG] = (tr - ts.lift[b]) / tgt
-    o[I_PEAK_PINCH] = ts.peak_pinch[b] / ref
-    o[I_BEST_LIFT] = ts.best_lift[b] / tgt
-    o[I_LIFT_SLIP] = ts.lift_slip[b] / e.lift_slip_tolerance_m
+    o[I_LIFT_LAG] = lag / tgt
+    o[I_PEAK_PINCH] = peak / ref
+    o[I_BEST_LIFT] = best / tgt
+    o[I_LIFT_SLIP] = lift_slip / e.lift_slip_tolerance_m
     if e.privileged_obs:
         o[N_OBS] = ts.mu[b]
         o[N_OBS + 1] = s.kscale[b]
@@ -536,9 +655,22 @@ def observe(p, s, out, ts, b, fresh):
             i = p.priv_nodes[q]
             for c in range(3):
                 o[N_OBS + 3 + 3 * q + c] = (s.x[b, i, c] - p.x_start[i, c]) / tgt
+        j = N_OBS + 3 + 3 * p.priv_nodes.shape[0]
+        if e.sensed_task_state:  # PRIVILEGED_TRUTH
+            o[j] = ts.lift[b] / tgt
+            o[j + 1] = ts.hold_progress[b]
+            o[j + 2] = ts.hold_slip[b] / hold_tol if hold_tol > 0 else 0.0
+            o[j + 3] = (tr - ts.lift[b]) / tgt
+            o[j + 4] = ts.peak_pinch[b] / ref
+            o[j + 5] = ts.best_lift[b] / tgt
+            o[j + 6] = ts.lift_slip[b] / e.lift_slip_tolerance_m
+            for k in range(3):
+                speed, share = true_slip_readings(p, jo_all, k)
+                o[j + 7 + k] = speed
+                o[j + 10 + k] = share
+            j += N_PRIVILEGED_TRUTH
         if e.privileged_perturbations:
             d = ts.draws[b]
-            j = N_OBS + 3 + 3 * p.priv_nodes.shape[0]
             for c in range(3):
                 o[j + c] = (ts.tip0[b, c] - p.pose_tip[c]) / 0.005
                 o[j + 3 + c] = (s.g_axis[b, c] - p.pose_axis[c]) / 0.1745  # (10 deg of turn, rad)

@@ -210,23 +210,30 @@ def test_the_native_vector_env_is_gymnasiums_sync_vector_env_of_single_envs(mode
     sync.close()
 
 
-def test_v1_is_the_default_trainings_task_with_its_episode_limit_in_the_spec():
-    """gym.make("msdgrasp/GraspLift-v1") is the task the default training trains on (which adds only the
-    privileged entries its critic reads), and its spec states the limit at which the env truncates."""
+def test_v2_is_the_default_trainings_task_with_its_episode_limit_in_the_spec():
+    """gym.make("msdgrasp/GraspLift-v2") is the task the default training trains on (which adds only the
+    privileged entries its critic reads), and its spec states the limit at which the env truncates; v1 stays
+    loadable: the same task with the truth in its observation."""
     from msdgrasp.agents.models import TrainConfig
     from msdgrasp.envs.core import benchmark_config
     from msdgrasp.envs.registration import V1_MAX_EPISODE_STEPS
     from msdgrasp.physics.config import replace
 
-    env = gym.make("msdgrasp/GraspLift-v1")
-    assert env.unwrapped.config == benchmark_config()
+    env = gym.make("msdgrasp/GraspLift-v2")
+    assert env.unwrapped.config == benchmark_config() == benchmark_config(version=2)
+    assert env.unwrapped.config.sensed_task_state
     assert replace(env.unwrapped.config, privileged_obs=True) == TrainConfig().env
     assert env.spec.max_episode_steps == env.unwrapped.config.max_episode_steps == V1_MAX_EPISODE_STEPS
-    assert gym.make("msdgrasp/GraspLiftSphere-v1").unwrapped.config == benchmark_config("sphere")
+    assert gym.make("msdgrasp/GraspLiftSphere-v2").unwrapped.config == benchmark_config("sphere")
+    v1 = gym.make("msdgrasp/GraspLift-v1").unwrapped.config
+    assert v1 == benchmark_config(version=1) and not v1.sensed_task_state
+    # v2 changes the observation only: physics, actions, reward and success are v1's
+    assert replace(v1, sensed_task_state=True, randomization=env.unwrapped.config.randomization) == benchmark_config()
+    assert gym.make("msdgrasp/GraspLiftSphere-v1").unwrapped.config == benchmark_config("sphere", version=1)
     with pytest.raises(ValueError, match="fixed task"):
-        gym.make("msdgrasp/GraspLift-v1", config={})
+        gym.make("msdgrasp/GraspLift-v2", config={})
     # fields change by name, as for the other ids
-    assert gym.make("msdgrasp/GraspLift-v1", time_limit_s=1.0).unwrapped.config.pull_action == "forward_speed"
+    assert gym.make("msdgrasp/GraspLift-v2", time_limit_s=1.0).unwrapped.config.pull_action == "forward_speed"
 
 
 def test_normalize_observation_steps_the_v1_vector_env_through_episode_ends():
