@@ -34,7 +34,7 @@ MU_GRID = (0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.65, 0.8, 1.0, 1.5)
 FORMAT = "msdgrasp-friction-estimator-1"
 
 #: the name of the estimator shipped with the package (``configs/friction/estimator.json``, fitted by
-#: ``msdgrasp fit-friction --config configs/train/experiments/R-robust-gamma1-noiselevels.yaml``) in a policy spec
+#: ``msdgrasp fit-friction --config configs/train/ppo.yaml``, the default training's task) in a policy spec
 BUILTIN_ESTIMATOR = "builtin"
 
 

@@ -156,7 +156,8 @@ def test_fit_friction_refuses_bad_arguments_before_it_runs(tmp_path, capsys):
 
 def test_the_built_in_estimator_reads_friction_on_episodes_it_was_not_fitted_on():
     """``estimator=builtin`` names the estimator shipped with the package; on 48 episodes of the training task it was
-    fitted on (R-robust-gamma1-noiselevels: noise, bias, latency, gain error, placement up to 5 mm / 10 deg), drawn
+    fitted on (the default training's, configs/train/ppo.yaml: the v2 task's sensors, force noise, bias, latency, gain
+    error, placement up to 5 mm / 10 deg), drawn
     with other seeds, its estimate is within 25 % of the true mu in at least half of them (its fit: median 12 %) and
     within 60 % in 90 % of them. A stale file (a task changed since the fit) fails here: refit it with the command
     in its ``fitted_on``."""
@@ -169,7 +170,7 @@ def test_the_built_in_estimator_reads_friction_on_episodes_it_was_not_fitted_on(
     est = policy.estimator
     assert policy.initial == est.probe_force_N
     root = Path(__file__).resolve().parents[1]
-    task = TrainConfig.load(root / "configs/train/experiments/R-robust-gamma1-noiselevels.yaml").training_task()
+    task = TrainConfig.load(root / "configs/train/ppo.yaml").training_task()
     x, mu = collect_closing_features(task, 48, 777000, est.probe_force_N, batch=48)
     rel = np.abs(np.array([est.mu(f) for f in x]) / mu - 1)
     assert np.median(rel) < 0.25 and np.percentile(rel, 90) < 0.6, (np.median(rel), np.percentile(rel, 90))
