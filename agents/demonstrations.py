@@ -29,6 +29,7 @@ import numpy as np
 
 from ..physics.config import ConfigError, atomic_write_text, to_dict
 from .evaluation import build_policy, check_policy_spec, trained_task_of
+from .protocol import check_not_sealed
 
 #: the env the datasets are collected on (its version is part of every dataset's card)
 ENV_ID = "msdgrasp/GraspLift-v0"
@@ -84,6 +85,8 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
 
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    # (a dataset is for training: never the sealed evaluation episodes)
+    check_not_sealed(seed, int(episodes), "seed", via=f"episodes: seed + i, i < {int(episodes)}")
     check_policy_spec(policy)
     task, trained_on = trained_task_of([policy])
     if trained_on is None:  # a controller: the given training's task, or the benchmark task's own randomisation

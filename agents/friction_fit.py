@@ -11,6 +11,7 @@ import numpy as np
 from ..envs.core import GraspLiftConfig
 from .controllers import SlipFeedbackPolicy, minimal_force
 from .friction import MU_GRID, FrictionEstimator, fit_ridge
+from .protocol import check_not_sealed
 
 
 class _FeatureTap:
@@ -33,8 +34,11 @@ def collect_closing_features(task: GraspLiftConfig, episodes: int, seed: int, pr
                              batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """The closing features and the true mu of ``episodes`` episodes of ``task`` (reset seeds seed, seed + 1, ...),
     each as the slip-feedback controller with a friction estimator computes them, closing to ``probe_force_N``
-    with a pinch-gated pull."""
+    with a pinch-gated pull. Refuses (ConfigError) seeds that reach the sealed evaluation seeds (:mod:`.protocol`):
+    an estimator is fitted, and its controller tuned, on these episodes."""
     from ..envs.grasp_lift import GraspLiftVectorEnv
+
+    check_not_sealed(seed, episodes, "seed", via=f"fitting episodes: seed + i, i < episodes = {episodes}")
 
     features, mus = [], []
     for start in range(0, episodes, batch):
@@ -66,9 +70,10 @@ def fit_friction_estimator(task: GraspLiftConfig, episodes: int = 768, seed: int
                            pull: float = 0.3, ridge: float = 1.0, mu_grid: Sequence[float] = MU_GRID,
                            table_task: GraspLiftConfig | None = None,
                            fitted_on: str = "") -> tuple[FrictionEstimator, dict[str, Any]]:
-    """Fit an estimator on ``episodes`` episodes of ``task`` (the randomised task whose sensing it must read) and
-    tabulate the oracle's minimal fixed force at ``mu_grid`` and ``pull`` on ``table_task`` (the benchmark task;
-    default ``task``); returns it and its fit's report (relative errors on the fitting episodes)."""
+    """Fit an estimator on ``episodes`` episodes of ``task`` (the randomised task whose sensing it must read; reset
+    seeds ``seed .. seed + episodes - 1``, none of them sealed: :mod:`.protocol`) and tabulate the oracle's minimal
+    fixed force at ``mu_grid`` and ``pull`` on ``table_task`` (the benchmark task; default ``task``); returns it and
+    its fit's report (relative errors on the fitting episodes)."""
     x, mu = collect_closing_features(task, episodes, seed, probe_force_N)
     mean, scale, weights = fit_ridge(x, mu, ridge)
     table = tuple(minimal_force(table_task or task, m, pull, 0.05) for m in mu_grid)

@@ -25,6 +25,7 @@ from ..physics.config import (
 )
 from .controller_settings import slipfeedback_options
 from .friction import with_estimator
+from .protocol import DEMONSTRATION_SEED_OFFSET, VALIDATION_SEED_OFFSET, check_not_sealed
 
 PositiveInt = Annotated[Int, Ge(1)]
 Unit = Annotated[Real, Ge(0), Le(1)]
@@ -216,7 +217,22 @@ class TrainConfig:
         return replace(self.env, randomization=ramp_randomization(self.env.randomization, self.train_randomization,
                                                                   level))
 
+    def seed_sets(self) -> list[tuple[int, int, str]]:
+        """Every run of reset seeds the training derives from ``seed``: (first, count, how): the training envs (and the
+        networks' initialisation), the validation episodes and behaviour cloning's demonstrations."""
+        sets = [(self.seed, self.n_envs, f"training envs: seed + i, i < n_envs = {self.n_envs}")]
+        if self.validation_episodes:
+            sets.append((self.seed + VALIDATION_SEED_OFFSET, self.validation_episodes,
+                         f"validation episodes: seed + {VALIDATION_SEED_OFFSET} + i, i < validation_episodes = "
+                         f"{self.validation_episodes}"))
+        if self.bc_teacher is not None:
+            sets.append((self.seed + DEMONSTRATION_SEED_OFFSET, self.n_envs,
+                         f"demonstrations: seed + {DEMONSTRATION_SEED_OFFSET} + i, i < n_envs = {self.n_envs}"))
+        return sets
+
     def __post_init__(self) -> None:
+        for first, count, via in self.seed_sets():  # (a training never draws the sealed evaluation episodes)
+            check_not_sealed(first, count, "seed", value=self.seed, via=via)
         if self.validation_patience is not None and self.validation_episodes == 0:
             raise ConfigError(f"validation_patience: {self.validation_patience} needs validation_episodes >= 1 (it "
                               "counts validations), got validation_episodes 0; set validation_patience: null")

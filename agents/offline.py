@@ -21,6 +21,7 @@ from ..physics.config import ConfigError, atomic_write, atomic_write_text, from_
 from ..physics.config import write_yaml
 from .learners.sb3_layout import LAYOUT
 from .models import TrainConfig
+from .protocol import check_not_sealed
 
 #: cloning passes over the dataset (the warm start's default)
 CLONE_EPOCHS = 40
@@ -42,6 +43,13 @@ def _load(dataset_id: str, datasets_path_: Path):
             obs.append(np.asarray(episode.observations[:-1], dtype=np.float32))  # (the last one has no action)
             actions.append(np.asarray(episode.actions, dtype=np.float32))
     return card, np.concatenate(obs), np.concatenate(actions)
+
+
+def check_clone_seed(seed: int) -> None:
+    """ConfigError where a clone's ``seed`` would draw sealed evaluation seeds (:mod:`.protocol`): its envs and
+    validation episodes, the seeds a training with that seed draws."""
+    for first, count, via in TrainConfig().seed_sets():  # (seed 0's: each shifts by the seed)
+        check_not_sealed(seed + first, count, "seed", value=seed, via=via)
 
 
 def clone_config(env: GraspLiftConfig, drawn: GraspLiftConfig, seed: int = 0) -> TrainConfig:
@@ -68,6 +76,7 @@ def clone(dataset_id: str, out_dir: str | Path, datasets_path: str | Path = Path
 
     if isinstance(epochs, bool) or not isinstance(epochs, (int, np.integer)) or epochs < 1:
         raise ConfigError(f"epochs must be an integer >= 1, got {epochs!r}")
+    check_clone_seed(seed)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output folder {out} exists and is not a folder")

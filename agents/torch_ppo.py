@@ -40,6 +40,7 @@ from ..physics.config import (
 from .controllers import TorchScriptPolicy
 from .learners.rsl_layout import LAYOUT, NAME, RUNNER_CHECKPOINT, meta_path
 from .models import TrainConfig
+from .protocol import VALIDATION_SEED_OFFSET, check_not_sealed
 
 Unit = Annotated[Real, Ge(0), Le(1)]
 
@@ -91,7 +92,20 @@ class TorchPPOConfig:
     #: the task: the SB3 training's (TrainConfig.env), so both learners train and are judged on the same task
     env: GraspLiftConfig = field(default_factory=lambda: TrainConfig().env)
 
+    def seed_sets(self) -> list[tuple[int, int, str]]:
+        """Every run of reset seeds the training derives from ``seed``: (first, count, how): the training envs (the CPU
+        env i reset with seed + i; the GPU's generators and the networks' initialisation seeded with seed) and the
+        validation episodes."""
+        sets = [(self.seed, self.num_envs, f"training envs: seed + i, i < num_envs = {self.num_envs}")]
+        if self.validation_episodes:
+            sets.append((self.seed + VALIDATION_SEED_OFFSET, self.validation_episodes,
+                         f"validation episodes: seed + {VALIDATION_SEED_OFFSET} + i, i < validation_episodes = "
+                         f"{self.validation_episodes}"))
+        return sets
+
     def __post_init__(self) -> None:
+        for first, count, via in self.seed_sets():  # (a training never draws the sealed evaluation episodes)
+            check_not_sealed(first, count, "seed", value=self.seed, via=via)
         if self.asymmetric_critic and not self.env.privileged_obs:
             raise ConfigError("asymmetric_critic needs env.privileged_obs: true (the critic's extra entries)")
 

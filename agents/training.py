@@ -36,6 +36,9 @@ from .learners.sb3_layout import model_train_config  # noqa: F401 (re-exported)
 from .models import TrainConfig
 from .controllers import ModelPolicy, make_policy
 from .evaluation import evaluate_policy
+# validation episodes are seeded from seed + VALIDATION_SEED_OFFSET (re-exported), far below the sealed evaluation
+# seeds that ``msdgrasp evaluate`` draws from (agents/protocol.py)
+from .protocol import DEMONSTRATION_SEED_OFFSET, VALIDATION_SEED_OFFSET, check_not_sealed
 from .residual import residual_venv, with_residual
 
 
@@ -223,10 +226,6 @@ def _discounted_returns(rewards: np.ndarray, dones: np.ndarray, gamma: float) ->
     return ret
 
 
-#: validation episodes are seeded from seed + this: disjoint from ``msdgrasp evaluate``'s seeds 0, 1, ...
-VALIDATION_SEED_OFFSET = 100_000
-
-
 class BestModel:
     """Scores saved models on validation episodes and keeps the best as ``best_model.zip``.
 
@@ -291,7 +290,9 @@ class BestModel:
         if cfg.validation_episodes == 0:
             return None
 
-        # (on the task the training draws from, at its full randomisation)
+        # (on the task the training draws from, at its full randomisation; never on the sealed evaluation seeds)
+        check_not_sealed(cfg.seed + VALIDATION_SEED_OFFSET, cfg.validation_episodes, "seed", value=cfg.seed,
+                         via=f"validation episodes: seed + {VALIDATION_SEED_OFFSET} + i")
         rows = evaluate_policy(policy, cfg.validation_mu, cfg.validation_episodes, cfg.training_task(),
                                seed=cfg.seed + VALIDATION_SEED_OFFSET, _envs=self._envs)
         rec = {
@@ -323,7 +324,7 @@ def collect_demonstrations(config: TrainConfig) -> Demonstrations:
 
     env = GraspLiftVectorEnv(config.n_envs, config.env)
     teacher = make_policy(config.bc_teacher, config.env)
-    obs, info = env.reset(seed=config.seed + 10_000)
+    obs, info = env.reset(seed=config.seed + DEMONSTRATION_SEED_OFFSET)
     teacher.reset([{"mu": m} for m in env.core.mu])
     xs, ys, rs, ds = [], [], [], []
     for _ in range(max(1, config.bc_steps // config.n_envs)):
