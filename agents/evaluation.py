@@ -2,9 +2,11 @@
 
 For every policy and every mu of the grid, ``episodes`` episodes run as ONE batch of a
 :class:`~msdgrasp.envs.grasp_lift.GraspLiftVectorEnv` (mu pinned through the reset options, every other
-randomisation as configured, episode ``i`` seeded ``seed + i``). The batch is stepped through the core
-(``env.core.step``) so that no sub-env is auto-reset mid-evaluation; each episode's metrics are frozen
-at the step it ends.
+randomisation as configured, episode ``i`` seeded ``seed + i``). :func:`evaluate` starts at the sealed evaluation
+seeds (:data:`~.protocol.EVALUATION_SEED`, which no training, validation, fit or sweep draws from) and records
+``"seeds": {"first", "count", "sealed"}`` in ``evaluation.json``; another ``seed`` makes a result marked not sealed.
+The batch is stepped through the core (``env.core.step``) so that no sub-env is auto-reset mid-evaluation; each
+episode's metrics are frozen at the step it ends.
 
 Per (policy, mu) row:
 
@@ -49,6 +51,7 @@ from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .friction import with_estimator
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
+from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
 from .stats import bootstrap_ci, wilson_interval
 
 #: the training range (0.3-0.9) and beyond it on both sides (0.15, 0.2, 1.0, 1.2: unseen in training)
@@ -617,13 +620,15 @@ def trained_task_of(policies: Sequence[str]) -> tuple[GraspLiftConfig, str | Non
 
 
 def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
-             config: GraspLiftConfig | None = None, seed: int = 0, record: bool = False,
+             config: GraspLiftConfig | None = None, seed: int = EVALUATION_SEED, record: bool = False,
              progress: bool = True, n_envs: int | None = None, video: bool = False,
              conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS,
              runner: Runner | None = None) -> dict[str, Any]:
     """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
 
-    Every spec is validated (and every model loaded) before any episode runs or anything is written.
+    Every spec is validated (and every model loaded) before any episode runs or anything is written. Episode i (at
+    every mu) is reset with ``seed + i``: by default the sealed evaluation seeds (:mod:`.protocol`); the result
+    records ``"seeds": {"first", "count", "sealed"}``.
     The slip-reactive and oracle baselines are always added. Without ``config`` the task is the one the
     model(s) were trained on (their saved config), else (controllers only) the default training's. Each policy also
     runs at ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass outside the training ranges).
@@ -650,6 +655,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
             raise ConfigError(f"mu = {m!r} is out of range; allowed [0, {MU_MAX:g}]")
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    check_evaluation_seeds(seed, int(episodes), "seed")
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
     built = [build_policy(spec, config) for spec in policies]
@@ -698,6 +704,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         recordings += _record_all(names, built, mus, config, seed, out_dir / "videos", progress, suffix=".mp4")
 
     summary = {
+        "seeds": seeds_record(seed, episodes),
         "config": to_dict(config),
         "evaluation": {
             "mu_grid": mus,
@@ -730,7 +737,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     _plot_success(results, config, files["success_png"])
     _plot_pinch(results, curve, files["pinch_png"])
     return {"results": results, "oracle_minimal_force": curve, "files": {k: str(v) for k, v in files.items()},
-            "recordings": recordings, "unseen_conditions": unseen, "config": config}
+            "recordings": recordings, "unseen_conditions": unseen, "config": config, "seeds": summary["seeds"]}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -866,28 +873,32 @@ def _record_all(names, built, mus, config, seed, folder: Path, progress: bool, s
     return paths
 
 
+def _seconds(x: float | None) -> str:
+    return "-" if x is None or not math.isfinite(x) else f"{x:.2f}"
+
+
 def format_unseen(unseen: list[dict[str, Any]]) -> str:
     """A text table of the unseen-tissue rows (stiffness / mass outside the training ranges)."""
-    lines = [f"{'policy':<16} {'conditions':<32} {'success':>7} {'peak N':>7}", "-" * 65]
+    lines = [f"{'policy':<16} {'conditions':<32} {'success':>7} {'peak N':>7} {'t_lift s':>8}", "-" * 74]
     for r in unseen:
         cond = ", ".join(f"{k}={v:g}" for k, v in r["conditions"].items())
-        lines.append(f"{r['policy'][:16]:<16} {cond:<32} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f}")
+        lines.append(f"{r['policy'][:16]:<16} {cond:<32} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f} "
+                     f"{_seconds(r['mean_time_to_lift_s']):>8}")
     return "\n".join(lines)
 
 
 def format_table(results: list[dict[str, Any]]) -> str:
-    """A compact text table of the evaluation rows."""
-    head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'/oracle':>7} {'max N':>6} {'mean N':>6} " \
-           f"{'slip mm':>7} {'stress kPa':>10} {'t_lift s':>8} {'return':>7}"
+    """A compact text table of the evaluation rows: success, the peak pinch and its ratio to the oracle's minimal
+    force, beside them the mean time to lift (over the episodes that lifted), then the other metrics."""
+    head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'/oracle':>7} {'t_lift s':>8} {'max N':>6} " \
+           f"{'mean N':>6} {'slip mm':>7} {'stress kPa':>10} {'return':>7}"
     lines = [head, "-" * len(head)]
     for pol in results:
         for r in pol["rows"]:
-            ttl = r["mean_time_to_lift_s"]
-            ttl_s = "-" if ttl is None or not math.isfinite(ttl) else f"{ttl:.2f}"
             lines.append(
                 f"{pol['name'][:16]:<16} {r['mu']:>5.2f} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f} "
-                f"{r.get('peak_pinch_over_oracle_min', float('nan')):>7.2f} {r['max_peak_pinch_N']:>6.2f} "
-                f"{r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
-                f"{r['mean_peak_stress_kPa']:>10.1f} {ttl_s:>8} {r['mean_return']:>7.2f}"
+                f"{r.get('peak_pinch_over_oracle_min', float('nan')):>7.2f} {_seconds(r['mean_time_to_lift_s']):>8} "
+                f"{r['max_peak_pinch_N']:>6.2f} {r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
+                f"{r['mean_peak_stress_kPa']:>10.1f} {r['mean_return']:>7.2f}"
             )
     return "\n".join(lines)

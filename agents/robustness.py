@@ -2,21 +2,35 @@
 beside the baselines on the task with one thing changed at a time (sensing, actuation, placement, friction and tissue
 outside training) and ranks them.
 
-Protocol ``robustness`` version 1 (:data:`SUITE_VERSION`); a change of conditions, levels, mu, episodes or metrics
-is a new version:
+Protocol ``robustness`` version 2 (:data:`SUITE_VERSION`); a change of conditions, levels, mu, episodes, seeds or
+metrics is a new version:
 
 * every condition is the policy's own task (the one its model was trained on; for controllers alone the default
   training's task) with one change: a :class:`~..envs.core.RandomizationConfig` field set to the level
   (the perturbation is drawn per episode up to that level where the field is a range), a reset option pinned
   (stiffness, mass), or the friction grid replaced (friction outside training);
-* :data:`MUS` (0.3, 0.5, 0.8) x :data:`EPISODES` (10) episodes per condition, episode i seeded ``seed + i``: the same
-  episodes for every policy;
-* per policy and condition: the success rate, the mean peak pinch over the oracle's minimal slip-free force at that
-  mu on the nominal task (``force_ratio``; a condition that changes the tissue changes what is needed, the ratio still
-  reads against the nominal need), the largest peak contact pressure of any episode and the mean time per episode
-  above the published damage threshold (:data:`~.evaluation.DAMAGE_PRESSURE_PA`);
+* the in-range friction grid :data:`MUS` (0.2, 0.3, 0.5, 0.8: mu 0.2, the training range's low end, joined in
+  version 2) x :data:`EPISODES` (19) episodes per mu, so that every condition pools :data:`POOLED_EPISODES` (76); a
+  condition at fewer mu (friction outside training: one mu each) runs more episodes per mu, 76 at its one mu. 76
+  is the least multiple of the grid's four mu that reaches 73, the fewest episodes whose all-success Wilson 95 %
+  lower bound reaches 0.95 (:func:`~.stats.episodes_for_lower_bound`): only then can a condition show a success
+  rate of at least 95 % at all (76 of 76: 0.952);
+* episode i at every mu is reset with ``seed + i``, the seed by default the first of the sealed evaluation seeds
+  (:data:`~.protocol.EVALUATION_SEED`, which no training, validation, fit or sweep draws from): the same episodes for
+  every policy; the result records ``"seeds": {"first", "count", "sealed"}``;
+* per policy and condition, over the pooled episodes: the success rate with its Wilson 95 % interval and lower bound;
+  the mean peak pinch over the oracle's minimal slip-free force at that mu on the nominal task (``force_ratio``, the
+  mean over mu; a condition that changes the tissue changes what is needed, the ratio still reads against the
+  nominal need); the mean time to lift (s, over the episodes that reached the lift target); the largest peak contact
+  pressure of any episode and the mean time per episode above the published damage threshold
+  (:data:`~.evaluation.DAMAGE_PRESSURE_PA`);
 * the score of a policy: its success rate averaged over the conditions (each equally), then the mean force ratio;
-  the worst condition beside it.
+  the worst condition and the lowest lower bound beside it.
+
+Fewer episodes than the protocol's (``--episodes``) or a subset of its conditions (``--condition``) run, but the
+result says ``"protocol": false`` and its leaderboard "not the protocol". Version 1 (:data:`PROTOCOLS`) ran the grid
+0.3, 0.5, 0.8 x 10 episodes per mu (30 per condition, 10 for a friction condition) from seed 0; its conditions stay
+defined (:data:`CONDITIONS_V1`) and its results readable (:func:`leaderboard_markdown`).
 """
 
 from __future__ import annotations
@@ -40,10 +54,21 @@ from .evaluation import (
 )
 from .controllers import episode_minimal_forces
 from .parallel import Runner
+from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
+from .stats import mean_of_runs, stratified_bootstrap_ci, wilson_interval, wilson_lower_bound
 
-SUITE_VERSION = 1
-MUS = (0.3, 0.5, 0.8)
-EPISODES = 10
+#: the protocol version that runs
+SUITE_VERSION = 2
+#: the in-range friction grid of version 2
+MUS = (0.2, 0.3, 0.5, 0.8)
+#: episodes per mu of a condition on the whole grid (version 2)
+EPISODES = 19
+#: the episodes every condition of version 2 pools: 19 x 4 = 76 >= 73, the fewest with an all-success Wilson 95 %
+#: lower bound >= 0.95
+POOLED_EPISODES = EPISODES * len(MUS)
+#: version 1's grid and episodes per mu
+MUS_V1 = (0.3, 0.5, 0.8)
+EPISODES_V1 = 10
 #: the suite's baselines (reactive and oracle are added to every evaluation; the fixed force beside them), and the
 #: slip-feedback controller where the task has the interface it drives (a force set-point and a pull speed)
 BASELINES = (*ALWAYS, "fixed")
@@ -60,29 +85,77 @@ class Condition:
     mus: tuple[float, ...] = MUS
 
 
-def _placement(offset_mm: float, tilt_deg: float, azimuth_deg: float) -> Condition:
-    return Condition("placement", f"grasp up to {offset_mm:g} mm off, {tilt_deg:g} deg tilt, {azimuth_deg:g} deg turn",
-                     {"pose_offset_m": offset_mm * 1e-3, "pose_tilt_deg": tilt_deg, "pose_azimuth_deg": azimuth_deg})
+def _conditions(mus: tuple[float, ...]) -> tuple[Condition, ...]:
+    """The suite's conditions, those that keep the friction grid on ``mus``."""
+
+    def placement(offset_mm: float, tilt_deg: float, azimuth_deg: float) -> Condition:
+        return Condition("placement", f"grasp up to {offset_mm:g} mm off, {tilt_deg:g} deg tilt, {azimuth_deg:g} deg "
+                         "turn", {"pose_offset_m": offset_mm * 1e-3, "pose_tilt_deg": tilt_deg,
+                                  "pose_azimuth_deg": azimuth_deg}, mus=mus)
+
+    return (
+        Condition("nominal", "nominal", mus=mus),
+        *(Condition("sensing", f"force noise {n:g} N", {"sensor_noise_N": n}, mus=mus) for n in (0.05, 0.08, 0.1)),
+        *(Condition("sensing", f"force bias up to {b:g} N", {"force_bias_N": b}, mus=mus) for b in (0.05, 0.1)),
+        Condition("sensing", "slip sensed as a detector (binary)", {"slip_sensing": "binary"}, mus=mus),
+        Condition("sensing", "slip not sensed", {"slip_sensing": "absent"}, mus=mus),
+        Condition("sensing", "slip speed noise 0.1", {"slip_noise": 0.1}, mus=mus),
+        *(Condition("actuation", f"latency {k} step{'s' if k > 1 else ''}", {"latency_steps": (k, k)}, mus=mus)
+          for k in (1, 2, 3)),
+        *(Condition("actuation", f"force-loop gain error up to {e:.0%}", {"force_loop_gain_error": e}, mus=mus)
+          for e in (0.2, 0.4)),
+        Condition("actuation", "pinch ceiling 3 N", {"pinch_ceiling_N": 3.0}, mus=mus),
+        placement(3.0, 5.0, 5.0),
+        placement(5.0, 10.0, 10.0),
+        *(Condition("friction", f"mu {m:g}", mus=(m,)) for m in (0.1, 0.15, 1.2, 1.5)),
+        *(Condition("tissue", f"stiffness x{k:g}", options={"stiffness_scale": k}, mus=mus) for k in (0.5, 2.0)),
+        *(Condition("tissue", f"mass x{k:g}", options={"mass_scale": k}, mus=mus) for k in (0.7, 1.5)),
+    )
 
 
-#: the conditions of version 1
-CONDITIONS: tuple[Condition, ...] = (
-    Condition("nominal", "nominal"),
-    *(Condition("sensing", f"force noise {n:g} N", {"sensor_noise_N": n}) for n in (0.05, 0.08, 0.1)),
-    *(Condition("sensing", f"force bias up to {b:g} N", {"force_bias_N": b}) for b in (0.05, 0.1)),
-    Condition("sensing", "slip sensed as a detector (binary)", {"slip_sensing": "binary"}),
-    Condition("sensing", "slip not sensed", {"slip_sensing": "absent"}),
-    Condition("sensing", "slip speed noise 0.1", {"slip_noise": 0.1}),
-    *(Condition("actuation", f"latency {k} step{'s' if k > 1 else ''}", {"latency_steps": (k, k)}) for k in (1, 2, 3)),
-    *(Condition("actuation", f"force-loop gain error up to {e:.0%}", {"force_loop_gain_error": e}) for e in (0.2, 0.4)),
-    Condition("actuation", "pinch ceiling 3 N", {"pinch_ceiling_N": 3.0}),
-    _placement(3.0, 5.0, 5.0),
-    _placement(5.0, 10.0, 10.0),
-    *(Condition("friction", f"mu {m:g}", mus=(m,)) for m in (0.1, 0.15, 1.2, 1.5)),
-    *(Condition("tissue", f"stiffness x{k:g}", options={"stiffness_scale": k}) for k in (0.5, 2.0)),
-    *(Condition("tissue", f"mass x{k:g}", options={"mass_scale": k}) for k in (0.7, 1.5)),
-)
+#: the conditions of version 2 (those of version 1 on the grid MUS)
+CONDITIONS: tuple[Condition, ...] = _conditions(MUS)
+#: the conditions of version 1 (on the grid MUS_V1), kept so that its results stay readable
+CONDITIONS_V1: tuple[Condition, ...] = _conditions(MUS_V1)
+#: the conditions a suite runs (its current version's)
 SUITES = {"robustness": CONDITIONS}
+
+
+@dataclasses.dataclass(frozen=True)
+class SuiteProtocol:
+    """One version of a suite's protocol: its friction grid, episodes per mu, conditions, and whether a condition at
+    fewer mu than the grid runs more episodes per mu so that every condition pools the same number."""
+
+    version: int
+    mus: tuple[float, ...]
+    episodes: int
+    conditions: tuple[Condition, ...]
+    pooled: bool
+
+    def episodes_per_mu(self, condition: Condition, episodes: int | None = None) -> int:
+        """Episodes per mu of ``condition`` when a run asks for ``episodes`` per mu of the grid (default the
+        protocol's): the same, or, pooled, enough that the condition pools ``episodes`` x the grid's mu count."""
+        n = self.episodes if episodes is None else int(episodes)
+        return math.ceil(n * len(self.mus) / len(condition.mus)) if self.pooled else n
+
+    def pooled_episodes(self, condition: Condition, episodes: int | None = None) -> int:
+        """The episodes ``condition`` pools over its mu."""
+        return self.episodes_per_mu(condition, episodes) * len(condition.mus)
+
+
+#: every version of each suite, by (suite, version)
+PROTOCOLS: dict[tuple[str, int], SuiteProtocol] = {
+    ("robustness", 1): SuiteProtocol(1, MUS_V1, EPISODES_V1, CONDITIONS_V1, pooled=False),
+    ("robustness", 2): SuiteProtocol(2, MUS, EPISODES, CONDITIONS, pooled=True),
+}
+
+
+def protocol_of(suite: str, version: int = SUITE_VERSION) -> SuiteProtocol:
+    """The protocol of ``suite`` at ``version`` (ConfigError naming the known ones for another)."""
+    if (suite, version) not in PROTOCOLS:
+        raise ConfigError(f"suite {suite!r} version {version!r} is not known; known: "
+                          + ", ".join(f"{s} v{v}" for s, v in PROTOCOLS))
+    return PROTOCOLS[suite, version]
 #: the hindsight oracle's axes: those inside a robust training's ranges whose conditions change the force a grasp
 #: needs (the tissue's conditions change it too, but lie outside every training's ranges)
 HINDSIGHT_AXES = ("nominal", "placement")
@@ -209,11 +282,19 @@ def _hindsight_cell(forces: dict[str, list[float | None]], minimal: dict[float, 
 
 
 def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, Any]:
-    """A policy's numbers in one condition, over its mu rows."""
+    """A policy's numbers in one condition, over its mu rows: the success rate of the pooled episodes with its Wilson
+    95 % interval and lower bound, the mean force ratio over mu, the mean time to lift over the pooled episodes that
+    lifted (s; NaN where none did)."""
     ratios = [r["mean_peak_pinch_N"] / minimal[r["mu"]] for r in rows
               if math.isfinite(minimal.get(r["mu"], math.nan))]
-    return {"success_rate": float(np.mean([r["success_rate"] for r in rows])),
+    successes = int(sum(sum(bool(v) for v in r["per_episode"]["success"]) for r in rows))
+    n = int(sum(r["episodes"] for r in rows))
+    lifts = [float(t) for r in rows for t in r["per_episode"]["time_to_lift_s"] if t is not None and math.isfinite(t)]
+    return {"success_rate": successes / n, "successes": successes, "episodes": n,
+            "success_ci95": list(wilson_interval(successes, n)),
+            "success_lower_bound": wilson_lower_bound(successes, n),
             "force_ratio": float(np.mean(ratios)) if ratios else math.nan,
+            "mean_time_to_lift_s": float(np.mean(lifts)) if lifts else math.nan,
             "max_peak_pressure_kPa": float(max(r["max_peak_stress_kPa"] for r in rows)),
             "mean_time_above_damage_s": float(np.mean([r["mean_time_above_damage_s"] for r in rows])),
             "outcomes": {k: sum(r["outcomes"].get(k, 0) for r in rows)
@@ -237,12 +318,16 @@ def select_conditions(suite: str, only: Sequence[str]) -> tuple[Condition, ...]:
     return tuple(c for k, c in enumerate(conditions) if k in wanted)
 
 
-def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int = EPISODES,
-              seed: int = 0, runner: Runner | None = None, progress: bool = True,
+def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int | None = None,
+              seed: int = EVALUATION_SEED, runner: Runner | None = None, progress: bool = True,
               hindsight: bool = False, only: Sequence[str] | None = None) -> dict[str, Any]:
-    """Run ``suite`` on every policy spec and the baselines; write ``suite_<suite>.json`` and
-    ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and every model loaded before any
-    episode runs. ``runner``: each (policy, condition) a job (local processes or Ray), same numbers as without.
+    """Run ``suite`` (its current version, :data:`SUITE_VERSION`) on every policy spec and the baselines; write
+    ``suite_<suite>.json`` and ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and
+    every model loaded before any episode runs. ``episodes``: per mu of a condition on the whole grid (default the
+    protocol's, :data:`EPISODES`; fewer run, marked ``"protocol": false``); a condition at fewer mu runs more per mu,
+    so each pools ``episodes`` x the grid's mu count. ``seed``: episode i at every mu is reset with ``seed + i``
+    (default the sealed evaluation seeds; another is recorded as not sealed). ``runner``: each (policy, condition) a
+    job (local processes or Ray), same numbers as without.
     ``hindsight``: also search each episode's minimal fixed force in the conditions of HINDSIGHT_AXES
     (:func:`.controllers.episode_minimal_forces`; about 3 CPU-minutes per condition and mu): what a policy that
     grips every episode with just enough force would reach there. ``only``: run these of the suite's conditions
@@ -250,12 +335,18 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     not the suite's."""
     if suite not in SUITES:
         raise ConfigError(f"suite = {suite!r} is not known; choose one of {', '.join(map(repr, SUITES))}")
+    # the protocol's grid and episodes; its conditions are SUITES[suite]
+    protocol = dataclasses.replace(protocol_of(suite), conditions=SUITES[suite])
+    if episodes is None:
+        episodes = protocol.episodes
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
     conditions = SUITES[suite] if only is None else select_conditions(suite, only)
+    per_mu = [protocol.episodes_per_mu(cond, int(episodes)) for cond in conditions]
+    check_evaluation_seeds(seed, max(per_mu), "seed")
     specs = expand_policy_specs(policies)
     for spec in specs:
         check_policy_spec(spec)
@@ -271,20 +362,21 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     for p, payload in enumerate(payloads):
         for c, cond in enumerate(conditions):
             cfg = to_dict(condition_config(config, cond))
-            jobs.append((_suite_job, (payload, cfg, cond.mus, int(episodes), int(seed), dict(cond.options))))
+            jobs.append((_suite_job, (payload, cfg, cond.mus, per_mu[c], int(seed), dict(cond.options))))
             where.append((p, c))
     all_mus = sorted({m for cond in conditions for m in cond.mus})
     nominal = to_dict(config)
     jobs += [(_minimal_force_job, (nominal, m)) for m in all_mus]
     searched = [c for c, cond in enumerate(conditions) if hindsight and cond.axis in HINDSIGHT_AXES]
-    jobs += [(_hindsight_job, (to_dict(condition_config(config, conditions[c])), conditions[c].mus, int(episodes),
+    jobs += [(_hindsight_job, (to_dict(condition_config(config, conditions[c])), conditions[c].mus, per_mu[c],
                                int(seed), dict(conditions[c].options))) for c in searched]
 
     def done(k: int, res: Any) -> None:
         if progress and k < len(where):
             p, c = where[k]
             print(f"  {names[p]}: {conditions[c].name}: success "
-                  f"{np.mean([r['success_rate'] for r in res]):.2f}", file=sys.stderr)
+                  f"{np.mean([r['success_rate'] for r in res]):.3f} of {sum(r['episodes'] for r in res)} episodes",
+                  file=sys.stderr)
 
     t0 = time.perf_counter()
     if runner is None:
@@ -310,25 +402,40 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         cells = table[p]
         success = [c["success_rate"] for c in cells]
         ratios = [c["force_ratio"] for c in cells if math.isfinite(c["force_ratio"])]
+        lifts = [c["mean_time_to_lift_s"] for c in cells if math.isfinite(c["mean_time_to_lift_s"])]
         worst = int(np.argmin(success))
         in_range = [c for c, ok in zip(cells, inside) if ok]
         in_ratios = [c["force_ratio"] for c in in_range if math.isfinite(c["force_ratio"])]
+        # the score's interval: episodes resampled within each condition (a stratified bootstrap, conditions fixed)
+        outcomes = [np.array([[float(v) for r in c["rows"] for v in r["per_episode"]["success"]]]) for c in cells]
+        _, lo, hi = stratified_bootstrap_ci(outcomes, mean_of_runs)
         board.append({"policy": name, "spec": specs[p], "score": float(np.mean(success)),
+                      "score_ci95": [float(lo), float(hi)],
                       "mean_force_ratio": float(np.mean(ratios)) if ratios else math.nan,
+                      "mean_time_to_lift_s": float(np.mean(lifts)) if lifts else math.nan,
                       "worst_condition": conditions[worst].name, "worst_success_rate": success[worst],
+                      "worst_lower_bound": min(c["success_lower_bound"] for c in cells),
                       "in_range_worst_success_rate": min((c["success_rate"] for c in in_range), default=math.nan),
+                      "in_range_worst_lower_bound": min((c["success_lower_bound"] for c in in_range),
+                                                        default=math.nan),
                       "in_range_max_force_ratio": max(in_ratios, default=math.nan),
                       "max_peak_pressure_kPa": max(c["max_peak_pressure_kPa"] for c in cells)})
     order = sorted(range(len(board)), key=lambda p: (-board[p]["score"], board[p]["mean_force_ratio"]))
+    subset = len(conditions) < len(SUITES[suite])
     result = {
-        "suite": suite, "version": SUITE_VERSION, "episodes": int(episodes), "seed": int(seed),
-        "subset": len(conditions) < len(SUITES[suite]),
+        "suite": suite, "version": protocol.version, "episodes": int(episodes),
+        "protocol_episodes": protocol.episodes, "mu_grid": list(protocol.mus),
+        # the protocol as it stands: its episodes (or more) on every condition
+        "protocol": int(episodes) >= protocol.episodes and not subset,
+        "seed": int(seed), "seeds": seeds_record(int(seed), max(per_mu)),
+        "subset": subset,
         "seconds": round(time.perf_counter() - t0, 2), "runner": "this process" if runner is None else runner.label,
         "task_from": trained_on or "the benchmark task (TrainConfig().env)",
         "config": to_dict(config),
         "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
         "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
-        "conditions": [dataclasses.asdict(c) for c in conditions],
+        "conditions": [{**dataclasses.asdict(c), "episodes_per_mu": n, "pooled_episodes": n * len(c.mus)}
+                       for c, n in zip(conditions, per_mu)],
         "inside_training_ranges": inside,
         "hindsight": hindsight_cells if hindsight else None,
         "leaderboard": [board[p] for p in order],
@@ -347,39 +454,86 @@ def _num(x: float, fmt: str) -> str:
     return "-" if x is None or not math.isfinite(x) else format(x, fmt)
 
 
+def _success_text(cell: dict[str, Any]) -> str:
+    """A cell's success rate with its Wilson 95 % interval (version 2), or alone (version 1's cells have none)."""
+    ci = cell.get("success_ci95")
+    if not ci:
+        return f"{cell['success_rate']:.2f}"
+    return f"{cell['success_rate']:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]"
+
+
+def _seconds(x: float | None) -> str:
+    return "-" if x is None or not math.isfinite(x) else f"{x:.2f} s"
+
+
+def _protocol_notes(result: dict[str, Any], protocol: SuiteProtocol | None) -> list[str]:
+    """What keeps a result from being the protocol's, and whether its seeds are sealed, as lines of markdown."""
+    notes = []
+    if result.get("protocol") is False or result.get("subset"):
+        why = []
+        if result.get("subset"):
+            current = result["version"] == SUITE_VERSION or protocol is None
+            total = len(SUITES[result["suite"]]) if current else len(protocol.conditions)
+            why.append(f"a subset of the protocol: {len(result['conditions'])} of {total} conditions; its scores are "
+                       "not the suite's")
+        wanted = result.get("protocol_episodes", protocol.episodes if protocol is not None else None)
+        if wanted is not None and result["episodes"] < wanted:
+            why.append(f"{result['episodes']} episodes per mu where the protocol runs {wanted}")
+        notes.append("**Not the protocol**: " + "; ".join(why) + ".")
+    seeds = result.get("seeds")
+    if not isinstance(seeds, dict) or not seeds.get("sealed"):
+        notes.append("**Seeds not sealed**: the episodes are not drawn from the sealed evaluation seeds "
+                     "(agents/protocol.py); a development result, not a certified one.")
+    return notes
+
+
 def leaderboard_markdown(result: dict[str, Any]) -> str:
-    """The leaderboard and the per-condition table of a suite result."""
-    subset = (f" (a subset of the protocol: {len(result['conditions'])} of {len(SUITES[result['suite']])} "
-              "conditions; its scores are not the suite's)") if result.get("subset") else ""
+    """The leaderboard and the per-condition table of a suite result, of any version (:data:`PROTOCOLS`)."""
+    protocol = PROTOCOLS.get((result["suite"], result["version"]))
+    mus = result.get("mu_grid") or (list(protocol.mus) if protocol is not None else list(MUS))
+    subset = " (a subset of the protocol)" if result.get("subset") else ""
+    per_mu = [c.get("episodes_per_mu", result["episodes"]) for c in result["conditions"]]
+    pooled = sorted({c.get("pooled_episodes", n * len(c["mus"])) for c, n in zip(result["conditions"], per_mu)})
+    seed = result["seed"]
     lines = [f"# Robustness suite `{result['suite']}` v{result['version']}{subset}", "",
+             *(note for n in _protocol_notes(result, protocol) for note in (n, "")),
              f"{len(result['conditions'])} conditions, {result['episodes']} episodes per mu "
-             f"(mu {', '.join(f'{m:g}' for m in MUS)} unless the condition sets it), seeds {result['seed']}.."
-             f"{result['seed'] + result['episodes'] - 1}; task: {result['task_from']}. "
-             f"Score: success averaged over the conditions. Force ratio: mean peak pinch over the oracle's "
-             f"minimal slip-free force at that mu on the nominal task. "
+             f"(mu {', '.join(f'{m:g}' for m in mus)} unless the condition sets it; a condition at fewer mu runs "
+             f"more per mu), {' or '.join(map(str, pooled))} per condition, seeds {seed}..{seed + max(per_mu) - 1}; "
+             f"task: {result['task_from']}. "
+             "Score: success averaged over the conditions, with a 95% interval from a bootstrap of the episodes "
+             "within each condition. Success: the share of a condition's pooled episodes "
+             f"with its Wilson 95% interval; lower bound: the interval's low end. Force ratio: mean peak pinch over "
+             f"the oracle's minimal slip-free force at that mu on the nominal task. Time to lift: mean time until "
+             f"the lift target was first reached, over the episodes that reached it. "
              f"Damage threshold: {result['damage_pressure_kPa']:g} kPa (published, human bowel, 10 s grasps).", "",
              f"In training ranges: the {sum(result['inside_training_ranges'])} conditions (marked *) inside the "
-             "randomisation the task's model was trained on; each policy's worst success and largest force ratio "
-             "there.", "",
-             "| rank | policy | score | mean force ratio | in training ranges: worst success / max force ratio | "
+             "randomisation the task's model was trained on; each policy's worst success (and lowest lower bound) "
+             "and largest force ratio there.", "",
+             "| rank | policy | score | lowest lower bound | mean force ratio | mean time to lift | "
+             "in training ranges: worst success (lower bound) / max force ratio | "
              "worst condition (success) | max peak pressure kPa |",
-             "|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|"]
     for k, row in enumerate(result["leaderboard"], 1):
-        lines.append(f"| {k} | {row['policy']} | {row['score']:.3f} | {_num(row['mean_force_ratio'], '.2f')} | "
-                     f"{_num(row['in_range_worst_success_rate'], '.2f')} / "
+        ci = row.get("score_ci95")
+        score = f"{row['score']:.3f}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else "")
+        lines.append(f"| {k} | {row['policy']} | {score} | {_num(row.get('worst_lower_bound'), '.3f')} | "
+                     f"{_num(row['mean_force_ratio'], '.2f')} | {_seconds(row.get('mean_time_to_lift_s'))} | "
+                     f"{_num(row['in_range_worst_success_rate'], '.2f')} "
+                     f"({_num(row.get('in_range_worst_lower_bound'), '.2f')}) / "
                      f"{_num(row['in_range_max_force_ratio'], '.2f')} | "
                      f"{row['worst_condition']} ({row['worst_success_rate']:.2f}) | "
                      f"{_num(row['max_peak_pressure_kPa'], '.1f')} |")
     names = [r["policy"] for r in result["results"]]
     hind = result.get("hindsight")
-    lines += ["", "Success rate / force ratio per condition" + (
+    lines += ["", "Success [Wilson 95% interval] / force ratio / time to lift per condition" + (
         "; hindsight: the share of episodes a fixed force holds / the ratio of their mean minimal fixed force "
         "(each episode's own, found by search) to the nominal oracle's, what a policy gripping every episode "
         "with just enough would reach / the ratio of the smallest grip fixed per mu that holds "
         f"{FIXED_GRIP_SHARE:.0%} of the episodes, what a policy that knows mu but cannot tell the episodes apart "
         "needs:" if hind else ":"), "",
-              "| axis | condition | " + " | ".join(names) + (" | hindsight" if hind else "") + " |",
-              "|---|---|" + "---|" * (len(names) + bool(hind))]
+              "| axis | condition | episodes | " + " | ".join(names) + (" | hindsight" if hind else "") + " |",
+              "|---|---|---|" + "---|" * (len(names) + bool(hind))]
     for c, cond in enumerate(result["conditions"]):
         cells = [r["cells"][c] for r in result["results"]]
         extra = ""
@@ -388,6 +542,8 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
             extra = " | -" if h is None else (f" | {h['held_rate']:.2f} / {_num(h['force_ratio'], '.2f')} / "
                                               f"{_num(h.get('fixed_grip_ratio'), '.2f')}")
         mark = " *" if result["inside_training_ranges"][c] else ""
-        lines.append(f"| {cond['axis']} | {cond['name']}{mark} | " + " | ".join(
-            f"{x['success_rate']:.2f} / {_num(x['force_ratio'], '.2f')}" for x in cells) + extra + " |")
+        n = cond.get("pooled_episodes", per_mu[c] * len(cond["mus"]))
+        lines.append(f"| {cond['axis']} | {cond['name']}{mark} | {n} | " + " | ".join(
+            f"{_success_text(x)} / {_num(x['force_ratio'], '.2f')} / {_seconds(x.get('mean_time_to_lift_s'))}"
+            for x in cells) + extra + " |")
     return "\n".join(lines) + "\n"

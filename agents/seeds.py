@@ -4,12 +4,14 @@
 seed differs) into ``<out>/seed_<k>/`` (see :mod:`.training`), as its own job (``--workers`` local
 processes, default one per CPU core, each with one torch thread; or Ray tasks with ``--ray`` / ``--address``,
 :mod:`.parallel`); then every seed's ``best_model.zip`` runs
-``episodes`` evaluation episodes at every mu of ``mu_grid`` (the seeds of ``msdgrasp evaluate``, disjoint
-from the validation seeds), beside the slip-reactive controller and the oracle. Written into ``<out>``:
+``episodes`` evaluation episodes at every mu of ``mu_grid``, episode i reset with ``evaluation_seed + i``
+(default: the sealed evaluation seeds of ``msdgrasp evaluate``, :mod:`.protocol`, which no training or
+validation draws from), beside the slip-reactive controller and the oracle. Written into ``<out>``:
 
 * ``seeds.json``: per seed (success per mu, success over the reference range, mean peak pinch and its
-  ratio to the oracle's minimal slip-free force, training time and steps/s) and the aggregate over seeds
-  (mean, interquartile mean, min, max and a bootstrap 95% interval of the mean) of each metric;
+  ratio to the oracle's minimal slip-free force, mean time to lift, training time and steps/s) and the aggregate
+  over seeds (mean, interquartile mean, min, max and a bootstrap 95% interval of the mean) of each metric; the
+  seeds trained (``training_seeds``) and the evaluation's (``seeds``: first, count and whether they are sealed);
 * ``seeds.md``: the same as markdown tables;
 * ``learning_curves.png``: validation success and mean peak pinch vs training steps, one line per seed.
 
@@ -37,6 +39,7 @@ from .controllers import make_policy
 from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve, task_of
 from .learners.base import get_learner, learner_of_config, learner_of_run
 from .parallel import Job, Runner, land, run_in_folder
+from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
 from .stats import bootstrap_ci, iqm  # noqa: F401  (re-exported)
 
 #: friction values of the per-seed evaluation; REFERENCE_MU are the ones the headline numbers average
@@ -75,8 +78,12 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def aggregate(values: Sequence[float]) -> dict[str, Any]:
-    """mean, IQM, min, max and the bootstrap 95% interval of the mean of per-seed values."""
-    x = [float(v) for v in values]
+    """mean, IQM, min, max and the bootstrap 95% interval of the mean of per-seed values; a value that is NaN or
+    None (a seed with no episode to measure: no lift, no mu 0.2) is left out, and ``n`` counts the others."""
+    x = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    if not x:
+        nan = float("nan")
+        return {"n": 0, "mean": nan, "iqm": nan, "min": nan, "max": nan, "ci95": [nan, nan]}
     lo, hi = bootstrap_ci(x)
     return {"n": len(x), "mean": float(np.mean(x)), "iqm": iqm(x), "min": float(np.min(x)),
             "max": float(np.max(x)), "ci95": [lo, hi]}
@@ -88,7 +95,7 @@ def aggregate(values: Sequence[float]) -> dict[str, Any]:
 
 
 def _train_and_evaluate(run_dir: str, learner_name: str, config_dict: dict[str, Any], seed: int, episodes: int,
-                        mus: Sequence[float]) -> dict[str, Any]:
+                        mus: Sequence[float], evaluation_seed: int) -> dict[str, Any]:
     learner = get_learner(learner_name)
     config = learner.config_from_dict({**config_dict, "seed": seed}, where="seeds")
     run = Path(run_dir)
@@ -96,7 +103,7 @@ def _train_and_evaluate(run_dir: str, learner_name: str, config_dict: dict[str, 
     learner.train(config, run, progress=False)
     wall = time.perf_counter() - t0
     model = learner.shipped_model(run)  # the validated best, or the final model of a run without validation
-    rows = evaluate_policy(learner.load_policy(model, f"PPO seed {seed}"), mus, episodes, config.env)
+    rows = evaluate_policy(learner.load_policy(model, f"PPO seed {seed}"), mus, episodes, config.env, evaluation_seed)
     trained = learner.run_summary(run)
     return {"seed": seed, "run": str(run), "model": str(model), "train_wall_s": round(wall, 1),
             "train": {"timesteps": trained.agent_steps, "steps_per_s": trained.agent_steps_per_s}, "rows": rows,
@@ -109,9 +116,10 @@ def _validation_history(run: Path) -> list[dict[str, Any]]:
     return json.loads(log.read_text())["history"] if log.is_file() else []
 
 
-def _baselines(env_dict: dict[str, Any], episodes: int, mus: Sequence[float]) -> dict[str, Any]:
+def _baselines(env_dict: dict[str, Any], episodes: int, mus: Sequence[float], evaluation_seed: int) -> dict[str, Any]:
     env = from_dict(GraspLiftConfig, env_dict, where="env")
-    out = {name: evaluate_policy(make_policy(name, env), mus, episodes, env) for name in ("reactive", "oracle")}
+    out = {name: evaluate_policy(make_policy(name, env), mus, episodes, env, evaluation_seed)
+           for name in ("reactive", "oracle")}
     out["oracle_minimal_force"] = oracle_curve(env, mus)
     return out
 
@@ -125,6 +133,9 @@ def _row_metrics(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dic
     ref = [r for r in rows if round(r["mu"], 6) in {round(m, 6) for m in REFERENCE_MU}]
     low = [r for r in rows if round(r["mu"], 6) == 0.2]
     ratio = [r["mean_peak_pinch_N"] / minimal[round(r["mu"], 6)] for r in ref]
+    # (a row's mean over its lifted episodes; NaN, or null read back, where none lifted)
+    lift = [r["mean_time_to_lift_s"] for r in ref
+            if r["mean_time_to_lift_s"] is not None and math.isfinite(r["mean_time_to_lift_s"])]
     return {
         "success_by_mu": {f"{r['mu']:g}": r["success_rate"] for r in rows},
         "peak_pinch_by_mu": {f"{r['mu']:g}": round(r["mean_peak_pinch_N"], 4) for r in rows},
@@ -132,29 +143,36 @@ def _row_metrics(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dic
         "success_mu0.2": float(low[0]["success_rate"]) if low else float("nan"),
         "peak_pinch_ref_N": float(np.mean([r["mean_peak_pinch_N"] for r in ref])) if ref else float("nan"),
         "peak_pinch_over_oracle_min": float(np.mean(ratio)) if ratio else float("nan"),
+        "time_to_lift_ref_s": float(np.mean(lift)) if lift else float("nan"),
     }
 
 
 #: the per-seed metrics every multi-seed result aggregates
 #: (timesteps: the agent steps each seed trained, fewer than total_timesteps where validation_patience stopped it)
-AGGREGATED = ("success_ref", "success_mu0.2", "peak_pinch_ref_N", "peak_pinch_over_oracle_min", "train_wall_s",
-              "timesteps")
+AGGREGATED = ("success_ref", "success_mu0.2", "peak_pinch_ref_N", "peak_pinch_over_oracle_min", "time_to_lift_ref_s",
+              "train_wall_s", "timesteps")
 
 
-def check_run_args(out: Path, seeds: Sequence[int], episodes: int) -> None:
+def check_run_args(out: Path, seeds: Sequence[int], episodes: int, evaluation_seed: int = EVALUATION_SEED) -> None:
+    """ConfigError for an output path that is a file, no seed, episodes that are not an integer >= 1 or an
+    evaluation seed that is not an integer >= 0."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output folder {out} exists and is not a folder")
     if not seeds:
         raise ConfigError("give at least one seed")
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    check_evaluation_seeds(evaluation_seed, episodes, "evaluation_seed")
 
 
 def train_points(configs: Sequence[Any], folders: Sequence[Path], seeds: Sequence[int], runner: Runner,
-                 *, episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True) -> list[dict[str, Any]]:
+                 *, episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True,
+                 evaluation_seed: int = EVALUATION_SEED) -> list[dict[str, Any]]:
     """Train and evaluate every seed of every config (one job each, on ``runner``) into
-    ``folders[p]/seed_<k>``, beside the baselines of each distinct task. One result per config: the
-    per-seed records, their aggregate, the baselines and the oracle's minimal-force curve."""
+    ``folders[p]/seed_<k>``, beside the baselines of each distinct task; evaluation episode i is reset with
+    ``evaluation_seed + i``. One result per config: the per-seed records, their aggregate, the baselines and the
+    oracle's minimal-force curve. Every seed's config is validated (none reaches the sealed evaluation seeds,
+    :mod:`.protocol`) before the first job."""
     mus = [float(m) for m in mus]
     for c in configs:  # (every seed's inputs before the first job)
         for s in seeds:
@@ -170,13 +188,13 @@ def train_points(configs: Sequence[Any], folders: Sequence[Path], seeds: Sequenc
             tasks.append(key)
         task_of_point.append(tasks.index(key))
     # the baselines first: they take the first slots, then the seeds
-    jobs: list[Job] = [(_baselines, (json.loads(t), episodes, mus)) for t in tasks]
+    jobs: list[Job] = [(_baselines, (json.loads(t), episodes, mus, evaluation_seed)) for t in tasks]
     where = []
     for p, (cfg, folder) in enumerate(zip(cfg_dicts, folders)):
         for s in seeds:
             run_dir = Path(folder) / f"seed_{s}"
             jobs.append((run_in_folder, (_train_and_evaluate, str(run_dir), runner.driver_node, learners[p], cfg, s,
-                                         episodes, mus)))
+                                         episodes, mus, evaluation_seed)))
             where.append((p, run_dir))
 
     def done(k: int, res: Any) -> None:
@@ -217,9 +235,9 @@ def _point_result(base: dict[str, Any], recs: list[dict[str, Any]]) -> dict[str,
 
 
 def _evaluate_trained(seed: int, model: str, train: dict[str, Any], env_dict: dict[str, Any], episodes: int,
-                      mus: Sequence[float]) -> dict[str, Any]:
+                      mus: Sequence[float], evaluation_seed: int) -> dict[str, Any]:
     env = from_dict(GraspLiftConfig, env_dict, where="env")
-    rows = evaluate_policy(make_policy(model, env), mus, episodes, env)
+    rows = evaluate_policy(make_policy(model, env), mus, episodes, env, evaluation_seed)
     return {"seed": seed, "run": str(Path(model).parent), "model": model, "train_wall_s": train["train_s"],
             "train": {"timesteps": train["agent_steps"], "steps_per_s": train["agent_steps_per_s"]}, "rows": rows,
             "validation": _validation_history(Path(model).parent)}
@@ -228,26 +246,28 @@ def _evaluate_trained(seed: int, model: str, train: dict[str, Any], env_dict: di
 def report_trained_seeds(models: Sequence[tuple[int, str | Path, dict[str, Any]]], env: GraspLiftConfig,
                          out_dir: str | Path, config: dict[str, Any], *, episodes: int = 10,
                          mus: Sequence[float] = EVAL_MU, runner: Runner | None = None,
-                         progress: bool = True) -> dict[str, Any]:
+                         progress: bool = True, evaluation_seed: int = EVALUATION_SEED) -> dict[str, Any]:
     """The multi-seed report of policies trained elsewhere (the torch PPO's ``policy.pt``), made as
     :func:`run_seeds` makes SB3's: every seed's policy at every mu of ``mus`` on the same evaluation episodes,
     beside the baselines; ``seeds.json``, ``seeds.md`` and ``learning_curves.png`` (from each run's
     ``validation.json``, where it has one) in ``out_dir``. ``models``: (seed, policy file, its training summary with
-    ``train_s``, ``agent_steps`` and ``agent_steps_per_s``); ``config``: the training config, for the record."""
+    ``train_s``, ``agent_steps`` and ``agent_steps_per_s``); ``config``: the training config, for the record.
+    Evaluation episode i is reset with ``evaluation_seed + i`` (default: the sealed evaluation seeds)."""
     out = Path(out_dir)
     seeds = [int(s) for s, _, _ in models]
-    check_run_args(out, seeds, episodes)
+    check_run_args(out, seeds, episodes, evaluation_seed)
     mus = [float(m) for m in mus]
     if runner is None:
         runner = Runner.processes(min(len(seeds) + 1, os.cpu_count() or 1))
     env_dict = to_dict(env)
-    jobs: list[Job] = [(_baselines, (env_dict, episodes, mus))]
-    jobs += [(_evaluate_trained, (int(s), str(m), t, env_dict, episodes, mus)) for s, m, t in models]
+    jobs: list[Job] = [(_baselines, (env_dict, episodes, mus, evaluation_seed))]
+    jobs += [(_evaluate_trained, (int(s), str(m), t, env_dict, episodes, mus, evaluation_seed)) for s, m, t in models]
     t0 = time.perf_counter()
     with runner:
         results = runner.run(jobs)
         capacity = runner.capacity()
-    result = {"config": config, "seeds": seeds, "episodes_per_mu": episodes, "mu_grid": mus,
+    result = {"config": config, "training_seeds": seeds, "seeds": seeds_record(evaluation_seed, episodes),
+              "episodes_per_mu": episodes, "mu_grid": mus,
               "reference_mu": list(REFERENCE_MU), "workers": capacity, "runner": runner.label,
               "wall_s": round(time.perf_counter() - t0, 1), **_point_result(results[0], results[1:])}
     result["files"] = write_seed_report(result, out)
@@ -257,7 +277,8 @@ def report_trained_seeds(models: Sequence[tuple[int, str | Path, dict[str, Any]]
 
 
 def report_seed_runs(folder: str | Path, *, seeds: Sequence[int] | None = None, episodes: int = 10,
-                     runner: Runner | None = None, progress: bool = True) -> dict[str, Any]:
+                     runner: Runner | None = None, progress: bool = True,
+                     evaluation_seed: int = EVALUATION_SEED) -> dict[str, Any]:
     """The multi-seed report (:func:`report_trained_seeds`) of the runs ``folder/seed_<k>/`` of any one
     learner (``seeds``: only these; default every run there that ships a model), each seed's model
     evaluated on the task it was trained on. ConfigError where there is none, the runs mix learners or
@@ -286,28 +307,34 @@ def report_seed_runs(folder: str | Path, *, seeds: Sequence[int] | None = None, 
     first_learner, first_model = runs[0][2], runs[0][3]
     config = first_learner.config_dict_of_model(first_model)
     config.pop("seed", None)
-    return report_trained_seeds(models, env, folder, config, episodes=episodes, runner=runner, progress=progress)
+    return report_trained_seeds(models, env, folder, config, episodes=episodes, runner=runner, progress=progress,
+                                evaluation_seed=evaluation_seed)
 
 
 def run_seeds(config, seeds: Sequence[int], out_dir: str | Path, *, workers: int | None = None,
               episodes: int = 10, mus: Sequence[float] = EVAL_MU, progress: bool = True,
-              runner: Runner | None = None) -> dict[str, Any]:
+              runner: Runner | None = None, evaluation_seed: int = EVALUATION_SEED) -> dict[str, Any]:
     """Train and evaluate every seed (parallel jobs) and write seeds.json / seeds.md / learning_curves.png.
 
     ``runner`` says where the jobs run (default: ``workers`` local processes, one per core; see
-    :mod:`.parallel` for Ray)."""
+    :mod:`.parallel` for Ray). Evaluation episode i is reset with ``evaluation_seed + i`` (default: the sealed
+    evaluation seeds); a seed whose training would reach into them is refused before any job starts."""
     out = Path(out_dir)
     seeds = list(seeds)
-    check_run_args(out, seeds, episodes)
+    check_run_args(out, seeds, episodes, evaluation_seed)
+    for s in seeds:  # (ConfigError: the seed's training or validation episodes reach the sealed seeds)
+        replace(config, seed=s)
     if runner is None:
         runner = Runner.processes(workers if workers is not None else min(len(seeds), os.cpu_count() or 1))
     t0 = time.perf_counter()
     with runner:
-        res = train_points([config], [out], seeds, runner, episodes=episodes, mus=mus, progress=progress)[0]
+        res = train_points([config], [out], seeds, runner, episodes=episodes, mus=mus, progress=progress,
+                           evaluation_seed=evaluation_seed)[0]
         capacity = runner.capacity()
     result = {
         "config": to_dict(learner_of_config(config).one_core(config)),
-        "seeds": seeds,
+        "training_seeds": seeds,
+        "seeds": seeds_record(evaluation_seed, episodes),
         "episodes_per_mu": episodes,
         "mu_grid": [float(m) for m in mus],
         "reference_mu": list(REFERENCE_MU),
@@ -333,21 +360,37 @@ def fmt_value(x: float, digits: int = 3) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
+def seeds_line(record: dict[str, Any] | None) -> str:
+    """What a result's ``seeds`` record (:func:`.protocol.seeds_record`) says, as a sentence for its markdown."""
+    if not isinstance(record, dict):
+        return "Evaluation seeds not recorded: not a sealed result."
+    first, count = record["first"], record["count"]
+    span = f"{first}..{first + count - 1}"
+    if record.get("sealed"):
+        return f"Evaluation episodes reset with seeds {span}: sealed (no training, validation or tuning drew them)."
+    return (f"Evaluation episodes reset with seeds {span}: NOT sealed (outside the sealed evaluation seeds); a "
+            "development result, not a certified one.")
+
+
 def format_markdown(result: dict[str, Any]) -> str:
     """Per-seed and aggregate tables (markdown)."""
     mus = result["mu_grid"]
-    lines = [f"# Multi-seed result: {len(result['seeds'])} seeds, {result['episodes_per_mu']} episodes per mu", "",
+    trained = result.get("training_seeds", result["seeds"])
+    lines = [f"# Multi-seed result: {len(trained)} seeds, {result['episodes_per_mu']} episodes per mu", "",
+             seeds_line(result.get("seeds")), "",
              "Success = lifted and held without slip; peak pinch = mean over episodes of each episode's peak "
              "pinch force; ratio = peak pinch / the oracle's minimal slip-free force at that mu, averaged over "
-             "mu 0.3-0.9.", "",
+             "mu 0.3-0.9; time to lift = mean time until the lift target was first reached, over the episodes that "
+             "reached it, averaged over mu 0.3-0.9.", "",
              "| policy | " + " | ".join(f"mu {m:g}" for m in mus) + " | success 0.3-0.9 | peak pinch 0.3-0.9 (N) "
-             "| ratio to oracle min |",
-             "|---" * (len(mus) + 4) + "|"]
+             "| ratio to oracle min | time to lift 0.3-0.9 (s) |",
+             "|---" * (len(mus) + 5) + "|"]
 
     def row(name: str, rec: dict[str, Any]) -> str:
         cells = [f"{rec['success_by_mu'][f'{m:g}']:.1f} / {rec['peak_pinch_by_mu'][f'{m:g}']:.2f}" for m in mus]
         return (f"| {name} | " + " | ".join(cells) + f" | {fmt_value(rec['success_ref'])} | "
-                f"{fmt_value(rec['peak_pinch_ref_N'], 2)} | {fmt_value(rec['peak_pinch_over_oracle_min'], 2)} |")
+                f"{fmt_value(rec['peak_pinch_ref_N'], 2)} | {fmt_value(rec['peak_pinch_over_oracle_min'], 2)} | "
+                f"{fmt_value(rec.get('time_to_lift_ref_s', float('nan')), 2)} |")
 
     for rec in result["per_seed"]:
         lines.append(row(f"PPO (seed {rec['seed']})", rec))
@@ -355,7 +398,7 @@ def format_markdown(result: dict[str, Any]) -> str:
     lines.append(row(display_name("oracle"), result["baselines"]["oracle"]))
     curve = result["oracle_minimal_force"]
     lines.append("| oracle minimal force (N) | " + " | ".join(f"{f:.2f}" for f in curve["minimal_force_N"])
-                 + " | | | |")
+                 + " | | | | |")
     lines += ["", "Cells: success rate / mean peak pinch (N).", "",
               "## Aggregate over seeds", "",
               "| metric | mean | IQM | min | max | bootstrap 95% CI of the mean |", "|---|---|---|---|---|---|"]

@@ -10,17 +10,23 @@
       log_std_init: [-1.0, -2.0]
     seeds: 0-4                      # every point trains these seeds (>= 5 for a result)
     episodes: 10                    # evaluation episodes per mu and seed
+    evaluation_seed: 0              # evaluation episode i is reset with evaluation_seed + i
 
 Every point's config is built (and so validated) before any job starts: a bad key or value is a one-line
 error naming the point. All points x seeds are independent jobs, run together; each point's seeds land in
 ``<out>/point_<k>/`` with the same report as ``msdgrasp train --seeds`` (seeds.json, seeds.md,
 learning_curves.png), and the sweep's own ``sweep.json`` / ``sweep.md`` rank the points by the mean over
 seeds of success over mu 0.3-0.9, then by peak pinch relative to the oracle's minimal force.
+
+A sweep tunes on what it measures, so none of its seeds may reach the sealed evaluation seeds (:mod:`.protocol`):
+neither a point's training seeds (its envs, validation and demonstrations) nor its evaluation's; every one is checked
+before a job starts, and the reports record the evaluation's seeds as not sealed.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 import json
 import time
@@ -36,7 +42,9 @@ from .evaluation import nan_to_none
 from .learners.base import read_train_yaml
 from .models import TrainConfig
 from .parallel import Runner
-from .seeds import EVAL_MU, REFERENCE_MU, check_run_args, fmt_value, parse_seeds, train_points, write_seed_report
+from .protocol import check_not_sealed, seeds_record
+from .seeds import (EVAL_MU, REFERENCE_MU, check_run_args, fmt_value, parse_seeds, seeds_line, train_points,
+                    write_seed_report)
 
 #: most grid points of one sweep (each trains every seed)
 MAX_POINTS = 256
@@ -56,6 +64,9 @@ class SweepConfig:
     seeds: Str = "0-4"
     #: evaluation episodes per mu and seed
     episodes: Annotated[Int, Ge(1)] = 10
+    #: evaluation episode i of every point is reset with evaluation_seed + i: development seeds, never the sealed
+    #: evaluation seeds (a sweep tunes on them)
+    evaluation_seed: Annotated[Int, Ge(0)] = 0
     #: friction values of the evaluation (the headline averages mu 0.3-0.9 among them)
     mu_grid: Annotated[tuple[Annotated[Real, Ge(0), Le(10)], ...], MinLen(1)] = EVAL_MU
 
@@ -74,6 +85,8 @@ class SweepConfig:
         if n > MAX_POINTS:
             raise ConfigError(f"the grid has {n} points; allowed 1 ... {MAX_POINTS}")
         parse_seeds(self.seeds)
+        check_not_sealed(self.evaluation_seed, self.episodes, "evaluation_seed",
+                         via=f"evaluation episodes: evaluation_seed + i, i < episodes = {self.episodes}")
 
     @classmethod
     def load(cls, path: str | Path) -> "SweepConfig":
@@ -113,7 +126,8 @@ def _base_path(base: str) -> Path:
 
 
 def sweep_points(sweep: SweepConfig, where: str = "sweep") -> list[tuple[dict[str, Any], TrainConfig]]:
-    """Every grid point: (its values by dotted key, its validated TrainConfig)."""
+    """Every grid point: (its values by dotted key, its validated TrainConfig); each point is valid with every seed of
+    the sweep (none reaches the sealed evaluation seeds)."""
     base = read_train_yaml(_base_path(sweep.base))
     for key, value in sweep.set.items():
         _set_dotted(base, key, value)
@@ -125,7 +139,13 @@ def sweep_points(sweep: SweepConfig, where: str = "sweep") -> list[tuple[dict[st
         for key, value in params.items():
             _set_dotted(data, key, value)
         label = ", ".join(f"{key}={value}" for key, value in params.items())
-        points.append((params, from_dict(TrainConfig, data, where=f"{where} point {k} ({label})")))
+        config = from_dict(TrainConfig, data, where=f"{where} point {k} ({label})")
+        for seed in parse_seeds(sweep.seeds):
+            try:
+                dataclasses.replace(config, seed=seed)
+            except ConfigError as exc:
+                raise ConfigError(f"{where} point {k} ({label}), seeds {sweep.seeds}: {exc}") from None
+        points.append((params, config))
     return points
 
 
@@ -135,18 +155,20 @@ def run_sweep(sweep: SweepConfig, out_dir: str | Path, runner: Runner | None = N
     out = Path(out_dir)
     seeds = parse_seeds(sweep.seeds)
     points = sweep_points(sweep, where)  # every point validated before anything runs or is written
-    check_run_args(out, seeds, sweep.episodes)
+    check_run_args(out, seeds, sweep.episodes, sweep.evaluation_seed)
     runner = runner or Runner.processes()
     folders = [out / f"point_{k}" for k in range(len(points))]
     t0 = time.perf_counter()
     with runner:
         results = train_points([cfg for _, cfg in points], folders, seeds, runner, episodes=sweep.episodes,
-                               mus=sweep.mu_grid, progress=progress)
+                               mus=sweep.mu_grid, progress=progress, evaluation_seed=sweep.evaluation_seed)
         capacity = runner.capacity()
     wall = round(time.perf_counter() - t0, 1)
+    evaluated = seeds_record(sweep.evaluation_seed, sweep.episodes)
     records = []
     for k, ((params, cfg), res, folder) in enumerate(zip(points, results, folders)):
-        report = {"config": to_dict(cfg), "seeds": seeds, "episodes_per_mu": sweep.episodes,
+        report = {"config": to_dict(cfg), "training_seeds": seeds, "seeds": evaluated,
+                  "episodes_per_mu": sweep.episodes,
                   "mu_grid": [float(m) for m in sweep.mu_grid], "reference_mu": list(REFERENCE_MU),
                   "workers": capacity, "runner": runner.label, "wall_s": wall, **res}
         files = write_seed_report(report, folder)
@@ -155,8 +177,8 @@ def run_sweep(sweep: SweepConfig, out_dir: str | Path, runner: Runner | None = N
                         "per_seed": [{key: val for key, val in r.items() if key not in ("rows", "validation")}
                                      for r in res["per_seed"]]})
     ranking = sorted(range(len(records)), key=lambda k: _rank_key(records[k]))
-    result = {"sweep": to_dict(sweep), "seeds": seeds, "workers": capacity, "runner": runner.label, "wall_s": wall,
-              "ranking": ranking, "points": records}
+    result = {"sweep": to_dict(sweep), "training_seeds": seeds, "seeds": evaluated, "workers": capacity,
+              "runner": runner.label, "wall_s": wall, "ranking": ranking, "points": records}
     files = {"json": out / "sweep.json", "md": out / "sweep.md"}
     atomic_write_text(files["json"], json.dumps(nan_to_none(result), indent=2) + "\n")
     atomic_write_text(files["md"], format_sweep_markdown(result))
@@ -177,8 +199,9 @@ def format_sweep_markdown(result: dict[str, Any]) -> str:
     """One row per point (best first): its values and the aggregate over seeds, with the baselines below."""
     points = result["points"]
     keys = list(points[0]["params"]) if points else []
-    seeds = result["seeds"]
+    seeds = result.get("training_seeds", result["seeds"])
     lines = [f"# Sweep: {len(points)} points x {len(seeds)} seeds (seeds {', '.join(map(str, seeds))})", "",
+             seeds_line(result.get("seeds")) + " A sweep tunes on these episodes.", "",
              "Mean over seeds [bootstrap 95% CI]; success over mu 0.3-0.9; ratio = mean peak pinch / the oracle's "
              "minimal slip-free force. Ranked by success, then ratio. Per-seed tables: point_<k>/seeds.md.", "",
              "| rank | point | " + " | ".join(keys) + " | success 0.3-0.9 | worst seed | success mu 0.2 "

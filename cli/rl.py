@@ -80,11 +80,16 @@ def _runner(args: argparse.Namespace, default_workers: int | None = None):
 # ------------------------------------------------------------------------------------------------
 
 
-def _report_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, seeds=None) -> int:
-    """The multi-seed report of the runs folder/seed_<k>/ of any learner (agents.seeds.report_seed_runs)."""
+def _report_seeds(folder: Path, quiet: bool, episodes: int = 10, runner=None, seeds=None,
+                  evaluation_seed: int | None = None) -> int:
+    """The multi-seed report of the runs folder/seed_<k>/ of any learner (agents.seeds.report_seed_runs); its
+    evaluation on the sealed evaluation seeds unless ``evaluation_seed`` says otherwise."""
+    from ..agents.protocol import EVALUATION_SEED
     from ..agents.seeds import report_seed_runs
 
-    result = report_seed_runs(folder, seeds=seeds, episodes=episodes, runner=runner, progress=not quiet)
+    first = EVALUATION_SEED if evaluation_seed is None else evaluation_seed
+    result = report_seed_runs(folder, seeds=seeds, episodes=episodes, runner=runner, progress=not quiet,
+                              evaluation_seed=first)
     print(json.dumps({"files": result["files"], "aggregate": result["aggregate"]}, indent=2))
     return 0
 
@@ -94,15 +99,19 @@ def _cmd_report(args: argparse.Namespace) -> int:
     for runs made elsewhere, re-selected (``msdgrasp select``) or made before it wrote one."""
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    if args.seed < 0:
+        raise _usage(f"--seed must be >= 0, got {args.seed}")
     if not Path(args.folder).is_dir():
         raise _usage(f"{args.folder}: not a folder")
     runner = _runner(args, os.cpu_count() or 1) if _runner_asked(args) else None
     _require_plots("report")
-    return _report_seeds(Path(args.folder), args.quiet, args.episodes, runner)
+    return _report_seeds(Path(args.folder), args.quiet, args.episodes, runner, evaluation_seed=args.seed)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
     """``msdgrasp train``: any learner by name (agents.learners); one run, a resumed run, or --seeds."""
+    from dataclasses import replace
+
     from ..agents.learners import TrainOverrides, default_learner, get_learner, learner_of_config, learner_of_run
     from ..physics.config import ConfigError
 
@@ -141,6 +150,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     else:
         config = learner.make_config(args.config, overrides)
         learner = learner_of_config(config)  # (the config's algo where --learner named none)
+    if args.seeds is not None:
+        from ..agents.seeds import parse_seeds
+
+        seeds = parse_seeds(args.seeds)
+        for seed in seeds:  # every seed's config is valid (none reaches the sealed evaluation seeds) before one trains
+            replace(config, seed=seed)
     try:
         learner.check_available()
     except ImportError as exc:
@@ -155,12 +170,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.seeds is None:
         print(json.dumps(learner.train(config, out, progress=not args.quiet), indent=2))
         return 0
-    from ..agents.seeds import parse_seeds, run_seeds
+    from ..agents.seeds import run_seeds
 
-    seeds = parse_seeds(args.seeds)
     if not learner.parallel_seeds:  # one after the other, then the report of exactly these seeds
-        from dataclasses import replace
-
         for seed in seeds:
             learner.train(replace(config, seed=seed), out / f"seed_{seed}", progress=not args.quiet)
         return _report_seeds(out, args.quiet, seeds=seeds)
@@ -218,8 +230,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.condition:
         raise _usage("--condition needs --suite robustness (it picks the suite's conditions)")
     mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
+    if args.episodes is None:
+        args.episodes = 10
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    if args.seed < 0:
+        raise _usage(f"--seed must be >= 0, got {args.seed}")
     if args.n_envs is not None and args.n_envs < 1:
         raise _usage(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
@@ -236,8 +252,19 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     curve = result["oracle_minimal_force"]
     print("oracle minimal force (N): " + ", ".join(
         f"mu={m:g}: {f:.2f}" for m, f in zip(curve["mu"], curve["minimal_force_N"])))
+    print(_seeds_sentence(result["seeds"]))
     print(json.dumps({**result["files"], "recordings": result["recordings"]}, indent=2))
     return 0
+
+
+def _seeds_sentence(record: dict) -> str:
+    """One line on an evaluation's seeds: sealed, or not (agents/protocol.py)."""
+    span = f"{record['first']}..{record['first'] + record['count'] - 1}"
+    from ..agents.protocol import sealed_range_text
+
+    if record["sealed"]:
+        return f"evaluation seeds {span}: sealed"
+    return f"evaluation seeds {span}: NOT sealed, outside {sealed_range_text()} (a development result)"
 
 
 def _training_task(path: Path, policies: list[str]):
@@ -266,8 +293,10 @@ def _cmd_suite(args: argparse.Namespace) -> int:
     if fixed:
         raise _usage(f"evaluate --suite {args.suite}: the suite fixes its conditions, mu and batches; drop "
                      + ", ".join(fixed))
-    if args.episodes < 1:
+    if args.episodes is not None and args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    if args.seed < 0:
+        raise _usage(f"--seed must be >= 0, got {args.seed}")
     policies = args.policy or _default_policies()
     runner = _runner(args) if _runner_asked(args) else None
     result = run_suite(policies, args.out, args.suite, episodes=args.episodes, seed=args.seed, runner=runner,
@@ -279,9 +308,11 @@ def _cmd_suite(args: argparse.Namespace) -> int:
 
 def _cmd_collect(args: argparse.Namespace) -> int:
     from ..agents.demonstrations import collect
+    from ..agents.protocol import check_not_sealed
 
     if args.episodes < 1:
         raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+    check_not_sealed(args.seed, args.episodes, "--seed", via=f"episodes: seed + i, i < {args.episodes}")
     card = collect(args.policy, args.episodes, args.out, dataset_id=args.dataset_id, seed=args.seed,
                    progress=not args.quiet, train_config=args.config)
     print(json.dumps({k: card[k] for k in ("dataset_id", "path", "policy", "episodes", "success_rate", "steps",
@@ -290,11 +321,12 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
 
 def _cmd_clone(args: argparse.Namespace) -> int:
-    from ..agents.offline import CLONE_EPOCHS, clone
+    from ..agents.offline import CLONE_EPOCHS, check_clone_seed, clone
 
     epochs = CLONE_EPOCHS if args.epochs is None else args.epochs
     if epochs < 1:
         raise _usage(f"--epochs must be >= 1, got {epochs}")
+    check_clone_seed(args.seed)
     print(json.dumps(clone(args.dataset_id, args.out, args.datasets, epochs=epochs, seed=args.seed), indent=2))
     return 0
 
@@ -302,6 +334,7 @@ def _cmd_clone(args: argparse.Namespace) -> int:
 def _cmd_fit_friction(args: argparse.Namespace) -> int:
     from ..agents.friction_fit import fit_friction_estimator
     from ..agents.models import TrainConfig
+    from ..agents.protocol import check_not_sealed
 
     if args.episodes < 2:
         raise _usage(f"--episodes must be >= 2, got {args.episodes}")
@@ -311,6 +344,7 @@ def _cmd_fit_friction(args: argparse.Namespace) -> int:
         raise _usage(f"--pull must be in (0, 1], got {args.pull}")
     if args.out.suffix != ".json":
         raise _usage(f"--out must be a .json file, got {args.out}")
+    check_not_sealed(args.seed, args.episodes, "--seed", via=f"fitting episodes: seed + i, i < {args.episodes}")
     config = TrainConfig.load(args.config)
     what = f"{args.config}: {args.episodes} episodes of its training task, reset seeds from {args.seed}"
     est, report = fit_friction_estimator(config.training_task(), args.episodes, args.seed, args.probe, args.pull,
@@ -393,7 +427,11 @@ def _cmd_select(args: argparse.Namespace) -> int:
 
 def add_rl_commands(sub) -> None:
     """Add train / evaluate / record / replay / soak to the ``msdgrasp`` subparsers ``sub``."""
+    from ..agents.protocol import EVALUATION_SEED, sealed_range_text
+
     names = _learner_names()
+    sealed = sealed_range_text()
+    refused = f"seeds that would reach the sealed evaluation seeds {sealed} are refused (exit 2)"
     t = sub.add_parser("train", help=f"train a grasp policy (learners: {', '.join(names)}; docs/learners.md)")
     t.add_argument("--config", type=Path, default=None,
                    help="training config (default: the learner's built-in one, configs/train/ppo.yaml for SB3)")
@@ -404,10 +442,14 @@ def add_rl_commands(sub) -> None:
                         "--backend cpu configs/train/rsl_ppo_cpu.yaml)")
     t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
     t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
-    t.add_argument("--seed", type=int, default=None, help="random seed (one run)")
+    t.add_argument("--seed", type=int, default=None,
+                   help="random seed (one run): its training envs are reset with seed + i, its validation episodes "
+                        f"with seed + 100000 + i; {refused}")
     t.add_argument("--seeds", default=None, metavar="RANGE",
                    help="train several seeds in parallel processes and evaluate each, e.g. 0-4 or 0,3,7: "
-                        "writes seed_<k>/ runs and seeds.json, seeds.md, learning_curves.png (aggregate over seeds)")
+                        "writes seed_<k>/ runs and seeds.json, seeds.md, learning_curves.png (aggregate over seeds); "
+                        f"the evaluation's episodes are reset with the sealed evaluation seeds from {EVALUATION_SEED}; "
+                        f"training {refused}")
     _add_runner_args(t, "the seeds of --seeds")
     t.add_argument("--out", type=Path, default=None,
                    help="output folder (default logs/train; logs/train_torch for --learner rsl)")
@@ -419,7 +461,9 @@ def add_rl_commands(sub) -> None:
     t.set_defaults(func=_cmd_train)
 
     sw = sub.add_parser("sweep", help="hyper-parameter sweep: a grid of training configs, each over several seeds")
-    sw.add_argument("config", type=Path, help="sweep file (base, set, grid, seeds, episodes; see agents/sweep.py)")
+    sw.add_argument("config", type=Path,
+                    help="sweep file (base, set, grid, seeds, episodes, evaluation_seed; see agents/sweep.py); a sweep "
+                         f"tunes on what it measures: {refused}")
     sw.add_argument("--out", type=Path, default=Path("logs") / "sweep", help="output folder (default logs/sweep)")
     sw.add_argument("--dry-run", action="store_true", help="validate and list the points, run nothing")
     _add_runner_args(sw, "the points' seeds")
@@ -438,9 +482,10 @@ def add_rl_commands(sub) -> None:
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
                         "and the unseen 0.15, 0.2, 1.0, 1.2)")
     e.add_argument("--suite", choices=("robustness",), default=None,
-                   help="run a versioned protocol instead of the mu grid: robustness (sensing, actuation, placement, "
-                        "friction and tissue outside training; agents/robustness.py): suite_<name>.json and "
-                        "leaderboard_<name>.md in --out")
+                   help="run a versioned protocol instead of the mu grid: robustness v2 (sensing, actuation, "
+                        "placement, friction and tissue outside training; mu 0.2, 0.3, 0.5, 0.8 x 19 episodes, 76 "
+                        "per condition, each with its success's Wilson 95%% interval; agents/robustness.py): "
+                        "suite_<name>.json and leaderboard_<name>.md in --out")
     e.add_argument("--condition", action="append", default=None, metavar="AXIS|NAME",
                    help="with --suite: run only these conditions (repeatable): an axis (nominal, sensing, actuation, "
                         "placement, friction, tissue) or a condition's name as the leaderboard writes it; the "
@@ -455,9 +500,14 @@ def add_rl_commands(sub) -> None:
                         "evaluation.json and the table: what that training's reward makes of each controller)")
     e.add_argument("--no-unseen", action="store_true",
                    help="skip the unseen tissues (stiffness 0.6 / 1.5, mass 0.8 / 1.25 at mu 0.5)")
-    e.add_argument("--episodes", type=int, default=10, help="episodes per policy and mu (default 10)")
+    e.add_argument("--episodes", type=int, default=None,
+                   help="episodes per policy and mu (default 10; with --suite the protocol's 19 per mu of the "
+                        "grid, 76 per condition: fewer run, marked not the protocol)")
     e.add_argument("--n-envs", type=int, default=None, help="batch size (default: all episodes of one mu at once)")
-    e.add_argument("--seed", type=int, default=0, help="episode i is seeded seed + i (default 0)")
+    e.add_argument("--seed", type=int, default=EVALUATION_SEED,
+                   help=f"episode i is reset with seed + i (default {EVALUATION_SEED}, the first of the sealed "
+                        f"evaluation seeds {sealed}, which no training, validation, fit or sweep may use; the result "
+                        "records its seeds and whether they are sealed: another seed makes a development result)")
     e.add_argument("--out", type=Path, default=Path("logs") / "evaluate", help="output folder (default logs/evaluate)")
     e.add_argument("--record", action="store_true", help="also record one episode per policy and mu (.rrd)")
     e.add_argument("--video", action="store_true", help="also write one video per policy and mu (videos/*.mp4)")
@@ -473,7 +523,8 @@ def add_rl_commands(sub) -> None:
                     help="a controller's episodes are drawn from this training's randomised task (default: the "
                          "benchmark task's own randomisation)")
     co.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
-    co.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i (default 0)")
+    co.add_argument("--seed", type=int, default=0,
+                    help=f"episode i is reset with seed + i (default 0); a dataset is for training: {refused}")
     co.add_argument("--dataset-id", default=None,
                     help="Minari id, (namespace/)name-v<version> (default msdgrasp/grasplift/<policy>-v0)")
     co.add_argument("--out", type=Path, default=Path("logs") / "datasets",
@@ -487,7 +538,8 @@ def add_rl_commands(sub) -> None:
                     help="its training task gives the episodes (their sensing and placement errors); its env the "
                          "minimal-force table")
     ff.add_argument("--episodes", type=int, default=768, help="episodes to fit on (default 768)")
-    ff.add_argument("--seed", type=int, default=20000, help="episode i is reset with seed + i (default 20000)")
+    ff.add_argument("--seed", type=int, default=20000,
+                    help=f"episode i is reset with seed + i (default 20000); {refused}")
     ff.add_argument("--probe", type=float, default=0.7, help="the grip the jaws close to, N (default 0.7)")
     ff.add_argument("--pull", type=float, default=0.3,
                     help="the controller's pull speed, a fraction of the top speed, for the force table (default 0.3)")
@@ -502,7 +554,9 @@ def add_rl_commands(sub) -> None:
                     help="output folder: best_model.zip + .yaml (evaluate it as --policy OUT/best_model.zip)")
     cl.add_argument("--epochs", type=int, default=None,
                     help="passes over the dataset (default: agents.offline.CLONE_EPOCHS, 40)")
-    cl.add_argument("--seed", type=int, default=0, help="network initialisation and minibatch order (default 0)")
+    cl.add_argument("--seed", type=int, default=0,
+                    help="network initialisation and minibatch order (default 0); the clone's config seeds envs "
+                         f"and validation from it as a training does: {refused}")
     cl.set_defaults(func=_cmd_clone)
 
     rp = sub.add_parser("report", help="the multi-seed report (seeds.json / seeds.md) of the runs DIR/seed_<k>/")
@@ -510,12 +564,16 @@ def add_rl_commands(sub) -> None:
                     help="a folder of train --seeds runs (seed_<k>/ of any one learner), "
                          "or of msdgrasp select's picks; the report is written there")
     rp.add_argument("--episodes", type=int, default=10, help="episodes per seed and mu (default 10)")
+    rp.add_argument("--seed", type=int, default=EVALUATION_SEED,
+                    help=f"evaluation episode i is reset with seed + i (default {EVALUATION_SEED}, the first of the "
+                         f"sealed evaluation seeds {sealed}; seeds.json records whether they are sealed)")
     _add_runner_args(rp, "every seed's evaluation")
     rp.add_argument("--quiet", action="store_true", help="no progress output")
     rp.set_defaults(func=_cmd_report)
 
     sl = sub.add_parser("select", help="validate a finished run's checkpoints again (more episodes, other mu) "
-                                       "and write the best into a new folder")
+                                       "and write the best into a new folder; its validation episodes are the run's "
+                                       f"(seed + 100000 + i): {refused}")
     sl.add_argument("run", type=Path, metavar="RUN",
                     help="a run folder of train (SB3) or train --learner rsl, or a folder of their seed_<k>/ runs")
     sl.add_argument("--out", type=Path, required=True,

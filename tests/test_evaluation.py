@@ -20,9 +20,10 @@ import pytest
 from msdgrasp.cli.main import build_parser, main
 from msdgrasp.agents.controllers import FixedForcePolicy, OraclePolicy, minimal_force
 from msdgrasp.agents.evaluation import CSV_COLUMNS, PULL_STARTED_M, evaluate_policy, parse_mu_grid
+from msdgrasp.agents.protocol import EVALUATION_SEED
 from msdgrasp.envs.core import GraspLiftConfig
 from msdgrasp.envs.grasp_lift import GraspLiftEnv
-from msdgrasp.physics.config import ConfigError
+from msdgrasp.physics.config import ConfigError, from_dict
 
 CONFIG = GraspLiftConfig()
 ORACLE_MUS = (0.3, 0.9)
@@ -166,7 +167,11 @@ def test_cli_evaluate_writes_the_four_files(cli_run):
         (name, mu, 2) for name in (FIXED_NAME, "reactive", "oracle") for mu in (0.5, 0.6)]
     data = json.loads((out / "evaluation.json").read_text())
     assert data["config"]["randomization"]["mu_range"] == list(CONFIG.randomization.mu_range)
-    assert data["evaluation"]["mu_grid"] == [0.5, 0.6] and data["evaluation"]["seeds"] == [0, 1]
+    assert data["evaluation"]["mu_grid"] == [0.5, 0.6]
+    # the sealed evaluation seeds by default, and the result says so
+    assert data["evaluation"]["seeds"] == [EVALUATION_SEED, EVALUATION_SEED + 1]
+    assert data["seeds"] == {"first": EVALUATION_SEED, "count": 2, "sealed": True}
+    assert f"evaluation seeds {EVALUATION_SEED}..{EVALUATION_SEED + 1}: sealed" in stdout
     pol = data["results"][0]
     assert [p["spec"] for p in data["results"]] == ["fixed", "reactive", "oracle"]
     assert pol["spec"] == "fixed" and pol["name"] == FIXED_NAME and len(pol["rows"]) == 2
@@ -181,22 +186,23 @@ def test_cli_evaluate_writes_the_four_files(cli_run):
 
 
 def _hand_episode(env: GraspLiftEnv, seed: int, mu: float) -> dict[str, float]:
-    """One episode of the default fixed-force policy on a single env, metrics from the infos alone."""
-    policy = FixedForcePolicy(CONFIG)
+    """One episode of the default fixed-force policy on a single env (on its task), metrics from the infos alone."""
+    config = env.config
+    policy = FixedForcePolicy(config)
     obs, info = env.reset(seed=seed, options={"mu": mu})
     policy.reset([info])
     pinches, stresses, ttl, before_pull, setpoints = [], [], float("nan"), 0.0, []
-    for step in range(1, CONFIG.max_episode_steps + 1):
+    for step in range(1, config.max_episode_steps + 1):
         action = policy.act(obs[None])[0]
-        setpoints.append((0.5 * (np.clip(action[0], -1, 1) + 1)) ** CONFIG.pinch_action_exponent
-                         * CONFIG.max_pinch_force_N)
+        setpoints.append((0.5 * (np.clip(action[0], -1, 1) + 1)) ** config.pinch_action_exponent
+                         * config.max_pinch_force_N)
         obs, _, terminated, truncated, info = env.step(action)
         pinches.append(info["pinch_force_N"])
         if info["travel_m"] < PULL_STARTED_M:  # the grasper has not started pulling yet
             before_pull = max(before_pull, info["pinch_force_N"])
         stresses.append(info["peak_stress_pa"])
-        if math.isnan(ttl) and info["lifted_m"] >= CONFIG.lift_target_m:
-            ttl = step * CONFIG.agent_dt_s
+        if math.isnan(ttl) and info["lifted_m"] >= config.lift_target_m:
+            ttl = step * config.agent_dt_s
         if terminated or truncated:
             break
     return {"success": bool(info["is_success"]), "peak_pinch_N": max(pinches), "mean_pinch_N": float(np.mean(pinches)),
@@ -210,8 +216,9 @@ def test_json_values_match_episodes_run_by_hand(cli_run):
     assert rc == 0, stderr
     data = json.loads((out / "evaluation.json").read_text())
     row = next(r for r in data["results"][0]["rows"] if r["mu"] == 0.5)
-    env = GraspLiftEnv(CONFIG)
-    hand = [_hand_episode(env, seed, 0.5) for seed in (0, 1)]
+    # (the task the command evaluates controllers on: the benchmark task)
+    env = GraspLiftEnv(from_dict(GraspLiftConfig, data["config"], where="evaluation.json"))
+    hand = [_hand_episode(env, seed, 0.5) for seed in (EVALUATION_SEED, EVALUATION_SEED + 1)]
     per = row["per_episode"]
     assert per["success"] == [h["success"] for h in hand]
     assert per["steps"] == [h["steps"] for h in hand]
@@ -266,8 +273,9 @@ def test_rl_subcommands_are_wired():
     assert a.config is None and a.out is None and a.backend is None
     assert parser.parse_args(["train", "--learner", "rsl"]).learner == "rsl"
     e = parser.parse_args(["evaluate"])
+    # (--episodes: 10 on the mu grid, the protocol's with --suite; --seed: the first sealed evaluation seed)
     assert (e.policy, e.mu_grid, e.episodes, e.seed, e.out, e.record) == (
-        None, None, 10, 0, Path("logs/evaluate"), False)
+        None, None, None, EVALUATION_SEED, Path("logs/evaluate"), False)
     r = parser.parse_args(["record", "--policy", "fixed"])
     assert (r.mu, r.out) == (0.5, Path("logs/record/episode.rrd"))
     s = parser.parse_args(["soak"])

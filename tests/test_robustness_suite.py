@@ -13,7 +13,10 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents import robustness
-from msdgrasp.agents.robustness import CONDITIONS, SUITE_VERSION, Condition, condition_config
+from msdgrasp.agents.protocol import EVALUATION_SEED, SEALED_SEEDS
+from msdgrasp.agents.robustness import (CONDITIONS, CONDITIONS_V1, EPISODES, MUS, POOLED_EPISODES, PROTOCOLS,
+                                        SUITE_VERSION, Condition, condition_config)
+from msdgrasp.agents.stats import episodes_for_lower_bound, wilson_lower_bound
 from msdgrasp.agents.training import TrainConfig
 from msdgrasp.cli.main import main
 
@@ -35,7 +38,7 @@ def test_the_protocol_covers_every_axis_at_the_levels_it_names():
     axes = {c.axis for c in CONDITIONS}
     assert axes == {"nominal", "sensing", "actuation", "placement", "friction", "tissue"}
     names = [c.name for c in CONDITIONS]
-    assert len(set(names)) == len(names) and SUITE_VERSION == 1
+    assert len(set(names)) == len(names) and SUITE_VERSION == 2
     # the levels the protocol promises: force noise up to 0.1 N, latency up to 3 steps, placement up to 5 mm / 10 deg
     assert max(c.randomization.get("sensor_noise_N", 0) for c in CONDITIONS) == 0.1
     assert max(c.randomization.get("latency_steps", (0, 0))[1] for c in CONDITIONS) == 3
@@ -46,6 +49,28 @@ def test_the_protocol_covers_every_axis_at_the_levels_it_names():
         cfg = condition_config(base, c)
         changed = {k for k, v in vars(cfg.randomization).items() if v != getattr(base.randomization, k)}
         assert changed == set(c.randomization), c.name
+
+
+def test_version_2_pools_enough_episodes_per_condition_for_a_95_percent_lower_bound():
+    """Version 2: mu 0.2 joins the in-range grid; every condition, those at one mu too, pools at least the fewest
+    episodes whose all-success Wilson 95 % lower bound reaches 0.95 (73), and no fewer per mu than the grid gives."""
+    assert MUS == (0.2, 0.3, 0.5, 0.8) and EPISODES * len(MUS) == POOLED_EPISODES == 76
+    need = episodes_for_lower_bound(0.95)
+    assert need == 73 and wilson_lower_bound(need, need) >= 0.95 > wilson_lower_bound(need - 1, need - 1)
+    v2 = PROTOCOLS["robustness", 2]
+    assert v2.conditions == CONDITIONS and v2.version == SUITE_VERSION
+    for c in CONDITIONS:
+        assert v2.pooled_episodes(c) >= need and v2.episodes_per_mu(c) >= EPISODES, c.name
+        assert c.axis == "friction" or c.mus == MUS
+    assert v2.episodes_per_mu(Condition("friction", "mu 0.1", mus=(0.1,))) == 76
+    assert v2.pooled_episodes(CONDITIONS[0], 2) == 8  # (fewer episodes: not the protocol, but still pooled)
+    # version 1 stays defined as it ran: 0.3, 0.5, 0.8 x 10 per mu, a friction condition 10
+    v1 = PROTOCOLS["robustness", 1]
+    assert v1.mus == (0.3, 0.5, 0.8) and v1.episodes == 10 and v1.conditions == CONDITIONS_V1
+    assert [c.name for c in CONDITIONS_V1] == [c.name for c in CONDITIONS]
+    assert {c.name: v1.pooled_episodes(c) for c in CONDITIONS_V1 if c.axis == "friction"} == {
+        "mu 0.1": 10, "mu 0.15": 10, "mu 1.2": 10, "mu 1.5": 10}
+    assert {v1.pooled_episodes(c) for c in CONDITIONS_V1 if c.axis != "friction"} == {30}
 
 
 def test_a_condition_is_inside_the_training_ranges_where_every_level_it_sets_was_trained():
@@ -73,6 +98,12 @@ def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_gri
     assert rc == 0, err
     data = json.loads((tmp_path / "suite_robustness.json").read_text())
     assert data["version"] == SUITE_VERSION and data["episodes"] == 1 and data["damage_pressure_kPa"] == 330.0
+    # one episode per mu of the grid's four: a condition at one mu pools four; fewer than the protocol's 19
+    assert data["protocol"] is False and data["protocol_episodes"] == EPISODES
+    assert [c["pooled_episodes"] for c in data["conditions"]] == [len(MUS)] * 2
+    # the sealed evaluation seeds by default, recorded as such
+    assert data["seeds"] == {"first": EVALUATION_SEED, "count": len(MUS), "sealed": True}
+    assert data["seed"] == EVALUATION_SEED == SEALED_SEEDS.start
     # (the slip-feedback controller too: the default training's task has its interface)
     assert {r["spec"] for r in data["leaderboard"]} == {"fixed", "reactive", "oracle", "slipfeedback"}
     scores = [r["score"] for r in data["leaderboard"]]
@@ -81,14 +112,52 @@ def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_gri
         for cell in res["cells"]:
             [row] = cell["rows"]
             assert cell["success_rate"] == row["success_rate"] and row["mu"] == 0.5
+            assert row["episodes"] == cell["episodes"] == 4
+            # the Wilson interval and its lower bound over the pooled episodes
+            wins = sum(row["per_episode"]["success"])
+            assert cell["successes"] == wins and cell["success_lower_bound"] == wilson_lower_bound(wins, 4)
+            lo, hi = cell["success_ci95"]
+            assert lo == cell["success_lower_bound"] <= cell["success_rate"] <= hi
             assert math.isclose(cell["force_ratio"], row["mean_peak_pinch_N"] / 1.25)
+            lifted = [t for t in row["per_episode"]["time_to_lift_s"] if t is not None and math.isfinite(t)]
+            if lifted:
+                assert math.isclose(cell["mean_time_to_lift_s"], np.mean(lifted))
+            else:
+                assert cell["mean_time_to_lift_s"] is None
             assert cell["mean_time_above_damage_s"] >= 0.0 and cell["max_peak_pressure_kPa"] >= 0.0
     assert data["inside_training_ranges"] == [True, False]  # (the default training: nominal, no latency)
     for row in data["leaderboard"]:
         assert row["in_range_worst_success_rate"] == row_of(data, row["spec"], "nominal")["success_rate"]
+        # the score's bootstrap interval brackets it; the lowest lower bound is the worst condition's
+        lo, hi = row["score_ci95"]
+        assert 0.0 <= lo <= row["score"] <= hi <= 1.0
+        res = [r for r in data["results"] if r["spec"] == row["spec"]][0]
+        assert row["worst_lower_bound"] == min(c["success_lower_bound"] for c in res["cells"])
     board = (tmp_path / "leaderboard_robustness.md").read_text()
     assert "| rank | policy | score |" in board and "latency 3 steps" in board and board in out
-    assert "| nominal * |" in board and "| latency 3 steps |" in board
+    assert "| nominal * | 4 |" in board and "| latency 3 steps | 4 |" in board
+    assert "mean time to lift" in board
+    assert "**Not the protocol**: 1 episodes per mu where the protocol runs 19" in board
+    assert "not sealed" not in board.lower()
+    oracle = row_of(data, "oracle", "nominal")
+    assert f"{oracle['success_rate']:.2f} [{oracle['success_ci95'][0]:.2f}, {oracle['success_ci95'][1]:.2f}]" in board
+    # a version 1 result (no intervals, no seeds record, no time to lift) still reads
+    old = json.loads(json.dumps(data))
+    old.update(version=1, seed=0)
+    for key in ("protocol", "protocol_episodes", "mu_grid", "seeds"):
+        old.pop(key)
+    for cond in old["conditions"]:
+        del cond["episodes_per_mu"], cond["pooled_episodes"]
+    for res in old["results"]:
+        for cell in res["cells"]:
+            for key in ("success_ci95", "success_lower_bound", "successes", "episodes", "mean_time_to_lift_s"):
+                del cell[key]
+    for row in old["leaderboard"]:
+        for key in ("worst_lower_bound", "in_range_worst_lower_bound", "mean_time_to_lift_s"):
+            del row[key]
+    v1 = robustness.leaderboard_markdown(old)
+    assert v1.startswith("# Robustness suite `robustness` v1") and "mu 0.3, 0.5, 0.8" in v1 and "seeds 0..0" in v1
+    assert "**Seeds not sealed**" in v1 and f"| nominal * | 1 | {oracle['success_rate']:.2f} / " in v1
     rc, _, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--mu-grid", "0.5",
                             "--out", str(tmp_path / "x")])
     assert rc == 2 and "the suite fixes its conditions, mu and batches; drop --mu-grid" in err
@@ -214,3 +283,28 @@ def test_a_subset_of_the_conditions_runs_alone_and_says_so(tmp_path, monkeypatch
     assert not (tmp_path / "x").exists()
     rc, _, err = _run_main(["evaluate", "--policy", "fixed", "--condition", "nominal", "--out", str(tmp_path / "y")])
     assert rc == 2 and "--condition needs --suite" in err
+
+
+def test_a_run_with_the_protocols_episodes_is_the_protocol_and_a_seed_outside_the_sealed_range_says_so(
+        tmp_path, monkeypatch):
+    """Without --episodes the suite runs its protocol's episodes ("protocol": true); --seed 0 runs, but its result
+    records unsealed seeds and its leaderboard says so. (A one-condition protocol of one episode keeps it short.)"""
+    stand_in = (Condition("nominal", "nominal", mus=(0.5,)),)
+    monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
+    monkeypatch.setitem(robustness.PROTOCOLS, ("robustness", SUITE_VERSION),
+                        robustness.SuiteProtocol(SUITE_VERSION, (0.5,), 1, stand_in, pooled=True))
+    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)
+    from msdgrasp.agents import controllers
+
+    monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)
+    rc, _, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--seed", "0",
+                            "--out", str(tmp_path), "--quiet"])
+    assert rc == 0, err
+    data = json.loads((tmp_path / "suite_robustness.json").read_text())
+    assert data["protocol"] is True and data["episodes"] == 1
+    assert data["seeds"] == {"first": 0, "count": 1, "sealed": False}
+    board = (tmp_path / "leaderboard_robustness.md").read_text()
+    assert "**Seeds not sealed**" in board and "Not the protocol" not in board
+    rc, _, err = _run_main(["evaluate", "--suite", "robustness", "--policy", "fixed", "--seed", "-1",
+                            "--out", str(tmp_path / "x")])
+    assert rc == 2 and "--seed must be >= 0" in err and not (tmp_path / "x").exists()

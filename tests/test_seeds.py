@@ -9,6 +9,7 @@ import pytest
 
 from msdgrasp.agents.seeds import aggregate, bootstrap_ci, iqm, parse_seeds, run_seeds
 from msdgrasp.agents.models import TrainConfig
+from msdgrasp.agents.protocol import EVALUATION_SEED
 from msdgrasp.physics.config import ConfigError, from_dict
 
 
@@ -39,6 +40,13 @@ def test_bootstrap_interval_brackets_the_mean_and_shrinks_with_agreement():
     assert agg["mean"] == pytest.approx(0.91) and agg["ci95"][0] <= agg["mean"] <= agg["ci95"][1]
 
 
+def test_the_aggregate_leaves_out_seeds_with_nothing_to_measure():
+    """A seed whose episodes never lifted has no time to lift (NaN, null in JSON): the aggregate is over the others."""
+    agg = aggregate([1.0, float("nan"), 3.0, None])
+    assert agg["n"] == 2 and agg["mean"] == 2.0 and agg["min"] == 1.0 and agg["max"] == 3.0
+    assert aggregate([float("nan")])["n"] == 0 and np.isnan(aggregate([float("nan")])["mean"])
+
+
 def test_a_tiny_two_seed_run_writes_per_seed_and_aggregate_results(tmp_path):
     """Two seeds in two processes: per-seed runs, seeds.json / .md / learning_curves.png; the aggregate is
     computed from the per-seed numbers it reports (so a wrong aggregation fails here)."""
@@ -50,7 +58,9 @@ def test_a_tiny_two_seed_run_writes_per_seed_and_aggregate_results(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
     assert (tmp_path / "learning_curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     data = json.loads((tmp_path / "seeds.json").read_text())
-    assert [r["seed"] for r in data["per_seed"]] == [0, 1]
+    assert [r["seed"] for r in data["per_seed"]] == [0, 1] and data["training_seeds"] == [0, 1]
+    # every seed evaluated on the sealed evaluation seeds, and the report says so
+    assert data["seeds"] == {"first": EVALUATION_SEED, "count": 1, "sealed": True}
     for rec in data["per_seed"]:
         assert (tmp_path / f"seed_{rec['seed']}" / "best_model.zip").is_file()
         assert rec["timesteps"] >= 512 and len(rec["validation"]) >= 2  # a checkpoint and the final model
@@ -64,5 +74,10 @@ def test_a_tiny_two_seed_run_writes_per_seed_and_aggregate_results(tmp_path):
     assert data["baselines"]["oracle"]["success_by_mu"]["0.5"] == 1.0
     md = (tmp_path / "seeds.md").read_text()
     assert "PPO (seed 0)" in md and "PPO (seed 1)" in md and "slip-reactive" in md and "bootstrap" in md
-    assert "| timesteps |" in md
+    assert "| timesteps |" in md and "time to lift 0.3-0.9 (s)" in md and "| time_to_lift_ref_s |" in md
+    assert f"seeds {EVALUATION_SEED}..{EVALUATION_SEED}: sealed" in md
+    # the time to lift of a seed: its row's mean over the episodes that lifted (mu 0.5 is its one reference mu)
+    for rec in data["per_seed"]:
+        [row] = [r for r in rec["rows"] if r["mu"] == 0.5]
+        assert rec["time_to_lift_ref_s"] == row["mean_time_to_lift_s"]
     assert res["files"]["json"] == str(tmp_path / "seeds.json")

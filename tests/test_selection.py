@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from msdgrasp.agents.models import TrainConfig
+from msdgrasp.agents.protocol import EVALUATION_SEED
 from msdgrasp.agents.selection import plan_selection, select
 from msdgrasp.envs.core import GraspLiftConfig
 from msdgrasp.physics.config import ConfigError, from_dict, to_dict
@@ -159,7 +160,8 @@ def test_report_makes_the_multi_seed_report_of_re_selected_sb3_seeds(sb3_run, to
     r = cli("report", str(tmp_path / "sel"), "--episodes", "1", "--quiet")
     assert r.returncode == 0, r.stderr
     report = json.loads((tmp_path / "sel" / "seeds.json").read_text())
-    assert report["seeds"] == [0, 1] and report["config"]["validation_episodes"] == 2
+    assert report["training_seeds"] == [0, 1] and report["config"]["validation_episodes"] == 2
+    assert report["seeds"] == {"first": EVALUATION_SEED, "count": 1, "sealed": True}  # (report's default seeds)
     trained = json.loads((sb3_run / "train_summary.json").read_text())
     for rec in report["per_seed"]:
         assert rec["model"].endswith("best_model.zip") and rec["timesteps"] == trained["timesteps"]

@@ -211,7 +211,8 @@ def test_torch_seeds_get_the_multi_seed_report_of_sb3_seeds_and_report_remakes_i
     assert r.returncode == 0, r.stderr
     shutil.rmtree(stale)
     first = json.loads((out / "seeds.json").read_text())
-    assert first["seeds"] == [0, 1] and [s["seed"] for s in first["per_seed"]] == [0, 1]
+    assert first["training_seeds"] == [0, 1] and [s["seed"] for s in first["per_seed"]] == [0, 1]
+    assert first["seeds"]["sealed"] is True  # (evaluated on the sealed evaluation seeds)
     for rec in first["per_seed"]:  # every seed evaluated at every mu of the multi-seed grid, as SB3's seeds are
         assert [row["mu"] for row in rec["rows"]] == list(EVAL_MU) and rec["model"].endswith("policy.pt")
         assert rec["timesteps"] == 2 * 8 * 4 and 0.0 <= rec["success_ref"] <= 1.0
