@@ -5,6 +5,7 @@
     msdgrasp bench [physics|grasp|env|gpu|learners|...]    speed benchmarks (JSON); precision: float32's error;
                                                           compile: a cold first run's compilation
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
+    msdgrasp reference --out FILE                          the reference forces of the force ratios (JSON)
 
 Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
 field on invalid input (no traceback); outputs are written atomically.
@@ -155,6 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=_cmd_bench)
 
     _add_rl_commands(sub)
+    from .reference import add_reference_command
+
+    add_reference_command(sub)
     return parser
 
 
