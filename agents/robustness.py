@@ -9,6 +9,8 @@ metrics is a new version:
   training's task) with one change: a :class:`~..envs.core.RandomizationConfig` field set to the level
   (the perturbation is drawn per episode up to that level where the field is a range), a reset option pinned
   (stiffness, mass), or the friction grid replaced (friction outside training);
+* the conditions :data:`CONDITIONS`: version 1's and, for the task's lift tracker (v2 reads the lift from it), a
+  noisier one (1 mm), a later one (3 frames) and none;
 * the in-range friction grid :data:`MUS` (0.2, 0.3, 0.5, 0.8: mu 0.2, the training range's low end, joined in
   version 2) x :data:`EPISODES` (19) episodes per mu, so that every condition pools :data:`POOLED_EPISODES` (76); a
   condition at fewer mu (friction outside training: one mu each) runs more episodes per mu, 76 at its one mu. 76
@@ -85,8 +87,9 @@ class Condition:
     mus: tuple[float, ...] = MUS
 
 
-def _conditions(mus: tuple[float, ...]) -> tuple[Condition, ...]:
-    """The suite's conditions, those that keep the friction grid on ``mus``."""
+def _conditions(mus: tuple[float, ...], version: int) -> tuple[Condition, ...]:
+    """The suite's conditions of ``version``, those that keep the friction grid on ``mus``: version 2 adds the lift
+    tracker's (noisier, later, absent), the sensor the v2 task reads the lift from."""
 
     def placement(offset_mm: float, tilt_deg: float, azimuth_deg: float) -> Condition:
         return Condition("placement", f"grasp up to {offset_mm:g} mm off, {tilt_deg:g} deg tilt, {azimuth_deg:g} deg "
@@ -100,6 +103,9 @@ def _conditions(mus: tuple[float, ...]) -> tuple[Condition, ...]:
         Condition("sensing", "slip sensed as a detector (binary)", {"slip_sensing": "binary"}, mus=mus),
         Condition("sensing", "slip not sensed", {"slip_sensing": "absent"}, mus=mus),
         Condition("sensing", "slip speed noise 0.1", {"slip_noise": 0.1}, mus=mus),
+        *((Condition("sensing", "lift tracker noise 1 mm", {"lift_noise_m": 0.001}, mus=mus),
+           Condition("sensing", "lift tracker 3 frames late", {"lift_delay_steps": 3}, mus=mus),
+           Condition("sensing", "lift not tracked", {"lift_sensing": "absent"}, mus=mus)) if version >= 2 else ()),
         *(Condition("actuation", f"latency {k} step{'s' if k > 1 else ''}", {"latency_steps": (k, k)}, mus=mus)
           for k in (1, 2, 3)),
         *(Condition("actuation", f"force-loop gain error up to {e:.0%}", {"force_loop_gain_error": e}, mus=mus)
@@ -114,11 +120,24 @@ def _conditions(mus: tuple[float, ...]) -> tuple[Condition, ...]:
 
 
 #: the conditions of version 2 (those of version 1 on the grid MUS)
-CONDITIONS: tuple[Condition, ...] = _conditions(MUS)
+CONDITIONS: tuple[Condition, ...] = _conditions(MUS, 2)
 #: the conditions of version 1 (on the grid MUS_V1), kept so that its results stay readable
-CONDITIONS_V1: tuple[Condition, ...] = _conditions(MUS_V1)
-#: the conditions a suite runs (its current version's)
-SUITES = {"robustness": CONDITIONS}
+CONDITIONS_V1: tuple[Condition, ...] = _conditions(MUS_V1, 1)
+
+
+def _in_range(conditions: tuple[Condition, ...]) -> tuple[Condition, ...]:
+    """The conditions inside the benchmark's robustness ranges: the randomisation the default training draws from
+    (``configs/train/ppo.yaml``'s ``train_randomization``), the ranges a benchmark policy is asked to hold."""
+    from .models import default_training
+
+    ranges = default_training().train_randomization
+    return tuple(c for c in conditions if inside_ranges(c, ranges))
+
+
+#: the conditions a suite runs (its current version's): ``robustness`` all of them, ``in_range`` those inside the
+#: benchmark's robustness ranges (the leaderboard's: nominal, force noise and bias, a step of latency, a force loop
+#: 20 % off, grasps placed up to 5 mm / 10 deg off), filled in below
+SUITES: dict[str, tuple[Condition, ...]] = {"robustness": CONDITIONS}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,13 +194,13 @@ def condition_config(config: GraspLiftConfig, condition: Condition) -> GraspLift
 
 def inside_ranges(condition: Condition, ranges: RandomizationConfig) -> bool:
     """Whether ``condition`` lies inside the randomisation a policy was trained on (``ranges``): every level it sets
-    at most the training's (a latency within its steps, the same slip sensing, a pinch ceiling no lower than a
+    at most the training's (a latency within its steps, the same slip and lift sensing, a pinch ceiling no lower than a
     trained one), its mu and tissue pins inside the training's ranges."""
     for key, value in condition.randomization.items():
         trained = getattr(ranges, key)
         if key == "latency_steps":
             ok = trained[0] <= value[0] and value[1] <= trained[1]
-        elif key == "slip_sensing":
+        elif key in ("slip_sensing", "lift_sensing"):
             ok = value == trained
         elif key == "pinch_ceiling_N":
             ok = trained is not None and value >= trained
@@ -194,6 +213,10 @@ def inside_ranges(condition: Condition, ranges: RandomizationConfig) -> bool:
         if not lo <= value <= hi:
             return False
     return all(ranges.mu_range[0] <= m <= ranges.mu_range[1] for m in condition.mus)
+
+
+SUITES["in_range"] = _in_range(CONDITIONS)
+PROTOCOLS["in_range", 2] = SuiteProtocol(2, MUS, EPISODES, SUITES["in_range"], pooled=True)
 
 
 def _suite_job(payload, config_dict: dict[str, Any], mus: Sequence[float], episodes: int, seed: int,
@@ -302,6 +325,27 @@ def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, 
             "rows": rows}
 
 
+def suite_references(config: GraspLiftConfig, mus: Sequence[float]) -> tuple[dict[str, float | None], dict[str, Any]]:
+    """The reference force (N) of the task ``config`` at each of ``mus`` (keyed ``f"{mu:g}"``; None outside the
+    table's friction grid) and what the force ratios read against: ``{"kind": "reference", "table", "digest",
+    "definition"}`` or, for a task with no reference table, ``{"kind": "nominal oracle", "why"}`` (the oracle's
+    minimal fixed force at pull 0.5 on the nominal tissue, which a slower pull undercuts)."""
+    from .reference import default_reference_path, reference_force_N, reference_table
+
+    try:
+        record = reference_table(config)
+    except ConfigError as exc:
+        return {f"{m:g}": None for m in mus}, {"kind": "nominal oracle", "why": str(exc)}
+    forces: dict[str, float | None] = {}
+    for m in mus:
+        try:
+            forces[f"{m:g}"] = reference_force_N(config, m)
+        except ConfigError:  # (outside the table's friction grid: no reference there)
+            forces[f"{m:g}"] = None
+    return forces, {"kind": "reference", "table": default_reference_path(config).name,
+                    "digest": record["task_digest"], "definition": record["definition"]}
+
+
 def select_conditions(suite: str, only: Sequence[str]) -> tuple[Condition, ...]:
     """The conditions of ``suite`` that ``only`` names, in the protocol's order: each entry an axis (every condition
     of it) or a condition's exact name. ConfigError naming the entry, the axes and the names, on one that matches
@@ -391,11 +435,16 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     cap = 2.0 * config.reference_force_N
     minimal = {m: (float(f) if f < cap else math.nan)
                for m, f in zip(all_mus, out[len(where):len(where) + len(all_mus)])}
+    references, reference = suite_references(config, all_mus)
+    # the force ratios read against the reference (a slower pull cannot lower it), where the task has a table; a
+    # task without one reads against the nominal oracle at pull 0.5, and the result says so
+    denominators = ({m: (references[f"{m:g}"] or math.nan) for m in all_mus} if reference["kind"] == "reference"
+                    else minimal)
     inside = [inside_ranges(cond, ranges) for cond in conditions]
     hindsight_cells: list[dict[str, Any] | None] = [None] * len(conditions)
     for c, forces in zip(searched, out[len(where) + len(all_mus):]):
         hindsight_cells[c] = _hindsight_cell(forces, minimal)
-    table = [[_cell(out[k], minimal) for k in range(p * len(conditions), (p + 1) * len(conditions))]
+    table = [[_cell(out[k], denominators) for k in range(p * len(conditions), (p + 1) * len(conditions))]
              for p in range(len(specs))]
     board = []
     for p, name in enumerate(names):
@@ -434,6 +483,8 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         "config": to_dict(config),
         "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
         "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
+        "reference": reference,
+        "reference_force_N": references,
         "conditions": [{**dataclasses.asdict(c), "episodes_per_mu": n, "pooled_episodes": n * len(c.mus)}
                        for c, n in zip(conditions, per_mu)],
         "inside_training_ranges": inside,
@@ -487,6 +538,17 @@ def _protocol_notes(result: dict[str, Any], protocol: SuiteProtocol | None) -> l
     return notes
 
 
+def _ratio_reference(result: dict[str, Any]) -> str:
+    """What a suite result's force ratios divide by, in words."""
+    ref = result.get("reference") or {}
+    if ref.get("kind") == "reference":
+        return ("the reference force at that mu (the least fixed grip that holds 95 % of the reference episodes, at "
+                "the pull speed that needs least: a slower pull cannot lower it; agents/reference.py)")
+    return ("the oracle's minimal slip-free force at that mu on the nominal task, at pull 0.5 (a policy that pulls "
+            "slower needs less: ratios of policies at other pull speeds do not compare"
+            + (f"; no reference table: {ref['why']}" if ref.get("why") else "") + ")")
+
+
 def leaderboard_markdown(result: dict[str, Any]) -> str:
     """The leaderboard and the per-condition table of a suite result, of any version (:data:`PROTOCOLS`)."""
     protocol = PROTOCOLS.get((result["suite"], result["version"]))
@@ -504,7 +566,7 @@ def leaderboard_markdown(result: dict[str, Any]) -> str:
              "Score: success averaged over the conditions, with a 95% interval from a bootstrap of the episodes "
              "within each condition. Success: the share of a condition's pooled episodes "
              f"with its Wilson 95% interval; lower bound: the interval's low end. Force ratio: mean peak pinch over "
-             f"the oracle's minimal slip-free force at that mu on the nominal task. Time to lift: mean time until "
+             f"{_ratio_reference(result)}. Time to lift: mean time until "
              f"the lift target was first reached, over the episodes that reached it. "
              f"Damage threshold: {result['damage_pressure_kPa']:g} kPa (published, human bowel, 10 s grasps).", "",
              f"In training ranges: the {sum(result['inside_training_ranges'])} conditions (marked *) inside the "

@@ -406,6 +406,15 @@ def _cmd_soak(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------
 
 
+def _cmd_leaderboard(args: argparse.Namespace) -> int:
+    """``msdgrasp leaderboard SUITE.json --track NAME=PATTERN ... --out DIR`` (agents.leaderboard)."""
+    from ..agents.leaderboard import leaderboard_markdown, write_leaderboard
+
+    board = write_leaderboard(args.suite_json, args.track, args.baseline, args.out)
+    print(leaderboard_markdown(board))
+    return 0
+
+
 def _cmd_select(args: argparse.Namespace) -> int:
     """``msdgrasp select RUN --out DIR``: validate a finished run's checkpoints again (other episodes or mu)
     and write the pick into DIR, the run untouched (agents.selection)."""
@@ -481,10 +490,11 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
                         "and the unseen 0.15, 0.2, 1.0, 1.2)")
-    e.add_argument("--suite", choices=("robustness",), default=None,
+    e.add_argument("--suite", choices=("robustness", "in_range"), default=None,
                    help="run a versioned protocol instead of the mu grid: robustness v2 (sensing, actuation, "
                         "placement, friction and tissue outside training; mu 0.2, 0.3, 0.5, 0.8 x 19 episodes, 76 "
-                        "per condition, each with its success's Wilson 95%% interval; agents/robustness.py): "
+                        "per condition, each with its success's Wilson 95%% interval; agents/robustness.py), or "
+                        "in_range, its 8 conditions inside the benchmark's robustness ranges (the leaderboard's): "
                         "suite_<name>.json and leaderboard_<name>.md in --out")
     e.add_argument("--condition", action="append", default=None, metavar="AXIS|NAME",
                    help="with --suite: run only these conditions (repeatable): an axis (nominal, sensing, actuation, "
@@ -570,6 +580,20 @@ def add_rl_commands(sub) -> None:
     _add_runner_args(rp, "every seed's evaluation")
     rp.add_argument("--quiet", action="store_true", help="no progress output")
     rp.set_defaults(func=_cmd_report)
+
+    lb = sub.add_parser("leaderboard", help="group a suite result's policies into tracks (a training's seeds, a "
+                        "controller) and compare them: success with its Wilson lower bound, force ratio and time to "
+                        "lift per condition; IQM with stratified bootstrap intervals, probability of improvement over a "
+                        "baseline, performance profiles (agents/leaderboard.py)")
+    lb.add_argument("suite_json", type=Path, metavar="SUITE.json",
+                    help="a suite result (msdgrasp evaluate --suite in_range --out DIR writes DIR/suite_in_range.json)")
+    lb.add_argument("--track", action="append", required=True, metavar="NAME=PATTERN",
+                    help="a track: its name and a glob of the policy specs it groups (repeat), e.g. "
+                         "'default training=logs/train/seed_*/best_model.zip' or 'slip-reactive=reactive'")
+    lb.add_argument("--baseline", default=None, metavar="NAME",
+                    help="the track the probability of improvement compares every other with")
+    lb.add_argument("--out", type=Path, required=True, help="folder for leaderboard.json and leaderboard.md")
+    lb.set_defaults(func=_cmd_leaderboard)
 
     sl = sub.add_parser("select", help="validate a finished run's checkpoints again (more episodes, other mu) "
                                        "and write the best into a new folder; its validation episodes are the run's "

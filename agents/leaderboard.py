@@ -1,0 +1,201 @@
+"""The leaderboard: tracks (a training's seeds, or a controller) compared on one suite run's episodes.
+
+``msdgrasp leaderboard SUITE.json --track NAME=PATTERN ... --baseline NAME --out DIR`` reads a suite result
+(``msdgrasp evaluate --suite in_range``: every policy on the same sealed episodes) and groups its policies into tracks
+by their spec (``fnmatch`` patterns: ``"default training=logs/train/seed_*/best_model.zip"``). Per track it reports:
+
+* per condition, over the track's runs (seeds) and episodes pooled: the success rate with its Wilson 95 % lower bound
+  (:func:`~.stats.wilson_lower_bound`; a track of 5 seeds pools 5 x 76 episodes per condition), the mean force ratio
+  (each episode's peak pinch over the reference force at its mu: :mod:`.reference`, the least fixed grip that holds
+  95 % of the reference episodes at the pull speed that needs least, so a slower pull cannot lower it), and the mean
+  time to lift (s);
+* aggregates as Agarwal et al. (2021) compute them (``rliable``'s definitions, :mod:`.stats`): the interquartile
+  mean (IQM) over runs x conditions of the success rate and of the force ratio, each with a 95 % stratified bootstrap
+  interval (runs resampled within each condition, then episodes within each run); the probability of improvement over
+  the baseline track on the same episodes (per episode: a failure ranks below every success, successes rank by a
+  lower force ratio; ties count one half); the performance profile of the force ratio (the share of episodes that
+  succeed at a ratio <= tau).
+
+Outputs (atomically): ``leaderboard.json`` and ``leaderboard.md`` in ``--out``.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..physics.config import ConfigError, atomic_write_text
+from .evaluation import nan_to_none
+from .stats import (
+    iqm_of_runs, performance_profile_at_most, probability_of_improvement_ci, stratified_bootstrap_ci,
+    wilson_lower_bound,
+)
+
+#: the force ratios at which the performance profile is read
+PROFILE_TAUS = (1.0, 1.1, 1.25, 1.5, 2.0)
+#: an episode score below every success's (a failure), for the probability of improvement
+_FAILURE_SCORE = -1e6
+
+
+def parse_track(text: str) -> tuple[str, str]:
+    """``"NAME=PATTERN"`` -> (name, pattern); ConfigError on anything else."""
+    name, sep, pattern = str(text).partition("=")
+    if not sep or not name.strip() or not pattern.strip():
+        raise ConfigError(f"--track {text!r}: expected NAME=PATTERN (a policy spec or a glob of specs, e.g. "
+                          "'default training=logs/train/seed_*/best_model.zip')")
+    return name.strip(), pattern.strip()
+
+
+def _episodes(result: dict[str, Any], spec: str, references: dict[str, float | None]) -> list[dict[str, np.ndarray]]:
+    """Per condition of ``result``, the policy ``spec``'s episodes: success, force ratio, time to lift (NaN: none)."""
+    entry = next(r for r in result["results"] if r["spec"] == spec)
+    out = []
+    for cell in entry["cells"]:
+        success, ratio, lift = [], [], []
+        for row in cell["rows"]:
+            ref = references.get(f"{row['mu']:g}")
+            ep = row["per_episode"]
+            success += [bool(v) for v in ep["success"]]
+            ratio += [(p / ref) if ref else math.nan for p in ep["peak_pinch_N"]]
+            lift += [math.nan if t is None else float(t) for t in ep["time_to_lift_s"]]
+        out.append({"success": np.array(success), "ratio": np.array(ratio, dtype=float),
+                    "lift": np.array(lift, dtype=float)})
+    return out
+
+
+def _score(ep: dict[str, np.ndarray]) -> np.ndarray:
+    """Per episode, higher is better: minus the force ratio where the episode succeeded, a failure below all."""
+    return np.where(ep["success"] & np.isfinite(ep["ratio"]), -np.nan_to_num(ep["ratio"], nan=0.0), _FAILURE_SCORE)
+
+
+def _mean(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.mean(x)) if len(x) else math.nan
+
+
+def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]], baseline: str | None = None
+                      ) -> dict[str, Any]:
+    """The leaderboard record of suite result ``result`` for ``tracks`` ((name, spec pattern) pairs); ``baseline``:
+    the track the probability of improvement compares with (None: no comparison)."""
+    specs = [r["spec"] for r in result["results"]]
+    references = result.get("reference_force_N")
+    if not references:
+        raise ConfigError("the suite result has no reference forces (reference_force_N): it was run before the "
+                          "reference table existed; run the suite again")
+    conditions = [c["name"] for c in result["conditions"]]
+    members: dict[str, list[str]] = {}
+    for name, pattern in tracks:
+        hits = [s for s in specs if fnmatch.fnmatchcase(s, pattern)]
+        if not hits:
+            raise ConfigError(f"track {name!r}: pattern {pattern!r} matches no policy of the suite result; its "
+                              f"policies: {', '.join(specs)}")
+        members[name] = hits
+    if baseline is not None and baseline not in members:
+        raise ConfigError(f"--baseline {baseline!r} is no track; tracks: {', '.join(members)}")
+    runs = {name: [_episodes(result, s, references) for s in hits] for name, hits in members.items()}
+    rows = []
+    for name, per_run in runs.items():
+        cells = []
+        for c, cond in enumerate(conditions):
+            success = np.concatenate([r[c]["success"] for r in per_run])
+            ratio = np.concatenate([r[c]["ratio"] for r in per_run])
+            lift = np.concatenate([r[c]["lift"] for r in per_run])
+            k, n = int(success.sum()), int(len(success))
+            per_seed = [float(r[c]["success"].mean()) for r in per_run]
+            cells.append({"condition": cond, "successes": k, "episodes": n, "success_rate": k / n,
+                          "success_lower_bound": wilson_lower_bound(k, n), "worst_run_success_rate": min(per_seed),
+                          "force_ratio": _mean(ratio), "time_to_lift_s": _mean(lift)})
+        # rliable's aggregates: tasks = conditions, runs = the track's seeds, episodes within each run
+        succ = [np.stack([r[c]["success"].astype(float) for r in per_run]) for c in range(len(conditions))]
+        ratio_tasks = [np.stack([np.nan_to_num(r[c]["ratio"], nan=0.0) for r in per_run])
+                       for c in range(len(conditions))]
+        s_point, s_lo, s_hi = stratified_bootstrap_ci(succ, iqm_of_runs)
+        f_point, f_lo, f_hi = stratified_bootstrap_ci(ratio_tasks, iqm_of_runs)
+        ratios = np.concatenate([np.where(r[c]["success"], r[c]["ratio"], np.inf) for r in per_run
+                                 for c in range(len(conditions))])
+        ratios = np.where(np.isfinite(ratios), ratios, 1e9)
+        profile = performance_profile_at_most(ratios, PROFILE_TAUS)
+        row = {"track": name, "policies": members[name], "runs": len(per_run), "cells": cells,
+               "success_iqm": float(s_point), "success_iqm_ci95": [float(s_lo), float(s_hi)],
+               "force_ratio_iqm": float(f_point), "force_ratio_iqm_ci95": [float(f_lo), float(f_hi)],
+               "lowest_lower_bound": min(c["success_lower_bound"] for c in cells),
+               "time_to_lift_s": _mean(np.array([c["time_to_lift_s"] for c in cells])),
+               "profile": {f"{t:g}": float(v) for t, v in zip(PROFILE_TAUS, profile)}}
+        if baseline is not None and name != baseline:
+            x = [np.concatenate([_score(r[c]) for r in per_run]) for c in range(len(conditions))]
+            y = [np.concatenate([_score(r[c]) for r in runs[baseline]]) for c in range(len(conditions))]
+            p, lo, hi = probability_of_improvement_ci(x, y)
+            row["p_improvement"] = {"over": baseline, "value": float(p), "ci95": [float(lo), float(hi)]}
+        rows.append(row)
+    return {"suite": result["suite"], "version": result["version"], "protocol": result.get("protocol"),
+            "seeds": result.get("seeds"), "conditions": conditions, "baseline": baseline,
+            "reference": result.get("reference"), "task_from": result.get("task_from"), "tracks": rows}
+
+
+def _n(x: float | None, fmt: str) -> str:
+    return "-" if x is None or not math.isfinite(x) else format(x, fmt)
+
+
+def leaderboard_markdown(board: dict[str, Any]) -> str:
+    """The leaderboard record as markdown: the aggregate table, then success / lower bound / force ratio / time to
+    lift per condition and track."""
+    seeds = board.get("seeds") or {}
+    lines = [f"# Leaderboard: suite `{board['suite']}` v{board['version']}", ""]
+    if not board.get("protocol") or not seeds.get("sealed"):
+        why = ("not the protocol's episodes; " if not board.get("protocol") else "") + (
+            "seeds not sealed." if not seeds.get("sealed") else "")
+        lines += ["**Not a certified result**: " + why, ""]
+    lines += [f"{len(board['conditions'])} conditions; episodes from seed {seeds.get('first')} "
+              f"({'sealed' if seeds.get('sealed') else 'not sealed'}). Force ratio: peak pinch over the reference "
+              "force at the episode's mu (the least fixed grip that holds 95 % of the reference episodes at the pull "
+              "speed that needs least). IQM over runs x conditions with 95 % stratified bootstrap intervals (runs, "
+              "then episodes); P(improvement): over the baseline on the same episodes, a failure ranking below every "
+              "success; profile: the share of episodes that succeed at a force ratio <= tau.", "",
+              "| track | runs | success IQM [95% CI] | lowest lower bound | force ratio IQM [95% CI] | time to lift | "
+              f"P(improvement) over {board.get('baseline') or '-'} | profile " +
+              " / ".join(f"<={t:g}" for t in PROFILE_TAUS) + " |",
+              "|---|---|---|---|---|---|---|---|"]
+    for t in board["tracks"]:
+        pi = t.get("p_improvement")
+        lines.append(
+            f"| {t['track']} | {t['runs']} | {t['success_iqm']:.3f} [{t['success_iqm_ci95'][0]:.3f}, "
+            f"{t['success_iqm_ci95'][1]:.3f}] | {t['lowest_lower_bound']:.3f} | {_n(t['force_ratio_iqm'], '.2f')} "
+            f"[{_n(t['force_ratio_iqm_ci95'][0], '.2f')}, {_n(t['force_ratio_iqm_ci95'][1], '.2f')}] | "
+            f"{_n(t['time_to_lift_s'], '.2f')} s | "
+            + (f"{pi['value']:.2f} [{pi['ci95'][0]:.2f}, {pi['ci95'][1]:.2f}]" if pi else "-") + " | "
+            + " / ".join(f"{t['profile'][f'{tau:g}']:.2f}" for tau in PROFILE_TAUS) + " |")
+    lines += ["", "Per condition: success (pooled episodes) / Wilson 95 % lower bound / force ratio / time to lift (s)",
+              "", "| condition | " + " | ".join(t["track"] for t in board["tracks"]) + " |",
+              "|---|" + "---|" * len(board["tracks"])]
+    for c, cond in enumerate(board["conditions"]):
+        cells = []
+        for t in board["tracks"]:
+            x = t["cells"][c]
+            cells.append(f"{x['successes']}/{x['episodes']} / {x['success_lower_bound']:.3f} / "
+                         f"{_n(x['force_ratio'], '.2f')} / {_n(x['time_to_lift_s'], '.1f')}")
+        lines.append(f"| {cond} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_leaderboard(suite_json: str | Path, tracks: Sequence[str], baseline: str | None, out_dir: str | Path
+                      ) -> dict[str, Any]:
+    """Read a suite result, build its leaderboard for the ``NAME=PATTERN`` tracks, write leaderboard.json/.md."""
+    path = Path(suite_json)
+    if not path.is_file():
+        raise ConfigError(f"suite result {path} is not a file (msdgrasp evaluate --suite in_range writes one)")
+    try:
+        result = json.loads(path.read_text())
+    except ValueError as exc:
+        raise ConfigError(f"{path}: not a suite result (not JSON: {exc})") from None
+    if not isinstance(result, dict) or "results" not in result or "conditions" not in result:
+        raise ConfigError(f"{path}: not a suite result (no results / conditions)")
+    board = build_leaderboard(result, [parse_track(t) for t in tracks], baseline)
+    out = Path(out_dir)
+    atomic_write_text(out / "leaderboard.json", json.dumps(nan_to_none(board), indent=2) + "\n")
+    atomic_write_text(out / "leaderboard.md", leaderboard_markdown(board))
+    return board

@@ -1,0 +1,104 @@
+"""The leaderboard groups a suite result's policies into tracks and aggregates them as rliable does.
+
+A synthetic suite result (two conditions, two mu, 40 episodes each) with known outcomes: the numbers a track gets are
+those counted by hand, and the comparisons go the way the outcomes say.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from msdgrasp.agents.leaderboard import build_leaderboard, leaderboard_markdown, parse_track, write_leaderboard
+from msdgrasp.agents.robustness import MUS, SUITES, inside_ranges
+from msdgrasp.agents.models import default_training
+from msdgrasp.agents.stats import wilson_lower_bound
+from msdgrasp.physics.config import ConfigError
+
+REF = {"0.3": 1.0, "0.5": 0.8}
+
+
+def _row(mu: float, success: list[bool], peak: float, lift: float) -> dict:
+    n = len(success)
+    return {"mu": mu, "episodes": n, "per_episode": {
+        "success": success, "peak_pinch_N": [peak] * n,
+        "time_to_lift_s": [lift if s else None for s in success]}}
+
+
+def _policy(spec: str, fail_every: int, force_scale: float) -> dict:
+    cells = []
+    for cond in ("nominal", "force noise 0.05 N"):
+        rows = [_row(mu, [(i % fail_every) != 0 if fail_every else True for i in range(40)],
+                     force_scale * REF[f"{mu:g}"], 5.0) for mu in (0.3, 0.5)]
+        cells.append({"condition": cond, "rows": rows})
+    return {"spec": spec, "policy": spec, "cells": cells}
+
+
+def _result() -> dict:
+    results = [_policy(f"runs/seed_{k}/best_model.zip", 0, 1.2) for k in range(3)]
+    results += [_policy("reactive", 10, 1.8)]
+    return {"suite": "in_range", "version": 2, "protocol": True, "seeds": {"first": 10**9, "count": 40, "sealed": True},
+            "conditions": [{"name": "nominal"}, {"name": "force noise 0.05 N"}], "reference_force_N": REF,
+            "reference": {"kind": "reference"}, "results": results}
+
+
+def test_tracks_pool_their_seeds_and_count_as_by_hand():
+    board = build_leaderboard(_result(), [parse_track("trained=runs/seed_*/best_model.zip"),
+                                          parse_track("slip-reactive=reactive")], baseline="slip-reactive")
+    trained, reactive = board["tracks"]
+    assert trained["runs"] == 3 and reactive["runs"] == 1
+    cell = trained["cells"][0]
+    assert (cell["successes"], cell["episodes"]) == (240, 240)  # 3 seeds x 2 mu x 40
+    assert cell["success_lower_bound"] == pytest.approx(wilson_lower_bound(240, 240))
+    assert cell["force_ratio"] == pytest.approx(1.2) and cell["time_to_lift_s"] == pytest.approx(5.0)
+    r = reactive["cells"][1]
+    assert (r["successes"], r["episodes"]) == (72, 80)  # one in ten fails
+    assert r["force_ratio"] == pytest.approx(1.8)
+    assert trained["success_iqm"] == pytest.approx(1.0) and reactive["success_iqm"] == pytest.approx(0.9)
+    # lighter and never failing: it beats the reactive controller on every pair of episodes
+    assert trained["p_improvement"]["value"] == pytest.approx(1.0)
+    assert trained["profile"]["1.25"] == pytest.approx(1.0) and trained["profile"]["1.1"] == pytest.approx(0.0)
+    assert reactive["profile"]["2"] == pytest.approx(0.9)
+    text = leaderboard_markdown(board)
+    assert "240/240" in text and "Not a certified" not in text
+
+
+def test_unsealed_or_partial_results_say_so(tmp_path):
+    result = _result()
+    result["seeds"]["sealed"] = False
+    path = tmp_path / "suite.json"
+    path.write_text(json.dumps(result))
+    board = write_leaderboard(path, ["t=reactive"], None, tmp_path / "out")
+    assert "Not a certified result" in (tmp_path / "out" / "leaderboard.md").read_text()
+    assert board["tracks"][0]["track"] == "t"
+
+
+@pytest.mark.parametrize("tracks, baseline, needle", [
+    (["nothing=nomatch*"], None, "matches no policy"),
+    (["t=reactive"], "other", "--baseline"),
+    (["no-equals-sign"], None, "NAME=PATTERN"),
+])
+def test_bad_tracks_are_one_line_errors(tmp_path, tracks, baseline, needle):
+    path = tmp_path / "suite.json"
+    path.write_text(json.dumps(_result()))
+    with pytest.raises(ConfigError, match=needle):
+        write_leaderboard(path, tracks, baseline, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_result_without_reference_forces_is_refused(tmp_path):
+    result = _result()
+    del result["reference_force_N"]
+    with pytest.raises(ConfigError, match="reference"):
+        build_leaderboard(result, [("t", "reactive")])
+
+
+def test_the_in_range_suite_is_the_conditions_inside_the_benchmark_ranges():
+    ranges = default_training().train_randomization
+    names = [c.name for c in SUITES["in_range"]]
+    assert names and all(inside_ranges(c, ranges) for c in SUITES["in_range"])
+    assert not any(inside_ranges(c, ranges) for c in SUITES["robustness"] if c.name not in names)
+    assert "nominal" in names and all(c.mus == MUS for c in SUITES["in_range"])
+    assert np.isclose(min(MUS), 0.2)  # the low-friction end is in the grid
