@@ -78,15 +78,52 @@ def _mean(x: np.ndarray) -> float:
     return float(np.mean(x)) if len(x) else math.nan
 
 
-def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]], baseline: str | None = None
-                      ) -> dict[str, Any]:
+def reference_forces(result: dict[str, Any]) -> dict[str, float | None]:
+    """The reference force (N) at each mu of a suite result's episodes, from the reference table of its task
+    (:mod:`.reference`; a one-line ConfigError where the table is for another task); None at a mu off its grid."""
+    from ..envs.core import GraspLiftConfig
+    from ..physics.config import from_dict
+    from .reference import reference_force_N, reference_table
+
+    config = from_dict(GraspLiftConfig, result["config"], where="suite result config")
+    reference_table(config)
+    mus = sorted({float(row["mu"]) for r in result["results"] for cell in r["cells"] for row in cell["rows"]})
+    out: dict[str, float | None] = {}
+    for m in mus:
+        try:
+            out[f"{m:g}"] = reference_force_N(config, m)
+        except ConfigError:  # (a mu off the table's grid: no reference there)
+            out[f"{m:g}"] = None
+    return out
+
+
+def merge_results(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """One suite result of several run on the same episodes (the same suite, version, seeds, conditions and task);
+    a policy in several keeps its first run. ConfigError naming what differs."""
+    first = results[0]
+    for other in results[1:]:
+        for key in ("suite", "version", "seeds", "episodes", "config"):
+            if other.get(key) != first.get(key):
+                raise ConfigError(f"the suite results differ in {key!r}: not the same episodes; merge only runs of one "
+                                  "suite, version, seeds, episodes and task")
+        if [c["name"] for c in other["conditions"]] != [c["name"] for c in first["conditions"]]:
+            raise ConfigError("the suite results differ in their conditions: not the same episodes")
+    merged, seen = [], set()
+    for r in (r for res in results for r in res["results"]):
+        if r["spec"] not in seen:
+            seen.add(r["spec"])
+            merged.append(r)
+    return {**first, "results": merged, "protocol": all(r.get("protocol") for r in results)}
+
+
+def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]], baseline: str | None = None,
+                      references: dict[str, float | None] | None = None) -> dict[str, Any]:
     """The leaderboard record of suite result ``result`` for ``tracks`` ((name, spec pattern) pairs); ``baseline``:
-    the track the probability of improvement compares with (None: no comparison)."""
+    the track the probability of improvement compares with (None: no comparison); ``references``: the reference force
+    per mu (default: :func:`reference_forces`, from the table of the result's task)."""
     specs = [r["spec"] for r in result["results"]]
-    references = result.get("reference_force_N")
-    if not references:
-        raise ConfigError("the suite result has no reference forces (reference_force_N): it was run before the "
-                          "reference table existed; run the suite again")
+    if references is None:
+        references = reference_forces(result)
     conditions = [c["name"] for c in result["conditions"]]
     members: dict[str, list[str]] = {}
     for name, pattern in tracks:
@@ -134,7 +171,7 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
         rows.append(row)
     return {"suite": result["suite"], "version": result["version"], "protocol": result.get("protocol"),
             "seeds": result.get("seeds"), "conditions": conditions, "baseline": baseline,
-            "reference": result.get("reference"), "task_from": result.get("task_from"), "tracks": rows}
+            "reference_force_N": references, "task_from": result.get("task_from"), "tracks": rows}
 
 
 def _n(x: float | None, fmt: str) -> str:
@@ -182,10 +219,7 @@ def leaderboard_markdown(board: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_leaderboard(suite_json: str | Path, tracks: Sequence[str], baseline: str | None, out_dir: str | Path
-                      ) -> dict[str, Any]:
-    """Read a suite result, build its leaderboard for the ``NAME=PATTERN`` tracks, write leaderboard.json/.md."""
-    path = Path(suite_json)
+def _read_result(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"suite result {path} is not a file (msdgrasp evaluate --suite in_range writes one)")
     try:
@@ -194,7 +228,16 @@ def write_leaderboard(suite_json: str | Path, tracks: Sequence[str], baseline: s
         raise ConfigError(f"{path}: not a suite result (not JSON: {exc})") from None
     if not isinstance(result, dict) or "results" not in result or "conditions" not in result:
         raise ConfigError(f"{path}: not a suite result (no results / conditions)")
-    board = build_leaderboard(result, [parse_track(t) for t in tracks], baseline)
+    return result
+
+
+def write_leaderboard(suite_json: str | Path | Sequence[str | Path], tracks: Sequence[str], baseline: str | None,
+                      out_dir: str | Path, references: dict[str, float | None] | None = None) -> dict[str, Any]:
+    """Read suite results (one, or several on the same episodes: :func:`merge_results`), build their leaderboard for
+    the ``NAME=PATTERN`` tracks, write leaderboard.json/.md."""
+    paths = [suite_json] if isinstance(suite_json, (str, Path)) else list(suite_json)
+    result = merge_results([_read_result(Path(p)) for p in paths])
+    board = build_leaderboard(result, [parse_track(t) for t in tracks], baseline, references)
     out = Path(out_dir)
     atomic_write_text(out / "leaderboard.json", json.dumps(nan_to_none(board), indent=2) + "\n")
     atomic_write_text(out / "leaderboard.md", leaderboard_markdown(board))

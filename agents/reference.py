@@ -6,19 +6,21 @@ one pull speed rewards any policy that pulls slower than it, and the ratios of p
 cannot be compared. The reference here takes the pull speed out:
 
     R(mu) = min over the pull fractions p of :data:`DEFAULT_PULLS` of Q_p(mu),
-    Q_p(mu) = the least fixed pinch force with which the fixed-force controller (:class:`.controllers.FixedForcePolicy`
-              at pull p) lifts and holds at least SHARE (95 %) of mu's reference episodes within the time limit
-            = the ceil(SHARE x n)-th smallest of the n episodes' own minimal fixed forces at pull p (a grip that holds
-              an episode holds it at any larger force too; an episode that no force holds counts as infinite).
+    Q_p(mu) = the least fixed pinch force (to ``tolerance_N``) with which the fixed-force controller
+              (:class:`.controllers.FixedForcePolicy` at pull p) lifts and holds at least SHARE (95 %) of mu's n
+              reference episodes within the time limit (an infinite force where no grip up to the motor's limit does).
 
-Each episode's minimal force is :func:`.controllers.episode_minimal_forces`'s: a bisection, to ``tolerance_N``, on
-the episode's own draws (stiffness, mass, grasp pose, sensing), not on the nominal tissue. A pull fraction p is p
-times the arm's top speed (20 mm/s on the benchmark task: p = 0.5 is 10 mm/s). Pulling slowly is thus part of what
-the reference optimises, as a policy may: no policy that holds SHARE of the episodes can reach a lower peak pinch by
-choosing another pull speed of the grid, and one between grid speeds gains less than the tolerance (tested in
-tests/test_reference.py). The slowest pulls cannot lift the 30 mm target and hold it 1 s within the 10 s limit (the
-lift takes about 1.5 s + 1.5 s / p; measured at mu 0.2 on 48 reference episodes: at p = 0.18 no force lifts and holds
-any of them in time, at p = 0.2 some force does for 23, at 0.22 for all); they stay in the grid and read infinite.
+Q_p is found by bisection on the grip, every probe running all n reference episodes at once (a grip that holds an
+episode holds it at any larger grip too, so the count held grows with the grip): about nine probes of n episodes, where
+a search per episode costs four times as many. The search starts from the bracket 0.2-0.6 N / mu (Coulomb: the
+least grip times mu is 0.30-0.45 N over the task's frictions) and widens it up to the motor's limit where it must.
+The episodes run on their own draws (stiffness, mass, grasp pose, sensing), not on the nominal tissue. A pull
+fraction p is p times the arm's top speed (20 mm/s on the benchmark task: p = 0.5 is 10 mm/s). Pulling slowly is thus
+part of what the reference optimises, as a policy may: no policy that holds SHARE of the episodes can reach a lower
+peak pinch by choosing another pull speed of the grid (tested in tests/test_reference.py). The slowest pull of the
+grid, 0.2, cannot lift the 30 mm target and hold it 1 s within the 10 s limit in 95 % of the episodes (the lift itself
+takes about 1.5 s + 1.5 s / p); it stays in the grid and reads infinite, so the reference sits at the slowest pull that
+can.
 
 The reference episodes are their own: episode i (at every mu and pull) is reset with seed ``seed + i`` from
 :data:`REFERENCE_SEED`, inside :data:`REFERENCE_SEEDS`, apart from the seeds evaluations and trainings use; mu is
@@ -58,20 +60,19 @@ REFERENCE_SEEDS = range(3_000_000, 4_000_000)
 REFERENCE_SEED = REFERENCE_SEEDS.start
 #: the friction grid of the shipped table
 DEFAULT_MUS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
-#: the pull fractions (of the arm's top speed) searched: about 0.2 is the slowest that can lift 30 mm and hold it 1 s
-#: within the 10 s limit (the lift takes about 1.5 s + 1.5 s / pull), 0.18 one too slow, 0.2-0.3 the slow pulls that
-#: need least grip, 0.5 (10 mm/s) the oracle's and the controllers' default
-DEFAULT_PULLS = (0.18, 0.2, 0.22, 0.25, 0.3, 0.4, 0.5, 0.7)
-#: reference episodes per mu (the same episodes at every pull)
-DEFAULT_EPISODES = 48
+#: the pull fractions (of the arm's top speed) searched: 0.2 is too slow to lift 30 mm and hold it 1 s within the 10 s
+#: limit in 95 % of the episodes (measured: 23 of 48 at mu 0.2), 0.22 the slowest that can, 0.25 and 0.3 (the default
+#: controller's) slower than the oracle's 0.5, where every measured grip was larger
+DEFAULT_PULLS = (0.2, 0.22, 0.25, 0.3)
+#: reference episodes per mu (the same episodes at every pull): 40, of which the reference grip may drop 2
+DEFAULT_EPISODES = 40
 #: the share of a mu's reference episodes the reference grip holds
 SHARE = 0.95
-#: the per-episode bisection's tolerance, N: a quarter or less of the differences it judges (the 95 % quantiles of
-#: neighbouring pulls differ by 0.03-0.1 N at mu 0.5; the episodes' minimal forces at one pull spread over about 0.06 N)
+#: the bisection's tolerance, N: a quarter or less of the differences it judges (the 95 % quantiles of neighbouring
+#: pulls differ by 0.03-0.1 N at mu 0.5; the episodes' minimal forces at one pull spread over about 0.06 N)
 TOLERANCE_N = 0.01
-#: the lowest force the per-episode search can return, N (half its first grid force): a minimal force this close to it
-#: may lie below it
-SEARCH_FLOOR_N = 0.2
+#: the search's first bracket, N x mu (Coulomb: the least grip times mu lies in 0.30-0.45 N over the task's frictions)
+BRACKET_N_MU = (0.2, 0.6)
 
 #: GraspLiftConfig fields that change what an agent observes or how it is paid, not what grip a grasp needs: left out
 #: of the fingerprint (the benchmark task's versions that differ only in them share one reference)
@@ -176,15 +177,45 @@ def run_fixed_grips(config: GraspLiftConfig, mu: float, seeds: Sequence[int], fo
     return out
 
 
-def _search_job(config_dict: dict[str, Any], mu: float, pull: float, first_seed: int, episodes: int,
-                tolerance_N: float) -> list[float | None]:
-    """One (mu, pull) cell: each reference episode's minimal fixed force, N (None: no force of the search holds it)."""
-    from .controllers import episode_minimal_forces
+def search_quantile(config: GraspLiftConfig, mu: float, pull: float, seeds: Sequence[int],
+                    tolerance_N: float = TOLERANCE_N) -> dict[str, Any]:
+    """Q_p(mu): the least fixed grip (N, to ``tolerance_N``) with which the fixed-force controller at pull ``pull``
+    holds at least :func:`held_needed` of the episodes reset with ``seeds`` at friction ``mu``, by bisection on the
+    grip from the bracket :data:`BRACKET_N_MU` / mu (widened up to the motor's limit, and down to 0, where it must).
+    Returns ``{"quantile_N": Q or None (no grip up to the limit holds that share), "probes": [{"force_N",
+    "held"}]}``."""
+    need = held_needed(len(seeds))
+    cap = float(config.max_pinch_force_N)
+    probes: list[dict[str, Any]] = []
 
+    def held(force: float) -> bool:
+        k = int(run_fixed_grips(config, mu, seeds, force, pull)["success"].sum())
+        probes.append({"force_N": round(float(force), 6), "held": k})
+        return k >= need
+
+    def bisect(lo: float, hi: float) -> float:  # (hi holds, lo does not or is unknown)
+        while hi - lo > tolerance_N:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if held(mid) else (mid, hi)
+        return hi
+
+    floor, hi = (min(b / mu, cap) for b in BRACKET_N_MU)
+    if not held(hi):
+        if hi >= cap or not held(cap):
+            return {"quantile_N": None, "probes": probes}
+        floor, hi = hi, cap
+    q = bisect(floor, hi)
+    if q - floor <= tolerance_N and held(floor):  # every probe held, the floor too: search below it
+        q = bisect(0.0, floor)
+    return {"quantile_N": float(q), "probes": probes}
+
+
+def _search_job(config_dict: dict[str, Any], mu: float, pull: float, first_seed: int, episodes: int,
+                tolerance_N: float) -> dict[str, Any]:
+    """One (mu, pull) cell: :func:`search_quantile` on the reference episodes."""
     config = from_dict(GraspLiftConfig, config_dict, where="env")
-    forces = episode_minimal_forces(config, [float(mu)] * episodes, [first_seed + i for i in range(episodes)],
-                                    None, float(pull), float(tolerance_N))
-    return [float(f) if math.isfinite(f) else None for f in forces]
+    return search_quantile(config, float(mu), float(pull), [first_seed + i for i in range(episodes)],
+                           float(tolerance_N))
 
 
 def _check_job(config_dict: dict[str, Any], mu: float, pull: float, force_N: float, first_seed: int,
@@ -232,16 +263,16 @@ def _journal_key(digest: str, mu: float, pull: float, seed: int, episodes: int, 
     return json.dumps([digest, round(mu, 10), round(pull, 10), int(seed), int(episodes), float(tolerance_N)])
 
 
-def _read_journal(path: Path | None) -> dict[str, list[float | None]]:
+def _read_journal(path: Path | None) -> dict[str, dict[str, Any]]:
     """The (mu, pull) cells a journal holds, by key; a line that cannot be read (a run killed while writing it) is
     skipped and its cell searched again."""
-    cells: dict[str, list[float | None]] = {}
+    cells: dict[str, dict[str, Any]] = {}
     if path is None or not path.is_file():
         return cells
     for line in path.read_text().splitlines():
         try:
             entry = json.loads(line)
-            cells[entry["key"]] = [None if f is None else float(f) for f in entry["episode_minimal_force_N"]]
+            cells[entry["key"]] = {"quantile_N": entry["quantile_N"], "probes": list(entry["probes"])}
         except (ValueError, KeyError, TypeError):
             continue
     return cells
@@ -271,30 +302,30 @@ def compute_reference(config: GraspLiftConfig, mus: Sequence[float] = DEFAULT_MU
     journal = Path(journal) if journal is not None else None
     done = _read_journal(journal)
     t0 = time.perf_counter()
-    cells: dict[tuple[float, float], list[float | None]] = {}
+    cells: dict[tuple[float, float], dict[str, Any]] = {}
     for m in mus:
         for p in pulls:
             key = _journal_key(digest, m, p, seed, episodes, tolerance_N)
-            if key in done and len(done[key]) == episodes:
+            if key in done:
                 cells[(m, p)] = done[key]
     where = [(m, p) for m in mus for p in pulls if (m, p) not in cells]
     jobs = [(_search_job, (cfg, m, p, int(seed), int(episodes), float(tolerance_N))) for m, p in where]
     if progress and cells:
         print(f"  {len(cells)} of {len(cells) + len(where)} searches taken from {journal}", file=sys.stderr)
 
-    def searched(k: int, forces: list[float | None]) -> None:
+    def searched(k: int, cell: dict[str, Any]) -> None:
         m, p = where[k]
         if journal is not None:
             with journal.open("a") as f:
-                f.write(json.dumps({"key": _journal_key(digest, m, p, seed, episodes, tolerance_N),
-                                    "episode_minimal_force_N": forces}) + "\n")
+                f.write(json.dumps({"key": _journal_key(digest, m, p, seed, episodes, tolerance_N), **cell}) + "\n")
         if progress:
-            print(f"  mu={m:g} pull={p:g}: {SHARE:.0%} quantile {hold_quantile(forces):.3f} N "
-                  f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+            q = cell["quantile_N"]
+            print(f"  mu={m:g} pull={p:g}: {SHARE:.0%} grip {'inf' if q is None else format(q, '.3f')} N, "
+                  f"{len(cell['probes'])} probes ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
 
-    for (m, p), forces in zip(where, _run(jobs, runner, searched)):
-        cells[(m, p)] = forces
-    record = assemble_reference(config, cells, seed, tolerance_N)
+    for (m, p), cell in zip(where, _run(jobs, runner, searched)):
+        cells[(m, p)] = cell
+    record = assemble_reference(config, cells, seed, tolerance_N, episodes)
     checks = [r for r in record["mu"] if r["reference_force_N"] is not None]
     if progress:
         print(f"  checking the reference grip at {len(checks)} mu", file=sys.stderr, flush=True)
@@ -311,32 +342,23 @@ def compute_reference(config: GraspLiftConfig, mus: Sequence[float] = DEFAULT_MU
     return record
 
 
-def assemble_reference(config: GraspLiftConfig, cells: dict[tuple[float, float], list[float | None]], seed: int,
-                       tolerance_N: float) -> dict[str, Any]:
-    """The reference record of ``config`` from its searches: ``cells[(mu, pull)]``, each reference episode's minimal
-    fixed force at that friction and pull (None: no force holds it; the same episodes in every cell). Per mu: each
-    pull's :func:`hold_quantile`, the least of them (R; on a tie the faster pull, the shorter episode) and its pull.
-    Without the check run :func:`compute_reference` adds (``check``, ``time_to_lift_s``)."""
+def assemble_reference(config: GraspLiftConfig, cells: dict[tuple[float, float], dict[str, Any]], seed: int,
+                       tolerance_N: float, episodes: int) -> dict[str, Any]:
+    """The reference record of ``config`` from its searches: ``cells[(mu, pull)]``, each a :func:`search_quantile`
+    result on the same ``episodes`` reference episodes. Per mu: each pull's Q_p, the least of them (R; on a tie the
+    faster pull, the shorter episode) and its pull. Without the check run :func:`compute_reference` adds (``check``,
+    ``time_to_lift_s``)."""
     from .controllers import _max_pull_speed
 
     mus = sorted({m for m, _ in cells})
     pulls = sorted({p for _, p in cells})
-    episodes = {len(f) for f in cells.values()}
-    if len(episodes) != 1 or any((m, p) not in cells for m in mus for p in pulls):
-        raise ValueError("cells must hold every (mu, pull) of their grid, each with the same episodes")
-    episodes = episodes.pop()
+    if any((m, p) not in cells for m in mus for p in pulls):
+        raise ValueError("cells must hold every (mu, pull) of their grid")
     top = _max_pull_speed(config)
     rows = []
     for m in mus:
-        per_pull = []
-        for p in pulls:
-            forces = [None if f is None or not math.isfinite(f) else float(f) for f in cells[(m, p)]]
-            q = hold_quantile(forces)
-            per_pull.append({"pull": p, "pull_speed_m_s": p * top, "quantile_N": q if math.isfinite(q) else None,
-                             "held_by_some_force": sum(f is not None for f in forces),
-                             "at_search_floor": sum(f is not None and f < SEARCH_FLOOR_N + 2 * tolerance_N
-                                                    for f in forces),
-                             "episode_minimal_force_N": forces})
+        per_pull = [{"pull": p, "pull_speed_m_s": p * top, "quantile_N": cells[(m, p)]["quantile_N"],
+                     "probes": cells[(m, p)]["probes"]} for p in pulls]
         finite = [c for c in per_pull if c["quantile_N"] is not None]
         best = min(finite, key=lambda c: (c["quantile_N"], -c["pull"])) if finite else None
         rows.append({"mu": m, "reference_force_N": None if best is None else best["quantile_N"],
@@ -345,11 +367,11 @@ def assemble_reference(config: GraspLiftConfig, cells: dict[tuple[float, float],
     fingerprint = task_fingerprint(config)
     return {
         "format": FORMAT,
-        "definition": (f"R(mu) = min over pull p of the ceil({SHARE:g} n)-th smallest of the n reference episodes' own "
-                       "minimal fixed pinch forces at pull p (episode_minimal_forces, tolerance tolerance_N; an "
-                       "episode no force holds counts as infinite): the least fixed grip that lifts and holds "
-                       f"{SHARE:.0%} of the episodes within the time limit at the pull speed that needs least. "
-                       "Between grid mu, R x mu is interpolated linearly."),
+        "definition": (f"R(mu) = min over pull p of the least fixed pinch force (to tolerance_N, by bisection) with "
+                       f"which the fixed-force controller at pull p lifts and holds at least ceil({SHARE:g} n) of the "
+                       "n reference episodes within the time limit: the least fixed grip that holds "
+                       f"{SHARE:.0%} of the episodes at the pull speed that needs least. Between grid mu, R x mu is "
+                       "interpolated linearly."),
         "share": SHARE,
         "tolerance_N": float(tolerance_N),
         "episodes": int(episodes),

@@ -364,7 +364,8 @@ def select_conditions(suite: str, only: Sequence[str]) -> tuple[Condition, ...]:
 
 def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int | None = None,
               seed: int = EVALUATION_SEED, runner: Runner | None = None, progress: bool = True,
-              hindsight: bool = False, only: Sequence[str] | None = None) -> dict[str, Any]:
+              hindsight: bool = False, only: Sequence[str] | None = None, baselines: bool = True,
+              task: GraspLiftConfig | None = None) -> dict[str, Any]:
     """Run ``suite`` (its current version, :data:`SUITE_VERSION`) on every policy spec and the baselines; write
     ``suite_<suite>.json`` and ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and
     every model loaded before any episode runs. ``episodes``: per mu of a condition on the whole grid (default the
@@ -376,7 +377,9 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     (:func:`.controllers.episode_minimal_forces`; about 3 CPU-minutes per condition and mu): what a policy that
     grips every episode with just enough force would reach there. ``only``: run these of the suite's conditions
     alone (:func:`select_conditions`: axes or condition names); the result says it is a subset, whose scores are
-    not the suite's."""
+    not the suite's. ``baselines``: add the baselines (False: the policies given alone, e.g. a second run on the same
+    episodes whose baselines an earlier run has). ``task``: the task for controllers alone (default: the default
+    training's, TrainConfig().env); a model always runs on its own."""
     if suite not in SUITES:
         raise ConfigError(f"suite = {suite!r} is not known; choose one of {', '.join(map(repr, SUITES))}")
     # the protocol's grid and episodes; its conditions are SUITES[suite]
@@ -394,9 +397,15 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     specs = expand_policy_specs(policies)
     for spec in specs:
         check_policy_spec(spec)
-    specs += [b for b in BASELINES if b not in specs]
+    if baselines:
+        specs += [b for b in BASELINES if b not in specs]
     config, trained_on = trained_task_of(specs)
-    if setpoint_interface(config) and "slipfeedback" not in specs:
+    if task is not None:
+        if trained_on is not None:
+            raise ConfigError(f"task: a model runs on the task it was trained on ({trained_on}); give controllers "
+                              "alone with a task")
+        config, trained_on = task, "the task given"
+    if baselines and setpoint_interface(config) and "slipfeedback" not in specs:
         specs.append("slipfeedback")
     ranges = trained_ranges_of(specs)
     built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)

@@ -96,7 +96,7 @@ def add_reference_command(sub) -> None:
     p.add_argument("--seed", type=int, default=REFERENCE_SEED,
                    help=f"episode i is reset with seed + i (default {REFERENCE_SEED})")
     p.add_argument("--tolerance", type=float, default=TOLERANCE_N,
-                   help=f"the per-episode bisection's tolerance, N (default {TOLERANCE_N:g})")
+                   help=f"the bisection's tolerance on the grip, N (default {TOLERANCE_N:g})")
     _add_runner_args(p, "every (mu, pull) search as its own job")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_cmd_reference)

@@ -229,6 +229,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise _usage("--hindsight needs --suite robustness (it searches the suite's episodes)")
     if args.condition:
         raise _usage("--condition needs --suite robustness (it picks the suite's conditions)")
+    if args.no_baselines or args.task_version is not None:
+        raise _usage("--no-baselines and --task-version need --suite (they shape a suite run)")
     mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
     if args.episodes is None:
         args.episodes = 10
@@ -299,8 +301,17 @@ def _cmd_suite(args: argparse.Namespace) -> int:
         raise _usage(f"--seed must be >= 0, got {args.seed}")
     policies = args.policy or _default_policies()
     runner = _runner(args) if _runner_asked(args) else None
+    task = None
+    if args.task_version is not None:  # controllers on another version of the benchmark task (the critic's entries too)
+        from dataclasses import replace
+
+        from ..agents.models import TrainConfig
+        from ..envs.core import benchmark_config
+
+        task = replace(benchmark_config(TrainConfig().env.scene, args.task_version), privileged_obs=True)
     result = run_suite(policies, args.out, args.suite, episodes=args.episodes, seed=args.seed, runner=runner,
-                       progress=not args.quiet, hindsight=args.hindsight, only=args.condition)
+                       progress=not args.quiet, hindsight=args.hindsight, only=args.condition,
+                       baselines=not args.no_baselines, task=task)
     print(Path(result["files"]["markdown"]).read_text())
     print(json.dumps(result["files"], indent=2))
     return 0
@@ -490,6 +501,11 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
                         "and the unseen 0.15, 0.2, 1.0, 1.2)")
+    e.add_argument("--no-baselines", action="store_true",
+                   help="with --suite: the policies given alone, no baselines (a second run on the same episodes)")
+    e.add_argument("--task-version", type=int, choices=(1, 2), default=None,
+                   help="with --suite, controllers only: run on that version of the benchmark task (default: the "
+                        "default training's, v2)")
     e.add_argument("--suite", choices=("robustness", "in_range"), default=None,
                    help="run a versioned protocol instead of the mu grid: robustness v2 (sensing, actuation, "
                         "placement, friction and tissue outside training; mu 0.2, 0.3, 0.5, 0.8 x 19 episodes, 76 "
@@ -583,10 +599,11 @@ def add_rl_commands(sub) -> None:
 
     lb = sub.add_parser("leaderboard", help="group a suite result's policies into tracks (a training's seeds, a "
                         "controller) and compare them: success with its Wilson lower bound, force ratio and time to "
-                        "lift per condition; IQM with stratified bootstrap intervals, probability of improvement over a "
-                        "baseline, performance profiles (agents/leaderboard.py)")
-    lb.add_argument("suite_json", type=Path, metavar="SUITE.json",
-                    help="a suite result (msdgrasp evaluate --suite in_range --out DIR writes DIR/suite_in_range.json)")
+                        "lift per condition; IQM with stratified bootstrap intervals, probability of improvement over "
+                        "a baseline, performance profiles (agents/leaderboard.py)")
+    lb.add_argument("suite_json", type=Path, nargs="+", metavar="SUITE.json",
+                    help="suite results on the same episodes (msdgrasp evaluate --suite in_range --out DIR writes "
+                         "DIR/suite_in_range.json; a second run with --no-baselines adds policies)")
     lb.add_argument("--track", action="append", required=True, metavar="NAME=PATTERN",
                     help="a track: its name and a glob of the policy specs it groups (repeat), e.g. "
                          "'default training=logs/train/seed_*/best_model.zip' or 'slip-reactive=reactive'")

@@ -40,13 +40,14 @@ def _result() -> dict:
     results = [_policy(f"runs/seed_{k}/best_model.zip", 0, 1.2) for k in range(3)]
     results += [_policy("reactive", 10, 1.8)]
     return {"suite": "in_range", "version": 2, "protocol": True, "seeds": {"first": 10**9, "count": 40, "sealed": True},
-            "conditions": [{"name": "nominal"}, {"name": "force noise 0.05 N"}], "reference_force_N": REF,
-            "reference": {"kind": "reference"}, "results": results}
+            "episodes": 19, "config": {}, "conditions": [{"name": "nominal"}, {"name": "force noise 0.05 N"}],
+            "results": results}
 
 
 def test_tracks_pool_their_seeds_and_count_as_by_hand():
     board = build_leaderboard(_result(), [parse_track("trained=runs/seed_*/best_model.zip"),
-                                          parse_track("slip-reactive=reactive")], baseline="slip-reactive")
+                                          parse_track("slip-reactive=reactive")], baseline="slip-reactive",
+                              references=REF)
     trained, reactive = board["tracks"]
     assert trained["runs"] == 3 and reactive["runs"] == 1
     cell = trained["cells"][0]
@@ -70,7 +71,7 @@ def test_unsealed_or_partial_results_say_so(tmp_path):
     result["seeds"]["sealed"] = False
     path = tmp_path / "suite.json"
     path.write_text(json.dumps(result))
-    board = write_leaderboard(path, ["t=reactive"], None, tmp_path / "out")
+    board = write_leaderboard(path, ["t=reactive"], None, tmp_path / "out", references=REF)
     assert "Not a certified result" in (tmp_path / "out" / "leaderboard.md").read_text()
     assert board["tracks"][0]["track"] == "t"
 
@@ -84,15 +85,24 @@ def test_bad_tracks_are_one_line_errors(tmp_path, tracks, baseline, needle):
     path = tmp_path / "suite.json"
     path.write_text(json.dumps(_result()))
     with pytest.raises(ConfigError, match=needle):
-        write_leaderboard(path, tracks, baseline, tmp_path / "out")
+        write_leaderboard(path, tracks, baseline, tmp_path / "out", references=REF)
     assert not (tmp_path / "out").exists()
 
 
-def test_a_result_without_reference_forces_is_refused(tmp_path):
-    result = _result()
-    del result["reference_force_N"]
-    with pytest.raises(ConfigError, match="reference"):
-        build_leaderboard(result, [("t", "reactive")])
+def test_results_of_other_episodes_do_not_merge(tmp_path):
+    a, b = _result(), _result()
+    b["seeds"] = {**b["seeds"], "first": 0, "sealed": False}
+    paths = [tmp_path / "a.json", tmp_path / "b.json"]
+    for p, r in zip(paths, (a, b)):
+        p.write_text(json.dumps(r))
+    with pytest.raises(ConfigError, match="seeds"):
+        write_leaderboard(paths, ["t=reactive"], None, tmp_path / "out", references=REF)
+    b = _result()
+    b["results"] = [_policy("fixed", 0, 2.0), _policy("reactive", 1, 9.0)]
+    paths[1].write_text(json.dumps(b))
+    board = write_leaderboard(paths, ["r=reactive", "f=fixed"], None, tmp_path / "out", references=REF)
+    assert board["tracks"][0]["cells"][0]["force_ratio"] == pytest.approx(1.8)  # the first run's reactive
+    assert board["tracks"][1]["runs"] == 1
 
 
 def test_the_in_range_suite_is_the_conditions_inside_the_benchmark_ranges():
