@@ -49,6 +49,7 @@ from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_ex
 from .controller_settings import slipfeedback_options
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .friction import with_estimator
+from .reference import references_at
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
 from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
@@ -68,7 +69,8 @@ BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "slipfeedback", "slipfeedb
 _NAMED = ("fixed", "reactive", "slipfeedback", "oracle", "zero", "idle")
 
 CSV_COLUMNS = (
-    "policy", "mu", "success_rate", "mean_peak_pinch_N", "peak_pinch_over_oracle_min", "max_peak_pinch_N",
+    "policy", "mu", "success_rate", "mean_peak_pinch_N", "force_ratio", "peak_pinch_over_oracle_min",
+    "max_peak_pinch_N",
     "mean_pinch_N", "mean_slip_mm", "mean_peak_stress_kPa", "mean_time_to_lift_s", "mean_return", "episodes",
 )
 _GRID_HELP = "expected 'start:stop:step' (stop included, e.g. '0.2:1.0:0.1') or a comma list such as '0.3,0.5'"
@@ -693,9 +695,14 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
                     print(f"  {name}: {opts} at mu={UNSEEN_MU:g}: success={row['success_rate']:.2f} "
                           f"peak pinch={row['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
     minimal = dict(zip(curve["mu"], curve["minimal_force_N"]))
+    # the force ratio: over the reference (a slower pull cannot lower it) where the task has a table and mu is on its
+    # grid; the ratio to the nominal oracle at pull 0.5 stays beside it
+    references, reference = references_at(config, [float(m) for m in mus])
     for pol in results:
         for r in pol["rows"]:
             r["peak_pinch_over_oracle_min"] = r["mean_peak_pinch_N"] / minimal[r["mu"]]
+            ref = references.get(f"{r['mu']:g}")
+            r["force_ratio"] = r["mean_peak_pinch_N"] / ref if ref else float("nan")
 
     recordings: list[str] = []
     if record:
@@ -723,6 +730,8 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         },
         "results": results,
         "oracle_minimal_force": curve,
+        "reference": reference,
+        "reference_force_N": references,
         "unseen_conditions": unseen,
         "recordings": recordings,
     }
@@ -887,16 +896,22 @@ def format_unseen(unseen: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _ratio(x: float | None) -> str:
+    return "-" if x is None or not math.isfinite(x) else f"{x:.2f}"
+
+
 def format_table(results: list[dict[str, Any]]) -> str:
-    """A compact text table of the evaluation rows: success, the peak pinch and its ratio to the oracle's minimal
-    force, beside them the mean time to lift (over the episodes that lifted), then the other metrics."""
-    head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'/oracle':>7} {'t_lift s':>8} {'max N':>6} " \
-           f"{'mean N':>6} {'slip mm':>7} {'stress kPa':>10} {'return':>7}"
+    """A compact text table of the evaluation rows: success, the peak pinch, its ratio to the reference force (/ref:
+    agents/reference.py, '-' without a table or off its grid) and to the oracle's minimal force at pull 0.5 (/oracle),
+    beside them the mean time to lift (over the episodes that lifted), then the other metrics."""
+    head = f"{'policy':<16} {'mu':>5} {'success':>7} {'peak N':>7} {'/ref':>6} {'/oracle':>7} {'t_lift s':>8} " \
+           f"{'max N':>6} {'mean N':>6} {'slip mm':>7} {'stress kPa':>10} {'return':>7}"
     lines = [head, "-" * len(head)]
     for pol in results:
         for r in pol["rows"]:
             lines.append(
                 f"{pol['name'][:16]:<16} {r['mu']:>5.2f} {r['success_rate']:>7.2f} {r['mean_peak_pinch_N']:>7.2f} "
+                f"{_ratio(r.get('force_ratio')):>6} "
                 f"{r.get('peak_pinch_over_oracle_min', float('nan')):>7.2f} {_seconds(r['mean_time_to_lift_s']):>8} "
                 f"{r['max_peak_pinch_N']:>6.2f} {r['mean_pinch_N']:>6.2f} {r['mean_slip_mm']:>7.2f} "
                 f"{r['mean_peak_stress_kPa']:>10.1f} {r['mean_return']:>7.2f}"

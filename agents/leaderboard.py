@@ -80,21 +80,17 @@ def _mean(x: np.ndarray) -> float:
 
 def reference_forces(result: dict[str, Any]) -> dict[str, float | None]:
     """The reference force (N) at each mu of a suite result's episodes, from the reference table of its task
-    (:mod:`.reference`; a one-line ConfigError where the table is for another task); None at a mu off its grid."""
+    (:func:`.reference.references_at`; a one-line ConfigError where the task has none); None at a mu off its grid."""
     from ..envs.core import GraspLiftConfig
     from ..physics.config import from_dict
-    from .reference import reference_force_N, reference_table
+    from .reference import references_at
 
     config = from_dict(GraspLiftConfig, result["config"], where="suite result config")
-    reference_table(config)
     mus = sorted({float(row["mu"]) for r in result["results"] for cell in r["cells"] for row in cell["rows"]})
-    out: dict[str, float | None] = {}
-    for m in mus:
-        try:
-            out[f"{m:g}"] = reference_force_N(config, m)
-        except ConfigError:  # (a mu off the table's grid: no reference there)
-            out[f"{m:g}"] = None
-    return out
+    forces, what = references_at(config, mus)
+    if what["kind"] != "reference":
+        raise ConfigError(f"no reference forces for the suite result's task: {what['why']}")
+    return forces
 
 
 def merge_results(results: Sequence[dict[str, Any]]) -> dict[str, Any]:

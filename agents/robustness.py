@@ -57,6 +57,7 @@ from .evaluation import (
 from .controllers import episode_minimal_forces
 from .parallel import Runner
 from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
+from .reference import references_at
 from .stats import mean_of_runs, stratified_bootstrap_ci, wilson_interval, wilson_lower_bound
 
 #: the protocol version that runs
@@ -325,27 +326,6 @@ def _cell(rows: list[dict[str, Any]], minimal: dict[float, float]) -> dict[str, 
             "rows": rows}
 
 
-def suite_references(config: GraspLiftConfig, mus: Sequence[float]) -> tuple[dict[str, float | None], dict[str, Any]]:
-    """The reference force (N) of the task ``config`` at each of ``mus`` (keyed ``f"{mu:g}"``; None outside the
-    table's friction grid) and what the force ratios read against: ``{"kind": "reference", "table", "digest",
-    "definition"}`` or, for a task with no reference table, ``{"kind": "nominal oracle", "why"}`` (the oracle's
-    minimal fixed force at pull 0.5 on the nominal tissue, which a slower pull undercuts)."""
-    from .reference import default_reference_path, reference_force_N, reference_table
-
-    try:
-        record = reference_table(config)
-    except ConfigError as exc:
-        return {f"{m:g}": None for m in mus}, {"kind": "nominal oracle", "why": str(exc)}
-    forces: dict[str, float | None] = {}
-    for m in mus:
-        try:
-            forces[f"{m:g}"] = reference_force_N(config, m)
-        except ConfigError:  # (outside the table's friction grid: no reference there)
-            forces[f"{m:g}"] = None
-    return forces, {"kind": "reference", "table": default_reference_path(config).name,
-                    "digest": record["task_digest"], "definition": record["definition"]}
-
-
 def select_conditions(suite: str, only: Sequence[str]) -> tuple[Condition, ...]:
     """The conditions of ``suite`` that ``only`` names, in the protocol's order: each entry an axis (every condition
     of it) or a condition's exact name. ConfigError naming the entry, the axes and the names, on one that matches
@@ -444,7 +424,7 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     cap = 2.0 * config.reference_force_N
     minimal = {m: (float(f) if f < cap else math.nan)
                for m, f in zip(all_mus, out[len(where):len(where) + len(all_mus)])}
-    references, reference = suite_references(config, all_mus)
+    references, reference = references_at(config, all_mus)
     # the force ratios read against the reference (a slower pull cannot lower it), where the task has a table; a
     # task without one reads against the nominal oracle at pull 0.5, and the result says so
     denominators = ({m: (references[f"{m:g}"] or math.nan) for m in all_mus} if reference["kind"] == "reference"
