@@ -188,7 +188,8 @@ def search_quantile(config: GraspLiftConfig, mu: float, pull: float, seeds: Sequ
     The count held is not monotone in the grip over the whole range: at a slow pull a heavy grip takes longer to close
     and runs out of time (measured: at mu 0.2 and pull 0.22, 1.5 N holds every episode, 3 N none). So the search scans
     up from :data:`SCAN_FROM_N_MU` / mu in steps of x :data:`SCAN_STEP` (down first where that already holds) to
-    the first grip that holds, up to the motor's limit or until a grip holds fewer than the one below it, then bisects
+    the first grip that holds, up to the motor's limit or until a grip holds fewer than the one below it (which held at
+    least half the share), then bisects
     between it and the last that did not.
     Returns ``{"quantile_N": Q or None (no grip of the scan holds that share), "probes": [{"force_N", "held"}]}``."""
     need = held_needed(len(seeds))
@@ -200,8 +201,9 @@ def search_quantile(config: GraspLiftConfig, mu: float, pull: float, seeds: Sequ
         probes.append({"force_N": round(float(force), 6), "held": k})
         return k >= need
 
-    def falling() -> bool:  # (the scan's last grip held fewer than the one before: heavier grips run out of time)
-        return len(probes) >= 2 and probes[-1]["held"] < probes[-2]["held"]
+    def falling() -> bool:  # (the scan's last grip held fewer than the one before, which held at least half what it
+        # must: heavier grips run out of time. Below that, a count of 1 then 0 is chance, not the time limit)
+        return len(probes) >= 2 and 2 * probes[-2]["held"] >= need and probes[-1]["held"] < probes[-2]["held"]
 
     hi = min(SCAN_FROM_N_MU / mu, cap)
     if held(hi):  # (the floor holds already: down until a grip does not)

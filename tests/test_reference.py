@@ -110,6 +110,11 @@ def test_the_search_scans_up_then_bisects(monkeypatch):
         "success": np.arange(len(seeds)) < (20 if force < 1.5 else 5)})
     out = reference.search_quantile(CONFIG, 0.2, 0.2, list(range(40)), 0.01)
     assert out["quantile_N"] is None and len(out["probes"]) <= 4  # (gave up once the count fell)
+    # a count that falls by chance far below the share (1, then 0) does not end the scan
+    monkeypatch.setattr(reference, "run_fixed_grips", lambda c, mu, seeds, force, pull: {
+        "success": np.arange(len(seeds)) < (1 if force < 0.45 else 0 if force < 0.55 else 40)})
+    out = reference.search_quantile(CONFIG, 0.7, 0.22, list(range(40)), 0.01)
+    assert out["quantile_N"] is not None and 0.55 <= out["quantile_N"] <= 0.56
 
 
 def test_lookup_refuses_other_physics_and_mu_off_the_grid(synthetic):
