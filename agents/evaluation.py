@@ -445,7 +445,7 @@ def _csv_text(results: list[dict[str, Any]]) -> str:
             vals = [pol["name"]]
             for col in CSV_COLUMNS[1:]:
                 v = r[col]
-                vals.append(v if isinstance(v, int) else f"{v:.6g}")
+                vals.append("nan" if v is None else v if isinstance(v, int) else f"{v:.6g}")
             w.writerow(vals)
     return buf.getvalue()
 
@@ -702,7 +702,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         for r in pol["rows"]:
             r["peak_pinch_over_oracle_min"] = r["mean_peak_pinch_N"] / minimal[r["mu"]]
             ref = references.get(f"{r['mu']:g}")
-            r["force_ratio"] = r["mean_peak_pinch_N"] / ref if ref else float("nan")
+            r["force_ratio"] = r["mean_peak_pinch_N"] / ref if ref else None  # (None: no reference at this mu)
 
     recordings: list[str] = []
     if record:
