@@ -9,8 +9,9 @@ by their spec (``fnmatch`` patterns: ``"default training=logs/train/seed_*/best_
   (each episode's peak pinch over the reference force at its mu: :mod:`.reference`, the least fixed grip that holds
   95 % of the reference episodes at the pull speed that needs least, so a slower pull cannot lower it), and the mean
   time to lift (s);
-* aggregates as Agarwal et al. (2021) compute them (``rliable``'s definitions, :mod:`.stats`): the interquartile
-  mean (IQM) over runs x conditions of the success rate and of the force ratio, each with a 95 % stratified bootstrap
+* aggregates as Agarwal et al. (2021) compute them (``rliable``'s definitions, :mod:`.stats`): the mean and the
+  interquartile mean (IQM) over runs x conditions of the success rate (the IQM trims the worst quarter, where the
+  failures sit, so the mean leads) and the IQM of the force ratio, each with a 95 % stratified bootstrap
   interval (runs resampled within each condition, then episodes within each run); the probability of improvement over
   the baseline track on the same episodes (per episode: a failure ranks below every success, successes rank by a
   lower force ratio; ties count one half); the performance profile of the force ratio (the share of episodes that
@@ -32,7 +33,7 @@ import numpy as np
 from ..physics.config import ConfigError, atomic_write_text
 from .evaluation import nan_to_none
 from .stats import (
-    iqm_of_runs, performance_profile_at_most, probability_of_improvement_ci, stratified_bootstrap_ci,
+    iqm_of_runs, mean_of_runs, performance_profile_at_most, probability_of_improvement_ci, stratified_bootstrap_ci,
     wilson_lower_bound,
 )
 
@@ -148,6 +149,8 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
         ratio_tasks = [np.stack([np.nan_to_num(r[c]["ratio"], nan=0.0) for r in per_run])
                        for c in range(len(conditions))]
         s_point, s_lo, s_hi = stratified_bootstrap_ci(succ, iqm_of_runs)
+        # (the IQM trims the worst quarter of runs x conditions, where a success rate's failures sit: the mean beside)
+        m_point, m_lo, m_hi = stratified_bootstrap_ci(succ, mean_of_runs)
         f_point, f_lo, f_hi = stratified_bootstrap_ci(ratio_tasks, iqm_of_runs)
         ratios = np.concatenate([np.where(r[c]["success"], r[c]["ratio"], np.inf) for r in per_run
                                  for c in range(len(conditions))])
@@ -155,6 +158,7 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
         profile = performance_profile_at_most(ratios, PROFILE_TAUS)
         row = {"track": name, "policies": members[name], "runs": len(per_run), "cells": cells,
                "success_iqm": float(s_point), "success_iqm_ci95": [float(s_lo), float(s_hi)],
+               "success_mean": float(m_point), "success_mean_ci95": [float(m_lo), float(m_hi)],
                "force_ratio_iqm": float(f_point), "force_ratio_iqm_ci95": [float(f_lo), float(f_hi)],
                "lowest_lower_bound": min(c["success_lower_bound"] for c in cells),
                "time_to_lift_s": _mean(np.array([c["time_to_lift_s"] for c in cells])),
@@ -189,15 +193,16 @@ def leaderboard_markdown(board: dict[str, Any]) -> str:
               "speed that needs least). IQM over runs x conditions with 95 % stratified bootstrap intervals (runs, "
               "then episodes); P(improvement): over the baseline on the same episodes, a failure ranking below every "
               "success; profile: the share of episodes that succeed at a force ratio <= tau.", "",
-              "| track | runs | success IQM [95% CI] | lowest lower bound | force ratio IQM [95% CI] | time to lift | "
-              f"P(improvement) over {board.get('baseline') or '-'} | profile " +
+              "| track | runs | success mean [95% CI] | success IQM | lowest lower bound | force ratio IQM [95% CI] | "
+              f"time to lift | P(improvement) over {board.get('baseline') or '-'} | profile " +
               " / ".join(f"<={t:g}" for t in PROFILE_TAUS) + " |",
-              "|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|"]
     for t in board["tracks"]:
         pi = t.get("p_improvement")
         lines.append(
-            f"| {t['track']} | {t['runs']} | {t['success_iqm']:.3f} [{t['success_iqm_ci95'][0]:.3f}, "
-            f"{t['success_iqm_ci95'][1]:.3f}] | {t['lowest_lower_bound']:.3f} | {_n(t['force_ratio_iqm'], '.2f')} "
+            f"| {t['track']} | {t['runs']} | {t['success_mean']:.3f} [{t['success_mean_ci95'][0]:.3f}, "
+            f"{t['success_mean_ci95'][1]:.3f}] | {t['success_iqm']:.3f} | {t['lowest_lower_bound']:.3f} | "
+            f"{_n(t['force_ratio_iqm'], '.2f')} "
             f"[{_n(t['force_ratio_iqm_ci95'][0], '.2f')}, {_n(t['force_ratio_iqm_ci95'][1], '.2f')}] | "
             f"{_n(t['time_to_lift_s'], '.2f')} s | "
             + (f"{pi['value']:.2f} [{pi['ci95'][0]:.2f}, {pi['ci95'][1]:.2f}]" if pi else "-") + " | "

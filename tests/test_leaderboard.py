@@ -58,6 +58,7 @@ def test_tracks_pool_their_seeds_and_count_as_by_hand():
     assert (r["successes"], r["episodes"]) == (72, 80)  # one in ten fails
     assert r["force_ratio"] == pytest.approx(1.8)
     assert trained["success_iqm"] == pytest.approx(1.0) and reactive["success_iqm"] == pytest.approx(0.9)
+    assert reactive["success_mean"] == pytest.approx(0.9) and reactive["success_mean_ci95"][0] < 0.9
     # lighter and never failing: it beats the reactive controller on every pair of episodes
     assert trained["p_improvement"]["value"] == pytest.approx(1.0)
     assert trained["profile"]["1.25"] == pytest.approx(1.0) and trained["profile"]["1.1"] == pytest.approx(0.0)
