@@ -182,9 +182,10 @@ class TrainConfig:
         learning_rate=3e-4, buffer_size=200_000, batch_size=256, gamma=0.99, tau=0.005, learning_starts=2000,
         train_freq=1, gradient_steps=1,
     ))
-    #: the training task: the benchmark task msdgrasp/GraspLift-v1 (envs.core.benchmark_config: friction drawn
-    #: log-uniformly, a pinch action that spends more of its range on light grips, a pull-speed action, a
-    #: peak-pinch charge scaled by mu / 0.4; docs/design.md), plus the privileged entries the critic reads
+    #: the training task: the benchmark task msdgrasp/GraspLift-v2 (envs.core.benchmark_config: every observation
+    #: entry from a named sensor, friction drawn log-uniformly, a pinch action that spends more of its range on light
+    #: grips, a pull-speed action, a peak-pinch charge scaled by mu / 0.4; docs/design.md), plus the privileged
+    #: entries the critic reads
     env: GraspLiftConfig = field(default_factory=lambda: replace(benchmark_config(), privileged_obs=True))
     #: domain randomisation of the training: the training's episodes (and its validation episodes, which select
     #: the model) are drawn from this in place of env.randomization; the model's task stays ``env`` (evaluations
