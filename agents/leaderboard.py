@@ -94,15 +94,29 @@ def reference_forces(result: dict[str, Any]) -> dict[str, float | None]:
     return forces
 
 
+#: task fields a training chooses for itself, not the episodes: its reward and what its critic or its frame stack reads
+_TRAINING_FIELDS = ("reward", "privileged_obs", "privileged_nodes", "privileged_perturbations", "obs_history")
+
+
+def _task_of(result: dict[str, Any]) -> dict[str, Any]:
+    """What of a suite result's task makes its episodes and its actor's sensing: its config less _TRAINING_FIELDS."""
+    return {k: v for k, v in (result.get("config") or {}).items() if k not in _TRAINING_FIELDS}
+
+
 def merge_results(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """One suite result of several run on the same episodes (the same suite, version, seeds, conditions and task);
     a policy in several keeps its first run. ConfigError naming what differs."""
     first = results[0]
     for other in results[1:]:
-        for key in ("suite", "version", "seeds", "episodes", "config"):
+        for key in ("suite", "version", "seeds", "episodes"):
             if other.get(key) != first.get(key):
                 raise ConfigError(f"the suite results differ in {key!r}: not the same episodes; merge only runs of one "
                                   "suite, version, seeds, episodes and task")
+        a, b = _task_of(first), _task_of(other)
+        if a != b:
+            field = next(k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k))
+            raise ConfigError(f"the suite results' tasks differ in {field!r}: not the same episodes; merge only runs "
+                              "of one task (policies trained on it may differ in their reward and critic's inputs)")
         if [c["name"] for c in other["conditions"]] != [c["name"] for c in first["conditions"]]:
             raise ConfigError("the suite results differ in their conditions: not the same episodes")
     merged, seen = [], set()

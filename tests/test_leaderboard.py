@@ -99,6 +99,12 @@ def test_results_of_other_episodes_do_not_merge(tmp_path):
     with pytest.raises(ConfigError, match="seeds"):
         write_leaderboard(paths, ["t=reactive"], None, tmp_path / "out", references=REF)
     b = _result()
+    b["config"] = {"sensed_task_state": False}
+    paths[1].write_text(json.dumps(b))
+    with pytest.raises(ConfigError, match="sensed_task_state"):
+        write_leaderboard(paths, ["t=reactive"], None, tmp_path / "out", references=REF)
+    b = _result()
+    b["config"] = {"reward": {"peak_force": 1.0}, "privileged_obs": True}  # (a training's own choices: the same task)
     b["results"] = [_policy("fixed", 0, 2.0), _policy("reactive", 1, 9.0)]
     paths[1].write_text(json.dumps(b))
     board = write_leaderboard(paths, ["r=reactive", "f=fixed"], None, tmp_path / "out", references=REF)
