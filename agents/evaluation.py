@@ -45,7 +45,9 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
-from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
+from ..physics.config import (  # noqa: F401 (nan_to_none re-exported)
+    ConfigError, atomic_write_text, from_dict, nan_to_none, needs_extra, save_figure, to_dict,
+)
 from .controller_settings import slipfeedback_options
 from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
 from .friction import with_estimator
@@ -144,17 +146,6 @@ def parse_mu_grid(text: str) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 # running episodes
 # ------------------------------------------------------------------------------------------------
-
-
-def nan_to_none(x: Any) -> Any:
-    """NaN/inf floats (also nested in dicts and lists) as None: JSON's null instead of invalid NaN."""
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: nan_to_none(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [nan_to_none(v) for v in x]
-    return x
 
 
 def _config_for(config: GraspLiftConfig, options: dict[str, float]) -> GraspLiftConfig:

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import GraspLiftConfig
-from ..physics.config import CONFIG_DIR, ConfigError, atomic_write_text, from_dict, to_dict
+from ..physics.config import CONFIG_DIR, ConfigError, atomic_write_text, from_dict, nan_to_none, to_dict
 
 #: the file layout written here
 FORMAT = "msdgrasp-reference-force-1"
@@ -413,20 +413,10 @@ def _run(jobs, runner, on_done):
     return runner.run(jobs, on_done=on_done)
 
 
-def _json_number(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _json_number(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_number(v) for v in x]
-    return x
-
-
 def write_reference(record: dict[str, Any], path: str | Path) -> Path:
     """Write a :func:`compute_reference` record to ``path`` (JSON, atomically)."""
     path = Path(path)
-    written = atomic_write_text(path, json.dumps(_json_number(record), indent=1) + "\n")
+    written = atomic_write_text(path, json.dumps(nan_to_none(record), indent=1) + "\n")
     _load.cache_clear()
     return written
 
