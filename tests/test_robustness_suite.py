@@ -14,6 +14,7 @@ import pytest
 
 from msdgrasp.agents import robustness
 from msdgrasp.agents.protocol import EVALUATION_SEED, SEALED_SEEDS
+from msdgrasp.agents.reference import reference_force_N
 from msdgrasp.agents.robustness import (CONDITIONS, CONDITIONS_V1, EPISODES, MUS, POOLED_EPISODES, PROTOCOLS,
                                         SUITE_VERSION, Condition, condition_config)
 from msdgrasp.agents.stats import episodes_for_lower_bound, wilson_lower_bound
@@ -121,7 +122,10 @@ def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_gri
             assert cell["successes"] == wins and cell["success_lower_bound"] == wilson_lower_bound(wins, 4)
             lo, hi = cell["success_ci95"]
             assert lo == cell["success_lower_bound"] <= cell["success_rate"] <= hi
-            assert math.isclose(cell["force_ratio"], row["mean_peak_pinch_N"] / 1.25)
+            # the force ratio reads against the shipped reference table of the task (a slower pull cannot lower it)
+            assert data["reference"]["kind"] == "reference"
+            assert math.isclose(cell["force_ratio"], row["mean_peak_pinch_N"] / data["reference_force_N"]["0.5"])
+            assert math.isclose(data["reference_force_N"]["0.5"], reference_force_N(TrainConfig().env, 0.5))
             lifted = [t for t in row["per_episode"]["time_to_lift_s"] if t is not None and math.isfinite(t)]
             if lifted:
                 assert math.isclose(cell["mean_time_to_lift_s"], np.mean(lifted))
