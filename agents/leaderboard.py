@@ -30,8 +30,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..physics.config import ConfigError, atomic_write_text
-from .evaluation import nan_to_none
+from ..physics.config import ConfigError, atomic_write_text, nan_to_none
 from .stats import (
     iqm_of_runs, mean_of_runs, performance_profile_at_most, probability_of_improvement_ci, stratified_bootstrap_ci,
     wilson_lower_bound,

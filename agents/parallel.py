@@ -180,6 +180,20 @@ class Runner:
 # ------------------------------------------------------------------------------------------------
 
 
+def run_jobs(jobs: Sequence[Job], runner: "Runner | None",
+             on_done: Callable[[int, Any], None] | None = None) -> list[Any]:
+    """Every job's result in job order: with ``runner`` (entered by the caller) its :meth:`Runner.run`, without one in
+    this process, one after the other; ``on_done(index, result)`` as each finishes."""
+    if runner is not None:
+        return runner.run(jobs, on_done=on_done)
+    out = []
+    for k, (fn, args) in enumerate(jobs):
+        out.append(fn(*args))
+        if on_done is not None:
+            on_done(k, out[-1])
+    return out
+
+
 def _current_node() -> str | None:
     """The Ray node this code runs on, or None outside a Ray worker."""
     try:

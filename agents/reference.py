@@ -50,6 +50,7 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig
 from ..physics.config import CONFIG_DIR, ConfigError, atomic_write_text, from_dict, nan_to_none, to_dict
+from .parallel import run_jobs
 
 #: the file layout written here
 FORMAT = "msdgrasp-reference-force-1"
@@ -338,13 +339,13 @@ def compute_reference(config: GraspLiftConfig, mus: Sequence[float] = DEFAULT_MU
             print(f"  mu={m:g} pull={p:g}: {SHARE:.0%} grip {'inf' if q is None else format(q, '.3f')} N, "
                   f"{len(cell['probes'])} probes ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
 
-    for (m, p), cell in zip(where, _run(jobs, runner, searched)):
+    for (m, p), cell in zip(where, run_jobs(jobs, runner, searched)):
         cells[(m, p)] = cell
     record = assemble_reference(config, cells, seed, tolerance_N, episodes)
     checks = [r for r in record["mu"] if r["reference_force_N"] is not None]
     if progress:
         print(f"  checking the reference grip at {len(checks)} mu", file=sys.stderr, flush=True)
-    results = _run([(_check_job, (cfg, r["mu"], r["pull"], r["reference_force_N"], int(seed), int(episodes)))
+    results = run_jobs([(_check_job, (cfg, r["mu"], r["pull"], r["reference_force_N"], int(seed), int(episodes)))
                     for r in checks], runner, None)
     for r, check in zip(checks, results):
         r["time_to_lift_s"] = check["mean_time_to_lift_s"]
@@ -400,17 +401,6 @@ def assemble_reference(config: GraspLiftConfig, cells: dict[tuple[float, float],
         "computed_on": to_dict(config),
         "mu": rows,
     }
-
-
-def _run(jobs, runner, on_done):
-    if runner is None:
-        out = []
-        for k, (fn, args) in enumerate(jobs):
-            out.append(fn(*args))
-            if on_done is not None:
-                on_done(k, out[-1])
-        return out
-    return runner.run(jobs, on_done=on_done)
 
 
 def write_reference(record: dict[str, Any], path: str | Path) -> Path:

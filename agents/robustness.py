@@ -37,6 +37,7 @@ defined (:data:`CONDITIONS_V1`) and its results readable (:func:`leaderboard_mar
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -55,7 +56,7 @@ from .evaluation import (
     evaluate_policy, expand_policy_specs, nan_to_none, trained_ranges_of, trained_task_of,
 )
 from .controllers import episode_minimal_forces
-from .parallel import Runner
+from .parallel import Runner, run_jobs
 from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
 from .reference import references_at
 from .stats import mean_of_runs, stratified_bootstrap_ci, wilson_interval, wilson_lower_bound
@@ -412,14 +413,8 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
                   file=sys.stderr)
 
     t0 = time.perf_counter()
-    if runner is None:
-        out = []
-        for k, (fn, args) in enumerate(jobs):
-            out.append(fn(*args))
-            done(k, out[-1])
-    else:
-        with runner:
-            out = runner.run(jobs, on_done=done)
+    with runner or contextlib.nullcontext():
+        out = run_jobs(jobs, runner, done)
     # the bisection's cap (twice the reference force) means no fixed force up to it held: no minimal force known
     cap = 2.0 * config.reference_force_N
     minimal = {m: (float(f) if f < cap else math.nan)
