@@ -14,7 +14,7 @@ GATE_WAIT_STEPS = 30
 #: the settings a ``slipfeedback:key=value,...`` spec may give, and the SlipFeedbackPolicy argument each sets
 SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N",
                      "gate": "pinch_gate", "oracle": "oracle_margin", "margin": "estimate_margin",
-                     "estimator": "friction_estimator"}
+                     "estimator": "friction_estimator", "told": "told_mu"}
 #: the spec keys whose value is a path, not a number
 PATH_KEYS = ("estimator",)
 
@@ -39,6 +39,9 @@ class SlipFeedbackSettings:
     # with a friction estimator: the grip set before the pull is this multiple of the minimal fixed force at the
     # estimated friction
     estimate_margin: float = 1.2
+    # with a friction estimator: 1, the estimate is replaced by the episode's mu (the controller is told it, as the
+    # oracle is: a privileged teacher that closes, probes and pulls as the estimating controller does); 0: estimated
+    told_mu: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 < self.initial_force_N <= self.max_force_N:
@@ -58,6 +61,8 @@ class SlipFeedbackSettings:
             raise ValueError(f"oracle_margin must be 0 (off) or in [0.5, 3], got {self.oracle_margin!r}")
         if not 0.5 <= self.estimate_margin <= 3:
             raise ValueError(f"estimate_margin must be in [0.5, 3], got {self.estimate_margin!r}")
+        if self.told_mu not in (0, 1):
+            raise ValueError(f"told_mu must be 0 or 1, got {self.told_mu!r}")
 
 
 def slipfeedback_options(spec: str) -> dict[str, float | str]:
@@ -66,7 +71,8 @@ def slipfeedback_options(spec: str) -> dict[str, float | str]:
     speed), max (N), gate (the share of the set-point the pinch reading reaches before the pull), oracle (the initial
     grip as a multiple of the oracle's minimal force at the episode's mu), estimator (the path of a friction
     estimator, or ``builtin``, the package's: the grip set before the pull from the friction it estimates while the
-    jaws close), margin (that grip over the minimal force at the estimate)."""
+    jaws close), margin (that grip over the minimal force at the estimate), told (1: the estimate replaced by the
+    episode's mu from the reset info: a privileged teacher)."""
     body = spec.split(":", 1)[1]
     options: dict[str, float | str] = {}
     for part in body.split(","):

@@ -155,13 +155,17 @@ class SlipFeedbackPolicy:
     def __init__(self, config: GraspLiftConfig | None = None, initial_force_N: float = 0.55,
                  gain_N_per_mm: float = 1.0, max_force_N: float = 4.0, pull: float = 0.5, contact_jaws: int = 2,
                  settle_steps: int = 6, pinch_gate: float = 0.0, oracle_margin: float = 0.0,
-                 estimate_margin: float = 1.2, friction_estimator: FrictionEstimator | None = None) -> None:
+                 estimate_margin: float = 1.2, friction_estimator: FrictionEstimator | None = None,
+                 told_mu: bool = False) -> None:
         self.config = config or GraspLiftConfig()
         if not setpoint_interface(self.config):
             raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
                              f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
         SlipFeedbackSettings(initial_force_N, gain_N_per_mm, max_force_N, pull, contact_jaws, settle_steps,
-                             pinch_gate, oracle_margin, estimate_margin)
+                             pinch_gate, oracle_margin, estimate_margin, float(told_mu))
+        if told_mu and friction_estimator is None:
+            raise ValueError("told_mu needs a friction_estimator (its probe grip and force table; the told mu replaces "
+                             "its estimate)")
         if friction_estimator is not None:
             if not pinch_gate or oracle_margin:
                 raise ValueError("friction_estimator needs pinch_gate > 0 (the estimate is made when the gate opens) "
@@ -179,6 +183,7 @@ class SlipFeedbackPolicy:
         self.oracle_margin = float(oracle_margin)
         self.estimate_margin = float(estimate_margin)
         self.estimator = friction_estimator
+        self.told_mu = bool(told_mu)
         self.name = "slipfeedback"
         self._size(1)
 
@@ -188,6 +193,7 @@ class SlipFeedbackPolicy:
         self._held = np.zeros(n, dtype=np.int64)  # steps since the jaws first held
         self._pulling = np.zeros(n, dtype=bool)
         self.mu_estimate = np.full(n, np.nan)  # with a friction estimator: each episode's estimate
+        self._told = np.full(n, np.nan)  # with told_mu: each episode's mu, from its reset info
         self._frames: list[list[np.ndarray]] = [[] for _ in range(n)]  # the frames seen while closing
         self._regrip = np.full(n, -1, dtype=np.int64)  # steps since the estimate raised the grip (-1: not yet)
 
@@ -205,19 +211,36 @@ class SlipFeedbackPolicy:
         force = minimal_force(self.config, round(float(info["mu"]), 3), self.pull, ORACLE_TOLERANCE_N)
         return min(self.oracle_margin * force, self.max_force)
 
+    def _told_mu(self, info: dict[str, Any]) -> float:
+        if not self.told_mu:
+            return math.nan
+        if "mu" not in info:
+            raise ValueError("the slip-feedback controller with told_mu needs the episode's mu in the reset info")
+        return float(info["mu"])
+
+    def _closing_grip(self, info: dict[str, Any]) -> float:
+        """The grip an episode closes to: told mu, the probe grip or less where the friction needs less (it need not
+        probe further than the grip it will set); else the initial grip."""
+        start = self.initial_force(info)
+        if self.told_mu:
+            start = min(start, self.estimate_margin * self.estimator.grip_N(self._told_mu(info)))
+        return start
+
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
         self._size(len(infos))
-        self.start[:] = [self.initial_force(info) for info in infos]
+        self.start[:] = [self._closing_grip(info) for info in infos]
         self.force[:] = self.start
+        self._told[:] = [self._told_mu(info) for info in infos]
 
     def reset_one(self, index: int, info: dict[str, Any]) -> None:
         """Start a new episode in batch slot ``index`` only (the others keep their state)."""
-        self.start[index] = self.force[index] = self.initial_force(info)
+        self.start[index] = self.force[index] = self._closing_grip(info)
         self._held[index] = 0
         self._pulling[index] = False
         self.mu_estimate[index] = np.nan
         self._frames[index] = []
         self._regrip[index] = -1
+        self._told[index] = self._told_mu(info)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         cfg = self.config
@@ -243,7 +266,7 @@ class SlipFeedbackPolicy:
         for b in np.flatnonzero(closing):  # (the task's entries; privileged ones follow them)
             self._frames[b].append(np.array(frame[b, :N_OBS], dtype=np.float64))
         for b in np.flatnonzero(closing & gate_open):
-            mu = self.estimator.mu(closing_features(np.array(self._frames[b])))
+            mu = self._told[b] if self.told_mu else self.estimator.mu(closing_features(np.array(self._frames[b])))
             self.mu_estimate[b] = mu
             self.start[b] = max(self.start[b], min(self.estimate_margin * self.estimator.grip_N(mu), self.max_force))
             self.force[b] = max(self.force[b], self.start[b])

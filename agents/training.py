@@ -39,6 +39,7 @@ from .evaluation import evaluate_policy
 # validation episodes are seeded from seed + VALIDATION_SEED_OFFSET (re-exported), far below the sealed evaluation
 # seeds that ``msdgrasp evaluate`` draws from (agents/protocol.py)
 from .protocol import DEMONSTRATION_SEED_OFFSET, VALIDATION_SEED_OFFSET, check_not_sealed
+from .stats import wilson_lower_bound
 from .residual import residual_venv, with_residual
 
 
@@ -263,10 +264,16 @@ class BestModel:
         since_best = len(self.history) - 1 - max(k for k, rec in enumerate(self.history) if rec == self.best)
         return since_best >= patience
 
-    @staticmethod
-    def _key(rec: dict[str, Any]) -> tuple[float, float]:
+    def _key(self, rec: dict[str, Any]) -> tuple[float, ...]:
         # records of runs made before force_cost_N existed carry only the plain mean
-        return (rec["success_rate"], -rec.get("force_cost_N", rec["mean_peak_pinch_N"]))
+        force = -rec.get("force_cost_N", rec["mean_peak_pinch_N"])
+        if getattr(self.config, "selection", "success") == "grasps":
+            # success as a constraint: the lowest Wilson lower bound over mu first, so that no checkpoint trades a
+            # low-friction grasp for force; then the mean success, then force
+            n = self.config.validation_episodes
+            lowest = min(wilson_lower_bound(round(rate * n), n) for rate in rec["success_by_mu"].values())
+            return (round(lowest, 9), rec["success_rate"], force)
+        return (rec["success_rate"], force)
 
     def force_cost(self, rows: list[dict[str, Any]]) -> float:
         """Mean peak pinch (N) over the validation rows, weighted per mu as the reward charges it."""

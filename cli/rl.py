@@ -459,7 +459,8 @@ def add_rl_commands(sub) -> None:
                    help="the learner (default: the config's algo, ppo; rsl with --backend cuda). ppo and sac are "
                         "Stable-Baselines3's (sac trains with a symmetric critic, asymmetric_critic: false); rsl is "
                         "rsl-rl's torch-native PPO (config configs/train/rsl_ppo.yaml, whose backend is cuda, or with "
-                        "--backend cpu configs/train/rsl_ppo_cpu.yaml)")
+                        "--backend cpu configs/train/rsl_ppo_cpu.yaml); dagger trains a student with memory from "
+                        "a privileged teacher (configs/train/dagger.yaml)")
     t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
     t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
     t.add_argument("--seed", type=int, default=None,
@@ -494,7 +495,7 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
                    help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
                         "fixed:<N> | reactive | slipfeedback[:initial=N,gain=N,pull=F,max=N,gate=F,oracle=X,"
-                        "estimator=FILE|builtin,margin=X] | oracle (repeatable; "
+                        "estimator=FILE|builtin,margin=X,told=0|1] | oracle (repeatable; "
                         "default: the model of the default "
                         "learner's run in logs/train, else of every logs/train/seed_*/; none there is an error). "
                         "reactive and oracle are always added")

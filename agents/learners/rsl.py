@@ -95,7 +95,11 @@ class RslLearner(Learner):
             return read_meta(path / LAYOUT.model).get("learner", NAME) if (path / LAYOUT.config).is_file() else None
         if path.suffix != SUFFIX:
             return None
-        return read_meta(path).get("learner", NAME)
+        try:  # (another learner's .pt records its own name beside it: not ours to claim)
+            recorded = json.loads(meta_path(path).read_text()).get("learner", NAME)
+        except (OSError, ValueError, AttributeError):
+            recorded = NAME
+        return read_meta(path).get("learner", NAME) if recorded == NAME else None
 
     def load_policy(self, model: Path, name: str | None = None):
         from ..controllers import TorchScriptPolicy
