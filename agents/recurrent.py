@@ -1,6 +1,6 @@
 """A policy with memory: a GRU over the actor's sensed entries, and the policy that runs it step by step.
 
-The student of :mod:`.dagger` (and any learner that trains one) is a :class:`StudentNet`: the actor's observation
+The actor of the recurrent learner (:mod:`.recurrent_training`) is a :class:`StudentNet`: the actor's observation
 entries (the task's sensed entries, never the privileged ones) normalised by the training data's statistics, a GRU
 (``memory: gru``) or nothing (``memory: none``, the ablation without memory: an MLP on the current frame), then a
 two-layer head to the two actions. Its hidden state is what the policy remembers of the episode: the friction it

@@ -459,8 +459,8 @@ def add_rl_commands(sub) -> None:
                    help="the learner (default: the config's algo, ppo; rsl with --backend cuda). ppo and sac are "
                         "Stable-Baselines3's (sac trains with a symmetric critic, asymmetric_critic: false); rsl is "
                         "rsl-rl's torch-native PPO (config configs/train/rsl_ppo.yaml, whose backend is cuda, or with "
-                        "--backend cpu configs/train/rsl_ppo_cpu.yaml); dagger trains a student with memory from "
-                        "a privileged teacher (configs/train/dagger.yaml)")
+                        "--backend cpu configs/train/rsl_ppo_cpu.yaml); recurrent trains an actor with memory, "
+                        "taught by a privileged teacher, then fine-tuned by PPO (configs/train/recurrent.yaml)")
     t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
     t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
     t.add_argument("--seed", type=int, default=None,

@@ -6,7 +6,7 @@ learners (file names, config class, how a model is loaded) lives in the learner'
 package (the CLI, evaluation, selection, seeds, sweep) asks the registry by NAME:
 
 * :func:`get_learner` (``"ppo"``, ``"sac"``: Stable-Baselines3, :mod:`.sb3`; ``"rsl"``: rsl-rl's
-  torch-native PPO, :mod:`.rsl`; ``"dagger"``: a student with memory taught by a privileged teacher, :mod:`.dagger`);
+  torch-native PPO, :mod:`.rsl`; ``"recurrent"``: a GRU actor beside a privileged critic, taught by DAgger and fine-tuned by PPO, :mod:`.recurrent`);
 * :func:`learner_of_run` / :func:`learner_of_model`: the learner NAME RECORDED in a run's or a model's
   files (an SB3 config's ``algo``, a torch policy's ``policy.json``), never found by trying loaders;
 * :func:`learner_of_config`: the learner a training config belongs to.
@@ -29,7 +29,7 @@ from .base import (  # noqa: F401 (the package's interface)
 # the learners, registered on import in this order (adding one: its module here, docs/learners.md)
 from . import sb3  # noqa: E402,F401
 from . import rsl  # noqa: E402,F401
-from . import dagger  # noqa: E402,F401
+from . import recurrent  # noqa: E402,F401
 
 __all__ = ["DEFAULT", "Learner", "Policy", "RunLayout", "RunSummary", "TrainOverrides", "default_learner",
            "get_learner", "learner_names", "learner_of_config", "learner_of_model", "learner_of_run", "model_kinds",

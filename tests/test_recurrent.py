@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("torch")
 
 from msdgrasp.agents.controllers import make_policy  # noqa: E402
-from msdgrasp.agents.dagger import DaggerConfig, pinball, student_columns, train_dagger  # noqa: E402
+from msdgrasp.agents.recurrent_training import RecurrentConfig, pinball, student_columns, train_recurrent  # noqa: E402
 from msdgrasp.agents.friction import FrictionEstimator, estimator_path  # noqa: E402
 from msdgrasp.agents.learners import learner_of_model, learner_of_run  # noqa: E402
 from msdgrasp.agents.recurrent import StudentPolicy, make_student_net, save_student  # noqa: E402
@@ -31,7 +31,7 @@ TEACHER = "slipfeedback:estimator=builtin,told=1,gate=0.9,gain=0.5,pull=0.3"
 
 
 def test_the_told_teacher_sets_the_grip_of_the_true_mu_and_probes_no_further_than_it_needs():
-    cfg = DaggerConfig()
+    cfg = RecurrentConfig()
     est = FrictionEstimator.load(estimator_path("builtin"))
     pol = make_policy(TEACHER, cfg.env)
     mus = [0.2, 0.3, 0.8]
@@ -54,11 +54,11 @@ def test_the_told_teacher_sets_the_grip_of_the_true_mu_and_probes_no_further_tha
 ])
 def test_a_bad_told_setting_is_refused_naming_it(spec, words):
     with pytest.raises((ValueError, ConfigError), match=words):
-        make_policy(spec, DaggerConfig().env)
+        make_policy(spec, RecurrentConfig().env)
 
 
 def test_the_told_teacher_needs_the_episodes_mu():
-    pol = make_policy(TEACHER, DaggerConfig().env)
+    pol = make_policy(TEACHER, RecurrentConfig().env)
     with pytest.raises(ValueError, match="mu in the reset info"):
         pol.reset([{}])
 
@@ -121,7 +121,7 @@ def test_without_memory_the_action_reads_the_current_frame_only():
 def test_the_student_reads_no_privileged_entry():
     from msdgrasp.envs.core import GraspLiftCore
 
-    core = GraspLiftCore(DaggerConfig().env, 1)
+    core = GraspLiftCore(RecurrentConfig().env, 1)
     columns = student_columns(core)
     assert columns.tolist() == list(range(N_OBS))
     assert core.obs_dim > N_OBS  # (the privileged block is there, for the teacher)
@@ -131,15 +131,15 @@ def test_a_saved_student_acts_as_it_did_and_is_recognised_by_its_recorded_learne
     from msdgrasp.agents.learners import get_learner
 
     pol = _student()
-    cfg = DaggerConfig()
+    cfg = RecurrentConfig()
     from msdgrasp.physics.config import to_dict
 
-    path = save_student(pol.net, tmp_path / "student.pt", {"learner": "dagger", "n_in": N_OBS, "hidden": 16,
+    path = save_student(pol.net, tmp_path / "student.pt", {"learner": "recurrent", "n_in": N_OBS, "hidden": 16,
                                                           "memory": "gru", "actor_columns": list(range(N_OBS)),
                                                           "config": to_dict(cfg)})
     xs = _histories()
     back = learner_of_model(path).load_policy(path)
-    assert learner_of_model(path) is get_learner("dagger")
+    assert learner_of_model(path) is get_learner("recurrent")
     pol.reset([{}] * 3)
     back.reset([{}] * 3)
     for x in xs:
@@ -165,7 +165,7 @@ def test_the_pinball_loss_is_least_at_the_quantile_it_names(q):
 
 
 def test_selection_by_grasps_never_trades_a_low_friction_grasp_for_force(tmp_path):
-    cfg = DaggerConfig()
+    cfg = RecurrentConfig()
     sel = BestModel(cfg, tmp_path)
     n = cfg.validation_episodes
     holds_all = {"success_rate": 1.0, "force_cost_N": 2.0, "mean_peak_pinch_N": 2.0,
@@ -193,21 +193,75 @@ def test_a_bad_config_is_refused_naming_the_field(change, words):
     from msdgrasp.physics.config import to_dict
 
     with pytest.raises(ConfigError, match=words):
-        get_learner("dagger").config_from_dict({**to_dict(DaggerConfig()), **change}, where="dagger.yaml")
+        get_learner("recurrent").config_from_dict({**to_dict(RecurrentConfig()), **change}, where="recurrent.yaml")
 
 
 def test_a_tiny_run_writes_its_student_and_the_evaluation_runs_it(tmp_path):
     from msdgrasp.agents.evaluation import build_policy, evaluate_policy
 
-    cfg = replace(DaggerConfig(), iterations=2, episodes_per_iteration=4, n_envs=4, grad_steps=3, batch_episodes=4,
-                  hidden=8, validation_episodes=1, validation_mu=(0.5,))
-    summary = train_dagger(cfg, tmp_path / "run", progress=False)
+    cfg = replace(RecurrentConfig(), iterations=2, episodes_per_iteration=4, n_envs=4, grad_steps=3, batch_episodes=4,
+                  hidden=8, validation_episodes=1, validation_mu=(0.5,), ppo_waves=1, ppo_minibatch_episodes=2)
+    summary = train_recurrent(cfg, tmp_path / "run", progress=False)
     run = tmp_path / "run"
-    assert learner_of_run(run).name == "dagger"
-    assert [h["teacher_share"] for h in summary["iterations"]] == [1.0, 0.0]  # the teacher drives, then the student
+    assert learner_of_run(run).name == "recurrent"
+    dagger = [h for h in summary["history"] if h["stage"] == "dagger"]
+    assert [h["teacher_share"] for h in dagger] == [1.0, 0.0]  # the teacher drives, then the student
+    assert [h["stage"] for h in summary["history"]] == ["dagger", "dagger", "ppo"]
+    assert len(list((run / "checkpoints").glob("student_*.pt"))) == 3
     assert summary["agent_steps"] > 0 and (run / "student.pt").is_file()
-    assert json.loads((run / "student.json").read_text())["learner"] == "dagger"
+    assert json.loads((run / "student.json").read_text())["learner"] == "recurrent"
     pol = build_policy(str(run / "student.pt"), cfg.env)
     rows = evaluate_policy(pol, [0.5], 2, config=cfg.env, seed=123)
     assert rows[0]["episodes"] == 2 and 0.0 <= rows[0]["success_rate"] <= 1.0
     assert OBS["lift_slip"] < N_OBS
+
+
+# ---- PPO on the recurrent actor -----------------------------------------------------------------------------------
+
+
+def test_gae_without_discount_or_smoothing_is_the_return_to_go_less_the_value():
+    from msdgrasp.agents.recurrent_ppo import gae
+
+    rewards = np.array([1.0, 0.0, 2.0, -1.0])
+    values = np.array([0.5, 0.2, 0.1, 0.0])
+    togo = np.cumsum(rewards[::-1])[::-1]
+    assert gae(rewards, values, 1.0, 1.0) == pytest.approx(togo - values)
+    # lam 0: the one-step error, the episode ending after its last step
+    assert gae(rewards, values, 0.9, 0.0) == pytest.approx(rewards + 0.9 * np.r_[values[1:], 0.0] - values)
+
+
+def test_the_anchor_pulls_the_actor_towards_the_teachers_labels():
+    import torch
+
+    from msdgrasp.agents.recurrent_ppo import RecurrentPPO
+    from msdgrasp.agents.recurrent_training import Wave
+
+    torch.manual_seed(0)
+    cfg = replace(RecurrentConfig(), ppo_epochs=20, ppo_minibatch_episodes=4, ppo_learning_rate=3e-3,
+                  ppo_value_coef=0.0)
+    net = make_student_net(N_OBS, 16, "gru")
+    ppo = RecurrentPPO(net, np.arange(N_OBS), N_OBS, cfg)
+    rng = np.random.default_rng(0)
+    obs = [rng.normal(size=(30, N_OBS)).astype(np.float32) for _ in range(4)]
+    labels = [np.full((30, 2), 0.6, dtype=np.float32) for _ in range(4)]
+    with torch.no_grad():
+        before = net(torch.from_numpy(np.stack(obs)))[0]
+    # rewards equal for every action: no advantage to follow, only the anchor
+    wave = Wave(obs, [np.asarray(before[k].numpy()) for k in range(4)], labels, [np.zeros(30, np.float32)] * 4,
+                np.ones(4, bool), np.ones(4))
+    ppo.update(wave, bc_coef=10.0, rng=rng)
+    with torch.no_grad():
+        after = net(torch.from_numpy(np.stack(obs)))[0]
+    assert float((after - 0.6).abs().mean()) < 0.5 * float((before - 0.6).abs().mean())
+
+
+def test_ppo_from_scratch_never_reads_the_teacher():
+    cfg = replace(RecurrentConfig(), iterations=0, ppo_waves=2, bc_coef=(0.0, 0.0))
+    assert not cfg.reads_teacher
+    assert replace(cfg, bc_coef=(1.0, 0.0)).reads_teacher and RecurrentConfig().reads_teacher
+    with pytest.raises(ConfigError, match="nothing would train"):
+        from msdgrasp.physics.config import to_dict
+
+        from msdgrasp.agents.learners import get_learner
+
+        get_learner("recurrent").config_from_dict({**to_dict(cfg), "ppo_waves": 0}, where="x.yaml")

@@ -1,5 +1,6 @@
-"""The teacher-student learner ``dagger`` (:mod:`msdgrasp.agents.dagger`): a student with memory trained by DAgger
-from a privileged teacher.
+"""The learner ``recurrent`` (:mod:`msdgrasp.agents.recurrent_training`): an actor with memory (a GRU over the sensed
+entries) beside a privileged critic, taught by DAgger from a privileged teacher, then fine-tuned by PPO (either stage may
+be off: PPO alone is recurrent PPO from scratch).
 
 A run folder: ``config.json`` (written first), ``checkpoints/student_<iteration>.pt`` each with
 ``student_<iteration>.json`` (learner, architecture, observation columns, training config), the shipped
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from ...physics.config import ConfigError
 from .base import Learner, RunSummary, TrainOverrides, check_env_files, numbered_files, read_train_yaml, register
-from .dagger_layout import CONFIG, LAYOUT, NAME
+from .recurrent_layout import CONFIG, LAYOUT, NAME
 
 if TYPE_CHECKING:
     from ...envs.core import GraspLiftConfig
@@ -28,7 +29,7 @@ def _meta(path: Path) -> dict[str, Any]:
 
 
 def _run_record(run: Path) -> dict[str, Any]:
-    """A run's ``config.json``: ``{"learner": "dagger", "config": {...}}`` (ConfigError where it is broken)."""
+    """A run's ``config.json``: ``{"learner": "recurrent", "config": {...}}`` (ConfigError where it is broken)."""
     path = Path(run) / LAYOUT.config
     try:
         data = json.loads(path.read_text())
@@ -38,12 +39,12 @@ def _run_record(run: Path) -> dict[str, Any]:
     return data
 
 
-class DaggerLearner(Learner):
-    """DAgger from a privileged teacher into a recurrent student, on the batched CPU env."""
+class RecurrentLearner(Learner):
+    """A recurrent actor: DAgger from a privileged teacher, then PPO with a privileged critic, on the batched CPU env."""
 
     name = NAME
     backends = ("cpu",)
-    default_out = Path("logs") / "train_dagger"
+    default_out = Path("logs") / "train_recurrent"
     layout = LAYOUT
 
     def check_available(self) -> None:
@@ -52,22 +53,22 @@ class DaggerLearner(Learner):
         require_extra("train", f"learner {NAME}", "torch")
 
     def owns_config(self, config: Any) -> bool:
-        from ..dagger import DaggerConfig
+        from ..recurrent_training import RecurrentConfig
 
-        return isinstance(config, DaggerConfig)
+        return isinstance(config, RecurrentConfig)
 
     def config_from_dict(self, data: Mapping[str, Any], where: str):
         from ...physics.config import from_dict
-        from ..dagger import DaggerConfig
+        from ..recurrent_training import RecurrentConfig
 
-        return from_dict(DaggerConfig, dict(data), where=where)
+        return from_dict(RecurrentConfig, dict(data), where=where)
 
     def make_config(self, path: Path | None, overrides: TrainOverrides):
         from ...physics.config import builtin_config
 
         if overrides.total_timesteps is not None:
-            raise ConfigError("--total-timesteps is an option of the SB3 learners; a DAgger run's length is "
-                              "'iterations' x 'episodes_per_iteration' in its config")
+            raise ConfigError("--total-timesteps is an option of the SB3 learners; a recurrent run's length is "
+                              "its DAgger iterations and PPO waves in its config")
         path = Path(path) if path is not None else builtin_config(CONFIG)
         data = read_train_yaml(path)
         for key, val in (("n_envs", overrides.n_envs), ("seed", overrides.seed)):
@@ -84,11 +85,11 @@ class DaggerLearner(Learner):
         return _meta(model)["config"]
 
     def train(self, config: Any, out_dir: Path, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
-        from ..dagger import train_dagger
+        from ..recurrent_training import train_recurrent
 
         if resume:
             raise ConfigError(f"learner {NAME} cannot continue a run")
-        return train_dagger(config, out_dir, progress=progress)
+        return train_recurrent(config, out_dir, progress=progress)
 
     def run_summary(self, run: Path) -> RunSummary:
         path = run / LAYOUT.summary
@@ -136,9 +137,9 @@ class DaggerLearner(Learner):
         return numbered_files(run, LAYOUT.checkpoint)
 
     def select(self, config: Any, checkpoints: list[tuple[int, Path]], out: Path) -> dict[str, Any]:
-        from ..dagger import select_students
+        from ..recurrent_training import select_students
 
         return select_students(config, checkpoints, out)
 
 
-DAGGER = register(DaggerLearner())
+RECURRENT = register(RecurrentLearner())

@@ -5,7 +5,7 @@ The teacher is told what no grasper senses: the episode's friction (``slipfeedba
 controller with its estimate replaced by the true mu; it closes to the same probe grip, so the closing the student
 sees is the one the friction shows in). The student (:mod:`.recurrent`) reads only the actor's sensed entries and must
 infer from its history what the teacher is told. DAgger (Ross, Gordon and Bagnell 2011): in iteration 0 the teacher
-drives (``teacher_drives`` of the episodes; then x ``beta_decay`` per iteration), afterwards the student drives; in every
+drives (``teacher_drives`` of the episodes; then x ``beta_decay`` per iteration), then the student; in every
 step of every episode the teacher, run in the student's shadow on the same observations, labels what it would do, so
 the data covers the states the student's own mistakes lead to. After each iteration the student is fitted on all
 episodes so far (whole episodes, from a zero memory, as it runs), its checkpoint validated on the training task's
@@ -28,7 +28,8 @@ import sys
 import time
 from dataclasses import field
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from collections.abc import Callable
+from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
 from annotated_types import Ge, Le
@@ -38,7 +39,7 @@ from ..physics.config import (
     ConfigError, Int, Positive, Real, atomic_write, atomic_write_text, config_dataclass, from_dict, read_extending_yaml,
     replace, to_dict,
 )
-from .learners.dagger_layout import LAYOUT, NAME
+from .learners.recurrent_layout import LAYOUT, NAME
 from .models import default_training
 from .protocol import VALIDATION_SEED_OFFSET, check_not_sealed
 from .recurrent import MEMORIES, StudentPolicy, make_student_net, meta_path, save_student
@@ -61,8 +62,8 @@ def _default_randomization() -> RandomizationConfig:
 
 
 @config_dataclass
-class DaggerConfig:
-    """One teacher-student run (``configs/train/dagger.yaml``); reasons for the values in docs/design.md."""
+class RecurrentConfig:
+    """One teacher-student run (``configs/train/recurrent.yaml``); reasons for the values in docs/design.md."""
 
     #: the run's seed: the rollout envs (env i reset with seed + i), the drivers' draws and the networks
     seed: Annotated[Int, Ge(0)] = 0
@@ -73,7 +74,7 @@ class DaggerConfig:
     #: width of the student's layers (input, GRU, head)
     hidden: Annotated[Int, Ge(4)] = 64
     #: DAgger iterations: each runs episodes_per_iteration episodes, then fits the student on all so far
-    iterations: Annotated[Int, Ge(1)] = 6
+    iterations: Annotated[Int, Ge(0)] = 6
     #: episodes per iteration, a multiple of n_envs (they run in waves of n_envs)
     episodes_per_iteration: Annotated[Int, Ge(1)] = 192
     #: envs run side by side in one batched env
@@ -87,6 +88,28 @@ class DaggerConfig:
     grad_steps: Annotated[Int, Ge(1)] = 250
     batch_episodes: Annotated[Int, Ge(1)] = 32
     learning_rate: Positive = 1e-3
+    #: PPO waves after DAgger (each: n_envs episodes with the actor's Gaussian actions, then ppo_epochs passes over
+    #: them; agents/recurrent_ppo.py); 0: no PPO stage. With iterations 0: recurrent PPO from scratch
+    ppo_waves: Annotated[Int, Ge(0)] = 0
+    #: PPO waves between validations (each validated actor a candidate for the shipped model; the last wave's too)
+    ppo_validate_every: Annotated[Int, Ge(1)] = 5
+    ppo_learning_rate: Positive = 3e-4
+    ppo_epochs: Annotated[Int, Ge(1)] = 4
+    #: whole episodes per PPO minibatch
+    ppo_minibatch_episodes: Annotated[Int, Ge(1)] = 16
+    ppo_clip: Positive = 0.2
+    #: undiscounted by default, as the default training (a later lift is worth an early one)
+    ppo_gamma: Unit = 1.0
+    ppo_lam: Unit = 0.95
+    ppo_value_coef: Annotated[Real, Ge(0)] = 0.5
+    ppo_max_grad_norm: Positive = 1.0
+    #: log of the action noise's initial std (per action; learned)
+    ppo_log_std_init: Annotated[Real, Ge(-5), Le(1)] = -1.5
+    #: width of the privileged critic's two layers
+    ppo_critic_hidden: Annotated[Int, Ge(4)] = 128
+    #: weight of the pinball loss to the shadow teacher's labels at the first and at the last PPO wave (linear
+    #: between): the anchor that keeps what DAgger taught; [0, 0]: PPO alone (the teacher is never read)
+    bc_coef: tuple[Annotated[Real, Ge(0)], Annotated[Real, Ge(0)]] = (5.0, 0.5)
     #: validation episodes per mu of every iteration's student (on the training task, seed + VALIDATION_SEED_OFFSET + i)
     validation_episodes: Annotated[Int, Ge(1)] = 24
     validation_mu: tuple[Annotated[Real, Ge(0)], ...] = (0.2, 0.3, 0.5, 0.8)
@@ -99,14 +122,20 @@ class DaggerConfig:
     train_randomization: RandomizationConfig = field(default_factory=_default_randomization)
 
     @property
+    def reads_teacher(self) -> bool:
+        """Whether the teacher's labels train the actor (DAgger, or PPO's anchor): False for PPO from scratch."""
+        return bool(self.iterations or (self.ppo_waves and max(self.bc_coef) > 0))
+
+    @property
     def waves(self) -> int:
         """Waves of n_envs episodes per iteration."""
         return self.episodes_per_iteration // self.n_envs
 
     def seed_sets(self) -> list[tuple[int, int, str]]:
         """Every run of reset seeds the training derives from ``seed`` (first, count, how)."""
-        n = self.iterations * self.waves * self.n_envs
-        return [(self.seed, n, f"rollout episodes: seed + i, i < iterations x episodes_per_iteration = {n}"),
+        n = (self.iterations * self.waves + self.ppo_waves) * self.n_envs
+        return [(self.seed, n, f"rollout episodes: seed + i, i < (iterations x episodes_per_iteration / n_envs + "
+                               f"ppo_waves) x n_envs = {n}"),
                 (self.seed + VALIDATION_SEED_OFFSET, self.validation_episodes,
                  f"validation episodes: seed + {VALIDATION_SEED_OFFSET} + i, i < validation_episodes = "
                  f"{self.validation_episodes}")]
@@ -115,6 +144,8 @@ class DaggerConfig:
         if self.episodes_per_iteration % self.n_envs:
             raise ConfigError(f"episodes_per_iteration must be a multiple of n_envs = {self.n_envs}, got "
                               f"{self.episodes_per_iteration}")
+        if self.iterations == 0 and self.ppo_waves == 0:
+            raise ConfigError("iterations and ppo_waves are both 0: nothing would train; allowed: either >= 1")
         if self.memory not in MEMORIES:
             raise ConfigError(f"memory must be one of {', '.join(MEMORIES)}, got {self.memory!r}")
         if not self.env.privileged_obs:
@@ -128,11 +159,11 @@ class DaggerConfig:
         return replace(self.env, randomization=self.train_randomization)
 
     @classmethod
-    def load(cls, path: str | Path) -> "DaggerConfig":
+    def load(cls, path: str | Path) -> "RecurrentConfig":
         return from_dict(cls, read_extending_yaml(path), where=Path(path).name)
 
 
-def teacher_policy(config: DaggerConfig):
+def teacher_policy(config: RecurrentConfig):
     """The teacher of ``config`` (ConfigError naming the field where its spec is not a controller told mu)."""
     from .controllers import make_policy
 
@@ -158,18 +189,31 @@ def pinball(pred, target, mask, quantiles):
     return (loss.sum(-1) * mask).sum() / mask.sum().clamp(min=1.0)
 
 
-def _rollouts(env, student: StudentPolicy, teacher, columns: np.ndarray, drivers: np.ndarray,
-              seeds: list[int]) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict[str, float]]:
-    """One wave of episodes (one per env): the student or the teacher drives (``drivers``: True where the teacher
-    does), the teacher labels every step. Returns the episodes (sensed entries, teacher actions) and their stats."""
+class Wave(NamedTuple):
+    """One wave of episodes, one per env, each cut to its length: per episode its observations (full, privileged
+    entries included: the critic's), the actions that drove it, the teacher's labels and the rewards."""
+
+    obs: list[np.ndarray]
+    actions: list[np.ndarray]
+    labels: list[np.ndarray]
+    rewards: list[np.ndarray]
+    success: np.ndarray
+    peak_pinch_N: np.ndarray
+
+    @property
+    def steps(self) -> int:
+        return int(sum(len(r) for r in self.rewards))
+
+
+def run_wave(env, act: Callable[[np.ndarray, np.ndarray], np.ndarray], teacher, seeds: list[int]) -> Wave:
+    """Episodes reset with ``seeds`` (one per env), driven by ``act`` (observations and the teacher's labels of them ->
+    actions), the teacher run in their shadow on the same observations, labelling every step with what it would do."""
     from .controllers import idle_action
 
     B = env.num_envs
-    obs, info = env.reset(seed=seeds)
-    mus = env.core.mu.copy()
-    teacher.reset([{"mu": float(m)} for m in mus])
-    student.reset([{}] * B)
-    xs, ys = [], []
+    obs, _ = env.reset(seed=seeds)
+    teacher.reset([{"mu": float(m)} for m in env.core.mu])
+    xs, ys, acts, rews = [], [], [], []
     done = np.zeros(B, dtype=bool)
     length = np.zeros(B, dtype=np.int64)
     success = np.zeros(B, dtype=bool)
@@ -177,12 +221,13 @@ def _rollouts(env, student: StudentPolicy, teacher, columns: np.ndarray, drivers
     idle = idle_action(env.config)
     for _ in range(env.config.max_episode_steps + 1):
         label = teacher.act(obs)
-        mine = student.act(obs)
-        xs.append(obs[:, columns].astype(np.float32))
+        action = np.asarray(act(obs, label), dtype=np.float32)
+        xs.append(np.asarray(obs, dtype=np.float32))
         ys.append(label.astype(np.float32))
-        act = np.where(drivers[:, None], label, mine)
-        act = np.where(done[:, None], idle, act)
-        obs, _, term, trunc, inf = env.core.step(act, advance=np.flatnonzero(~done))
+        acts.append(action)
+        obs, rew, term, trunc, inf = env.core.step(np.where(done[:, None], idle, action),
+                                                   advance=np.flatnonzero(~done))
+        rews.append(np.asarray(rew, dtype=np.float32))
         live = ~done
         length[live] += 1
         ended = live & (term | trunc)
@@ -191,16 +236,30 @@ def _rollouts(env, student: StudentPolicy, teacher, columns: np.ndarray, drivers
         done |= ended
         if done.all():
             break
-    x, y = np.stack(xs, axis=1), np.stack(ys, axis=1)  # (B, T, .)
-    episodes = [(x[b, :length[b]], y[b, :length[b]]) for b in range(B)]
+    cut = [np.stack(seq, axis=1) for seq in (xs, acts, ys, rews)]  # (B, T, ...)
+    obs_, acts_, labels_, rews_ = ([c[b, :length[b]] for b in range(B)] for c in cut)
+    return Wave(obs_, acts_, labels_, rews_, success, peak)
+
+
+def _dagger_wave(env, student: StudentPolicy, teacher, columns: np.ndarray, drivers: np.ndarray,
+                 seeds: list[int]) -> tuple[list[tuple[np.ndarray, np.ndarray]], dict[str, float]]:
+    """One DAgger wave: the student or the teacher drives (``drivers``: True where the teacher does), the teacher
+    labels. Returns the episodes (sensed entries, teacher actions) and their stats."""
+    student.reset([{}] * env.num_envs)
+
+    def act(obs: np.ndarray, label: np.ndarray) -> np.ndarray:
+        return np.where(drivers[:, None], label, student.act(obs))
+
+    wave = run_wave(env, act, teacher, seeds)
+    episodes = [(o[:, columns], y) for o, y in zip(wave.obs, wave.labels)]
     by_student = ~drivers
-    stats = {"episodes": int(B), "teacher_driven": int(drivers.sum()), "steps": int(length.sum()),
-             "student_success": float(success[by_student].mean()) if by_student.any() else math.nan,
-             "teacher_success": float(success[drivers].mean()) if drivers.any() else math.nan}
+    stats = {"episodes": int(env.num_envs), "teacher_driven": int(drivers.sum()), "steps": wave.steps,
+             "student_success": float(wave.success[by_student].mean()) if by_student.any() else math.nan,
+             "teacher_success": float(wave.success[drivers].mean()) if drivers.any() else math.nan}
     return episodes, stats
 
 
-def _fit(net, data: list[tuple[np.ndarray, np.ndarray]], config: DaggerConfig, optimiser, rng) -> float:
+def _fit(net, data: list[tuple[np.ndarray, np.ndarray]], config: RecurrentConfig, optimiser, rng) -> float:
     """``grad_steps`` Adam steps on whole episodes from ``data``; the mean loss of the last tenth."""
     import torch
 
@@ -227,22 +286,13 @@ def _fit(net, data: list[tuple[np.ndarray, np.ndarray]], config: DaggerConfig, o
     return float(np.mean(losses[-max(1, len(losses) // 10):]))
 
 
-def _set_normaliser(net, data: list[tuple[np.ndarray, np.ndarray]]) -> None:
-    """The student's input statistics from the first iteration's frames (fixed afterwards: the student's inputs mean
-    the same throughout its training); entries that never vary (a sensor that is absent) are passed unscaled."""
-    import torch
-
-    frames = np.concatenate([x for x, _ in data])
-    std = frames.std(axis=0)
-    net.obs_mean.copy_(torch.as_tensor(frames.mean(axis=0)))
-    net.obs_std.copy_(torch.as_tensor(np.where(std > 1e-6, std, 1.0)))
-
-
-def train_dagger(config: DaggerConfig, out_dir: str | Path, progress: bool = True) -> dict[str, Any]:
-    """Train a student by DAgger into ``out_dir`` (:data:`~.learners.dagger_layout.LAYOUT`); returns the summary."""
+def train_recurrent(config: RecurrentConfig, out_dir: str | Path, progress: bool = True) -> dict[str, Any]:
+    """Train a recurrent actor into ``out_dir`` (:data:`~.learners.recurrent_layout.LAYOUT`): DAgger's iterations,
+    then PPO's waves, every checkpoint validated and the best shipped; returns the summary (``summary.json``)."""
     import torch
 
     from ..envs.grasp_lift import GraspLiftVectorEnv
+    from .recurrent_ppo import RecurrentPPO, set_statistics
     from .training import BestModel
 
     out = Path(out_dir)
@@ -252,68 +302,106 @@ def train_dagger(config: DaggerConfig, out_dir: str | Path, progress: bool = Tru
     atomic_write_text(out / LAYOUT.config, json.dumps({"learner": NAME, "config": to_dict(config)}, indent=1) + "\n")
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    task = config.training_task()
-    env = GraspLiftVectorEnv(config.n_envs, task)
+    env = GraspLiftVectorEnv(config.n_envs, config.training_task())
     teacher = teacher_policy(config)
     columns = student_columns(env.core)
     net = make_student_net(len(columns), config.hidden, config.memory)
-    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     student = StudentPolicy(net, columns, name=f"student (seed {config.seed})")
-    meta = {"learner": NAME, "name": f"DAgger student (seed {config.seed})", "n_in": int(len(columns)),
+    stages = ([f"DAgger from {config.teacher}"] if config.iterations else []) + (
+        [f"PPO (anchor {config.bc_coef[0]:g} -> {config.bc_coef[1]:g})"] if config.ppo_waves else [])
+    meta = {"learner": NAME, "name": f"recurrent {config.memory} (seed {config.seed})", "n_in": int(len(columns)),
             "hidden": config.hidden, "memory": config.memory, "actor_columns": columns.tolist(),
-            "config": to_dict(config)}
+            "stages": stages, "config": to_dict(config)}
     selector = BestModel(config, out)
-    data: list[tuple[np.ndarray, np.ndarray]] = []
-    history = []
-    steps = 0
+    history: list[dict[str, Any]] = []
+    progress_log = _Progress(config, progress)
     t0 = time.perf_counter()
-    wave = 0
+    steps = wave = checkpoint = 0
+
+    def validate(row: dict[str, Any]) -> None:
+        nonlocal checkpoint
+        path = out / LAYOUT.checkpoint.format(checkpoint)
+        path.parent.mkdir(exist_ok=True)
+        save_student(net, path, {**meta, "checkpoint": checkpoint})
+
+        def keep() -> None:
+            atomic_write(out / LAYOUT.model, lambda p: shutil.copyfile(path, p))
+            atomic_write_text(meta_path(out / LAYOUT.model), meta_path(path).read_text())
+
+        rec = selector.consider_policy(StudentPolicy(copy.deepcopy(net), columns, "validation"), steps, path, keep)
+        row.update(checkpoint=checkpoint, agent_steps=steps, validation_success_by_mu=rec["success_by_mu"],
+                   validation_force_cost_N=rec["force_cost_N"], elapsed_s=time.perf_counter() - t0)
+        history.append(row)
+        progress_log(row)
+        checkpoint += 1
+
+    def seeds() -> list[int]:
+        nonlocal wave
+        wave += 1
+        return [config.seed + (wave - 1) * config.n_envs + i for i in range(config.n_envs)]
+
+    # ---- DAgger -----------------------------------------------------------------------------------------------------
+    data: list[tuple[np.ndarray, np.ndarray]] = []
+    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     for it in range(config.iterations):
         share = config.teacher_drives * config.beta_decay ** it
         it_stats = []
         for _ in range(config.waves):
             drivers = rng.random(config.n_envs) < share
-            seeds = [config.seed + wave * config.n_envs + i for i in range(config.n_envs)]
-            episodes, stats = _rollouts(env, student, teacher, columns, drivers, seeds)
+            episodes, stats = _dagger_wave(env, student, teacher, columns, drivers, seeds())
             data += episodes
             it_stats.append(stats)
             steps += stats["steps"]
-            wave += 1
         if it == 0:
-            _set_normaliser(net, data)
+            set_statistics(net, np.concatenate([x for x, _ in data]))
         loss = _fit(net, data, config, optimiser, rng)
-        path = out / LAYOUT.checkpoint.format(it)
-        path.parent.mkdir(exist_ok=True)
-        save_student(net, path, {**meta, "iteration": it})
+        driven = [st["student_success"] for st in it_stats if st["episodes"] > st["teacher_driven"]]
+        validate({"stage": "dagger", "iteration": it, "teacher_share": share, "dataset_episodes": len(data),
+                  "loss": loss, "student_rollout_success": float(np.mean(driven)) if driven else None})
+    del data
 
-        def keep(path: Path = path) -> None:
-            atomic_write(out / LAYOUT.model, lambda p: shutil.copyfile(path, p))
-            atomic_write_text(meta_path(out / LAYOUT.model), meta_path(path).read_text())
-
-        rec = selector.consider_policy(StudentPolicy(copy.deepcopy(net), columns, "validation"), steps, path, keep)
-        driven = [s for s in it_stats if s["episodes"] > s["teacher_driven"]]
-        row = {"iteration": it, "teacher_share": share, "episodes": sum(s["episodes"] for s in it_stats),
-               "dataset_episodes": len(data), "agent_steps": steps, "loss": loss,
-               "student_rollout_success": (float(np.nanmean([s["student_success"] for s in driven]))
-                                           if driven else None),
-               "validation_success_by_mu": rec["success_by_mu"], "validation_force_cost_N": rec["force_cost_N"],
-               "elapsed_s": time.perf_counter() - t0}
-        history.append(row)
-        if progress:
-            print(f"  dagger seed {config.seed} iteration {it}: {len(data)} episodes, loss {loss:.4f}, validation "
-                  f"success {rec['success_by_mu']}, force cost {rec['force_cost_N']:.3f} N, "
-                  f"{row['elapsed_s']:.0f} s", file=sys.stderr)
+    # ---- PPO --------------------------------------------------------------------------------------------------------
+    if config.ppo_waves:
+        ppo = RecurrentPPO(net, columns, env.core.obs_dim, config)
+        for k in range(config.ppo_waves):
+            ppo.reset(config.n_envs)
+            wave_data = run_wave(env, lambda obs, label: ppo.sample(obs, rng), teacher, seeds())
+            if k == 0 and config.iterations == 0:  # (from scratch: the actor's input statistics from its first wave)
+                set_statistics(net, np.concatenate([o[:, columns] for o in wave_data.obs]))
+            steps += wave_data.steps
+            frac = k / max(config.ppo_waves - 1, 1)
+            bc = (1 - frac) * config.bc_coef[0] + frac * config.bc_coef[1]
+            stats = ppo.update(wave_data, bc, rng)
+            if (k + 1) % config.ppo_validate_every == 0 or k + 1 == config.ppo_waves:
+                validate({"stage": "ppo", "wave": k, "bc_coef": bc, "rollout_success": float(wave_data.success.mean()),
+                          **stats})
     train_s = time.perf_counter() - t0
     best = selector.best
-    summary = {"learner": NAME, "seed": config.seed, "memory": config.memory, "teacher": config.teacher,
+    summary = {"learner": NAME, "seed": config.seed, "memory": config.memory, "stages": stages,
+               "reads_teacher": config.reads_teacher,
                "train_s": train_s, "agent_steps": steps, "agent_steps_per_s": steps / train_s,
-               "best_iteration": history[[h["agent_steps"] for h in history].index(best["timesteps"])]["iteration"],
-               "best_validation": best, "iterations": history, "model": str(out / LAYOUT.model)}
+               "best_checkpoint": next(h["checkpoint"] for h in history if h["agent_steps"] == best["timesteps"]),
+               "best_validation": best, "history": history, "model": str(out / LAYOUT.model)}
     atomic_write(out / LAYOUT.summary, lambda p: p.write_text(json.dumps(summary, indent=2)))
     return summary
 
 
-def select_students(config: DaggerConfig, checkpoints: list[tuple[int, Path]], out: Path) -> dict[str, Any]:
+class _Progress:
+    """One line per validated checkpoint on stderr (``progress``)."""
+
+    def __init__(self, config: RecurrentConfig, on: bool) -> None:
+        self.seed, self.on = config.seed, on
+
+    def __call__(self, row: dict[str, Any]) -> None:
+        if not self.on:
+            return
+        where = f"iteration {row['iteration']}" if row["stage"] == "dagger" else f"PPO wave {row['wave']}"
+        success = ", ".join(f"{m}: {v:.2f}" for m, v in row["validation_success_by_mu"].items())
+        print(f"  recurrent seed {self.seed} {where}: validation success {success}; force cost "
+              f"{row['validation_force_cost_N']:.3f} N; {row['elapsed_s']:.0f} s", file=sys.stderr)
+
+
+def select_students(config: RecurrentConfig, checkpoints: list[tuple[int, Path]], out: Path) -> dict[str, Any]:
     """Validate saved students ``checkpoints`` ((iteration, path), in order) with ``config``'s validation settings and
     ship the best as ``out/student.pt`` (``msdgrasp select``); returns the summary's selection entries."""
     from .recurrent import read_student_meta
