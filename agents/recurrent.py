@@ -143,3 +143,10 @@ class StudentPolicy:
         if h is not None:
             self._h = h.clone()
         return np.clip(y[:, 0].numpy(), -1.0, 1.0).astype(np.float32)
+
+
+def pinball(pred, target, mask, quantiles):
+    """Mean pinball loss over the masked steps, per action its quantile (torch tensors (B, T, 2), (B, T), (2,))."""
+    err = target - pred
+    loss = (quantiles * err).maximum((quantiles - 1.0) * err)
+    return (loss.sum(-1) * mask).sum() / mask.sum().clamp(min=1.0)

@@ -8,7 +8,7 @@ stored and none goes stale. The critic is an MLP over the full observation, priv
 episode's mu, the perturbation draws, the true lift and slip): told those, the task is close to Markov, so the critic
 needs no memory (the asymmetric actor-critic of Pinto et al. 2018). Advantages are GAE over each episode.
 
-The anchor keeps what the student learned: the pinball loss of :func:`~.recurrent_training.pinball` between the
+The anchor keeps what the student learned: the pinball loss of :func:`~.recurrent.pinball` between the
 actor's mean and the teacher's labels on the states the actor visits (the teacher runs in the shadow as in DAgger),
 weighted by ``bc_coef`` falling linearly from its first to its second value over the stage. With a weight of 0 the
 teacher's labels are never read.
@@ -17,12 +17,64 @@ teacher's labels are never read.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .recurrent_training import RecurrentConfig, Wave
+from .recurrent import pinball
+
+
+class Wave(NamedTuple):
+    """One wave of episodes, one per env, each cut to its length: per episode its observations (full, privileged
+    entries included: the critic's), the actions that drove it, the teacher's labels and the rewards."""
+
+    obs: list[np.ndarray]
+    actions: list[np.ndarray]
+    labels: list[np.ndarray]
+    rewards: list[np.ndarray]
+    success: np.ndarray
+    peak_pinch_N: np.ndarray
+
+    @property
+    def steps(self) -> int:
+        return int(sum(len(r) for r in self.rewards))
+
+
+def run_wave(env, act: Callable[[np.ndarray, np.ndarray], np.ndarray], teacher, seeds: list[int]) -> Wave:
+    """Episodes reset with ``seeds`` (one per env), driven by ``act`` (observations and the teacher's labels of them ->
+    actions), the teacher run in their shadow on the same observations, labelling every step with what it would do."""
+    from .controllers import idle_action
+
+    B = env.num_envs
+    obs, _ = env.reset(seed=seeds)
+    teacher.reset([{"mu": float(m)} for m in env.core.mu])
+    xs, ys, acts, rews = [], [], [], []
+    done = np.zeros(B, dtype=bool)
+    length = np.zeros(B, dtype=np.int64)
+    success = np.zeros(B, dtype=bool)
+    peak = np.zeros(B)
+    idle = idle_action(env.config)
+    for _ in range(env.config.max_episode_steps + 1):
+        label = teacher.act(obs)
+        action = np.asarray(act(obs, label), dtype=np.float32)
+        xs.append(np.asarray(obs, dtype=np.float32))
+        ys.append(label.astype(np.float32))
+        acts.append(action)
+        obs, rew, term, trunc, inf = env.core.step(np.where(done[:, None], idle, action),
+                                                   advance=np.flatnonzero(~done))
+        rews.append(np.asarray(rew, dtype=np.float32))
+        live = ~done
+        length[live] += 1
+        ended = live & (term | trunc)
+        success[ended] = inf["is_success"][ended]
+        peak[ended] = env.core.peak_pinch[ended]
+        done |= ended
+        if done.all():
+            break
+    cut = [np.stack(seq, axis=1) for seq in (xs, acts, ys, rews)]  # (B, T, ...)
+    obs_, acts_, labels_, rews_ = ([c[b, :length[b]] for b in range(B)] for c in cut)
+    return Wave(obs_, acts_, labels_, rews_, success, peak)
 
 
 def make_critic(n_in: int, hidden: int):
@@ -75,7 +127,7 @@ def _pad(seqs: list[np.ndarray], T: int) -> np.ndarray:
 class RecurrentPPO:
     """The state of the PPO stage: the actor (the student's network), its log std, the critic, one optimiser."""
 
-    def __init__(self, net, columns: np.ndarray, obs_dim: int, config: "RecurrentConfig") -> None:
+    def __init__(self, net, columns: np.ndarray, obs_dim: int, config: Any) -> None:
         import torch
 
         self.net, self.columns, self.config = net, columns, config
@@ -104,11 +156,9 @@ class RecurrentPPO:
 
     # ---- learning ---------------------------------------------------------------------------------------------------
 
-    def update(self, wave: "Wave", bc_coef: float, rng: np.random.Generator) -> dict[str, Any]:
+    def update(self, wave: Wave, bc_coef: float, rng: np.random.Generator) -> dict[str, Any]:
         """PPO epochs on one wave; returns the update's statistics."""
         import torch
-
-        from .recurrent_training import pinball
 
         cfg = self.config
         n = len(wave.rewards)

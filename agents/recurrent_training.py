@@ -28,8 +28,7 @@ import sys
 import time
 from dataclasses import field
 from pathlib import Path
-from collections.abc import Callable
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from annotated_types import Ge, Le
@@ -42,7 +41,8 @@ from ..physics.config import (
 from .learners.recurrent_layout import LAYOUT, NAME
 from .models import default_training
 from .protocol import VALIDATION_SEED_OFFSET, check_not_sealed
-from .recurrent import MEMORIES, StudentPolicy, make_student_net, meta_path, save_student
+from .recurrent import MEMORIES, StudentPolicy, make_student_net, meta_path, pinball, save_student
+from .recurrent_ppo import run_wave
 
 Unit = Annotated[Real, Ge(0), Le(1)]
 Quantile = Annotated[Real, Ge(0.05), Le(0.95)]
@@ -180,65 +180,6 @@ def student_columns(core) -> np.ndarray:
     """The observation entries of the task ``core`` the student sees: the sensed entries of every frame, never the
     privileged ones."""
     return np.flatnonzero(actor_mask(len(OBS_NAMES), core.frame_dim, core.config.obs_history))
-
-
-def pinball(pred, target, mask, quantiles):
-    """Mean pinball loss over the masked steps, per action its quantile (torch tensors (B, T, 2), (B, T), (2,))."""
-    err = target - pred
-    loss = (quantiles * err).maximum((quantiles - 1.0) * err)
-    return (loss.sum(-1) * mask).sum() / mask.sum().clamp(min=1.0)
-
-
-class Wave(NamedTuple):
-    """One wave of episodes, one per env, each cut to its length: per episode its observations (full, privileged
-    entries included: the critic's), the actions that drove it, the teacher's labels and the rewards."""
-
-    obs: list[np.ndarray]
-    actions: list[np.ndarray]
-    labels: list[np.ndarray]
-    rewards: list[np.ndarray]
-    success: np.ndarray
-    peak_pinch_N: np.ndarray
-
-    @property
-    def steps(self) -> int:
-        return int(sum(len(r) for r in self.rewards))
-
-
-def run_wave(env, act: Callable[[np.ndarray, np.ndarray], np.ndarray], teacher, seeds: list[int]) -> Wave:
-    """Episodes reset with ``seeds`` (one per env), driven by ``act`` (observations and the teacher's labels of them ->
-    actions), the teacher run in their shadow on the same observations, labelling every step with what it would do."""
-    from .controllers import idle_action
-
-    B = env.num_envs
-    obs, _ = env.reset(seed=seeds)
-    teacher.reset([{"mu": float(m)} for m in env.core.mu])
-    xs, ys, acts, rews = [], [], [], []
-    done = np.zeros(B, dtype=bool)
-    length = np.zeros(B, dtype=np.int64)
-    success = np.zeros(B, dtype=bool)
-    peak = np.zeros(B)
-    idle = idle_action(env.config)
-    for _ in range(env.config.max_episode_steps + 1):
-        label = teacher.act(obs)
-        action = np.asarray(act(obs, label), dtype=np.float32)
-        xs.append(np.asarray(obs, dtype=np.float32))
-        ys.append(label.astype(np.float32))
-        acts.append(action)
-        obs, rew, term, trunc, inf = env.core.step(np.where(done[:, None], idle, action),
-                                                   advance=np.flatnonzero(~done))
-        rews.append(np.asarray(rew, dtype=np.float32))
-        live = ~done
-        length[live] += 1
-        ended = live & (term | trunc)
-        success[ended] = inf["is_success"][ended]
-        peak[ended] = env.core.peak_pinch[ended]
-        done |= ended
-        if done.all():
-            break
-    cut = [np.stack(seq, axis=1) for seq in (xs, acts, ys, rews)]  # (B, T, ...)
-    obs_, acts_, labels_, rews_ = ([c[b, :length[b]] for b in range(B)] for c in cut)
-    return Wave(obs_, acts_, labels_, rews_, success, peak)
 
 
 def _dagger_wave(env, student: StudentPolicy, teacher, columns: np.ndarray, drivers: np.ndarray,

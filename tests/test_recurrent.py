@@ -16,10 +16,10 @@ import pytest
 pytest.importorskip("torch")
 
 from msdgrasp.agents.controllers import make_policy  # noqa: E402
-from msdgrasp.agents.recurrent_training import RecurrentConfig, pinball, student_columns, train_recurrent  # noqa: E402
+from msdgrasp.agents.recurrent_training import RecurrentConfig, student_columns, train_recurrent  # noqa: E402
 from msdgrasp.agents.friction import FrictionEstimator, estimator_path  # noqa: E402
 from msdgrasp.agents.learners import learner_of_model, learner_of_run  # noqa: E402
-from msdgrasp.agents.recurrent import StudentPolicy, make_student_net, save_student  # noqa: E402
+from msdgrasp.agents.recurrent import StudentPolicy, make_student_net, pinball, save_student  # noqa: E402
 from msdgrasp.agents.training import BestModel  # noqa: E402
 from msdgrasp.envs.task import N_OBS, OBS, obs_group  # noqa: E402
 from msdgrasp.physics.config import ConfigError, replace  # noqa: E402
@@ -234,7 +234,7 @@ def test_the_anchor_pulls_the_actor_towards_the_teachers_labels():
     import torch
 
     from msdgrasp.agents.recurrent_ppo import RecurrentPPO
-    from msdgrasp.agents.recurrent_training import Wave
+    from msdgrasp.agents.recurrent_ppo import Wave
 
     torch.manual_seed(0)
     cfg = replace(RecurrentConfig(), ppo_epochs=20, ppo_minibatch_episodes=4, ppo_learning_rate=3e-3,

@@ -15,7 +15,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ...physics.config import ConfigError
-from .base import Learner, RunSummary, TrainOverrides, check_env_files, numbered_files, read_train_yaml, register
+from .base import (
+    Learner, RunSummary, TrainOverrides, check_env_files, get_learner, learner_names, numbered_files, read_train_yaml,
+    register,
+)
 from .rsl_layout import CPU_CONFIG, GPU_CONFIG, LAYOUT, NAME, SUFFIX, config_path, meta_path, read_meta
 
 if TYPE_CHECKING:
@@ -95,11 +98,14 @@ class RslLearner(Learner):
             return read_meta(path / LAYOUT.model).get("learner", NAME) if (path / LAYOUT.config).is_file() else None
         if path.suffix != SUFFIX:
             return None
-        try:  # (another learner's .pt records its own name beside it: not ours to claim)
+        try:  # (another learner whose models are .pt files records its own name beside them: not ours to claim)
             recorded = json.loads(meta_path(path).read_text()).get("learner", NAME)
         except (OSError, ValueError, AttributeError):
             recorded = NAME
-        return read_meta(path).get("learner", NAME) if recorded == NAME else None
+        if recorded != NAME and recorded in learner_names() and Path(
+                get_learner(recorded).layout.model).suffix == SUFFIX:
+            return None
+        return read_meta(path).get("learner", NAME)
 
     def load_policy(self, model: Path, name: str | None = None):
         from ..controllers import TorchScriptPolicy
