@@ -52,9 +52,11 @@ class SelectionPlan:
 
 
 def plan_selection(run: str | Path, validation_episodes: int | None = None,
-                   validation_mu: Sequence[float] | None = None) -> SelectionPlan:
+                   validation_mu: Sequence[float] | None = None,
+                   numbers: tuple[int, int] | None = None) -> SelectionPlan:
     """Read run folder ``run`` and check it can be selected again with the given validation settings (None:
-    the run's own); raises :class:`ConfigError` naming what is wrong, before anything runs."""
+    the run's own), among the checkpoints numbered ``numbers`` (first, last; None: all of them: e.g. a recurrent
+    run's DAgger stage alone); raises :class:`ConfigError` naming what is wrong, before anything runs."""
     run = Path(run)
     if not run.is_dir():
         raise ConfigError(f"select: {run} is not a folder")
@@ -76,8 +78,11 @@ def plan_selection(run: str | Path, validation_episodes: int | None = None,
         raise ConfigError(f"select: {run} is not a training run (no {layout.config} of learner {learner.name})")
     config = learner.config_of_run(run, overrides)
     checkpoints = learner.checkpoints(run, config)
+    if numbers is not None:
+        checkpoints = [(k, p) for k, p in checkpoints if numbers[0] <= k <= numbers[1]]
     if not checkpoints:
-        raise ConfigError(f"select: {run} has no {layout.checkpoint.format('<number>')} to validate")
+        within = "" if numbers is None else f" numbered {numbers[0]}-{numbers[1]}"
+        raise ConfigError(f"select: {run} has no {layout.checkpoint.format('<number>')}{within} to validate")
     if config.validation_episodes < 1:
         raise ConfigError(f"select: {run} was trained without validation; give validation_episodes >= 1")
     summary = run / layout.summary
@@ -146,7 +151,7 @@ def _select_job(out: str, plan: SelectionPlan, archive: bytes | None) -> dict[st
 
 def select(run: str | Path, out: str | Path, validation_episodes: int | None = None,
            validation_mu: Sequence[float] | None = None, workers: int | None = None,
-           runner: Runner | None = None) -> list[dict[str, Any]]:
+           runner: Runner | None = None, numbers: tuple[int, int] | None = None) -> list[dict[str, Any]]:
     """Select again in run folder ``run``, or in each ``seed_<k>/`` run of it (into ``out/seed_<k>``), each
     run a job on ``runner`` (default: ``workers`` local processes; one run without a runner: this process).
     Every run is checked before the first is validated."""
@@ -156,10 +161,10 @@ def select(run: str | Path, out: str | Path, validation_episodes: int | None = N
     if seeds:
         if out.resolve() == run.resolve():
             raise ConfigError(f"select: --out {out} is the runs' own folder; give another folder")
-        plans = [plan_selection(d, validation_episodes, mu) for _, d in seeds]  # all of them valid, or nothing runs
+        plans = [plan_selection(d, validation_episodes, mu, numbers) for _, d in seeds]  # all valid, or none runs
         outs = [out / f"seed_{k}" for k, _ in seeds]
     else:
-        plans, outs = [plan_selection(run, validation_episodes, mu)], [out]
+        plans, outs = [plan_selection(run, validation_episodes, mu, numbers)], [out]
     for plan, folder in zip(plans, outs):
         _check_out(plan, folder)
     if runner is None and len(plans) == 1:

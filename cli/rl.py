@@ -435,7 +435,16 @@ def _cmd_select(args: argparse.Namespace) -> int:
     runner = _runner(args) if _runner_asked(args) else None
     mu = None if args.validation_mu is None else [float(m) for m in parse_mu_grid(args.validation_mu)]
     shown = []
-    for r in select(args.run, args.out, args.validation_episodes, mu, runner=runner):
+    numbers = None
+    if args.checkpoints is not None:
+        first, sep, last = args.checkpoints.partition("-")
+        try:
+            numbers = (int(first), int(last if sep else first))
+        except ValueError:
+            raise _usage(f"--checkpoints {args.checkpoints!r}: expected FIRST-LAST or N (checkpoint numbers)") from None
+        if not 0 <= numbers[0] <= numbers[1]:
+            raise _usage(f"--checkpoints {args.checkpoints!r}: expected 0 <= FIRST <= LAST")
+    for r in select(args.run, args.out, args.validation_episodes, mu, runner=runner, numbers=numbers):
         best = r["best"]
         shown.append({"run": r["run"], "learner": r["learner"], "validation_episodes": r["validation_episodes"],
                       "checkpoints_validated": r["checkpoints_validated"], "selection_s": r["selection_s"],
@@ -617,7 +626,7 @@ def add_rl_commands(sub) -> None:
                                        "and write the best into a new folder; its validation episodes are the run's "
                                        f"(seed + 100000 + i): {refused}")
     sl.add_argument("run", type=Path, metavar="RUN",
-                    help="a run folder of train (SB3) or train --learner rsl, or a folder of their seed_<k>/ runs")
+                    help="a run folder of train (any learner), or a folder of their seed_<k>/ runs")
     sl.add_argument("--out", type=Path, required=True,
                     help="where the pick goes (OUT/seed_<k>/ for a folder of seeds); the run itself is not changed")
     sl.add_argument("--validation-episodes", type=int, default=None,
@@ -625,6 +634,9 @@ def add_rl_commands(sub) -> None:
     sl.add_argument("--validation-mu", default=None,
                     help="friction coefficients to validate at: a comma list or start:stop:step "
                          "(default: the run's own)")
+    sl.add_argument("--checkpoints", default=None, metavar="FIRST-LAST",
+                    help="select among the checkpoints numbered FIRST to LAST only (default: all), e.g. 0-3: a "
+                         "recurrent run's DAgger iterations without its PPO stage")
     _add_runner_args(sl, "the seeds' selections")
     sl.set_defaults(func=_cmd_select)
 

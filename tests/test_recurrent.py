@@ -208,6 +208,12 @@ def test_a_tiny_run_writes_its_student_and_the_evaluation_runs_it(tmp_path):
     assert [h["teacher_share"] for h in dagger] == [1.0, 0.0]  # the teacher drives, then the student
     assert [h["stage"] for h in summary["history"]] == ["dagger", "dagger", "ppo"]
     assert len(list((run / "checkpoints").glob("student_*.pt"))) == 3
+    from msdgrasp.agents.selection import plan_selection
+
+    # the DAgger stage alone can be selected again (msdgrasp select --checkpoints 0-1)
+    assert [k for k, _ in plan_selection(run, numbers=(0, 1)).checkpoints] == [0, 1]
+    with pytest.raises(ConfigError, match="numbered 5-9"):
+        plan_selection(run, numbers=(5, 9))
     assert summary["agent_steps"] > 0 and (run / "student.pt").is_file()
     assert json.loads((run / "student.json").read_text())["learner"] == "recurrent"
     pol = build_policy(str(run / "student.pt"), cfg.env)
