@@ -56,15 +56,16 @@ def _episodes(result: dict[str, Any], spec: str, references: dict[str, float | N
     entry = next(r for r in result["results"] if r["spec"] == spec)
     out = []
     for cell in entry["cells"]:
-        success, ratio, lift = [], [], []
+        success, ratio, lift, pinch = [], [], [], []
         for row in cell["rows"]:
             ref = references.get(f"{row['mu']:g}")
             ep = row["per_episode"]
             success += [bool(v) for v in ep["success"]]
             ratio += [(p / ref) if ref else math.nan for p in ep["peak_pinch_N"]]
+            pinch += [float(p) for p in ep["peak_pinch_N"]]
             lift += [math.nan if t is None else float(t) for t in ep["time_to_lift_s"]]
         out.append({"success": np.array(success), "ratio": np.array(ratio, dtype=float),
-                    "lift": np.array(lift, dtype=float)})
+                    "lift": np.array(lift, dtype=float), "pinch": np.array(pinch, dtype=float)})
     return out
 
 
@@ -127,10 +128,13 @@ def merge_results(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]], baseline: str | None = None,
-                      references: dict[str, float | None] | None = None) -> dict[str, Any]:
+                      references: dict[str, float | None] | None = None,
+                      against: str | None = None) -> dict[str, Any]:
     """The leaderboard record of suite result ``result`` for ``tracks`` ((name, spec pattern) pairs); ``baseline``:
     the track the probability of improvement compares with (None: no comparison); ``references``: the reference force
-    per mu (default: :func:`reference_forces`, from the table of the result's task)."""
+    per mu (default: :func:`reference_forces`, from the table of the result's task); ``against``: a track every run of
+    the others is compared with per condition (its successes against that track's pooled success rate, its mean peak
+    pinch over that track's: the question "does each seed hold as much as X, with less force?")."""
     specs = [r["spec"] for r in result["results"]]
     if references is None:
         references = reference_forces(result)
@@ -142,8 +146,9 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
             raise ConfigError(f"track {name!r}: pattern {pattern!r} matches no policy of the suite result; its "
                               f"policies: {', '.join(specs)}")
         members[name] = hits
-    if baseline is not None and baseline not in members:
-        raise ConfigError(f"--baseline {baseline!r} is no track; tracks: {', '.join(members)}")
+    for flag, name in (("--baseline", baseline), ("--against", against)):
+        if name is not None and name not in members:
+            raise ConfigError(f"{flag} {name!r} is no track; tracks: {', '.join(members)}")
     runs = {name: [_episodes(result, s, references) for s in hits] for name, hits in members.items()}
     rows = []
     for name, per_run in runs.items():
@@ -169,7 +174,13 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
                                  for c in range(len(conditions))])
         ratios = np.where(np.isfinite(ratios), ratios, 1e9)
         profile = performance_profile_at_most(ratios, PROFILE_TAUS)
-        row = {"track": name, "policies": members[name], "runs": len(per_run), "cells": cells,
+        per_policy = [{"policy": spec, "cells": [{"successes": int(r[c]["success"].sum()),
+                                                   "episodes": int(len(r[c]["success"])),
+                                                   "mean_peak_pinch_N": _mean(r[c]["pinch"]),
+                                                   "force_ratio": _mean(r[c]["ratio"])}
+                                                  for c in range(len(conditions))]}
+                      for spec, r in zip(members[name], per_run)]
+        row = {"track": name, "policies": members[name], "runs": len(per_run), "cells": cells, "per_run": per_policy,
                "success_iqm": float(s_point), "success_iqm_ci95": [float(s_lo), float(s_hi)],
                "success_mean": float(m_point), "success_mean_ci95": [float(m_lo), float(m_hi)],
                "force_ratio_iqm": float(f_point), "force_ratio_iqm_ci95": [float(f_lo), float(f_hi)],
@@ -182,8 +193,19 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
             p, lo, hi = probability_of_improvement_ci(x, y)
             row["p_improvement"] = {"over": baseline, "value": float(p), "ci95": [float(lo), float(hi)]}
         rows.append(row)
+    if against is not None:
+        ref = runs[against]
+        rate = [float(np.mean(np.concatenate([r[c]["success"] for r in ref]))) for c in range(len(conditions))]
+        pinch = [_mean(np.concatenate([r[c]["pinch"] for r in ref])) for c in range(len(conditions))]
+        for row in rows:
+            if row["track"] == against:
+                continue
+            for run in row["per_run"]:
+                run["against"] = [{"holds_as_many": x["successes"] >= rate[c] * x["episodes"] - 1e-9,
+                                   "pinch_over_against": x["mean_peak_pinch_N"] / pinch[c] if pinch[c] else math.nan}
+                                  for c, x in enumerate(run["cells"])]
     return {"suite": result["suite"], "version": result["version"], "protocol": result.get("protocol"),
-            "seeds": result.get("seeds"), "conditions": conditions, "baseline": baseline,
+            "seeds": result.get("seeds"), "conditions": conditions, "baseline": baseline, "against": against,
             "reference_force_N": references, "task_from": result.get("task_from"), "tracks": rows}
 
 
@@ -230,7 +252,29 @@ def leaderboard_markdown(board: dict[str, Any]) -> str:
             cells.append(f"{x['successes']}/{x['episodes']} / {x['success_lower_bound']:.3f} / "
                          f"{_n(x['force_ratio'], '.2f')} / {_n(x['time_to_lift_s'], '.1f')}")
         lines.append(f"| {cond} | " + " | ".join(cells) + " |")
+    lines += _per_run_markdown(board)
     return "\n".join(lines) + "\n"
+
+
+def _per_run_markdown(board: dict[str, Any]) -> list[str]:
+    """Per run (seed) and condition: successes and mean peak pinch; with ``against``, that pinch over the against
+    track's and a mark where the run holds fewer episodes than the against track's success rate."""
+    against = board.get("against")
+    head = "successes / mean peak pinch (N)" + (f" / over {against}'s (! holds fewer than {against})" if against
+                                                 else "")
+    lines = ["", f"Per run: {head}", "", "| track | run | " + " | ".join(board["conditions"]) + " |",
+             "|---|---|" + "---|" * len(board["conditions"])]
+    for t in board["tracks"]:
+        for run in t.get("per_run", []):
+            cells = []
+            for c, x in enumerate(run["cells"]):
+                text = f"{x['successes']}/{x['episodes']} / {_n(x['mean_peak_pinch_N'], '.2f')}"
+                if "against" in run:
+                    a = run["against"][c]
+                    text += f" / {_n(a['pinch_over_against'], '.2f')}x" + ("" if a["holds_as_many"] else " !")
+                cells.append(text)
+            lines.append(f"| {t['track']} | {run['policy']} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _read_result(path: Path) -> dict[str, Any]:
@@ -246,12 +290,13 @@ def _read_result(path: Path) -> dict[str, Any]:
 
 
 def write_leaderboard(suite_json: str | Path | Sequence[str | Path], tracks: Sequence[str], baseline: str | None,
-                      out_dir: str | Path, references: dict[str, float | None] | None = None) -> dict[str, Any]:
+                      out_dir: str | Path, references: dict[str, float | None] | None = None,
+                      against: str | None = None) -> dict[str, Any]:
     """Read suite results (one, or several on the same episodes: :func:`merge_results`), build their leaderboard for
     the ``NAME=PATTERN`` tracks, write leaderboard.json/.md."""
     paths = [suite_json] if isinstance(suite_json, (str, Path)) else list(suite_json)
     result = merge_results([_read_result(Path(p)) for p in paths])
-    board = build_leaderboard(result, [parse_track(t) for t in tracks], baseline, references)
+    board = build_leaderboard(result, [parse_track(t) for t in tracks], baseline, references, against)
     out = Path(out_dir)
     atomic_write_text(out / "leaderboard.json", json.dumps(nan_to_none(board), indent=2) + "\n")
     atomic_write_text(out / "leaderboard.md", leaderboard_markdown(board))

@@ -421,7 +421,7 @@ def _cmd_leaderboard(args: argparse.Namespace) -> int:
     """``msdgrasp leaderboard SUITE.json --track NAME=PATTERN ... --out DIR`` (agents.leaderboard)."""
     from ..agents.leaderboard import leaderboard_markdown, write_leaderboard
 
-    board = write_leaderboard(args.suite_json, args.track, args.baseline, args.out)
+    board = write_leaderboard(args.suite_json, args.track, args.baseline, args.out, against=args.against)
     print(leaderboard_markdown(board))
     return 0
 
@@ -619,6 +619,9 @@ def add_rl_commands(sub) -> None:
                          "'default training=logs/train/seed_*/best_model.zip' or 'slip-reactive=reactive'")
     lb.add_argument("--baseline", default=None, metavar="NAME",
                     help="the track the probability of improvement compares every other with")
+    lb.add_argument("--against", default=None, metavar="NAME",
+                    help="a track every run (seed) of the others is compared with per condition: its successes "
+                         "against that track's success rate, its mean peak pinch over that track's")
     lb.add_argument("--out", type=Path, required=True, help="folder for leaderboard.json and leaderboard.md")
     lb.set_defaults(func=_cmd_leaderboard)
 

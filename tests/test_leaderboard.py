@@ -119,3 +119,25 @@ def test_the_in_range_suite_is_the_conditions_inside_the_benchmark_ranges():
     assert not any(inside_ranges(c, ranges) for c in SUITES["robustness"] if c.name not in names)
     assert "nominal" in names and all(c.mus == MUS for c in SUITES["in_range"])
     assert np.isclose(min(MUS), 0.2)  # the low-friction end is in the grid
+
+
+def test_each_run_is_compared_with_the_against_track_per_condition():
+    result = _result()
+    # one seed loses one episode of 40 at mu 0.3 in the nominal condition, and grips 10 % lighter there
+    cell = result["results"][1]["cells"][0]["rows"][0]
+    cell["per_episode"]["success"][0] = False
+    cell["per_episode"]["peak_pinch_N"] = [0.9 * p for p in cell["per_episode"]["peak_pinch_N"]]
+    board = build_leaderboard(result, [parse_track("trained=runs/seed_*/best_model.zip"),
+                                       parse_track("slip-reactive=reactive")], references=REF, against="trained")
+    trained, reactive = board["tracks"]
+    assert [r["policy"] for r in trained["per_run"]] == [f"runs/seed_{k}/best_model.zip" for k in range(3)]
+    assert "against" not in trained["per_run"][0]  # (the against track is not compared with itself)
+    (ours,) = reactive["per_run"]
+    assert [a["holds_as_many"] for a in ours["against"]] == [False, False]  # (one in ten fails)
+    # the reactive controller's peak pinch 1.8 x REF against the trained track's (1.2 x REF, one seed lighter at mu 0.3)
+    trained_pinch = (2 * 40 * 1.2 * 1.0 + 40 * 1.08 * 1.0 + 3 * 40 * 1.2 * 0.8) / 240
+    reactive_pinch = (40 * 1.8 * 1.0 + 40 * 1.8 * 0.8) / 80
+    assert ours["against"][0]["pinch_over_against"] == pytest.approx(reactive_pinch / trained_pinch)
+    assert ours["cells"][1]["successes"] == 72
+    text = leaderboard_markdown(board)
+    assert "Per run" in text and " !" in text
