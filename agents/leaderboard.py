@@ -43,7 +43,8 @@ _FAILURE_SCORE = -1e6
 
 
 def parse_track(text: str) -> tuple[str, str]:
-    """``"NAME=PATTERN"`` -> (name, pattern); ConfigError on anything else."""
+    """``"NAME=PATTERN"`` -> (name, pattern); ConfigError on anything else. A pattern may join several with ``|``
+    (a track whose runs lie in more than one folder)."""
     name, sep, pattern = str(text).partition("=")
     if not sep or not name.strip() or not pattern.strip():
         raise ConfigError(f"--track {text!r}: expected NAME=PATTERN (a policy spec or a glob of specs, e.g. "
@@ -141,7 +142,7 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
     conditions = [c["name"] for c in result["conditions"]]
     members: dict[str, list[str]] = {}
     for name, pattern in tracks:
-        hits = [s for s in specs if fnmatch.fnmatchcase(s, pattern)]
+        hits = [s for s in specs if any(fnmatch.fnmatchcase(s, p) for p in pattern.split("|"))]
         if not hits:
             raise ConfigError(f"track {name!r}: pattern {pattern!r} matches no policy of the suite result; its "
                               f"policies: {', '.join(specs)}")

@@ -616,7 +616,8 @@ def add_rl_commands(sub) -> None:
                          "DIR/suite_in_range.json; a second run with --no-baselines adds policies)")
     lb.add_argument("--track", action="append", required=True, metavar="NAME=PATTERN",
                     help="a track: its name and a glob of the policy specs it groups (repeat), e.g. "
-                         "'default training=logs/train/seed_*/best_model.zip' or 'slip-reactive=reactive'")
+                         "'default training=logs/train/seed_*/best_model.zip' or 'slip-reactive=reactive'; several "
+                         "patterns joined by |")
     lb.add_argument("--baseline", default=None, metavar="NAME",
                     help="the track the probability of improvement compares every other with")
     lb.add_argument("--against", default=None, metavar="NAME",

@@ -141,3 +141,9 @@ def test_each_run_is_compared_with_the_against_track_per_condition():
     assert ours["cells"][1]["successes"] == 72
     text = leaderboard_markdown(board)
     assert "Per run" in text and " !" in text
+
+
+def test_a_track_may_join_patterns():
+    board = build_leaderboard(_result(), [parse_track("two=runs/seed_0/best_model.zip|runs/seed_2/best_model.zip")],
+                              references=REF)
+    assert board["tracks"][0]["policies"] == ["runs/seed_0/best_model.zip", "runs/seed_2/best_model.zip"]
