@@ -105,8 +105,9 @@ def _task_of(result: dict[str, Any]) -> dict[str, Any]:
 
 
 def merge_results(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """One suite result of several run on the same episodes (the same suite, version, seeds, conditions and task);
-    a policy in several keeps its first run. ConfigError naming what differs."""
+    """One suite result of several run on the same episodes (the same suite, version, seeds and task); a policy in
+    several keeps its first run. Where the results ran different conditions of the suite (``--condition``), the merge
+    keeps the conditions every one of them ran, in the first's order. ConfigError naming what differs."""
     first = results[0]
     for other in results[1:]:
         for key in ("suite", "version", "seeds", "episodes"):
@@ -118,14 +119,20 @@ def merge_results(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
             field = next(k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k))
             raise ConfigError(f"the suite results' tasks differ in {field!r}: not the same episodes; merge only runs "
                               "of one task (policies trained on it may differ in their reward and critic's inputs)")
-        if [c["name"] for c in other["conditions"]] != [c["name"] for c in first["conditions"]]:
-            raise ConfigError("the suite results differ in their conditions: not the same episodes")
+    common = [c["name"] for c in first["conditions"]
+              if all(c["name"] in {o["name"] for o in other["conditions"]} for other in results[1:])]
+    if not common:
+        raise ConfigError("the suite results share no condition: nothing to compare")
     merged, seen = [], set()
-    for r in (r for res in results for r in res["results"]):
-        if r["spec"] not in seen:
-            seen.add(r["spec"])
-            merged.append(r)
-    return {**first, "results": merged, "protocol": all(r.get("protocol") for r in results)}
+    for res in results:
+        names = [c["name"] for c in res["conditions"]]
+        for r in res["results"]:
+            if r["spec"] not in seen:
+                seen.add(r["spec"])
+                merged.append({**r, "cells": [r["cells"][names.index(n)] for n in common]})
+    conditions = [next(c for c in first["conditions"] if c["name"] == n) for n in common]
+    return {**first, "conditions": conditions, "results": merged,
+            "protocol": all(r.get("protocol") for r in results)}
 
 
 def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]], baseline: str | None = None,

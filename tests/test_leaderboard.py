@@ -147,3 +147,22 @@ def test_a_track_may_join_patterns():
     board = build_leaderboard(_result(), [parse_track("two=runs/seed_0/best_model.zip|runs/seed_2/best_model.zip")],
                               references=REF)
     assert board["tracks"][0]["policies"] == ["runs/seed_0/best_model.zip", "runs/seed_2/best_model.zip"]
+
+
+def test_results_of_some_of_the_conditions_merge_on_the_conditions_they_share(tmp_path):
+    full = _result()
+    part = _result()
+    part["conditions"] = [{"name": "force noise 0.05 N"}]
+    part["results"] = [dict(_policy("other", 0, 1.1), cells=_policy("other", 0, 1.1)["cells"][1:])]
+    paths = []
+    for k, res in enumerate((full, part)):
+        paths.append(tmp_path / f"s{k}.json")
+        paths[-1].write_text(json.dumps(res))
+    board = write_leaderboard(paths, ["trained=runs/seed_*/best_model.zip", "other=other"], None, tmp_path / "b",
+                              references=REF)
+    assert board["conditions"] == ["force noise 0.05 N"]
+    assert [t["cells"][0]["force_ratio"] for t in board["tracks"]] == pytest.approx([1.2, 1.1])
+    part["conditions"] = [{"name": "latency 1 step"}]
+    paths[1].write_text(json.dumps(part))
+    with pytest.raises(ConfigError, match="share no condition"):
+        write_leaderboard(paths, ["trained=runs/seed_*/best_model.zip"], None, tmp_path / "b", references=REF)
