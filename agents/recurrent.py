@@ -82,21 +82,19 @@ def save_student(net, path: str | Path, meta: dict[str, Any]) -> Path:
 
 
 def read_student_meta(model: str | Path, learner: str | None = None) -> dict[str, Any]:
-    """The description beside a saved student (ConfigError naming the missing or broken file; where ``learner`` is
-    given, one recording another learner is refused too)."""
-    model = Path(model)
-    meta = meta_path(model)
-    if not meta.is_file():
-        raise ConfigError(f"model {model}: {meta.name} is missing beside it (the student's learner, architecture, "
-                          "observation columns and training config)")
-    try:
-        data = json.loads(meta.read_text())
-        data["config"]["env"], data["actor_columns"], data["memory"], data["hidden"], data["n_in"]  # noqa: B018
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"model {model}: {meta.name} is not a student's description ({exc!r})") from None
-    if learner is not None and data.get("learner") != learner:
-        raise ConfigError(f"model {model}: {meta.name} records learner {data.get('learner')!r}, not {learner!r}")
-    return data
+    """The description beside a saved student (ConfigError naming the missing or broken file, or one recording a
+    learner other than ``learner``; default: the learner recorded there, whichever it is)."""
+    from .learners.base import read_model_record
+
+    if learner is None:
+        import json
+
+        try:
+            learner = json.loads(meta_path(model).read_text()).get("learner")
+        except (OSError, ValueError, AttributeError):
+            learner = None
+    return read_model_record(model, str(learner), ("config.env", "actor_columns", "memory", "hidden", "n_in"),
+                             "student")
 
 
 def load_student_net(model: str | Path):

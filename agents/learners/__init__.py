@@ -6,7 +6,8 @@ learners (file names, config class, how a model is loaded) lives in the learner'
 package (the CLI, evaluation, selection, seeds, sweep) asks the registry by NAME:
 
 * :func:`get_learner` (``"ppo"``, ``"sac"``: Stable-Baselines3, :mod:`.sb3`; ``"rsl"``: rsl-rl's
-  torch-native PPO, :mod:`.rsl`; ``"recurrent"``: a GRU actor beside a privileged critic, taught by DAgger and fine-tuned by PPO, :mod:`.recurrent`);
+  torch-native PPO, :mod:`.rsl`; ``"recurrent"``: a GRU actor beside a privileged critic, taught by DAgger and
+  fine-tuned by PPO, :mod:`.recurrent`);
 * :func:`learner_of_run` / :func:`learner_of_model`: the learner NAME RECORDED in a run's or a model's
   files (an SB3 config's ``algo``, a torch policy's ``policy.json``), never found by trying loaders;
 * :func:`learner_of_config`: the learner a training config belongs to.

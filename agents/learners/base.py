@@ -126,9 +126,16 @@ class Learner(ABC):
         """Train (``resume``: continue the run in ``out_dir``); returns the run's summary (also written to
         ``layout.summary``)."""
 
-    @abstractmethod
     def run_summary(self, run: Path) -> RunSummary:
-        """Training time and steps of the finished run ``run`` (ConfigError: it did not finish)."""
+        """Training time and steps of the finished run ``run`` (ConfigError: it did not finish): by default its
+        summary's ``train_s``, ``agent_steps`` and ``agent_steps_per_s``."""
+        import json
+
+        path = run / self.layout.summary
+        if not path.is_file():
+            raise ConfigError(f"{path} is missing: the run did not finish (its training summary is written last)")
+        s = json.loads(path.read_text())
+        return RunSummary(s["train_s"], s["agent_steps"], s["agent_steps_per_s"])
 
     # ---- models -----------------------------------------------------------------------------------
 
@@ -186,6 +193,33 @@ class Learner(ABC):
         for _, path in checkpoints:
             files += [path, self.config_file(path)]
         return list(dict.fromkeys(files))
+
+
+def read_model_record(model: str | Path, learner: str, required: tuple[str, ...], what: str,
+                      learner_optional: bool = False) -> dict[str, Any]:
+    """The ``.json`` beside a saved model (``<name>.pt`` -> ``<name>.json``): ConfigError naming the model and the file
+    where it is missing, lacks an entry of ``required`` (``"config.env"``: a nested one), or records a learner other
+    than ``learner`` (``learner_optional``: a record without one is ``learner``'s). ``what``: the model's kind, for
+    messages."""
+    import json
+
+    model = Path(model)
+    meta = model.with_suffix(".json")
+    if not meta.is_file():
+        raise ConfigError(f"model {model}: {meta.name} is missing beside it (the {what}'s learner, observation layout "
+                          "and training config); a model is only run on the task it was trained on")
+    try:
+        data = json.loads(meta.read_text())
+        for key in required:
+            node = data
+            for part in key.split("."):
+                node = node[part]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"model {model}: {meta.name} is not a {what}'s description ({exc!r})") from None
+    recorded = data.get("learner", learner if learner_optional else None)
+    if recorded != learner:
+        raise ConfigError(f"model {model}: {meta.name} records learner {recorded!r}, not {learner!r}")
+    return data
 
 
 def read_train_yaml(path: Path) -> dict[str, Any]:

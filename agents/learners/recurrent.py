@@ -1,6 +1,6 @@
 """The learner ``recurrent`` (:mod:`msdgrasp.agents.recurrent_training`): an actor with memory (a GRU over the sensed
-entries) beside a privileged critic, taught by DAgger from a privileged teacher, then fine-tuned by PPO (either stage may
-be off: PPO alone is recurrent PPO from scratch).
+entries) beside a privileged critic, taught by DAgger from a privileged teacher, then fine-tuned by PPO (either stage
+may be off: PPO alone is recurrent PPO from scratch).
 
 A run folder: ``config.json`` (written first), ``checkpoints/student_<iteration>.pt`` each with
 ``student_<iteration>.json`` (learner, architecture, observation columns, training config), the shipped
@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ...physics.config import ConfigError
-from .base import Learner, RunSummary, TrainOverrides, check_env_files, numbered_files, read_train_yaml, register
+from .base import Learner, TrainOverrides, check_env_files, numbered_files, read_train_yaml, register
 from .recurrent_layout import CONFIG, LAYOUT, NAME
 
 if TYPE_CHECKING:
@@ -40,7 +40,7 @@ def _run_record(run: Path) -> dict[str, Any]:
 
 
 class RecurrentLearner(Learner):
-    """A recurrent actor: DAgger from a privileged teacher, then PPO with a privileged critic, on the batched CPU env."""
+    """A recurrent actor: DAgger from a privileged teacher, then PPO with a privileged critic, on the CPU env."""
 
     name = NAME
     backends = ("cpu",)
@@ -90,13 +90,6 @@ class RecurrentLearner(Learner):
         if resume:
             raise ConfigError(f"learner {NAME} cannot continue a run")
         return train_recurrent(config, out_dir, progress=progress)
-
-    def run_summary(self, run: Path) -> RunSummary:
-        path = run / LAYOUT.summary
-        if not path.is_file():
-            raise ConfigError(f"{path} is missing: the run did not finish (its training summary is written last)")
-        s = json.loads(path.read_text())
-        return RunSummary(s["train_s"], s["agent_steps"], s["agent_steps_per_s"])
 
     @staticmethod
     def recorded_learner(path: Path) -> str | None:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from ...physics.config import ConfigError
 from .base import (
-    Learner, RunSummary, TrainOverrides, check_env_files, get_learner, learner_names, numbered_files, read_train_yaml,
+    Learner, TrainOverrides, check_env_files, get_learner, learner_names, numbered_files, read_train_yaml,
     register,
 )
 from .rsl_layout import CPU_CONFIG, GPU_CONFIG, LAYOUT, NAME, SUFFIX, config_path, meta_path, read_meta
@@ -83,13 +83,6 @@ class RslLearner(Learner):
         if resume:
             raise ConfigError(f"learner {NAME} cannot continue a run")
         return train_torch(config, out_dir, progress=progress)
-
-    def run_summary(self, run: Path) -> RunSummary:
-        path = run / LAYOUT.summary
-        if not path.is_file():
-            raise ConfigError(f"{path} is missing: the run did not finish (its training summary is written last)")
-        s = json.loads(path.read_text())
-        return RunSummary(s["train_s"], s["agent_steps"], s["agent_steps_per_s"])
 
     @staticmethod
     def recorded_learner(path: Path) -> str | None:

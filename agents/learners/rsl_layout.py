@@ -3,12 +3,10 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
-from ...physics.config import ConfigError
-from .base import RunLayout
+from .base import RunLayout, read_model_record
 
 NAME = "rsl"
 LAYOUT = RunLayout(model="policy.pt", fallback_model=None, summary="summary.json", config="policy.json",
@@ -27,19 +25,7 @@ def meta_path(policy: str | Path) -> Path:
 
 def read_meta(policy: str | Path) -> dict[str, Any]:
     """The description of an exported policy (ConfigError naming the missing or broken file)."""
-    policy = Path(policy)
-    meta = meta_path(policy)
-    if not meta.is_file():
-        raise ConfigError(f"model {policy}: {meta.name} is missing beside it (the policy's learner, observation "
-                          "layout and training config); a model is only run on the task it was trained on")
-    try:
-        data = json.loads(meta.read_text())
-        data["config"]["env"], data["actor_columns"]  # noqa: B018 (both must be there)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"model {policy}: {meta.name} is not a torch PPO policy's description ({exc!r})") from None
-    if data.get("learner", NAME) != NAME:
-        raise ConfigError(f"model {policy}: {meta.name} records learner {data['learner']!r}, not {NAME!r}")
-    return data
+    return read_model_record(policy, NAME, ("config.env", "actor_columns"), "torch PPO policy", learner_optional=True)
 
 
 def config_path(config: Path | None, backend: str | None) -> Path:
