@@ -104,9 +104,10 @@ def _train_and_evaluate(run_dir: str, learner_name: str, config_dict: dict[str, 
     learner.train(config, run, progress=False)
     wall = time.perf_counter() - t0
     model = learner.shipped_model(run)  # the validated best, or the final model of a run without validation
-    rows = evaluate_policy(learner.load_policy(model, f"PPO seed {seed}"), mus, episodes, config.env, evaluation_seed)
+    policy = learner.load_policy(model)  # (named by its learner: "PPO (seed 3)", "recurrent gru (seed 3)")
+    rows = evaluate_policy(policy, mus, episodes, config.env, evaluation_seed)
     trained = learner.run_summary(run)
-    return {"seed": seed, "run": str(run), "model": str(model), "train_wall_s": round(wall, 1),
+    return {"seed": seed, "policy": policy.name, "run": str(run), "model": str(model), "train_wall_s": round(wall, 1),
             "train": {"timesteps": trained.agent_steps, "steps_per_s": trained.agent_steps_per_s}, "rows": rows,
             "validation": _validation_history(run)}
 
@@ -229,7 +230,7 @@ def _point_result(base: dict[str, Any], recs: list[dict[str, Any]]) -> dict[str,
     seed_recs = []
     for res in sorted(recs, key=lambda r: r["seed"]):
         tr = res["train"]
-        seed_recs.append({"seed": res["seed"], "run": res["run"], "model": res["model"],
+        seed_recs.append({"seed": res["seed"], "policy": res.get("policy"), "run": res["run"], "model": res["model"],
                           "train_wall_s": res["train_wall_s"], "timesteps": tr["timesteps"],
                           "steps_per_s": tr["steps_per_s"],
                           **_row_metrics(res["rows"], minimal, base.get("reference_force_N")),
@@ -247,8 +248,10 @@ def _point_result(base: dict[str, Any], recs: list[dict[str, Any]]) -> dict[str,
 def _evaluate_trained(seed: int, model: str, train: dict[str, Any], env_dict: dict[str, Any], episodes: int,
                       mus: Sequence[float], evaluation_seed: int) -> dict[str, Any]:
     env = from_dict(GraspLiftConfig, env_dict, where="env")
-    rows = evaluate_policy(make_policy(model, env), mus, episodes, env, evaluation_seed)
-    return {"seed": seed, "run": str(Path(model).parent), "model": model, "train_wall_s": train["train_s"],
+    policy = make_policy(model, env)
+    rows = evaluate_policy(policy, mus, episodes, env, evaluation_seed)
+    return {"seed": seed, "policy": policy.name, "run": str(Path(model).parent), "model": model,
+            "train_wall_s": train["train_s"],
             "train": {"timesteps": train["agent_steps"], "steps_per_s": train["agent_steps_per_s"]}, "rows": rows,
             "validation": _validation_history(Path(model).parent)}
 
@@ -406,7 +409,7 @@ def format_markdown(result: dict[str, Any]) -> str:
                 f"{fmt_value(rec.get('time_to_lift_ref_s', float('nan')), 2)} |")
 
     for rec in result["per_seed"]:
-        lines.append(row(f"PPO (seed {rec['seed']})", rec))
+        lines.append(row(rec.get("policy") or f"PPO (seed {rec['seed']})", rec))
     lines.append(row(display_name("reactive"), result["baselines"]["reactive"]))
     lines.append(row(display_name("oracle"), result["baselines"]["oracle"]))
     curve = result["oracle_minimal_force"]
