@@ -208,7 +208,14 @@ def _load_shipped(path: Path) -> None:
         from msdgrasp.agents.torch_ppo import TorchPPOConfig
         from msdgrasp.envs.core import GraspLiftConfig
 
-        # the torch PPO's configs are the rsl_* ones (msdgrasp train --learner rsl); every other is SB3's
+        from msdgrasp.agents.models import default_training
+        from msdgrasp.agents.recurrent_training import RecurrentConfig
+
+        # the torch PPO's configs are the rsl_* ones (msdgrasp train --learner rsl), the recurrent learner's the
+        # recurrent* ones, which take the default training's task (they state no env); every other is SB3's
+        if path.name.startswith("recurrent"):
+            assert RecurrentConfig.load(path).env == default_training().env
+            return
         cls = TorchPPOConfig if path.name.startswith("rsl") else TrainConfig
         config = cls.load(path)
         assert GraspLiftConfig.from_yaml(path) == config.env

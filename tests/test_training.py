@@ -300,6 +300,12 @@ def test_every_shipped_training_config_loads_strictly():
         if path.name.startswith("rsl"):  # the torch PPO's (its shipped defaults: tests/test_torch_ppo.py)
             assert TorchPPOConfig.load(path).env == TrainConfig().env, path  # (the same task as SB3's)
             continue
+        if path.name.startswith("recurrent"):  # the recurrent learner's (tests/test_recurrent.py)
+            from msdgrasp.agents.models import default_training
+            from msdgrasp.agents.recurrent_training import RecurrentConfig
+
+            assert RecurrentConfig.load(path).env == default_training().env, path
+            continue
         config = TrainConfig.load(path)
         assert config.algo in ("ppo", "sac"), path
 
