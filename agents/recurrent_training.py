@@ -1,9 +1,9 @@
-"""Teacher-student training (``msdgrasp train --learner dagger``): a student with memory learns, by DAgger, to act as a
-privileged teacher acts, from what the grasper senses.
+"""The recurrent learner (``msdgrasp train --learner recurrent``): a student with memory learns, by DAgger, to act as a
+privileged teacher acts, from what the grasper senses; then PPO fine-tunes it (:mod:`.recurrent_ppo`).
 
 The teacher is told what no grasper senses: the episode's friction (``slipfeedback:...,told=1``: the estimating
-controller with its estimate replaced by the true mu; it closes to the same probe grip, so the closing the student
-sees is the one the friction shows in). The student (:mod:`.recurrent`) reads only the actor's sensed entries and must
+controller with its estimate replaced by the true mu; it closes to the same probe grip, or less where the friction
+needs less, so the closing the student sees is the one the friction shows in). The student (:mod:`.recurrent`) reads only the actor's sensed entries and must
 infer from its history what the teacher is told. DAgger (Ross, Gordon and Bagnell 2011): in iteration 0 the teacher
 drives (``teacher_drives`` of the episodes; then x ``beta_decay`` per iteration), then the student; in every
 step of every episode the teacher, run in the student's shadow on the same observations, labels what it would do, so
@@ -15,7 +15,8 @@ The loss is the pinball (quantile) loss per action: at ``quantiles[0]`` > 0.5 th
 of the teacher's grips over the frictions its history cannot tell apart (a grip too light loses the grasp; one too
 heavy costs force), where a squared loss would grip at their mean. Selection (``selection: grasps``): the checkpoint
 with the highest lowest Wilson bound of validation success over mu, then the least force: no checkpoint trades a
-low-friction grasp for force (docs/design.md).
+low-friction grasp for force. Every checkpoint of both stages is a candidate (``checkpoints/student_<k>.pt``, DAgger's
+iterations first). Reasons and measurements: docs/design.md, "Learned control with memory".
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def _default_randomization() -> RandomizationConfig:
 
 @config_dataclass
 class RecurrentConfig:
-    """One teacher-student run (``configs/train/recurrent.yaml``); reasons for the values in docs/design.md."""
+    """One recurrent run: DAgger, then PPO (``configs/train/recurrent.yaml``); reasons for the values in docs/design.md."""
 
     #: the run's seed: the rollout envs (env i reset with seed + i), the drivers' draws and the networks
     seed: Annotated[Int, Ge(0)] = 0
