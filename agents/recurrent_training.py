@@ -3,8 +3,8 @@ privileged teacher acts, from what the grasper senses; then PPO fine-tunes it (:
 
 The teacher is told what no grasper senses: the episode's friction (``slipfeedback:...,told=1``: the estimating
 controller with its estimate replaced by the true mu; it closes to the same probe grip, or less where the friction
-needs less, so the closing the student sees is the one the friction shows in). The student (:mod:`.recurrent`) reads only the actor's sensed entries and must
-infer from its history what the teacher is told. DAgger (Ross, Gordon and Bagnell 2011): in iteration 0 the teacher
+needs less, so the closing the student sees is the one the friction shows in). The student (:mod:`.recurrent`) reads
+only the actor's sensed entries and must infer from its history what the teacher is told. DAgger (Ross, Gordon and Bagnell 2011): in iteration 0 the teacher
 drives (``teacher_drives`` of the episodes; then x ``beta_decay`` per iteration), then the student; in every
 step of every episode the teacher, run in the student's shadow on the same observations, labels what it would do, so
 the data covers the states the student's own mistakes lead to. After each iteration the student is fitted on all
@@ -64,7 +64,7 @@ def _default_randomization() -> RandomizationConfig:
 
 @config_dataclass
 class RecurrentConfig:
-    """One recurrent run: DAgger, then PPO (``configs/train/recurrent.yaml``); reasons for the values in docs/design.md."""
+    """One recurrent run, DAgger then PPO (``configs/train/recurrent.yaml``); reasons for the values: docs/design.md."""
 
     #: the run's seed: the rollout envs (env i reset with seed + i), the drivers' draws and the networks
     seed: Annotated[Int, Ge(0)] = 0
