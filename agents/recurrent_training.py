@@ -4,12 +4,12 @@ privileged teacher acts, from what the grasper senses; then PPO fine-tunes it (:
 The teacher is told what no grasper senses: the episode's friction (``slipfeedback:...,told=1``: the estimating
 controller with its estimate replaced by the true mu; it closes to the same probe grip, or less where the friction
 needs less, so the closing the student sees is the one the friction shows in). The student (:mod:`.recurrent`) reads
-only the actor's sensed entries and must infer from its history what the teacher is told. DAgger (Ross, Gordon and Bagnell 2011): in iteration 0 the teacher
-drives (``teacher_drives`` of the episodes; then x ``beta_decay`` per iteration), then the student; in every
-step of every episode the teacher, run in the student's shadow on the same observations, labels what it would do, so
-the data covers the states the student's own mistakes lead to. After each iteration the student is fitted on all
-episodes so far (whole episodes, from a zero memory, as it runs), its checkpoint validated on the training task's
-validation episodes and the best kept.
+only the actor's sensed entries and must infer from its history what the teacher is told. DAgger (Ross, Gordon and
+Bagnell 2011): in iteration 0 the teacher drives (``teacher_drives`` of the episodes; then x ``beta_decay`` per
+iteration), then the student; in every step of every episode the teacher, run in the student's shadow on the same
+observations, labels what it would do, so the data covers the states the student's own mistakes lead to. After each
+iteration the student is fitted on all episodes so far (whole episodes, from a zero memory, as it runs), its
+checkpoint validated on the training task's validation episodes and the best kept.
 
 The loss is the pinball (quantile) loss per action: at ``quantiles[0]`` > 0.5 the student's grip is an upper quantile
 of the teacher's grips over the frictions its history cannot tell apart (a grip too light loses the grasp; one too
