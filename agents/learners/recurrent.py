@@ -74,8 +74,6 @@ class RecurrentLearner(Learner):
         for key, val in (("n_envs", overrides.n_envs), ("seed", overrides.seed)):
             if val is not None:
                 data[key] = val
-        if overrides.n_envs is not None and "episodes_per_iteration" not in data:
-            data["episodes_per_iteration"] = overrides.n_envs * 3
         return check_env_files(self.config_from_dict(data, where=str(path)), path)
 
     def config_dict_of_run(self, run: Path) -> dict[str, Any]:
