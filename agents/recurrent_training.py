@@ -168,13 +168,14 @@ def teacher_policy(config: RecurrentConfig):
     """The teacher of ``config`` (ConfigError naming the field where its spec is not a controller told mu)."""
     from .controllers import make_policy
 
-    if not config.teacher.startswith("slipfeedback:") or "told=1" not in config.teacher.replace(" ", ""):
-        raise ConfigError(f"teacher must be a slip-feedback controller told mu ('slipfeedback:...,told=1,...'), got "
-                          f"{config.teacher!r}")
     try:
-        return make_policy(config.teacher, config.env)
+        teacher = make_policy(config.teacher, config.env) if config.teacher.startswith("slipfeedback:") else None
     except (ValueError, ConfigError) as exc:
         raise ConfigError(f"teacher: {exc}") from None
+    if not getattr(teacher, "told_mu", False):
+        raise ConfigError(f"teacher must be a slip-feedback controller told mu ('slipfeedback:...,told=1,...'), got "
+                          f"{config.teacher!r}")
+    return teacher
 
 
 def student_columns(core) -> np.ndarray:
