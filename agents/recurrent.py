@@ -86,15 +86,7 @@ def read_student_meta(model: str | Path, learner: str | None = None) -> dict[str
     learner other than ``learner``; default: the learner recorded there, whichever it is)."""
     from .learners.base import read_model_record
 
-    if learner is None:
-        import json
-
-        try:
-            learner = json.loads(meta_path(model).read_text()).get("learner")
-        except (OSError, ValueError, AttributeError):
-            learner = None
-    return read_model_record(model, str(learner), ("config.env", "actor_columns", "memory", "hidden", "n_in"),
-                             "student")
+    return read_model_record(model, learner, ("config.env", "actor_columns", "memory", "hidden", "n_in"), "student")
 
 
 def load_student_net(model: str | Path):
@@ -126,21 +118,32 @@ class StudentPolicy:
 
     def reset(self, infos: Sequence[dict[str, Any]]) -> None:
         self._h = None
-        self._n = len(infos)
 
     def reset_one(self, index: int, info: dict[str, Any]) -> None:
         """Start a new episode in batch slot ``index`` only (the others keep their memory)."""
         if self._h is not None:
             self._h[:, index] = 0.0
 
-    def act(self, obs: np.ndarray) -> np.ndarray:
+    def mean(self, obs: np.ndarray) -> np.ndarray:
+        """The network's actions for a batch of observations, unclipped, its memory carried to the next call."""
         torch = _torch()
         x = torch.as_tensor(np.atleast_2d(obs)[:, self.columns], dtype=torch.float32)[:, None, :]
         with torch.no_grad():
             y, h = self.net(x, self._h)
         if h is not None:
             self._h = h.clone()
-        return np.clip(y[:, 0].numpy(), -1.0, 1.0).astype(np.float32)
+        return y[:, 0].numpy()
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return np.clip(self.mean(obs), -1.0, 1.0).astype(np.float32)
+
+
+def pad_episodes(seqs: Sequence[np.ndarray], T: int) -> np.ndarray:
+    """Episodes of different lengths (each (t, ...)) as one zero-padded float32 batch (B, T, ...)."""
+    out = np.zeros((len(seqs), T, *seqs[0].shape[1:]), dtype=np.float32)
+    for j, seq in enumerate(seqs):
+        out[j, :len(seq)] = seq
+    return out
 
 
 def pinball(pred, target, mask, quantiles):

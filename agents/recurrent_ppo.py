@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .recurrent import pinball
+from .recurrent import StudentPolicy, pad_episodes, pinball
 
 
 class Wave(NamedTuple):
@@ -117,13 +117,6 @@ def gae(rewards: np.ndarray, values: np.ndarray, gamma: float, lam: float) -> np
     return adv
 
 
-def _pad(seqs: list[np.ndarray], T: int) -> np.ndarray:
-    out = np.zeros((len(seqs), T, *seqs[0].shape[1:]), dtype=np.float32)
-    for j, s in enumerate(seqs):
-        out[j, :len(s)] = s
-    return out
-
-
 class RecurrentPPO:
     """The state of the PPO stage: the actor (the student's network), its log std, the critic, one optimiser."""
 
@@ -136,23 +129,17 @@ class RecurrentPPO:
         params = [*net.parameters(), self.log_std, *self.critic.parameters()]
         self.optimiser = torch.optim.Adam(params, lr=config.ppo_learning_rate)
         self.return_scale = None  # the first wave's return std: the critic learns returns in that unit
-        self._h = None
+        self.actor = StudentPolicy(net, columns)  # (its memory per batch slot while it acts)
 
     # ---- acting -----------------------------------------------------------------------------------------------------
 
     def reset(self, batch: int) -> None:
-        self._h = None
+        self.actor.reset([{}] * batch)
 
     def sample(self, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The Gaussian actions of a batch of observations (the actor's memory carried); unclipped."""
-        import torch
-
-        x = torch.as_tensor(np.atleast_2d(obs)[:, self.columns], dtype=torch.float32)[:, None, :]
-        with torch.no_grad():
-            mean, h = self.net(x, self._h)
-        self._h = h
-        std = np.exp(self.log_std.detach().numpy())
-        return (mean[:, 0].numpy() + std * rng.standard_normal((len(x), 2))).astype(np.float32)
+        mean = self.actor.mean(obs)
+        return (mean + np.exp(self.log_std.detach().numpy()) * rng.standard_normal(mean.shape)).astype(np.float32)
 
     # ---- learning ---------------------------------------------------------------------------------------------------
 
@@ -163,11 +150,11 @@ class RecurrentPPO:
         cfg = self.config
         n = len(wave.rewards)
         T = max(len(r) for r in wave.rewards)
-        full = torch.from_numpy(_pad(wave.obs, T))
+        full = torch.from_numpy(pad_episodes(wave.obs, T))
         x = full[..., torch.as_tensor(self.columns)]
-        a = torch.from_numpy(_pad(wave.actions, T))
-        y = torch.from_numpy(_pad(wave.labels, T))
-        mask = torch.from_numpy(_pad([np.ones(len(r), dtype=np.float32) for r in wave.rewards], T))
+        a = torch.from_numpy(pad_episodes(wave.actions, T))
+        y = torch.from_numpy(pad_episodes(wave.labels, T))
+        mask = torch.from_numpy(pad_episodes([np.ones(len(r)) for r in wave.rewards], T))
         if self.return_scale is None:
             set_statistics(self.critic, np.concatenate(wave.obs))
             returns = [np.cumsum(r[::-1])[::-1] for r in wave.rewards]
@@ -179,8 +166,8 @@ class RecurrentPPO:
         adv = [gae(r, values[k, :len(r)], cfg.ppo_gamma, cfg.ppo_lam) for k, r in enumerate(wave.rewards)]
         ret = [adv[k] + values[k, :len(r)] for k, r in enumerate(wave.rewards)]
         flat = np.concatenate(adv)
-        adv_t = torch.from_numpy(_pad([((d - flat.mean()) / (flat.std() + 1e-8)).astype(np.float32) for d in adv], T))
-        ret_t = torch.from_numpy(_pad([(r / self.return_scale).astype(np.float32) for r in ret], T))
+        adv_t = torch.from_numpy(pad_episodes([(d - flat.mean()) / (flat.std() + 1e-8) for d in adv], T))
+        ret_t = torch.from_numpy(pad_episodes([r / self.return_scale for r in ret], T))
         q = torch.tensor(cfg.quantiles, dtype=torch.float32)
         stats = {"policy_loss": [], "value_loss": [], "bc_loss": [], "clip_fraction": [], "kl": []}
         self.net.train()

@@ -42,7 +42,7 @@ from ..physics.config import (
 from .learners.recurrent_layout import LAYOUT, NAME
 from .models import default_training
 from .protocol import VALIDATION_SEED_OFFSET, check_not_sealed
-from .recurrent import MEMORIES, StudentPolicy, make_student_net, meta_path, pinball, save_student
+from .recurrent import MEMORIES, StudentPolicy, make_student_net, meta_path, pad_episodes, pinball, save_student
 from .recurrent_ppo import run_wave
 
 Unit = Annotated[Real, Ge(0), Le(1)]
@@ -212,12 +212,8 @@ def _fit(net, data: list[tuple[np.ndarray, np.ndarray]], config: RecurrentConfig
     for _ in range(config.grad_steps):
         pick = rng.choice(len(data), size=min(config.batch_episodes, len(data)), replace=False)
         T = max(len(data[k][0]) for k in pick)
-        x = np.zeros((len(pick), T, data[0][0].shape[1]), dtype=np.float32)
-        y = np.zeros((len(pick), T, 2), dtype=np.float32)
-        m = np.zeros((len(pick), T), dtype=np.float32)
-        for j, k in enumerate(pick):
-            n = len(data[k][0])
-            x[j, :n], y[j, :n], m[j, :n] = data[k][0], data[k][1], 1.0
+        x, y = (pad_episodes([data[k][i] for k in pick], T) for i in (0, 1))
+        m = pad_episodes([np.ones(len(data[k][0])) for k in pick], T)
         pred, _ = net(torch.from_numpy(x))
         loss = pinball(pred, torch.from_numpy(y), torch.from_numpy(m), q)
         optimiser.zero_grad()

@@ -195,12 +195,12 @@ class Learner(ABC):
         return list(dict.fromkeys(files))
 
 
-def read_model_record(model: str | Path, learner: str, required: tuple[str, ...], what: str,
+def read_model_record(model: str | Path, learner: str | None, required: tuple[str, ...], what: str,
                       learner_optional: bool = False) -> dict[str, Any]:
     """The ``.json`` beside a saved model (``<name>.pt`` -> ``<name>.json``): ConfigError naming the model and the file
     where it is missing, lacks an entry of ``required`` (``"config.env"``: a nested one), or records a learner other
-    than ``learner`` (``learner_optional``: a record without one is ``learner``'s). ``what``: the model's kind, for
-    messages."""
+    than ``learner`` (None: any; ``learner_optional``: a record without one is ``learner``'s). ``what``: the model's
+    kind, for messages."""
     import json
 
     model = Path(model)
@@ -217,7 +217,7 @@ def read_model_record(model: str | Path, learner: str, required: tuple[str, ...]
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"model {model}: {meta.name} is not a {what}'s description ({exc!r})") from None
     recorded = data.get("learner", learner if learner_optional else None)
-    if recorded != learner:
+    if learner is not None and recorded != learner:
         raise ConfigError(f"model {model}: {meta.name} records learner {recorded!r}, not {learner!r}")
     return data
 
