@@ -276,3 +276,39 @@ def test_an_experiment_config_states_only_what_it_changes(path):
         return
     cls = TorchPPOConfig if path.name.startswith("rsl") else TrainConfig
     assert GraspLiftConfig.from_yaml(path) == cls.load(path).env
+
+
+def _extends_depth(path: Path) -> int:
+    """How many files deep ``path``'s ``extends:`` chain goes (0: the file extends nothing)."""
+    depth, seen = 0, {path.resolve()}
+    data = read_yaml(path)
+    while "extends" in data:
+        path = (path.parent / data["extends"]).resolve()
+        assert path not in seen, f"an extends cycle through {path}"
+        seen.add(path)
+        depth += 1
+        data = read_yaml(path)
+    return depth
+
+
+def test_the_extends_depth_counts_every_file_of_a_chain(tmp_path):
+    _base(tmp_path)
+    middle = _file(tmp_path / "middle.yaml", "extends: base.yaml\nn_envs: 4\n")
+    top = _file(tmp_path / "sub" / "top.yaml", "extends: ../middle.yaml\nn_envs: 8\n")
+    assert [_extends_depth(p) for p in (tmp_path / "base.yaml", middle, top)] == [0, 1, 2]
+
+
+def test_every_shipped_config_extends_at_most_one_shipped_default():
+    """No chains: a shipped config is whole or extends one whole config that is not an experiment (a default such as
+    configs/train/ppo_scratch.yaml), so the file itself states every field its run changes from that default."""
+    shipped = sorted(CONFIG_DIR.rglob("*.yaml"))
+    deep = [f"{p.relative_to(CONFIG_DIR)}: {_extends_depth(p)}" for p in shipped if _extends_depth(p) > 1]
+    assert not deep, f"configs whose extends chain is deeper than one file: {deep}"
+    on_experiments = []
+    for path in shipped:
+        data = read_yaml(path)
+        if "extends" in data:
+            parent = (path.parent / data["extends"]).resolve()
+            if "experiments" in parent.relative_to(CONFIG_DIR).parts:
+                on_experiments.append(f"{path.relative_to(CONFIG_DIR)} -> {parent.relative_to(CONFIG_DIR)}")
+    assert not on_experiments, f"configs that extend an experiment instead of a default: {on_experiments}"
