@@ -9,8 +9,8 @@ metrics is a new version:
   training's task) with one change: a :class:`~..envs.core.RandomizationConfig` field set to the level
   (the perturbation is drawn per episode up to that level where the field is a range), a reset option pinned
   (stiffness, mass), or the friction grid replaced (friction outside training);
-* the conditions :data:`CONDITIONS`: version 1's and, for the task's lift tracker (v2 reads the lift from it), a
-  noisier one (1 mm), a later one (3 frames) and none;
+* the conditions :data:`CONDITIONS`: the levels each perturbation declares (:mod:`..envs.perturbations`), by axis;
+  version 2 added the lift tracker's (v2 reads the lift from it): a noisier one (1 mm), a later one (3 frames), none;
 * the in-range friction grid :data:`MUS` (0.2, 0.3, 0.5, 0.8: mu 0.2, the training range's low end, joined in
   version 2) x :data:`EPISODES` (19) episodes per mu, so that every condition pools :data:`POOLED_EPISODES` (76); a
   condition at fewer mu (friction outside training: one mu each) runs more episodes per mu, 76 at its one mu. 76
@@ -49,6 +49,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig, setpoint_interface
+from ..envs.perturbations import Condition, rule_of, suite_conditions
 from ..envs.task import config_record, peak_charge_points
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
@@ -78,53 +79,10 @@ EPISODES_V1 = 10
 BASELINES = (*ALWAYS, "fixed")
 
 
-@dataclasses.dataclass(frozen=True)
-class Condition:
-    """One condition: the nominal task with one change."""
-
-    axis: str  # sensing, actuation, placement, friction, tissue (or nominal)
-    name: str  # what changed, with its level
-    randomization: dict[str, Any] = dataclasses.field(default_factory=dict)  # RandomizationConfig fields
-    options: dict[str, float] = dataclasses.field(default_factory=dict)  # reset pins
-    mus: tuple[float, ...] = MUS
-
-
-def _conditions(mus: tuple[float, ...], version: int) -> tuple[Condition, ...]:
-    """The suite's conditions of ``version``, those that keep the friction grid on ``mus``: version 2 adds the lift
-    tracker's (noisier, later, absent), the sensor the v2 task reads the lift from."""
-
-    def placement(offset_mm: float, tilt_deg: float, azimuth_deg: float) -> Condition:
-        return Condition("placement", f"grasp up to {offset_mm:g} mm off, {tilt_deg:g} deg tilt, {azimuth_deg:g} deg "
-                         "turn", {"pose_offset_m": offset_mm * 1e-3, "pose_tilt_deg": tilt_deg,
-                                  "pose_azimuth_deg": azimuth_deg}, mus=mus)
-
-    return (
-        Condition("nominal", "nominal", mus=mus),
-        *(Condition("sensing", f"force noise {n:g} N", {"sensor_noise_N": n}, mus=mus) for n in (0.05, 0.08, 0.1)),
-        *(Condition("sensing", f"force bias up to {b:g} N", {"force_bias_N": b}, mus=mus) for b in (0.05, 0.1)),
-        Condition("sensing", "slip sensed as a detector (binary)", {"slip_sensing": "binary"}, mus=mus),
-        Condition("sensing", "slip not sensed", {"slip_sensing": "absent"}, mus=mus),
-        Condition("sensing", "slip speed noise 0.1", {"slip_noise": 0.1}, mus=mus),
-        *((Condition("sensing", "lift tracker noise 1 mm", {"lift_noise_m": 0.001}, mus=mus),
-           Condition("sensing", "lift tracker 3 frames late", {"lift_delay_steps": 3}, mus=mus),
-           Condition("sensing", "lift not tracked", {"lift_sensing": "absent"}, mus=mus)) if version >= 2 else ()),
-        *(Condition("actuation", f"latency {k} step{'s' if k > 1 else ''}", {"latency_steps": (k, k)}, mus=mus)
-          for k in (1, 2, 3)),
-        *(Condition("actuation", f"force-loop gain error up to {e:.0%}", {"force_loop_gain_error": e}, mus=mus)
-          for e in (0.2, 0.4)),
-        Condition("actuation", "pinch ceiling 3 N", {"pinch_ceiling_N": 3.0}, mus=mus),
-        placement(3.0, 5.0, 5.0),
-        placement(5.0, 10.0, 10.0),
-        *(Condition("friction", f"mu {m:g}", mus=(m,)) for m in (0.1, 0.15, 1.2, 1.5)),
-        *(Condition("tissue", f"stiffness x{k:g}", options={"stiffness_scale": k}, mus=mus) for k in (0.5, 2.0)),
-        *(Condition("tissue", f"mass x{k:g}", options={"mass_scale": k}, mus=mus) for k in (0.7, 1.5)),
-    )
-
-
 #: the conditions of version 2 (those of version 1 on the grid MUS)
-CONDITIONS: tuple[Condition, ...] = _conditions(MUS, 2)
+CONDITIONS: tuple[Condition, ...] = suite_conditions(MUS, 2)
 #: the conditions of version 1 (on the grid MUS_V1), kept so that its results stay readable
-CONDITIONS_V1: tuple[Condition, ...] = _conditions(MUS_V1, 1)
+CONDITIONS_V1: tuple[Condition, ...] = suite_conditions(MUS_V1, 1)
 
 
 def _in_range(conditions: tuple[Condition, ...]) -> tuple[Condition, ...]:
@@ -198,17 +156,8 @@ def inside_ranges(condition: Condition, ranges: RandomizationConfig) -> bool:
     """Whether ``condition`` lies inside the randomisation a policy was trained on (``ranges``): every level it sets
     at most the training's (a latency within its steps, the same slip and lift sensing, a pinch ceiling no lower than a
     trained one), its mu and tissue pins inside the training's ranges."""
-    for key, value in condition.randomization.items():
-        trained = getattr(ranges, key)
-        if key == "latency_steps":
-            ok = trained[0] <= value[0] and value[1] <= trained[1]
-        elif key in ("slip_sensing", "lift_sensing"):
-            ok = value == trained
-        elif key == "pinch_ceiling_N":
-            ok = trained is not None and value >= trained
-        else:
-            ok = value <= trained + 1e-12
-        if not ok:
+    for key, value in condition.randomization.items():  # (each field's rule: its perturbation's declaration)
+        if not rule_of(key)(value, getattr(ranges, key)):
             return False
     for key, value in condition.options.items():
         lo, hi = getattr(ranges, f"{key}_range")

@@ -26,10 +26,10 @@ from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.device_layout import Precision
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
+from .perturbations import MAX_LATENCY_STEPS, draw_columns, privileged_names
 from .task import (
-    D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, DRAW_COLUMNS, DRAW_IS_NORMAL,
-    MAX_LATENCY_STEPS, MAX_LIFT_DELAY_STEPS, N_NOISE, OBS, OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_PERTURBATIONS,
-    PRIVILEGED_TRUTH, REWARD_TERMS, column_drawn,
+    D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, MAX_LIFT_DELAY_STEPS, N_NOISE, OBS,
+    OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_TRUTH, REWARD_TERMS, column_drawn,
     command_batch, draw_episode, noise_scales, obs_group,
     perturb_pose, pinch_setpoint, start_episode, task_params, task_state, travel_setpoint, update_batch,
 )
@@ -258,7 +258,7 @@ class GraspLiftConfig:
     sensed_task_state: Bool = False
     #: nodes subsampled for the privileged displacement observation
     privileged_nodes: Annotated[Int, Ge(1)] = 16
-    #: also add the episode's robustness draws to the privileged state (PRIVILEGED_PERTURBATIONS: the pose error,
+    #: also add the episode's robustness draws to the privileged state (.perturbations.privileged_names(): pose error,
     #: force bias, latency, force-loop gain), so that a critic trained under them can tell a hard episode from a
     #: poor action. Needs privileged_obs
     privileged_perturbations: Bool = False
@@ -389,7 +389,7 @@ def perturbed_pose(pose: GrasperPose, draws: dict[str, Any], offset_m: float, ti
     ``tilt_axis``: 3 standard normals each; ``offset_r`` in [0, 1]; ``tilt`` and ``azimuth`` in [-1, 1]),
     by :func:`.task.perturb_pose` (the tip moves up to ``offset_m`` normal to the axis, the axis tilts up to
     ``tilt_deg``, the jaws turn up to ``azimuth_deg``)."""
-    d = np.zeros(len(DRAW_COLUMNS))
+    d = np.zeros(len(draw_columns()))
     d[D_OFFSET_DIR : D_OFFSET_DIR + 3] = draws["offset_dir"]
     d[D_TILT_AXIS : D_TILT_AXIS + 3] = draws["tilt_axis"]
     d[D_OFFSET_R], d[D_TILT], d[D_AZIMUTH] = draws["offset_r"], draws["tilt"], draws["azimuth"]
@@ -417,7 +417,7 @@ def hidden_entries(names: Sequence[str], field: str = "actor_hidden") -> list[in
 
 
 #: privileged entries an actor may be shown (``TrainConfig.actor_privileged``), by name: ``mu`` (its frame position
-#: after the task entries) and ``perturbations`` (the PRIVILEGED_PERTURBATIONS block, the frame's last entries with
+#: after the task entries) and ``perturbations`` (the privileged perturbation block, the frame's last entries with
 #: ``privileged_perturbations``: the episode's pose error, force biases, latency and force-loop gain error)
 ACTOR_PRIVILEGED = {"mu": 0, "perturbations": None}
 
@@ -428,13 +428,13 @@ def actor_mask(n_task: int, frame_dim: int, history: int, hidden: Sequence[str] 
     the task entries, then the privileged ones an asymmetric critic sees and the actor does not), except the
     task entries ``hidden`` names (:func:`hidden_entries`), which the actor does not see either, and with the
     privileged entries ``privileged`` names (:data:`ACTOR_PRIVILEGED`), which it does. ``perturbations``: whether
-    the frame ends with the PRIVILEGED_PERTURBATIONS block (``privileged_perturbations``)."""
+    the frame ends with the privileged perturbation block (``privileged_perturbations``)."""
     if not 0 < n_task <= frame_dim:
         raise ValueError(f"n_task must be in (0, frame_dim={frame_dim}], got {n_task}")
     frame = [True] * n_task + [False] * (frame_dim - n_task)
     for i in hidden_entries(hidden):
         frame[i] = False
-    n_pert = len(PRIVILEGED_PERTURBATIONS)
+    n_pert = len(privileged_names())
     for name in privileged:
         if name == "perturbations":
             if not perturbations or frame_dim - n_pert < n_task:
@@ -512,7 +512,7 @@ class GraspLiftCore:
         #: one observation frame; the observation is the last ``obs_history`` frames, oldest first
         self.frame_dim = len(OBS_NAMES) + (3 + 3 * len(self.priv_nodes) if cfg.privileged_obs else 0) + (
             len(PRIVILEGED_TRUTH) if cfg.privileged_obs and cfg.sensed_task_state else 0) + (
-            len(PRIVILEGED_PERTURBATIONS) if cfg.privileged_perturbations else 0)
+            len(privileged_names()) if cfg.privileged_perturbations else 0)
         self.obs_dim = self.frame_dim * cfg.obs_history
 
         self.rngs = [np.random.default_rng() for _ in range(B)]
@@ -522,8 +522,6 @@ class GraspLiftCore:
         self.sensor_rngs = self.rngs if not cfg.sensed_task_state else [np.random.default_rng() for _ in range(B)]
         self._noise_scales = np.zeros((B, N_NOISE))
         self.params = task_params(self)
-        # which draw columns a reset draws (an axis that is off draws nothing): set by the randomisation
-        self._drawn = [bool(column_drawn(self.params.env, k)) for k in range(len(DRAW_COLUMNS))]
         #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
         #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
         self.state = task_state(B, cfg.obs_history, self.frame_dim)
@@ -550,7 +548,6 @@ class GraspLiftCore:
                                   f"built for (build it with the widest randomisation it will draw from)")
         self.config = replace(self.config, randomization=randomization)
         self.params = task_params(self)
-        self._drawn = [bool(column_drawn(self.params.env, k)) for k in range(len(DRAW_COLUMNS))]
 
     # ------------------------------------------------------------------------------------------
     def seed(self, index: int, seed: int | None, sensor_seed: int = 0) -> None:
@@ -572,7 +569,8 @@ class GraspLiftCore:
         rng = self.rngs[index]
         # always draw every value (keeps the random stream independent of which values are pinned)
         # (random() and standard_normal() are the variates NumPy's uniform() and normal() scale: the same stream)
-        for k, (normal, drawn) in enumerate(zip(DRAW_IS_NORMAL, self._drawn)):
+        for k, normal in enumerate(self.params.draw_is_normal):
+            drawn = column_drawn(self.params, k)
             self.draws[index, k] = (rng.standard_normal() if normal else rng.random()) if drawn else 0.0
         draw_episode(self.params, self.state, index)
         drawn = self.draws[index]

@@ -88,7 +88,7 @@ def _reset_kernel(s, out, p, ts, rng, mask):
     cuda.syncthreads()
     if cuda.threadIdx.x == 0:
         for k in range(ts.draws.shape[1]):  # the raw variates, in column order (an axis that is off: 0)
-            if not _column_drawn(p.env, k):
+            if not _column_drawn(p, k):
                 ts.draws[b, k] = 0.0
             elif p.draw_is_normal[k]:
                 ts.draws[b, k] = xoroshiro128p_normal_float64(rng, b)

@@ -159,7 +159,7 @@ class GraspLiftEnv(gym.Env):
     | 83- | privileged, v2: the truth behind 13-18, 22-27, 31 (``task.PRIVILEGED_TRUTH``) | truth | as the entry |
     | last 14 | privileged (``privileged_perturbations``): pose error, force biases, latency, gain error | truth | (2) |
 
-    (1) as they are; the node displacements / lift target. (2) ``envs.task.PRIVILEGED_PERTURBATIONS``: each about 1
+    (1) as they are; the node displacements / lift target. (2) ``envs.perturbations.privileged_names()``: each about 1
     at the robustness suite's largest levels; all 0 on an unperturbed task.
 
     The sensors' noise models (``RandomizationConfig`` fields; v2's nominal levels in brackets):

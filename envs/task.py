@@ -22,7 +22,8 @@ What they read and write, passed whole:
 * :class:`TaskState`: the per-env episode state and the step's outputs, batch first.
 
 The random numbers are each backend's own: a reset fills ``draws[b]`` with raw variates (uniform on [0, 1)
-or standard normal, :data:`DRAW_IS_NORMAL`) and the sensor noise into ``noise[b]``; the CPU from NumPy's
+or standard normal, ``TaskParams.draw_is_normal``: the declared perturbations', :mod:`.perturbations`) and the sensor
+noise into ``noise[b]``; the CPU from NumPy's
 per-env generators, the GPU from xoroshiro streams. Everything after the draw is shared.
 
 The GPU twins bind the numba functions each one calls to their own twins (``device_twin``). The last three
@@ -47,6 +48,10 @@ from ..physics.contact import (
 )
 from ..physics.numba_cache import key_on_physics
 from ..physics.viscoelastic import elongations
+from .perturbations import (
+    CONSTANT, CUBE_ROOT, LOG_UNIFORM, MAX_LATENCY_STEPS, STEPS, SYMMETRIC, UNIFORM, column_index, draw_columns,
+    draw_plan,
+)
 
 # the kernels below compile in the readout columns J_* and G_* of physics/contact.py
 key_on_physics(__file__)
@@ -91,26 +96,13 @@ REWARD_TERMS = ("progress", "hold", "grasp", "slip", "force", "peak_force", "set
 (R_PROGRESS, R_HOLD, R_GRASP, R_SLIP, R_FORCE, R_PEAK_FORCE, R_SETPOINT_CHANGE, R_DAMAGE, R_SUCCESS, R_FAILURE) = (
     REWARD_TERMS.index(n) for n in REWARD_TERMS)
 
-#: an episode's random draws, columns of ``TaskState.draws`` (after :func:`draw_episode`: the values)
-DRAW_COLUMNS = ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_dir_y", "offset_dir_z", "offset_r",
-                "tilt_axis_x", "tilt_axis_y", "tilt_axis_z", "tilt", "azimuth",
-                "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain", "sensor_noise")
-#: which raw variate each column starts as: standard normal (True) or uniform on [0, 1) (False), drawn in
-#: column order; the columns of a robustness axis that is off are not drawn (:func:`column_drawn`)
-DRAW_IS_NORMAL = tuple(c.startswith(("offset_dir", "tilt_axis")) for c in DRAW_COLUMNS)
-D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH, D_BIAS, D_LATENCY, D_GAIN, D_NOISE = (
-    DRAW_COLUMNS.index(n) for n in ("mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_r", "tilt_axis_x",
-                                    "tilt", "azimuth", "force_bias_0", "latency", "force_loop_gain", "sensor_noise"))
-#: the privileged robustness entries (``privileged_perturbations``), after mu, the scales and the node displacements:
-#: the grasper tip's offset from the planned pose (x, y, z / 5 mm), its axis's and its jaw direction's change from
-#: the planned ones (unit vectors' differences / 0.1745, 10 deg in rad), the three jaws' force-sensor biases
-#: (/ 0.1 N), the latency (/ MAX_LATENCY_STEPS) and the force loop's gain error (gain - 1, / 0.2): each about 1
-#: at the suite's largest levels
-PRIVILEGED_PERTURBATIONS = ("tip_offset_x", "tip_offset_y", "tip_offset_z", "axis_change_x", "axis_change_y",
-                            "axis_change_z", "jaw_dir_change_x", "jaw_dir_change_y", "jaw_dir_change_z",
-                            "force_bias_0", "force_bias_1", "force_bias_2", "latency", "force_loop_gain_error")
-#: the longest action latency, agent steps (the length of the action queue less one)
-MAX_LATENCY_STEPS = 3
+#: an episode's random draws (``TaskState.draws``): the declared perturbations' columns (.perturbations); the
+#: positions of the built-in columns the task's effects read (module integers: numba compiles them as constants)
+D_MU, D_KS, D_MS, D_OFFSET_DIR, D_OFFSET_R, D_TILT_AXIS, D_TILT, D_AZIMUTH, D_TIP_OFFSET, D_AXIS_CHANGE, D_E1_CHANGE, \
+    D_BIAS, D_LATENCY, D_GAIN, D_NOISE = (column_index(n) for n in (
+        "mu", "stiffness_scale", "mass_scale", "offset_dir_x", "offset_r", "tilt_axis_x", "tilt", "azimuth",
+        "tip_offset_x", "axis_change_x", "jaw_dir_change_x", "force_bias_0", "latency", "force_loop_gain",
+        "sensor_noise"))
 #: per-step noise columns of ``TaskState.noise``, drawn in this order where :func:`noise_scale` draws them: the three
 #: jaws' force readings (N), their slip speeds (the arm's top speed), (with ``force_noise: vector``) their tangential
 #: readings' noise along the tangential force and across it (N), then (with ``sensed_task_state``) the slipping
@@ -222,7 +214,13 @@ class TaskParams(NamedTuple):
     pose_e1: np.ndarray  # (3,)
     pull_dir: np.ndarray  # (3,)
     priv_nodes: np.ndarray  # (P,) int nodes of the privileged displacement observation
-    draw_is_normal: np.ndarray  # (len(DRAW_COLUMNS),) bool: DRAW_IS_NORMAL
+    draw_is_normal: np.ndarray  # (D,) bool: each draw column's raw variate standard normal (else uniform)
+    draw_law: np.ndarray  # (D,) int: each draw column's law (.perturbations.LAWS)
+    draw_a: np.ndarray  # (D,) its law's first parameter
+    draw_b: np.ndarray  # (D,) its law's second parameter
+    priv_col: np.ndarray  # (K,) int: the draw column of each privileged perturbation entry
+    priv_centre: np.ndarray  # (K,) its centre
+    priv_scale: np.ndarray  # (K,) its scale
     clear_radius: float  # m jaw radius clear of the tissue at the planned pose (the opening observation's scale)
     open_radius: float  # m the grasper's widest opening
     jaw_length: float  # m
@@ -245,7 +243,7 @@ def task_params(core: Any) -> TaskParams:
         dl_start=elongations(scene.x_start, scene.model.edges, scene.model.rest_length),
         pose_tip=vec(scene.pose.tip), pose_axis=vec(scene.pose.axis), pose_e1=vec(scene.pose.e1),
         pull_dir=vec(scene.pull_direction), priv_nodes=np.ascontiguousarray(core.priv_nodes, dtype=np.int64),
-        draw_is_normal=np.array(DRAW_IS_NORMAL), clear_radius=float(core.scene.start_radius),
+        **draw_plan(cfg.randomization), clear_radius=float(core.scene.start_radius),
         open_radius=float(core.scene.grasper.open_radius_m), jaw_length=float(core.scene.grasper.jaw_length_m),
         jaw_half_width=0.5 * float(core.scene.grasper.jaw_width_m),
         surface=np.ascontiguousarray(core.scene.mesh.surface_nodes, dtype=np.int64),
@@ -298,7 +296,7 @@ class TaskState(NamedTuple):
     episode_length: np.ndarray  # (B,) int steps of the episode that ended (where done)
     episode_peak_pinch: np.ndarray  # (B,) N peak pinch of the episode that ended (where done)
     episode_slip: np.ndarray  # (B,) m slip of the episode that ended (where done)
-    draws: np.ndarray  # (B,len(DRAW_COLUMNS)) this episode's random draws
+    draws: np.ndarray  # (B,D) this episode's random draws (.perturbations.draw_columns)
     pin: np.ndarray  # (B,len(PINNABLE)) pinned values (NaN: drawn)
     noise: np.ndarray  # (B,N_NOISE) this step's sensor noise (NOISE_COLUMNS)
     sensed: np.ndarray  # (B,len(SENSED)) the task state as the sensors give it (sensed_task_state)
@@ -316,7 +314,7 @@ def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np
         "obs": ((batch, obs_history * frame_dim), obs_dtype),
         "terminal_obs": ((batch, obs_history * frame_dim), obs_dtype),
         "terms": ((batch, len(REWARD_TERMS)), f), "episode_length": ((batch,), i),
-        "draws": ((batch, len(DRAW_COLUMNS)), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, N_NOISE), f),
+        "draws": ((batch, len(draw_columns())), f), "pin": ((batch, len(PINNABLE)), f), "noise": ((batch, N_NOISE), f),
         "sensed": ((batch, len(SENSED)), f), "lift_track": ((batch, MAX_LIFT_DELAY_STEPS + 1), f),
         "queue": ((batch, MAX_LATENCY_STEPS + 1, 2), f), "readings": ((batch, 6), f),
     }
@@ -363,7 +361,7 @@ def rotate(v0, v1, v2, k0, k1, k2, ang):
 
 @njit(cache=True, error_model="numpy")
 def perturb_pose(tip, axis, e1, d, offset_m, tilt_rad, azimuth_rad, tip_out, axis_out, e1_out):
-    """The grasp pose moved by an episode's draws ``d`` (DRAW_COLUMNS): the tip moves up to ``offset_m``
+    """The grasp pose moved by an episode's draws ``d`` (draw columns): the tip moves up to ``offset_m``
     normal to the axis (radius drawn as in a ball), the axis tilts up to ``tilt_rad`` about a random normal,
     and the jaws turn up to ``azimuth_rad`` about the new axis."""
     a0, a1, a2 = axis[0], axis[1], axis[2]
@@ -404,19 +402,29 @@ def region_mean(p, x, b, c):
 
 
 @njit(cache=True, error_model="numpy")
-def column_drawn(env, k):
-    """Whether draw column k is drawn at a reset: the columns of a robustness axis that is off are not (0), so
-    the nominal task's random stream is what it was before the axis existed."""
-    r = env.randomization
-    if D_BIAS <= k < D_BIAS + 3:
-        return r.force_bias_N > 0.0
-    if k == D_LATENCY:
-        return r.latency_steps[1] > r.latency_steps[0]
-    if k == D_GAIN:
-        return r.force_loop_gain_error > 0.0
-    if k == D_NOISE:
-        return (not math.isnan(r.sensor_noise_low_N)) and r.sensor_noise_low_N < r.sensor_noise_N
-    return True
+def column_drawn(p, k):
+    """Whether draw column k draws a raw variate at a reset: not where its law is a constant (an axis that is off) or
+    derived, so the nominal task's random stream is what it was before the axis existed."""
+    return p.draw_law[k] < CONSTANT
+
+
+@njit(cache=True, error_model="numpy")
+def draw_value(law, a, b, u):
+    """A draw column's value from its raw variate ``u`` by its law (.perturbations.LAWS) with parameters a, b."""
+    if law == UNIFORM:
+        return a + (b - a) * u
+    if law == LOG_UNIFORM:
+        lo = math.log(a)
+        return math.exp(lo + (math.log(b) - lo) * u)
+    if law == SYMMETRIC:
+        return a + b * (-1.0 + 2.0 * u)
+    if law == CUBE_ROOT:
+        return u ** (1.0 / 3.0)
+    if law == STEPS:
+        return min(a + math.floor(u * (b - a + 1.0)), b)
+    if law == CONSTANT:
+        return a
+    return u  # identity; a derived column: set when the episode starts
 
 
 @njit(cache=True, error_model="numpy")
@@ -669,15 +677,10 @@ def observe(p, s, out, ts, b, fresh):
                 o[j + 7 + k] = speed
                 o[j + 10 + k] = share
             j += N_PRIVILEGED_TRUTH
-        if e.privileged_perturbations:
+        if e.privileged_perturbations:  # the declared perturbations' privileged entries
             d = ts.draws[b]
-            for c in range(3):
-                o[j + c] = (ts.tip0[b, c] - p.pose_tip[c]) / 0.005
-                o[j + 3 + c] = (s.g_axis[b, c] - p.pose_axis[c]) / 0.1745  # (10 deg of turn, rad)
-                o[j + 6 + c] = (s.g_e1[b, c] - p.pose_e1[c]) / 0.1745
-                o[j + 9 + c] = d[D_BIAS + c] / 0.1
-            o[j + 12] = d[D_LATENCY] / MAX_LATENCY_STEPS
-            o[j + 13] = (d[D_GAIN] - 1.0) / 0.2
+            for q in range(p.priv_col.shape[0]):
+                o[j + q] = (d[p.priv_col[q]] - p.priv_centre[q]) / p.priv_scale[q]
     if fresh:
         for k in range(h - 1):
             for c in range(fd):
@@ -839,35 +842,12 @@ def restore_settled(p, s, out, b, first, stride):
 
 @njit(cache=True, error_model="numpy")
 def draw_episode(p, ts, b):
-    """Turn env b's raw variates in ``ts.draws[b]`` (DRAW_IS_NORMAL) into the episode's draws in place:
-    friction and scales uniform in their ranges (mu log-uniform if so configured), the pose's offset radius
-    u^(1/3) (uniform in a ball), tilt and azimuth uniform in [-1, 1], the robustness axes' levels and the
-    force-noise level (its standard deviation, N)."""
-    r = p.env.randomization
+    """Turn env b's raw variates in ``ts.draws[b]`` into the episode's draws in place, each column by its law
+    (:func:`draw_value`; the declarations of .perturbations): friction, scales, the pose's offset and turns, the
+    robustness axes' levels and the force-noise level."""
     d = ts.draws[b]
-    lo, hi = r.mu_range[0], r.mu_range[1]
-    if r.mu_distribution_log_uniform:
-        lo = math.log(lo)
-        d[D_MU] = math.exp(lo + (math.log(hi) - lo) * d[D_MU])
-    else:
-        d[D_MU] = lo + (hi - lo) * d[D_MU]
-    d[D_KS] = r.stiffness_scale_range[0] + (r.stiffness_scale_range[1] - r.stiffness_scale_range[0]) * d[D_KS]
-    d[D_MS] = r.mass_scale_range[0] + (r.mass_scale_range[1] - r.mass_scale_range[0]) * d[D_MS]
-    d[D_OFFSET_R] = d[D_OFFSET_R] ** (1.0 / 3.0)
-    d[D_TILT] = -1.0 + 2.0 * d[D_TILT]
-    d[D_AZIMUTH] = -1.0 + 2.0 * d[D_AZIMUTH]
-    # the robustness axes (an axis that is off has raw 0 and gives: no bias, the lowest latency, gain x 1)
-    for k in range(3):
-        d[D_BIAS + k] = r.force_bias_N * (-1.0 + 2.0 * d[D_BIAS + k]) if r.force_bias_N > 0.0 else 0.0
-    lo_lat = int(r.latency_steps[0])
-    d[D_LATENCY] = min(lo_lat + int(math.floor(d[D_LATENCY] * (int(r.latency_steps[1]) - lo_lat + 1))),
-                       int(r.latency_steps[1]))
-    d[D_GAIN] = 1.0 + r.force_loop_gain_error * (-1.0 + 2.0 * d[D_GAIN]) if r.force_loop_gain_error > 0.0 else 1.0
-    # the episode's force-noise level (standard deviation, N): uniform in [low, sensor_noise_N], else that one level
-    if column_drawn(p.env, D_NOISE):
-        d[D_NOISE] = r.sensor_noise_low_N + (r.sensor_noise_N - r.sensor_noise_low_N) * d[D_NOISE]
-    else:
-        d[D_NOISE] = r.sensor_noise_N
+    for k in range(d.shape[0]):
+        d[k] = draw_value(p.draw_law[k], p.draw_a[k], p.draw_b[k], d[k])
 
 
 @njit(cache=True, error_model="numpy")
@@ -888,6 +868,10 @@ def begin_episode(p, s, out, ts, b):
     perturb_pose(p.pose_tip, p.pose_axis, p.pose_e1, d, pinned(pin[P_OFFSET], r.pose_offset_m),
                  pinned(pin[P_TILT], r.pose_tilt_deg) * deg, pinned(pin[P_AZIMUTH], r.pose_azimuth_deg) * deg,
                  s.g_tip[b], s.g_axis[b], s.g_e1[b])
+    for c in range(3):  # the pose's error from the planned one (the placement's derived columns)
+        d[D_TIP_OFFSET + c] = s.g_tip[b, c] - p.pose_tip[c]
+        d[D_AXIS_CHANGE + c] = s.g_axis[b, c] - p.pose_axis[c]
+        d[D_E1_CHANGE + c] = s.g_e1[b, c] - p.pose_e1[c]
     s.t[b] = 0.0
     # the jaws open just clear of the tissue at this episode's own pose, by the rule that sets the planned pose's
     # start radius. Not as wide as the largest placement error in the ranges needs: a 5 mm range then opened

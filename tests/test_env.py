@@ -97,7 +97,8 @@ def test_privileged_perturbations_give_the_critic_the_episodes_robustness_draws(
     """privileged_perturbations appends the episode's pose error, force biases, latency and gain error, each scaled
     to about 1 at the suite's largest levels; the actor's entries are unchanged; all zero on an unperturbed task."""
     from msdgrasp.envs.core import ConfigError, RandomizationConfig
-    from msdgrasp.envs.task import PRIVILEGED_PERTURBATIONS
+    from msdgrasp.envs.perturbations import privileged_names
+    PRIVILEGED_PERTURBATIONS = privileged_names()
 
     r = RandomizationConfig(force_bias_N=0.05, latency_steps=(2, 2), force_loop_gain_error=0.2, pose_offset_m=0.004,
                             pose_tilt_deg=0.0, pose_azimuth_deg=0.0)

@@ -129,7 +129,8 @@ def test_actor_privileged_perturbations_show_the_episodes_draws_only():
     """The perturbation block is the frame's last entries; the node displacements before it stay hidden, and without
     the block the name is refused rather than showing whatever entries end the frame."""
     from msdgrasp.envs.core import OBS_NAMES, actor_mask
-    from msdgrasp.envs.task import PRIVILEGED_PERTURBATIONS
+    from msdgrasp.envs.perturbations import privileged_names
+    PRIVILEGED_PERTURBATIONS = privileged_names()
     from msdgrasp.physics.config import ConfigError
 
     n, k = len(OBS_NAMES), len(PRIVILEGED_PERTURBATIONS)
