@@ -29,7 +29,7 @@ from ..physics.simulation import SUBSTEP_SAFETY, Simulation
 from .perturbations import MAX_LATENCY_STEPS, draw_columns, privileged_names
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, MAX_LIFT_DELAY_STEPS, N_NOISE, OBS,
-    OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_TRUTH, REWARD_TERMS, column_drawn,
+    OBS_NAMES, P_OFFSET, PINNABLE, PRIVILEGED_TRUTH, REWARD_TERMS, column_drawn, config_record, peak_force_weight,
     command_batch, draw_episode, noise_scales, obs_group,
     perturb_pose, pinch_setpoint, start_episode, task_params, task_state, travel_setpoint, update_batch,
 )
@@ -105,9 +105,9 @@ class RewardConfig:
     grasp: NonNegative = 0.0
     grasp_force_N: Positive = 1.0
 
-    def peak_force_weight(self, mu: np.ndarray | float) -> np.ndarray | float:
-        """Factor on the peak-force charge at friction ``mu``: mu / peak_force_mu_ref, or 1 when unset."""
-        return mu / self.peak_force_mu_ref if self.peak_force_mu_ref is not None else 1.0
+    def peak_force_weight(self, mu: float) -> float:
+        """Factor on the peak-force charge at friction ``mu``: the task's own rule (:func:`.task.peak_force_weight`)."""
+        return float(peak_force_weight.py_func(config_record(self), float(mu)))
 
 
 @config_dataclass

@@ -564,53 +564,42 @@ def true_slip_readings(p, jo, k):
 
 
 @njit(cache=True, error_model="numpy")
-def observe(p, s, out, ts, b, fresh):
-    """Write env b's current frame (sensor noise ``ts.noise[b]``) into its history and observation;
-    ``fresh`` (a reset): the whole history is the current frame.
+def force_readings(p, jo, ts, b, k, fresh):
+    """Jaw k's normal and tangential force readings (N): the truth ``jo`` with the sensor's noise and the episode's
+    bias, low-pass filtered where ``force_filter_s`` is set (``fresh``: the filter starts at this reading)."""
+    r = p.env.randomization
+    noise = ts.noise[b, N_FORCE + k]
+    normal = jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]
+    tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
+    if r.force_noise_vector:  # |T + n_t|: n_t's components along T and across it
+        ta, tc = tt + ts.noise[b, N_ALONG + k], ts.noise[b, N_ACROSS + k]
+        tangential = math.sqrt(ta * ta + tc * tc)
+    else:
+        tangential = tt + abs(noise)
+    if r.force_filter_s > 0.0:  # first-order low-pass, started at the episode's first reading
+        a = 1.0 - math.exp(-p.agent_dt / r.force_filter_s)  # (its weight per agent step)
+        if fresh:
+            ts.readings[b, k], ts.readings[b, 3 + k] = normal, tangential
+        else:
+            ts.readings[b, k] += a * (normal - ts.readings[b, k])
+            ts.readings[b, 3 + k] += a * (tangential - ts.readings[b, 3 + k])
+        normal, tangential = ts.readings[b, k], ts.readings[b, 3 + k]
+    return normal, tangential
 
-    Every entry is what a named sensor gives (:data:`.sensors.SENSORS`); with ``sensed_task_state`` (v2) the task-state
-    entries (lift, hold, slips, lag, peak pinch, best lift) come from the sensed values too, and the truth behind them
-    goes to the privileged block (PRIVILEGED_TRUTH); without it (v0, v1) they are the simulation's truth."""
+
+@njit(cache=True, error_model="numpy")
+def observe_jaws(p, out, ts, b, fresh, o):
+    """The per-jaw entries of env b's frame ``o`` (forces, contact, slip, friction use); returns the sum of the
+    normal-force readings (N) and the mean slip-speed reading (the arm's top speed)."""
     e = p.env
-    h = e.obs_history
-    fd = p.frame_dim
-    if not fresh:  # drop the oldest frame
-        for k in range(h - 1):
-            for c in range(fd):
-                ts.frames[b, k, c] = ts.frames[b, k + 1, c]
-    o = ts.frames[b, h - 1]
-    ref = e.reference_force_N
-    tgt = e.lift_target_m
-    rmin = s.g_rmin[b]
-    o[I_OPENING] = (s.g_radius[b] - rmin) / (p.clear_radius - rmin)
-    o[I_JAW_SPEED] = -s.g_vradius[b] / p.max_close
-    tr = travel(p, s, ts, b)
-    o[I_TRAVEL] = tr / tgt
-    o[I_PULL_SPEED] = (s.g_vpull[b, 0] * p.pull_dir[0] + s.g_vpull[b, 1] * p.pull_dir[1]
-                       + s.g_vpull[b, 2] * p.pull_dir[2]) / p.max_pull
     r = e.randomization
-    # the force readings' low-pass filter weight per agent step (force_filter_s; unused at 0)
-    a = 1.0 - math.exp(-p.agent_dt / r.force_filter_s) if r.force_filter_s > 0.0 else 1.0
+    ref = e.reference_force_N
     jo_all = out.jaw_out[b]
     pinch_read = 0.0
     slip_read = 0.0
     for k in range(3):
         jo = jo_all[k]
-        noise = ts.noise[b, N_FORCE + k]
-        normal = jo[J_NORMAL] + noise + ts.draws[b, D_BIAS + k]
-        tt = math.sqrt(jo[J_TX] * jo[J_TX] + jo[J_TY] * jo[J_TY] + jo[J_TZ] * jo[J_TZ])
-        if r.force_noise_vector:  # |T + n_t|: n_t's components along T and across it
-            ta, tc = tt + ts.noise[b, N_ALONG + k], ts.noise[b, N_ACROSS + k]
-            tangential = math.sqrt(ta * ta + tc * tc)
-        else:
-            tangential = tt + abs(noise)
-        if r.force_filter_s > 0.0:  # first-order low-pass, started at the episode's first reading
-            if fresh:
-                ts.readings[b, k], ts.readings[b, 3 + k] = normal, tangential
-            else:
-                ts.readings[b, k] += a * (normal - ts.readings[b, k])
-                ts.readings[b, 3 + k] += a * (tangential - ts.readings[b, 3 + k])
-            normal, tangential = ts.readings[b, k], ts.readings[b, 3 + k]
+        normal, tangential = force_readings(p, jo, ts, b, k, fresh)
         pinch_read += normal
         o[I_NORMAL + k] = normal / ref
         o[I_TANGENTIAL + k] = tangential / ref
@@ -631,11 +620,16 @@ def observe(p, s, out, ts, b, fresh):
         slip_read += o[I_SLIP_SPEED + k] / 3.0
         # friction utilisation |T| / N (<= mu while the jaw sticks); 0.05 N keeps it finite off contact
         o[I_FRICTION_USE + k] = o[I_TANGENTIAL + k] / max(o[I_NORMAL + k], 0.05 / ref)
-    o[I_PREV_ACTION] = ts.prev_action[b, 0]
-    o[I_PREV_ACTION + 1] = ts.prev_action[b, 1]
-    o[I_TIME] = ts.steps[b] * p.agent_dt / e.time_limit_s
+    return pinch_read, slip_read
+
+
+@njit(cache=True, error_model="numpy")
+def observe_task_state(p, ts, b, fresh, o, tr, pinch_read, slip_read):
+    """The task-state entries of env b's frame ``o`` (lift, hold, slips, lag, peak pinch, best lift): the truth (v0,
+    v1) or, with ``sensed_task_state`` (v2), the sensed values (``tr``: the arm encoder's travel, m)."""
+    e = p.env
+    tgt = e.lift_target_m
     hold_tol = e.hold_slip_tolerance_m
-    # the task-state entries: the truth (v0, v1) or the sensed values (v2), with the truth then privileged
     lift, best, hold, hold_slip, lift_slip, peak = (ts.lift[b], ts.best_lift[b], ts.hold_progress[b], ts.hold_slip[b],
                                                     ts.lift_slip[b], ts.peak_pinch[b])
     lag = tr - lift
@@ -646,41 +640,82 @@ def observe(p, s, out, ts, b, fresh):
                                                   sn[S_PEAK_PINCH])
         hold = min(sn[S_HOLD_TIME] / e.hold_time_s, 1.0) if e.hold_time_s > 0 else (1.0 if lift >= tgt else 0.0)
         # (no tracker: the lag, like every entry derived from it, is constant)
-        lag = tr - lift if r.lift_sensing_tracked else 0.0
+        lag = tr - lift if e.randomization.lift_sensing_tracked else 0.0
     o[I_LIFT] = lift / tgt
     o[I_HOLD] = hold
     o[I_HOLD_SLIP] = hold_slip / hold_tol if hold_tol > 0 else 0.0
     # grasper travel minus tissue lift: how far the tissue has slid out of (or lags) the jaws
     o[I_LIFT_LAG] = lag / tgt
-    o[I_PEAK_PINCH] = peak / ref
+    o[I_PEAK_PINCH] = peak / e.reference_force_N
     o[I_BEST_LIFT] = best / tgt
     o[I_LIFT_SLIP] = lift_slip / e.lift_slip_tolerance_m
+
+
+@njit(cache=True, error_model="numpy")
+def observe_privileged(p, s, out, ts, b, o, tr):
+    """The privileged entries of env b's frame ``o`` (``privileged_obs``): mu, the scales, the node displacements,
+    with ``sensed_task_state`` the truth behind the sensed entries (PRIVILEGED_TRUTH), with
+    ``privileged_perturbations`` the declared perturbations' entries."""
+    e = p.env
+    tgt = e.lift_target_m
+    hold_tol = e.hold_slip_tolerance_m
+    o[N_OBS] = ts.mu[b]
+    o[N_OBS + 1] = s.kscale[b]
+    o[N_OBS + 2] = s.mscale[b]
+    for q in range(p.priv_nodes.shape[0]):
+        i = p.priv_nodes[q]
+        for c in range(3):
+            o[N_OBS + 3 + 3 * q + c] = (s.x[b, i, c] - p.x_start[i, c]) / tgt
+    j = N_OBS + 3 + 3 * p.priv_nodes.shape[0]
+    if e.sensed_task_state:  # PRIVILEGED_TRUTH
+        o[j] = ts.lift[b] / tgt
+        o[j + 1] = ts.hold_progress[b]
+        o[j + 2] = ts.hold_slip[b] / hold_tol if hold_tol > 0 else 0.0
+        o[j + 3] = (tr - ts.lift[b]) / tgt
+        o[j + 4] = ts.peak_pinch[b] / e.reference_force_N
+        o[j + 5] = ts.best_lift[b] / tgt
+        o[j + 6] = ts.lift_slip[b] / e.lift_slip_tolerance_m
+        for k in range(3):
+            speed, share = true_slip_readings(p, out.jaw_out[b], k)
+            o[j + 7 + k] = speed
+            o[j + 10 + k] = share
+        j += N_PRIVILEGED_TRUTH
+    if e.privileged_perturbations:  # the declared perturbations' privileged entries
+        d = ts.draws[b]
+        for q in range(p.priv_col.shape[0]):
+            o[j + q] = (d[p.priv_col[q]] - p.priv_centre[q]) / p.priv_scale[q]
+
+
+@njit(cache=True, error_model="numpy")
+def observe(p, s, out, ts, b, fresh):
+    """Write env b's current frame (sensor noise ``ts.noise[b]``) into its history and observation;
+    ``fresh`` (a reset): the whole history is the current frame.
+
+    Every entry is what a named sensor gives (:data:`.sensors.SENSORS`); with ``sensed_task_state`` (v2) the task-state
+    entries (lift, hold, slips, lag, peak pinch, best lift) come from the sensed values too, and the truth behind them
+    goes to the privileged block (PRIVILEGED_TRUTH); without it (v0, v1) they are the simulation's truth."""
+    e = p.env
+    h = e.obs_history
+    fd = p.frame_dim
+    if not fresh:  # drop the oldest frame
+        for k in range(h - 1):
+            for c in range(fd):
+                ts.frames[b, k, c] = ts.frames[b, k + 1, c]
+    o = ts.frames[b, h - 1]
+    rmin = s.g_rmin[b]
+    o[I_OPENING] = (s.g_radius[b] - rmin) / (p.clear_radius - rmin)
+    o[I_JAW_SPEED] = -s.g_vradius[b] / p.max_close
+    tr = travel(p, s, ts, b)
+    o[I_TRAVEL] = tr / e.lift_target_m
+    o[I_PULL_SPEED] = (s.g_vpull[b, 0] * p.pull_dir[0] + s.g_vpull[b, 1] * p.pull_dir[1]
+                       + s.g_vpull[b, 2] * p.pull_dir[2]) / p.max_pull
+    pinch_read, slip_read = observe_jaws(p, out, ts, b, fresh, o)
+    o[I_PREV_ACTION] = ts.prev_action[b, 0]
+    o[I_PREV_ACTION + 1] = ts.prev_action[b, 1]
+    o[I_TIME] = ts.steps[b] * p.agent_dt / e.time_limit_s
+    observe_task_state(p, ts, b, fresh, o, tr, pinch_read, slip_read)
     if e.privileged_obs:
-        o[N_OBS] = ts.mu[b]
-        o[N_OBS + 1] = s.kscale[b]
-        o[N_OBS + 2] = s.mscale[b]
-        for q in range(p.priv_nodes.shape[0]):
-            i = p.priv_nodes[q]
-            for c in range(3):
-                o[N_OBS + 3 + 3 * q + c] = (s.x[b, i, c] - p.x_start[i, c]) / tgt
-        j = N_OBS + 3 + 3 * p.priv_nodes.shape[0]
-        if e.sensed_task_state:  # PRIVILEGED_TRUTH
-            o[j] = ts.lift[b] / tgt
-            o[j + 1] = ts.hold_progress[b]
-            o[j + 2] = ts.hold_slip[b] / hold_tol if hold_tol > 0 else 0.0
-            o[j + 3] = (tr - ts.lift[b]) / tgt
-            o[j + 4] = ts.peak_pinch[b] / ref
-            o[j + 5] = ts.best_lift[b] / tgt
-            o[j + 6] = ts.lift_slip[b] / e.lift_slip_tolerance_m
-            for k in range(3):
-                speed, share = true_slip_readings(p, jo_all, k)
-                o[j + 7 + k] = speed
-                o[j + 10 + k] = share
-            j += N_PRIVILEGED_TRUTH
-        if e.privileged_perturbations:  # the declared perturbations' privileged entries
-            d = ts.draws[b]
-            for q in range(p.priv_col.shape[0]):
-                o[j + q] = (d[p.priv_col[q]] - p.priv_centre[q]) / p.priv_scale[q]
+        observe_privileged(p, s, out, ts, b, o, tr)
     if fresh:
         for k in range(h - 1):
             for c in range(fd):
@@ -690,42 +725,159 @@ def observe(p, s, out, ts, b, fresh):
             ts.obs[b, k * fd + c] = ts.frames[b, k, c]
 
 
+# ------------------------------------------------------------------------------------------------
+# the reward: one small function per term (REWARD_TERMS), of the step's quantities and the reward record ``w``
+# ------------------------------------------------------------------------------------------------
+
+
 @njit(cache=True, error_model="numpy")
-def update(p, s, out, ts, b, finite, volume_ratio):
-    """One agent step of env b after the physics: lift, slip, hold, reward terms, flags, observation and
-    the episode's totals. ``finite``: the state is finite; ``volume_ratio``: its smallest tet volume ratio."""
+def peak_force_weight(w, mu):
+    """The friction weighting of the peak-force charge at friction ``mu``: mu / peak_force_mu_ref (1 when unset)."""
+    return pinned(mu / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
+
+
+@njit(cache=True, error_model="numpy")
+def progress_term(w, progress):
+    """Pays for the highest lift reached (a fraction of the target), once."""
+    return w.progress * progress
+
+
+@njit(cache=True, error_model="numpy")
+def hold_term(w, hold_gain):
+    """Pays for the hold's progress (a fraction of hold_time_s)."""
+    return w.hold * hold_gain
+
+
+@njit(cache=True, error_model="numpy")
+def grasp_term(w, grip_gain):
+    """Pays for the grip's rise up to grasp_force_N (a fraction of it)."""
+    return w.grasp * grip_gain
+
+
+@njit(cache=True, error_model="numpy")
+def slip_term(w, slip_m):
+    """Charges this step's slip (m, mean over the jaws) per mm."""
+    return -w.slip_per_mm * slip_m * 1e3
+
+
+@njit(cache=True, error_model="numpy")
+def force_term(w, e, pinch_N, dt):
+    """Charges the pinch held over the step (N / reference_force_N, per s)."""
+    return -w.force_per_s * (pinch_N / e.reference_force_N) * dt
+
+
+@njit(cache=True, error_model="numpy")
+def peak_force_term(w, e, peak_N, rise_N, weight, success, unsuccessful):
+    """Charges the episode's peak pinch (``peak_N``; ``rise_N`` this step's rise of it), friction-weighted
+    (``weight``): at success, or as made (each rise when it is made, refunded if the episode fails); with a knee
+    (``peak_force_knee``) the charge's rise."""
+    ref = e.reference_force_N
+    if math.isnan(w.peak_force_knee):
+        if w.peak_force_timing_as_made:  # charged as made, refunded without success
+            charge = rise_N - (peak_N if unsuccessful else 0.0)
+        else:
+            charge = peak_N if success else 0.0
+        return -(w.peak_force * (charge * weight) / ref)
+    now = peak_charge_points(w, ref, peak_N, weight)
+    if w.peak_force_timing_as_made:
+        charge = now - peak_charge_points(w, ref, peak_N - rise_N, weight)
+        charge -= now if unsuccessful else 0.0
+    else:
+        charge = now if success else 0.0
+    return -charge
+
+
+@njit(cache=True, error_model="numpy")
+def setpoint_change_term(w, e, ts, b):
+    """Charges the pinch set-point's move since the last step of this episode (N; force set-points only)."""
+    moved = 0.0
+    if e.jaw_action_force and ts.steps[b] > 1:
+        moved = abs(pinch_setpoint(e, ts.act[b, 0]) - pinch_setpoint(e, ts.prev_action[b, 0]))
+    return -w.setpoint_change * moved
+
+
+@njit(cache=True, error_model="numpy")
+def damage_term(w, damaged):
+    """Charges a step whose peak contact pressure is above damage_stress_pa."""
+    return -w.damage * (1.0 if damaged else 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def success_term(w, success):
+    """Pays the success bonus."""
+    return w.success_bonus * (1.0 if success else 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def failure_term(w, unsuccessful):
+    """Charges every episode that ends without success, running out of time (never touching the tissue) included:
+    not touching is then no safe haven."""
+    return -w.failure_penalty * (1.0 if unsuccessful else 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def reward_terms(p, ts, b, progress, hold_gain, grip_gain, slip, pinch, peak_rise, damaged, success, unsuccessful):
+    """Every term of env b's reward this step into ``ts.terms[b]`` (REWARD_TERMS); returns their sum."""
     e = p.env
     w = e.reward
-    dt = p.agent_dt
-    ts.steps[b] += 1
-    jo = out.jaw_out[b]
-    slip = (jo[0, J_SLIP_DIST] + jo[1, J_SLIP_DIST] + jo[2, J_SLIP_DIST]) / 3.0  # this step's slip, mean over jaws, m
-    pinch = jo[0, J_NORMAL] + jo[1, J_NORMAL] + jo[2, J_NORMAL]
-    stress = max(max(jo[0, J_PEAK_PRESSURE], jo[1, J_PEAK_PRESSURE]), jo[2, J_PEAK_PRESSURE])
-    contact = jo[0, J_CONTACT] + jo[1, J_CONTACT] + jo[2, J_CONTACT]
+    t = ts.terms[b]
+    t[R_PROGRESS] = progress_term(w, progress)
+    t[R_HOLD] = hold_term(w, hold_gain)
+    t[R_GRASP] = grasp_term(w, grip_gain)
+    t[R_SLIP] = slip_term(w, slip)
+    t[R_FORCE] = force_term(w, e, pinch, p.agent_dt)
+    t[R_PEAK_FORCE] = peak_force_term(w, e, ts.peak_pinch[b], peak_rise, peak_force_weight(w, ts.mu[b]), success,
+                                      unsuccessful)
+    t[R_SETPOINT_CHANGE] = setpoint_change_term(w, e, ts, b)
+    t[R_DAMAGE] = damage_term(w, damaged)
+    t[R_SUCCESS] = success_term(w, success)
+    t[R_FAILURE] = failure_term(w, unsuccessful)
+    reward = 0.0
+    for k in range(t.shape[0]):
+        reward += t[k]
+    return reward
+
+
+# ------------------------------------------------------------------------------------------------
+# the step after the physics: what the episode tracks, how it ends, the reward, the outputs
+# ------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def track_lift_and_grip(p, s, ts, b, pinch, stress):
+    """Env b's lift, best lift, grip and peaks after this step; returns (progress: the best lift's rise / target,
+    grip_gain: the grip's rise, peak_rise: the peak pinch's rise, N)."""
     lift_new = 0.0
     for c in range(3):
         lift_new += (region_mean(p, s.x, b, c) - ts.region0[b, c]) * p.pull_dir[c]
-    tgt = e.lift_target_m
+    tgt = p.env.lift_target_m
     # progress pays for the highest lift reached (capped at the target), once: a lift that slips back is
     # not charged again, so an attempt that fails late still beats never touching the tissue
     best = max(ts.best_lift[b], min(lift_new, tgt))
     progress = (best - ts.best_lift[b]) / tgt
     ts.best_lift[b] = best
     ts.lift[b] = lift_new
-    grip = min(pinch / w.grasp_force_N, 1.0)
+    grip = min(pinch / p.env.reward.grasp_force_N, 1.0)
     grip_gain = grip - ts.grip[b]
     ts.grip[b] = grip
-    ts.slip_total[b] += slip
     peak_rise = max(pinch - ts.peak_pinch[b], 0.0)
     ts.peak_pinch[b] = max(ts.peak_pinch[b], pinch)
     ts.peak_stress[b] = max(ts.peak_stress[b], stress)
+    return progress, grip_gain, peak_rise
+
+
+@njit(cache=True, error_model="numpy")
+def track_slip_and_hold(p, ts, b, slip):
+    """Env b's slip totals and hold after this step (``slip``: the step's slip, m); returns the hold's progress gain."""
+    e = p.env
+    dt = p.agent_dt
+    lift_new = ts.lift[b]
+    ts.slip_total[b] += slip
     if lift_new >= e.lift_started_m:
         ts.lift_started[b] = True
     if ts.lift_started[b]:
         ts.lift_slip[b] += slip
-    slipped = ts.lift_slip[b] > e.lift_slip_tolerance_m
-    at_target = lift_new >= tgt
+    at_target = lift_new >= e.lift_target_m
     if at_target and math.isnan(ts.time_to_lift[b]):
         ts.time_to_lift[b] = ts.steps[b] * dt
     if at_target:
@@ -740,6 +892,17 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     hold_new = min(ts.hold_time[b] / e.hold_time_s, 1.0) if e.hold_time_s > 0 else (1.0 if at_target else 0.0)
     hold_gain = hold_new - ts.hold_progress[b]
     ts.hold_progress[b] = hold_new
+    return hold_gain
+
+
+@njit(cache=True, error_model="numpy")
+def episode_end(p, ts, b, contact, stress, finite, volume_ratio):
+    """How env b's episode stands after this step: (success, lost, slipped, damaged, failed, terminated,
+    truncated). Success: at the lift target, held hold_time_s, no more slip since lifting began than
+    lift_slip_tolerance_m; lost: no contact after lifting began; failed: a non-finite state or an inverted tet."""
+    e = p.env
+    slipped = ts.lift_slip[b] > e.lift_slip_tolerance_m
+    at_target = ts.lift[b] >= e.lift_target_m
     success = at_target and ts.hold_time[b] >= e.hold_time_s - 1e-9 and not slipped
     lost = ts.lift_started[b] and contact == 0
     damaged = stress > e.damage_stress_pa
@@ -747,47 +910,41 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     failed = not (finite and (volume_ratio > 0.0 or not e.inverted_tet_is_failure))
     terminated = success or lost or failed or (damaged and e.terminate_on_damage)
     truncated = (not terminated) and ts.steps[b] >= p.max_steps
-    # every episode that ends without success pays the same failure penalty, running out of time
-    # (e.g. never touching the tissue) included: not touching is then no safe haven
+    return success, lost, slipped, damaged, failed, terminated, truncated
+
+
+@njit(cache=True, error_model="numpy")
+def zero_observation(ts, b):
+    """Env b's observation history and observation all zeros (a blown-up tissue: never hand out NaN)."""
+    for k in range(ts.frames.shape[1]):
+        for c in range(ts.frames.shape[2]):
+            ts.frames[b, k, c] = 0.0
+    for c in range(ts.obs.shape[1]):
+        ts.obs[b, c] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def update(p, s, out, ts, b, finite, volume_ratio):
+    """One agent step of env b after the physics: lift, slip, hold, reward terms, flags, observation and
+    the episode's totals. ``finite``: the state is finite; ``volume_ratio``: its smallest tet volume ratio."""
+    ts.steps[b] += 1
+    jo = out.jaw_out[b]
+    slip = (jo[0, J_SLIP_DIST] + jo[1, J_SLIP_DIST] + jo[2, J_SLIP_DIST]) / 3.0  # this step's slip, mean over jaws, m
+    pinch = jo[0, J_NORMAL] + jo[1, J_NORMAL] + jo[2, J_NORMAL]
+    stress = max(max(jo[0, J_PEAK_PRESSURE], jo[1, J_PEAK_PRESSURE]), jo[2, J_PEAK_PRESSURE])
+    contact = jo[0, J_CONTACT] + jo[1, J_CONTACT] + jo[2, J_CONTACT]
+    progress, grip_gain, peak_rise = track_lift_and_grip(p, s, ts, b, pinch, stress)
+    hold_gain = track_slip_and_hold(p, ts, b, slip)
+    success, lost, slipped, damaged, failed, terminated, truncated = episode_end(p, ts, b, contact, stress, finite,
+                                                                                  volume_ratio)
     unsuccessful = (terminated or truncated) and not success
-    peak_weight = pinned(ts.mu[b] / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
-    if math.isnan(w.peak_force_knee):
-        if w.peak_force_timing_as_made:  # charged as made, refunded without success
-            peak_charge = peak_rise - (ts.peak_pinch[b] if unsuccessful else 0.0)
-        else:
-            peak_charge = ts.peak_pinch[b] if success else 0.0
-        peak_charge = w.peak_force * (peak_charge * peak_weight) / e.reference_force_N
-    else:  # the charge with a knee: as made, the rise of the episode's charge
-        charge_now = peak_charge_points(w, e.reference_force_N, ts.peak_pinch[b], peak_weight)
-        if w.peak_force_timing_as_made:
-            peak_charge = charge_now - peak_charge_points(w, e.reference_force_N, ts.peak_pinch[b] - peak_rise,
-                                                          peak_weight)
-            peak_charge -= charge_now if unsuccessful else 0.0
-        else:
-            peak_charge = charge_now if success else 0.0
-    t = ts.terms[b]
-    t[R_PROGRESS] = w.progress * progress
-    t[R_HOLD] = w.hold * hold_gain
-    t[R_GRASP] = w.grasp * grip_gain
-    t[R_SLIP] = -w.slip_per_mm * slip * 1e3
-    t[R_FORCE] = -w.force_per_s * (pinch / e.reference_force_N) * dt
-    t[R_PEAK_FORCE] = -peak_charge
-    # the pinch set-point's move since the last step of this episode (force set-points only)
-    moved = 0.0
-    if e.jaw_action_force and ts.steps[b] > 1:
-        moved = abs(pinch_setpoint(e, ts.act[b, 0]) - pinch_setpoint(e, ts.prev_action[b, 0]))
-    t[R_SETPOINT_CHANGE] = -w.setpoint_change * moved
-    t[R_DAMAGE] = -w.damage * (1.0 if damaged else 0.0)
-    t[R_SUCCESS] = w.success_bonus * (1.0 if success else 0.0)
-    t[R_FAILURE] = -w.failure_penalty * (1.0 if unsuccessful else 0.0)
-    reward = 0.0
-    for k in range(t.shape[0]):
-        reward += t[k]
+    reward = reward_terms(p, ts, b, progress, hold_gain, grip_gain, slip, pinch, peak_rise, damaged, success,
+                          unsuccessful)
     if failed:  # a blown-up tissue: never hand out NaN observations or rewards
-        reward = -w.failure_penalty
-        for k in range(t.shape[0]):
-            if not math.isfinite(t[k]):
-                t[k] = 0.0
+        reward = -p.env.reward.failure_penalty
+        for k in range(ts.terms.shape[1]):
+            if not math.isfinite(ts.terms[b, k]):
+                ts.terms[b, k] = 0.0
         ts.lift[b] = 0.0
         ts.grip[b] = 0.0
     ts.reward[b] = reward
@@ -795,11 +952,7 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     ts.prev_action[b, 1] = ts.act[b, 1]
     observe(p, s, out, ts, b, False)
     if failed:
-        for k in range(ts.frames.shape[1]):
-            for c in range(ts.frames.shape[2]):
-                ts.frames[b, k, c] = 0.0
-        for c in range(ts.obs.shape[1]):
-            ts.obs[b, c] = 0.0
+        zero_observation(ts, b)
     ts.pinch[b] = pinch
     ts.stress[b] = stress
     ts.contact[b] = contact
