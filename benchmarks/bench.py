@@ -29,8 +29,6 @@ describe this run on the machine it ran on.
 from __future__ import annotations
 
 import json
-import math
-import statistics
 import sys
 import time
 from collections.abc import Callable
@@ -40,65 +38,12 @@ import numpy as np
 
 from ..physics.contact import J_CONTACT
 from ..physics.reference import DT_OUTER, NumpyMSD, cross_check, spleen_model
-from .report import (BATCH, ENV_SIZES, _out_paths, _r, evaluate_targets, machine_info, markdown, plot_gpu,
-                     plot_scaling)
-
-# ------------------------------------------------------------------------------------------------
-# timing helpers
-# ------------------------------------------------------------------------------------------------
-
-
-def time_per_unit(run: Callable[[int], Any], min_time: float, repeats: int = 3, max_units: int = 10**8) -> dict:
-    """Seconds per unit of ``run(n)`` (which does n units), measured over >= ``min_time`` s in total.
-
-    The caller does the warm-up. Each of ``repeats`` timed calls runs >= min_time / repeats s (the unit
-    count is grown from a probe); the median and the best wall-clock time are reported, and the median
-    process CPU time (``cpu_s``: on a shared machine it excludes the time the process was descheduled).
-    """
-    chunk = min_time / max(1, repeats)
-    n = 1
-    t0 = time.perf_counter()
-    run(n)
-    el = time.perf_counter() - t0
-    while el < 0.2 * chunk and n < max_units:  # probe until the estimate is reliable
-        n = min(max_units, n * 4)
-        t0 = time.perf_counter()
-        run(n)
-        el = time.perf_counter() - t0
-    per = el / n
-    n = max(1, min(max_units, math.ceil(chunk / max(per, 1e-12))))
-    samples = []
-    cpu = []
-    total = 0.0
-    units = 0
-    while len(samples) < repeats or total < min_time:
-        c0 = time.process_time()
-        t0 = time.perf_counter()
-        run(n)
-        el = time.perf_counter() - t0
-        cpu.append((time.process_time() - c0) / n)
-        samples.append(el / n)
-        total += el
-        units += n
-        # a probe slowed by a busy machine sizes the calls too small: re-size them from the fastest one
-        n = max(1, min(max_units, math.ceil(chunk / max(min(samples), 1e-12))))
-        if len(samples) > 8 * repeats:
-            break
-    return {"median_s": statistics.median(samples), "best_s": min(samples), "cpu_s": statistics.median(cpu),
-            "best_cpu_s": min(cpu),
-            "units": units, "seconds": total}
-
+from .harness import clone, grasped, out_paths, round_sig, time_per_unit
+from .report import BATCH, ENV_SIZES, evaluate_targets, machine_info, markdown, plot_gpu, plot_scaling
 
 # ------------------------------------------------------------------------------------------------
 # physics benchmarks
 # ------------------------------------------------------------------------------------------------
-
-
-def _clone(src, dst) -> None:
-    """Copy the first tissue of ``src`` into every tissue of ``dst`` (same model and grasper)."""
-    for name in ("x", "v", "t", "fv", "dl_prev", "kscale", "mscale", "f_ext", "g_tip", "g_axis", "g_e1", "g_radius",
-                 "g_vradius", "g_vpull", "g_rmin", "g_rmax", "mu_s", "mu_k", "contact_state", "contact_force"):
-        getattr(dst, name)[:] = getattr(src, name)[0]
 
 
 def _sim_time(sim, min_time: float, repeats: int) -> dict:
@@ -123,35 +68,21 @@ def bench_no_contact(resolution, min_time: float, repeats: int, batch: int = BAT
         "nodes": model.n_nodes,
         "springs": int(len(model.edges)),
         "n_sub": sim1.n_sub,
-        "single_us_per_ms": _r(us1),
-        "single_best_us_per_ms": _r(single["best_s"] * 1e6),
-        "single_cpu_us_per_ms": _r(single["cpu_s"] * 1e6),
-        "single_us_per_substep": _r(us1 / sim1.n_sub),
+        "single_us_per_ms": round_sig(us1),
+        "single_best_us_per_ms": round_sig(single["best_s"] * 1e6),
+        "single_cpu_us_per_ms": round_sig(single["cpu_s"] * 1e6),
+        "single_us_per_substep": round_sig(us1 / sim1.n_sub),
         # whole substep (springs, tets, nodes) per spring: comparable across mesh sizes
-        "single_ns_per_spring_substep": _r(us1 / sim1.n_sub / len(model.edges) * 1e3),
-        f"batch{batch}_ns_per_spring_substep": _r(usb / batch / simb.n_sub / len(model.edges) * 1e3),
-        "single_realtime_factor": _r(1000.0 / us1),
-        f"batch{batch}_total_us_per_ms": _r(usb),
-        f"batch{batch}_per_tissue_us_per_ms": _r(usb / batch),
-        f"batch{batch}_realtime_factor_per_tissue": _r(1000.0 * batch / usb),
+        "single_ns_per_spring_substep": round_sig(us1 / sim1.n_sub / len(model.edges) * 1e3),
+        f"batch{batch}_ns_per_spring_substep": round_sig(usb / batch / simb.n_sub / len(model.edges) * 1e3),
+        "single_realtime_factor": round_sig(1000.0 / us1),
+        f"batch{batch}_total_us_per_ms": round_sig(usb),
+        f"batch{batch}_per_tissue_us_per_ms": round_sig(usb / batch),
+        f"batch{batch}_realtime_factor_per_tissue": round_sig(1000.0 * batch / usb),
         "finite": bool(sim1.finite().all() and simb.finite().all()),
-        "simulated_s_timed": _r(single["units"] * DT_OUTER + batched["units"] * DT_OUTER),
-        "setup_s": _r(setup),
+        "simulated_s_timed": round_sig(single["units"] * DT_OUTER + batched["units"] * DT_OUTER),
+        "setup_s": round_sig(setup),
     }
-
-
-def _grasped(resolution, settle_s: float, close_s: float):
-    """(scene, one-tissue Simulation) of the settled spleen with the jaws closed for ``close_s`` and then
-    holding: contact stays active while the caller times it."""
-    from ..physics.scenario import spleen_scene
-
-    scene = spleen_scene(resolution=resolution, settle_s=settle_s)
-    sim = scene.simulation(1, dt=DT_OUTER)
-    sim.command(closing_speed=scene.grasper.max_closing_speed_m_s)
-    sim.step(int(round(close_s / DT_OUTER)))
-    sim.command(closing_speed=0.0)
-    sim.step(10)
-    return scene, sim
 
 
 def bench_contact(resolution, min_time: float, repeats: int, settle_s: float, close_s: float,
@@ -159,13 +90,13 @@ def bench_contact(resolution, min_time: float, repeats: int, settle_s: float, cl
     from ..physics.simulation import Simulation
 
     t0 = time.perf_counter()
-    scene, sim1 = _grasped(resolution, settle_s, close_s)
+    scene, sim1 = grasped(resolution, settle_s, close_s)
     setup = time.perf_counter() - t0
     contacts_before = int(sim1.jaw_contact_counts[0, :, 0].sum())
     single = _sim_time(sim1, min_time, repeats)
     contacts_single = int(sim1.jaw_contact_counts[0, :, 0].sum())
     simb = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
-    _clone(sim1, simb)
+    clone(sim1, simb)
     float32 = bench_float32(scene, sim1, min_time, repeats, batch) if resolution == "coarse" else None
     batched = _sim_time(simb, min_time, repeats)
     us1 = single["median_s"] * 1e6
@@ -177,20 +108,20 @@ def bench_contact(resolution, min_time: float, repeats: int, settle_s: float, cl
         "n_sub": sim1.n_sub,
         "contact_nodes": contacts_before,
         "contact_nodes_after_timing": contacts_single,
-        f"contact_nodes_batch{batch}_mean": _r(float(simb.jaw_contact_counts[:, :, 0].sum(axis=1).mean())),
-        "pinch_force_N": _r(float(sim1.pinch_force[0])),
-        "single_us_per_ms": _r(us1),
-        "single_best_us_per_ms": _r(single["best_s"] * 1e6),
-        "single_cpu_us_per_ms": _r(single["cpu_s"] * 1e6),
-        "single_realtime_factor": _r(1000.0 / us1),
-        f"batch{batch}_total_us_per_ms": _r(usb),
-        f"batch{batch}_per_tissue_us_per_ms": _r(usb / batch),
-        f"batch{batch}_realtime_factor_per_tissue": _r(1000.0 * batch / usb),
+        f"contact_nodes_batch{batch}_mean": round_sig(float(simb.jaw_contact_counts[:, :, 0].sum(axis=1).mean())),
+        "pinch_force_N": round_sig(float(sim1.pinch_force[0])),
+        "single_us_per_ms": round_sig(us1),
+        "single_best_us_per_ms": round_sig(single["best_s"] * 1e6),
+        "single_cpu_us_per_ms": round_sig(single["cpu_s"] * 1e6),
+        "single_realtime_factor": round_sig(1000.0 / us1),
+        f"batch{batch}_total_us_per_ms": round_sig(usb),
+        f"batch{batch}_per_tissue_us_per_ms": round_sig(usb / batch),
+        f"batch{batch}_realtime_factor_per_tissue": round_sig(1000.0 * batch / usb),
         "finite": bool(sim1.finite().all() and simb.finite().all()),
         "float32": float32,
         "settle_s": settle_s,
         "close_s": close_s,
-        "setup_s": _r(setup),
+        "setup_s": round_sig(setup),
     }
 
 
@@ -198,29 +129,29 @@ def bench_contact(resolution, min_time: float, repeats: int, settle_s: float, cl
 FLOAT32_COMPARE_MS = 200
 
 
-def bench_float32(scene, grasped, min_time: float, repeats: int, batch: int = BATCH) -> dict:
-    """``Simulation(precision="float32")`` on the grasp ``grasped`` holds: us per simulated ms for one tissue and per
+def bench_float32(scene, held, min_time: float, repeats: int, batch: int = BATCH) -> dict:
+    """``Simulation(precision="float32")`` on the grasp ``held`` holds: us per simulated ms for one tissue and per
     tissue of a batch (timed from clones of the grasp), and its error against float64 from the same state over
     :data:`FLOAT32_COMPARE_MS` ms of the hold: the largest position difference (m), the pinch's relative difference,
     and the share of nodes in the same contact state (free / stick / slip)."""
     from ..physics.simulation import Simulation
 
-    def clone(b: int, precision: str) -> Simulation:
+    def copy_of(b: int, precision: str) -> Simulation:
         sim = Simulation(scene.model, b, dt=DT_OUTER, grasper=scene.grasper, precision=precision)
-        _clone(grasped, sim)
+        clone(held, sim)
         return sim
 
-    one, many = clone(1, "float32"), clone(batch, "float32")
+    one, many = copy_of(1, "float32"), copy_of(batch, "float32")
     single, batched = _sim_time(one, min_time, repeats), _sim_time(many, min_time, repeats)
-    a, b = clone(1, "float64"), clone(1, "float32")
+    a, b = copy_of(1, "float64"), copy_of(1, "float32")
     a.step(FLOAT32_COMPARE_MS)
     b.step(FLOAT32_COMPARE_MS)
-    return {"single_us_per_ms": _r(single["median_s"] * 1e6),
-            f"batch{batch}_per_tissue_us_per_ms": _r(batched["median_s"] * 1e6 / batch),
+    return {"single_us_per_ms": round_sig(single["median_s"] * 1e6),
+            f"batch{batch}_per_tissue_us_per_ms": round_sig(batched["median_s"] * 1e6 / batch),
             "compare_ms": FLOAT32_COMPARE_MS,
             "max_position_error_m": float(f"{np.abs(b.x - a.x).max():.3g}"),
             "pinch_rel_error": float(f"{abs(b.pinch_force[0] / a.pinch_force[0] - 1.0):.3g}"),
-            "same_contact_state": _r(float(np.mean(a.contact_state == b.contact_state)))}
+            "same_contact_state": round_sig(float(np.mean(a.contact_state == b.contact_state)))}
 
 
 def bench_numpy(resolution, min_time: float, repeats: int, numba_us_per_ms: float | None) -> dict:
@@ -236,11 +167,11 @@ def bench_numpy(resolution, min_time: float, repeats: int, numba_us_per_ms: floa
         "resolution": resolution,
         "nodes": model.n_nodes,
         "n_sub": n_sub,
-        "numpy_us_per_ms": _r(us),
-        "numpy_cpu_us_per_ms": _r(t["cpu_s"] * 1e6),
+        "numpy_us_per_ms": round_sig(us),
+        "numpy_cpu_us_per_ms": round_sig(t["cpu_s"] * 1e6),
         "numba_us_per_ms": numba_us_per_ms,
-        "ratio_ours_over_numpy": _r(numba_us_per_ms / us) if numba_us_per_ms else None,
-        "speedup_vs_numpy": _r(us / numba_us_per_ms) if numba_us_per_ms else None,
+        "ratio_ours_over_numpy": round_sig(numba_us_per_ms / us) if numba_us_per_ms else None,
+        "speedup_vs_numpy": round_sig(us / numba_us_per_ms) if numba_us_per_ms else None,
     }
 
 
@@ -326,16 +257,16 @@ def _mujoco_rows(mujoco, resolutions, min_time: float, repeats: int, ours: dict,
             "elements": int(mj.nflexelem),
             "dofs": int(mj.nv),
             "timestep_s": float(mj.opt.timestep),
-            "mujoco_us_per_ms": _r(us),
-            "mujoco_cpu_us_per_ms": _r(t["cpu_s"] * 1e6),
+            "mujoco_us_per_ms": round_sig(us),
+            "mujoco_cpu_us_per_ms": round_sig(t["cpu_s"] * 1e6),
             "ours_us_per_ms": ours_us,
-            "ratio_ours_over_mujoco": _r(ours_us / us) if ours_us else None,
-            "speedup_vs_mujoco": _r(us / ours_us) if ours_us else None,
+            "ratio_ours_over_mujoco": round_sig(ours_us / us) if ours_us else None,
+            "speedup_vs_mujoco": round_sig(us / ours_us) if ours_us else None,
             f"ours_batch{BATCH}_per_tissue_us_per_ms": ours_batch,
-            "speedup_batch_per_tissue": _r(us / ours_batch) if ours_batch else None,
+            "speedup_batch_per_tissue": round_sig(us / ours_batch) if ours_batch else None,
             "finite": bool(np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))),
-            "simulated_s": _r(float(data.time)),
-            "max_displacement_m": _r(sag) if sag is not None else None,
+            "simulated_s": round_sig(float(data.time)),
+            "max_displacement_m": round_sig(sag) if sag is not None else None,
         })
     return rows
 
@@ -367,9 +298,10 @@ def bench_physics(quick: bool, include_contact: bool = True, include_no_contact:
         out["no_contact"] = rows
         nodes = [r["nodes"] for r in rows]
         out["scaling"] = {
-            "exponent_us_per_ms_vs_nodes": _r(fit_exponent(nodes, [r["single_us_per_ms"] for r in rows])),
-            "exponent_us_per_substep_vs_nodes": _r(fit_exponent(nodes, [r["single_us_per_substep"] for r in rows])),
-            "exponent_batch_per_tissue_vs_nodes": _r(
+            "exponent_us_per_ms_vs_nodes": round_sig(fit_exponent(nodes, [r["single_us_per_ms"] for r in rows])),
+            "exponent_us_per_substep_vs_nodes": round_sig(
+                fit_exponent(nodes, [r["single_us_per_substep"] for r in rows])),
+            "exponent_batch_per_tissue_vs_nodes": round_sig(
                 fit_exponent(nodes, [r[f"batch{BATCH}_per_tissue_us_per_ms"] for r in rows])),
             "n_sub_by_resolution": {r["resolution"]: r["n_sub"] for r in rows},
         }
@@ -382,12 +314,12 @@ def bench_physics(quick: bool, include_contact: bool = True, include_no_contact:
             base = {r["resolution"]: r for r in out["no_contact"]}
             for r in rows:
                 b = base[r["resolution"]]
-                r["overhead_single"] = _r(r["single_us_per_ms"] / b["single_us_per_ms"] - 1.0)
-                r[f"overhead_batch{BATCH}"] = _r(r[f"batch{BATCH}_total_us_per_ms"]
+                r["overhead_single"] = round_sig(r["single_us_per_ms"] / b["single_us_per_ms"] - 1.0)
+                r[f"overhead_batch{BATCH}"] = round_sig(r[f"batch{BATCH}_total_us_per_ms"]
                                                  / b[f"batch{BATCH}_total_us_per_ms"] - 1.0)
         out["contact"] = rows
         if "scaling" in out:
-            out["scaling"]["exponent_contact_us_per_ms_vs_nodes"] = _r(
+            out["scaling"]["exponent_contact_us_per_ms_vs_nodes"] = round_sig(
                 fit_exponent([r["nodes"] for r in rows], [r["single_us_per_ms"] for r in rows]))
     if include_no_contact:
         ours = {r["resolution"]: r["single_us_per_ms"] for r in out["no_contact"]}
@@ -428,9 +360,9 @@ def bench_env(quick: bool, seed: int = 0, progress: Callable[[str], None] = lamb
     run_single(5)
     t = time_per_unit(run_single, min_time, repeats)
     single = {
-        "steps_per_s": _r(1.0 / t["median_s"]),
-        "us_per_step": _r(t["median_s"] * 1e6),
-        "cpu_steps_per_s": _r(1.0 / t["cpu_s"]) if t["cpu_s"] > 0 else None,
+        "steps_per_s": round_sig(1.0 / t["median_s"]),
+        "us_per_step": round_sig(t["median_s"] * 1e6),
+        "cpu_steps_per_s": round_sig(1.0 / t["cpu_s"]) if t["cpu_s"] > 0 else None,
         "physics_ms_per_step": env.config.physics_steps_per_action,
         "n_sub": env.core.sim.n_sub,
         "nodes": env.core.sim.model.n_nodes,
@@ -453,11 +385,11 @@ def bench_env(quick: bool, seed: int = 0, progress: Callable[[str], None] = lamb
         t = time_per_unit(run_vec, min_time, repeats)
         vec.append({
             "n_envs": n_envs,
-            "vector_steps_per_s": _r(1.0 / t["median_s"]),
-            "total_steps_per_s": _r(n_envs / t["median_s"]),
-            "per_env_steps_per_s": _r(1.0 / t["median_s"]),
-            "us_per_env_step": _r(t["median_s"] * 1e6 / n_envs),
-            "cpu_total_steps_per_s": _r(n_envs / t["cpu_s"]) if t["cpu_s"] > 0 else None,
+            "vector_steps_per_s": round_sig(1.0 / t["median_s"]),
+            "total_steps_per_s": round_sig(n_envs / t["median_s"]),
+            "per_env_steps_per_s": round_sig(1.0 / t["median_s"]),
+            "us_per_env_step": round_sig(t["median_s"] * 1e6 / n_envs),
+            "cpu_total_steps_per_s": round_sig(n_envs / t["cpu_s"]) if t["cpu_s"] > 0 else None,
         })
         venv.close()
     return {"min_time_per_measurement_s": min_time, "seed": seed, "resolution": "coarse", "single": single,
@@ -477,8 +409,8 @@ PINCH_ONLY_ACTION = (0.0, -1.0)
 
 def _rate_row(batch: int, timing: dict, **fields: Any) -> dict:
     """A throughput row: ``batch`` agent steps per timed unit (:func:`time_per_unit`'s median) and ``fields``."""
-    return {"batch": batch, **fields, "agent_steps_per_s": _r(batch / timing["median_s"]),
-            "ms_per_agent_step": _r(timing["median_s"] * 1e3)}
+    return {"batch": batch, **fields, "agent_steps_per_s": round_sig(batch / timing["median_s"]),
+            "ms_per_agent_step": round_sig(timing["median_s"] * 1e3)}
 
 
 def _warmup_steps(config, warmup_s: float) -> int:
@@ -520,14 +452,14 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
 
     batches = tuple(batches[:2]) if quick else tuple(batches)
     min_time = min_time if min_time is not None else (0.5 if quick else 2.0)
-    scene, sim1 = _grasped(resolution, settle_s, close_s)
+    scene, sim1 = grasped(resolution, settle_s, close_s)
     rows = []
     for precision in precisions:
         for contact in (True, False):
             for batch in batches:
                 sim = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
                 if contact:
-                    _clone(sim1, sim)  # every tissue grasped: the contact pass runs on every step
+                    clone(sim1, sim)  # every tissue grasped: the contact pass runs on every step
                 else:
                     scene.reset(sim)  # settled tissue, jaws open at the start radius: no contact
                 dev = CudaBatch(sim.kernel_model(), sim.kernel_state(), sim.kernel_readout(),
@@ -541,8 +473,9 @@ def bench_gpu(quick: bool, resolution="coarse", batches: tuple[int, ...] = GPU_B
                 run(1)  # compile / load
                 timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
                 dev.download(out=sim.kernel_readout(), fields=("jaw_out",))
+                contact_nodes = float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean())
                 rows.append(_rate_row(batch, timing, contact=contact, dtype=precision, n_sub=sim.n_sub,
-                                      contact_nodes_mean=_r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))))
+                                      contact_nodes_mean=round_sig(contact_nodes)))
     task_rows = bench_gpu_task(batches, resolution, steps, min_time, task_warmup_s, threads, precisions)
     return {"available": reason is None, "reason": reason, "resolution": resolution,
             "nodes": scene.model.n_nodes, "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
@@ -581,7 +514,7 @@ def bench_gpu_task(batches: tuple[int, ...], resolution="coarse", steps: int = S
                 core.step(actions)
                 held.append(float(np.mean(core.download("contact")["contact"] > 0)))
             rows.append(_rate_row(batch, timing, contact=True, dtype=precision, what="task",
-                                  contact_fraction=_r(float(np.mean(held)))))
+                                  contact_fraction=round_sig(float(np.mean(held)))))
     return rows
 
 
@@ -600,15 +533,15 @@ def bench_cpu_reference(quick: bool, resolution="coarse", batches: tuple[int, ..
 
     batches = tuple(batches[:2]) if quick else tuple(batches)
     min_time = min_time if min_time is not None else (0.5 if quick else 2.0)
-    scene, sim1 = _grasped(resolution, settle_s, close_s)
+    scene, sim1 = grasped(resolution, settle_s, close_s)
     rows = []
     for batch in batches:
         sim = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper)
-        _clone(sim1, sim)  # every tissue grasped, as the GPU rows with contact
+        clone(sim1, sim)  # every tissue grasped, as the GPU rows with contact
         sim.step(1)  # compile / load the numba cache
         timing = time_per_unit(lambda n, sim=sim: sim.step(n * steps), min_time, repeats=3, max_units=10_000)
         rows.append(_rate_row(batch, timing, contact=True, dtype="float64", n_sub=sim.n_sub,
-                              contact_nodes_mean=_r(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))))
+                              contact_nodes_mean=round_sig(float(sim.jaw_out[:, :, J_CONTACT].sum(axis=1).mean()))))
     config = GraspLiftConfig(resolution=resolution, physics_steps_per_action=steps)
     task_rows = []
     for batch in batches:
@@ -626,7 +559,7 @@ def bench_cpu_reference(quick: bool, resolution="coarse", batches: tuple[int, ..
         timing = time_per_unit(run, min_time, repeats=3, max_units=10_000)
         held = [float(np.mean(core.step(actions)[4]["contact_nodes"] > 0)) for _ in range(10)]
         task_rows.append(_rate_row(batch, timing, contact=True, dtype="float64", what="task",
-                                   contact_fraction=_r(float(np.mean(held)))))
+                                   contact_fraction=round_sig(float(np.mean(held)))))
     return {"device": "one CPU core (numba)", "resolution": resolution, "nodes": scene.model.n_nodes,
             "steps_per_agent_step": steps, "rows": rows, "task_rows": task_rows}
 
@@ -702,7 +635,7 @@ def bench_precision(config=None, num_envs: int = 256, seed: int = 0, threads: in
             "max_obs_diff": worst["obs"], "max_pinch_rel_diff": worst["pinch_rel"],
             "contact_state_agreement": same_contact / max(total_contact, 1), "env_steps_in_contact": in_contact,
             "envs_ended_on_another_step": int(ended_apart.sum()), "envs_with_another_outcome": int(outcome_apart.sum()),
-            "wall_s": _r(time.perf_counter() - t0)}
+            "wall_s": round_sig(time.perf_counter() - t0)}
 
 
 def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_per_env: int = 32,
@@ -756,9 +689,9 @@ def bench_learners(config=None, batch: int = 4096, iterations: int = 3, steps_pe
     model.learn(steps)
     sb3_s = time.perf_counter() - t0
     return {"available": reason is None, "reason": reason, "resolution": config.resolution, "batch": batch,
-            "agent_steps": steps, "torch_device": device, "env_steps_per_s": _r(steps / env_s),
-            "rsl_steps_per_s": _r(rsl["agent_steps_per_s"]), "sb3_steps_per_s": _r(steps / sb3_s),
-            "sb3_over_rsl": _r((steps / sb3_s) / rsl["agent_steps_per_s"])}
+            "agent_steps": steps, "torch_device": device, "env_steps_per_s": round_sig(steps / env_s),
+            "rsl_steps_per_s": round_sig(rsl["agent_steps_per_s"]), "sb3_steps_per_s": round_sig(steps / sb3_s),
+            "sb3_over_rsl": round_sig((steps / sb3_s) / rsl["agent_steps_per_s"])}
 
 
 #: what ``msdgrasp bench`` measures
@@ -808,7 +741,7 @@ def run_bench(what: str = "physics", quick: bool = False, progress: Callable[[st
     report["targets"] = evaluate_targets(report)
     flags = [v["pass"] for v in report["targets"].values() if v["pass"] is not None]
     report["all_targets_pass"] = bool(all(flags)) if flags else None
-    report["elapsed_s"] = _r(time.perf_counter() - t0)
+    report["elapsed_s"] = round_sig(time.perf_counter() - t0)
     return report
 
 
@@ -824,7 +757,7 @@ def bench_cli(args) -> int:
 
     report = run_bench(what, quick, progress=progress)
     if out is not None:
-        json_path, md_path, png_path = _out_paths(out)
+        json_path, md_path, png_path = out_paths(out)
         png = plot_scaling(report, png_path)
         gpu_png = plot_gpu(report, png_path.with_name(json_path.stem + "_gpu.png"))
         report["files"] = {"json": str(json_path), "markdown": str(md_path), "png": str(png) if png else None,

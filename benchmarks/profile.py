@@ -2,17 +2,19 @@
 
 substep
     The coarse spleen with the jaws closed on it (the bench's grasp set-up, contact active), one tissue and a
-    batch of 64 (lane layout, as :func:`~msdgrasp.physics.integrator.simulate` runs it). Each phase of one
-    substep of :func:`~msdgrasp.physics.integrator._advance_block` is timed by calling that phase's own kernel
-    function with the arguments the integrator passes it, repeatedly inside one compiled loop (so Python's
-    dispatch does not count), on the state the phase meets in a substep: force reset (gravity and external
-    forces), spring loop (Maxwell branch as configured), node update, volume barrier (the flag pass over the
-    watched tets, as most substeps run it, with the full pass that makes the watch list timed beside it; the
-    implicit step where tets are flagged, their nodes restored before each repetition), contacts (plates and
-    jaws per tissue, the nodes they move restored before each repetition); a restore is timed alone and subtracted
-    (interleaved rounds, fastest CPU time of each: :func:`_us_difference`). The whole
-    ``simulate`` call per substep is timed beside it; ``remainder`` = whole - sum of the phases (loop overhead,
-    readouts, cache effects; it can be negative: a phase timed alone keeps its data in cache).
+    batch of 64 (one lane block). Every figure times the real kernel, :func:`~msdgrasp.physics.integrator.simulate`,
+    on the Simulation's own records, one call per agent step (33 outer steps) from the same saved state, restored
+    before each call: a part's cost is what the call saves when the model record switches that part off
+    (:data:`SWITCHES`). The parts come off in turn, each from the step without the ones before it, so that a part
+    switched off cannot make one still on work harder (released jaws let the compressed tissue spring back and
+    the volume barrier remake its watch list on every substep): ``barrier`` (``kvol`` empty), then ``contacts``
+    (``jaw_active`` False), then ``springs`` (a model without springs); ``base`` is what is left, the step with all
+    three off (gravity and external forces, node update, the contacts' bookkeeping, the loop), less the restore
+    timed alone. The parts add up to ``whole``, the call less the restore. Beside them, from the same rounds: the
+    springs' Maxwell branch (``use_sls``) and dashpots (``use_dashpot``), switched off from the springs' step; the
+    cost of a full barrier flag pass on every substep (``watch_delta`` 0) over the watch list the kernel keeps; the
+    springs of ``Simulation(precision="float32")``; and the springs' divider floor (their square roots and
+    divisions alone: :func:`_divider_floor`).
 agent step
     Per agent step of the default training env (``TrainConfig().env``): the physics (``sim.step`` of the
     env's outer steps), the task (``command_batch`` + ``update_batch``), the whole core step (the rest is the
@@ -23,10 +25,9 @@ training
     A short SB3 PPO run of the default config (``--quick``: fewer steps): wall time split into rollouts (env
     stepping and the policy's forward passes), PPO updates and validation, measured with an SB3 callback.
 
-Substep times are the fastest process CPU time (``time.process_time``) of repeated measurements after a warm-up, in
-three rounds over all phases and the whole call from the same state (the two phases timed as a difference, barrier
-step and contacts, also interleave with their restore); agent-step and training times are wall clock
-(``time.perf_counter``), medians of repeated measurements.
+Substep times are the fastest process CPU time (``time.process_time``) of each timing over
+:data:`PROFILE_ROUNDS` interleaved rounds (a busy machine only adds time, and every timing sees the same stretch of
+it); agent-step and training times are wall clock (``time.perf_counter``), medians of repeated measurements.
 """
 
 from __future__ import annotations
@@ -42,68 +43,97 @@ import numpy as np
 from numba import njit
 
 from ..physics.config import needs_extra
-from ..physics.contact import clear_contacts, jaw_contacts, jaw_directions, plate_contacts
-from ..physics.forces import (
-    displacement_spread,
-    flag_watched,
-    implicit_volume_barrier_lanes,
-    spring_loop,
-    spring_loop_lanes,
-    watch_barrier,
-)
-from ..physics.integrator import _constant_damping, _to_lanes, _update_nodes
-from ..physics.records import Springs
+from ..physics.integrator import LANE_MIN, simulate
+from ..physics.records import SimModel, SimState
 from ..physics.reference import DT_OUTER
-from ..physics.numba_cache import key_on_physics
-from .bench import _clone, _grasped, time_per_unit
-from .report import _r
-
-# the phase timers below call the physics kernels and are cached: without this, an edit of physics/ would leave
-# them timing the old kernels (numba checks a cached function against its own file only)
-key_on_physics(__file__)
+from .harness import clone, grasped, out_paths, round_sig, time_per_unit
 
 #: batch of the lane-layout rows (one lane block)
 PROFILE_BATCH = 64
-#: the phases of one substep, in the integrator's order
-PHASES = ("force_reset", "springs", "node_update", "barrier_flag", "barrier_step", "contacts")
+#: the parts of a substep, in the order they are switched off (base: what is left with all of them off)
+PHASES = ("barrier", "contacts", "springs", "base")
+#: outer steps per timed kernel call: one agent step of the env, so the call's set-up weighs as it does there
+STEPS_PER_CALL = 33
+#: interleaved rounds of every substep timing
+PROFILE_ROUNDS = 5
+#: the model fields of the springs (a model without springs has them empty)
+SPRING_FIELDS = ("edges", "rest_length", "k1", "k2", "dlc", "cdash", "kv")
+
+
+def _without_springs(model: SimModel, state: SimState) -> tuple[SimModel, SimState]:
+    # the springs' state goes too (E = 0), so that model and state agree on the spring count
+    empty = np.empty((state.fv.shape[0], 0), dtype=state.fv.dtype)
+    return model._replace(**{k: getattr(model, k)[:0] for k in SPRING_FIELDS}), \
+        state._replace(fv=empty, dl_prev=empty.copy())
+
+
+#: how each part is switched off, by the kernel's records alone: (model, state) -> (model, state). The values keep
+#: their types (an empty slice of the same array, the field's own scalar type), so the kernel is not recompiled
+SWITCHES: dict[str, Callable[[SimModel, SimState], tuple[SimModel, SimState]]] = {
+    "barrier": lambda m, s: (m._replace(kvol=m.kvol[:0]), s),
+    "contacts": lambda m, s: (m._replace(jaw_active=False), s),
+    "springs": _without_springs,
+    "maxwell_branch": lambda m, s: (m._replace(use_sls=False), s),
+    "dashpots": lambda m, s: (m._replace(use_dashpot=False), s),
+    "watch_list": lambda m, s: (m._replace(watch_delta=type(m.watch_delta)(0.0)), s),  # a full pass every substep
+}
+
+
+def switched_off(model: SimModel, state: SimState, *parts: str) -> tuple[SimModel, SimState]:
+    """The kernel's records with ``parts`` (keys of :data:`SWITCHES`) switched off."""
+    for part in parts:
+        model, state = SWITCHES[part](model, state)
+    return model, state
+
+
+class Restored:
+    """Kernel calls from one saved state of a Simulation: :meth:`run` restores every state and readout array
+    before each call, so each call meets the same state whatever the last one did."""
+
+    def __init__(self, sim) -> None:
+        self.model, self.state, self.out = sim.kernel_model(), sim.kernel_state(), sim.kernel_readout()
+        self.n_sub = int(self.model.n_sub)
+        self._arrays = [*self.state, *self.out]
+        self._saved = [a.copy() for a in self._arrays]
+
+    def restore(self) -> None:
+        for a, saved in zip(self._arrays, self._saved):
+            np.copyto(a, saved)
+
+    def run(self, *parts: str) -> Callable[[int], None]:
+        """k restored calls of :data:`STEPS_PER_CALL` outer steps with ``parts`` switched off."""
+        model, state = switched_off(self.model, self.state, *parts)
+
+        def run(k: int) -> None:
+            for _ in range(k):
+                self.restore()
+                simulate(model, state, self.out, STEPS_PER_CALL)
+        return run
+
+    def restores(self, k: int) -> None:
+        for _ in range(k):
+            self.restore()
+
+
+def fastest_us(runs: dict[str, Callable[[int], Any]], min_time: float, repeats: int,
+               rounds: int = PROFILE_ROUNDS) -> dict[str, float]:
+    """us per unit of each of ``runs`` (``run(k)`` does k units): the fastest process CPU time of its repetitions
+    over ``rounds`` interleaved rounds (``min_time`` s each in all). A cost is what it takes undisturbed: a busy
+    machine only adds to it, and interleaving lets every run see the same machine, where timings taken one after
+    the other differ by the machine's drift."""
+    for run in runs.values():
+        run(1)  # compile / load the cache
+    best = dict.fromkeys(runs, math.inf)
+    for _ in range(rounds):
+        for name, run in runs.items():
+            t = time_per_unit(run, min_time / rounds, repeats, max_units=10**7)["best_cpu_s"] * 1e6
+            best[name] = min(best[name], t)
+    return best
+
 
 # ------------------------------------------------------------------------------------------------
-# compiled repetition loops: each calls one phase's kernel function ``reps`` times, as _advance_block does
+# the springs' divider floor
 # ------------------------------------------------------------------------------------------------
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_force_reset(f_flat, f0_flat, reps):
-    for _ in range(reps):
-        for k in range(f_flat.shape[0]):
-            f_flat[k] = f0_flat[k]
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_springs(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp, scratch, lanes, reps):
-    n = x.shape[0]
-    ne = fv.shape[0]
-    if lanes:
-        for _ in range(reps):
-            spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp)
-    else:
-        x_one = x.reshape((n, 3))
-        v_one = v.reshape((n, 3))
-        f_one = f.reshape((n, 3))
-        fv_one = fv.reshape(ne)
-        dl_one = dl_prev.reshape(ne)
-        for _ in range(reps):
-            spring_loop(x_one, v_one, springs, ks[0], decay, gain, fv_one, dl_one, f_one, scratch)
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_springs_as(x, v, springs, ks, rates, fv, dl_prev, f, tmp, units, reps):
-    """:func:`_rep_springs` of a lane block in the arithmetic of ``units`` (one, tiny): float32 arrays with float32
-    units compile the same spring code for float32."""
-    decay, gain = rates
-    one, tiny = units
-    for _ in range(reps):
-        spring_loop_lanes(x, v, springs, ks, decay, gain, fv, dl_prev, f, tmp, one, tiny)
 
 
 @njit(cache=True, error_model="numpy")
@@ -115,117 +145,18 @@ def _rep_divider(l2, out, one, reps):
             out[k] = one / math.sqrt(l2[k])
 
 
-def _divider_floor(x, edges, min_time, repeats) -> dict:
+def _divider_floor(x: np.ndarray, edges: np.ndarray, min_time: float, repeats: int) -> dict:
     """us per substep that the springs' square roots and divisions alone take (float64 and float32), on the
-    substep's squared spring lengths of every tissue: the vector divider's floor under any float64 spring pass that
-    keeps the spring law's arithmetic (the spring loops compute exactly these two per spring and tissue)."""
-    d = x[edges[:, 1]] - x[edges[:, 0]]  # (E, 3, L)
-    l2 = np.ascontiguousarray((d * d).sum(axis=1)).reshape(-1)
-    floor = {}
+    squared spring lengths of every tissue of the batch x (B,N,3): the vector divider's floor under any float64
+    spring pass that keeps the spring law's arithmetic (the spring loops compute exactly these two per spring and
+    tissue)."""
+    d = x[:, edges[:, 1]] - x[:, edges[:, 0]]  # (B, E, 3)
+    l2 = np.ascontiguousarray((d * d).sum(axis=2)).reshape(-1)
+    runs = {}
     for name, typ in (("float64", np.float64), ("float32", np.float32)):
         a = l2.astype(typ)
-        out = np.empty_like(a)
-        floor[name] = _r(_us(lambda k, a=a, out=out, one=typ(1.0): _rep_divider(a, out, one, k), min_time, repeats))
-    return floor
-
-
-def _spring_pass_float32(springs, x, v, ks, decay, gain, fv, dl, min_time, repeats) -> dict:
-    """What float32 arithmetic does to the lane block's spring pass (the largest phase), on float32 copies of the
-    same state: its time per substep, and its forces' largest deviation from float64's, relative to the largest
-    spring force. The physics stays float64: this measures the option, it does not take it."""
-    c32 = np.float32
-    s32 = Springs(springs.edges, *(np.asarray(a, dtype=c32) for a in springs[1:7]), springs.use_dashpot,
-                  springs.use_sls)
-    x32, v32, ks32 = x.astype(c32), v.astype(c32), ks.astype(c32)
-    rates, units = (c32(decay), c32(gain)), (c32(1.0), c32(1e-15))
-    f64 = np.zeros_like(x)
-    _rep_springs_as(x, v, springs, ks, (decay, gain), fv.copy(), dl.copy(), f64, np.empty((3, x.shape[2])),
-                    (1.0, 1e-15), 1)
-    f32 = np.zeros_like(x32)
-    tmp = np.empty((3, x.shape[2]), dtype=c32)
-    _rep_springs_as(x32, v32, s32, ks32, rates, fv.astype(c32), dl.astype(c32), f32, tmp, units, 1)
-    err = float(np.max(np.abs(f32 - f64)) / np.max(np.abs(f64)))
-    fv32, dl32 = fv.astype(c32), dl.astype(c32)
-    us = _us(lambda k: _rep_springs_as(x32, v32, s32, ks32, rates, fv32, dl32, f32, tmp, units, k), min_time, repeats)
-    return {"us_per_substep": _r(us), "force_rel_err": _r(err)}
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_nodes(model, x, v, f, meff, damp_inv, fa, ms, lane0, dt, anchor_out, lanes, reps):
-    # (the node update's cost does not depend on the positions: repeating it on a copy that drifts is fair)
-    work = (meff, damp_inv, fa)
-    nl = x.shape[2]
-    for _ in range(reps):
-        if lanes:
-            _update_nodes(model, x, v, f, work, ms, nl, lane0, False, dt, anchor_out)
-        else:
-            _update_nodes(model, x, v, f, work, ms, 1, lane0, False, dt, anchor_out)
-
-
-@njit(cache=True, error_model="numpy")
-def _restore(x, v, x0, v0, nodes):
-    for q in range(nodes.shape[0]):
-        i = nodes[q]
-        for c in range(3):
-            for lane in range(x.shape[2]):
-                x[i, c, lane] = x0[i, c, lane]
-                v[i, c, lane] = v0[i, c, lane]
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_contacts(model, state, out, x, v, x0, v0, nodes, meff, held, u, tj, sub_info, res, lane0, run, reps):
-    """The contact phase (run False: only the restore of ``nodes``, to be subtracted)."""
-    nl = x.shape[2]
-    dt, _, last_sub, _ = sub_info
-    cand = np.empty(0, dtype=np.int8)  # (as the integrator: jaw_contacts tests each node where it resolves it)
-    for _ in range(reps):
-        _restore(x, v, x0, v0, nodes)
-        if not run:
-            continue
-        for lane in range(nl):
-            b = lane0 + lane
-            state.t[b] += dt
-            xb = x[:, :, lane]
-            vb = v[:, :, lane]
-            mb = meff[:, lane]
-            hb = held[lane]
-            clear_contacts(b, model, out, hb, last_sub)
-            plate_contacts(b, xb, vb, mb, model, state, out, sub_info, res, hb)
-            if model.jaw_active:
-                jaw_contacts(b, xb, vb, mb, model, state, out, (u[lane], tj[lane]), sub_info, res, (hb, cand))
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_barrier_flag(x, tets, rest_volume, thr, delta, flags, n_flagged, watch, full, reps):
-    """The barrier's flag pass as the integrator runs it: ``full``, the full pass that also makes the watch list
-    (returns its length); else the check of the nodes' displacement against the budget and the pass over the
-    watched tets alone (``watch[:n]``, n from a full pass)."""
-    n_watch = watch_barrier(x, tets, rest_volume, thr, delta, flags, n_flagged, watch)
-    nl = x.shape[2]
-    x_one = x.reshape((x.shape[0], 3 * nl))
-    x_ref = x_one.copy()
-    lohi = np.empty((3, 3 * nl))
-    for _ in range(reps):
-        if full:
-            n_watch = watch_barrier(x, tets, rest_volume, thr, delta, flags, n_flagged, watch)
-        elif displacement_spread(x_one, x_ref, nl, lohi) <= delta:
-            flag_watched(x, tets, rest_volume, thr, watch, n_watch, flags, n_flagged)
-    return n_watch
-
-
-@njit(cache=True, error_model="numpy")
-def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, visit, anchor_vol, lanes, run, reps):
-    """The barrier's implicit step on the flagged tets (run False: only the restore of their nodes); visit:
-    (flags (T,L), n_flagged (L,), watch, n_watch) as the flag pass left them."""
-    flags, n_flagged, watch, n_watch = visit
-    for _ in range(reps):
-        _restore(x, v, x0, v0, nodes)
-        if not run:
-            continue
-        if lanes or n_flagged[0] > 0:  # (as the integrator: one tissue is its (N,3,1) block)
-            anchor_vol[:] = 0.0
-            implicit_volume_barrier_lanes(x, v, meff, (model.fixed, held), model.tets, model.rest_volume, model.kvol,
-                                          model.vol_threshold, ks, dt, (flags, watch, n_watch), anchor_vol)
+        runs[name] = lambda k, a=a, out=np.empty_like(a), one=typ(1.0): _rep_divider(a, out, one, k)
+    return {name: round_sig(us) for name, us in fastest_us(runs, min_time, repeats).items()}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -233,239 +164,87 @@ def _rep_barrier_step(model, x, v, x0, v0, nodes, meff, held, ks, dt, visit, anc
 # ------------------------------------------------------------------------------------------------
 
 
-def _us(run: Callable[[int], Any], min_time: float, repeats: int) -> float:
-    """us per unit of ``run``: the fastest process CPU time of its repetitions. A phase's cost is what it takes
-    undisturbed; a busy machine only adds to it, and wall-clock medians of single quick-mode samples read the
-    whole call at twice the sum of its phases when a burst of load fell on one of them."""
-    run(1)  # compile / load the cache
-    return time_per_unit(run, min_time, repeats, max_units=10**7)["best_cpu_s"] * 1e6
+def volume_ratios(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray) -> np.ndarray:
+    """(B,T) current / rest volume of every tet of every tissue of the batch x (B,N,3) (signed: <= 0 inverted)."""
+    a = x[:, tets[:, 0]]
+    e1, e2, e3 = (x[:, tets[:, k]] - a for k in (1, 2, 3))
+    return np.einsum("btc,btc->bt", e1, np.cross(e2, e3)) / 6.0 / rest_volume
 
 
-DIFF_ROUNDS = 5
+def _springs_float32(sim, min_time: float, repeats: int) -> dict:
+    """The springs' part of a float32 copy of ``sim`` (``Simulation(precision="float32")``, the same grasp), timed
+    as the float64 one is: the springs' step without barrier and contacts, with and without springs."""
+    from ..physics.simulation import Simulation
 
-
-def _us_difference(with_part: Callable[[int], Any], without: Callable[[int], Any], min_time: float,
-                   repeats: int) -> float:
-    """us per unit of the part that ``with_part`` runs and ``without`` does not (a restore both run).
-
-    Timed in :data:`DIFF_ROUNDS` interleaved rounds in process CPU time and taken as the difference of each one's
-    fastest round: a busy machine only ever adds time, CPU time leaves out the time the process was descheduled, and
-    interleaving lets both see the same machine, where two wall-clock medians taken one after the other read a part
-    of ~1 us as zero when a burst of load falls on the subtrahend's timing.
-    """
-    best_with = best_without = math.inf
-    for _ in range(DIFF_ROUNDS):
-        best_with = min(best_with, _us(with_part, min_time, repeats))
-        best_without = min(best_without, _us(without, min_time, repeats))
-    return max(best_with - best_without, 0.0)
+    sim32 = Simulation(sim.model, sim.batch_size, dt=sim.dt, substeps=sim.n_sub, grasper=sim.grasper,
+                       plates=sim.plates, precision="float32")
+    clone(sim, sim32)
+    calls = Restored(sim32)
+    t = fastest_us({"springs": calls.run("barrier", "contacts"), "none": calls.run("barrier", "contacts", "springs")},
+                   min_time, repeats)
+    calls.restore()
+    return {"us_per_substep": round_sig((t["springs"] - t["none"]) / (STEPS_PER_CALL * calls.n_sub))}
 
 
 def profile_substep(sim, min_time: float, repeats: int) -> dict:
-    """us per substep of each phase and of the whole ``simulate`` call for ``sim`` (all tissues in one lane
-    block, or one tissue), on copies of its state: ``sim`` itself is only advanced by the whole-call timing."""
-    model, state, out = sim.kernel_model(), sim.kernel_state(), sim.kernel_readout()
-    nb, n, ne, nt = sim.x.shape[0], sim.x.shape[1], sim.fv.shape[1], model.tets.shape[0]
-    lanes = nb > 1
-    if lanes and nb > 64:
-        raise ValueError(f"profile_substep: batch must fit one lane block (<= 64 tissues), got {nb}")
-    m = model
-    dt = m.dt_outer / m.n_sub
-    # the batch in lanes (x[i, c, lane]), as simulate copies it in
-    x = np.empty((n, 3, nb))
-    v = np.empty((n, 3, nb))
-    fv = np.empty((ne, nb))
-    dl = np.empty((ne, nb))
-    _to_lanes(state.x, state.v, state.fv, state.dl_prev, 0, x, v, fv, dl, True)
-    springs = Springs(m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash,
-                      m.kv if m.kv.shape[0] == ne else np.zeros(ne), m.use_dashpot, m.use_sls)
-    ks = np.ascontiguousarray(state.kscale)
-    ms = np.ascontiguousarray(state.mscale)
-    decay = math.exp(-dt / m.tau)
-    gain = m.tau / dt * (1.0 - decay)
-    tmp = np.empty((3, nb))
-    scratch = np.zeros((9, 0 if lanes else ne))
-    f0 = np.empty((n, 3, nb))
-    for lane in range(nb):
-        f0[:, :, lane] = m.mass[:, None] * ms[lane] * m.gravity[None, :] + state.f_ext[lane]
-    meff = np.empty((n, nb))
-    damp_inv = np.empty((n, nb))
-    fa = np.empty((3, nb))
-    _constant_damping(m.mass, m.b0, m.b1, ms, dt, meff, damp_inv)
-    u = np.empty((nb, 3, 3))
-    tj = np.empty((nb, 3, 3))
-    for lane in range(nb):
-        jaw_directions(state.g_axis[lane], state.g_e1[lane], u[lane], tj[lane])
-    flags = np.empty((nt, nb), dtype=np.int8)
-    n_flagged = np.zeros(nb, dtype=np.int64)
-    anchor_vol = np.zeros((nb, 3))  # per tissue: the anchors' force against the barrier
-    # the contacts' memory of the last substep: the barrier's step reads it (a copy: the contacts rewrite it)
-    held = np.ascontiguousarray(state.held, dtype=np.int8).copy()
-    res = np.empty(6)
-    sub_info = (dt, 0.0, False, 1.0 / m.n_sub)  # a substep before the last one of a call: no readout fill
-    anchor_out = np.zeros_like(out.anchor_out)
-    barrier_on = m.kvol.shape[0] > 0
-    rows: dict[str, float] = {}
-    # ---- 1. forces (on scratch copies: the phase's state changes do not carry into the next phase)
-    f = f0.copy()
-    rows["force_reset"] = _us(lambda k: _rep_force_reset(f.reshape(-1), f0.reshape(-1), k), min_time, repeats)
-    fv_c, dl_c = fv.copy(), dl.copy()
-    rows["springs"] = _us(lambda k: _rep_springs(x, v, springs, ks, decay, gain, fv_c, dl_c, f, tmp, scratch, lanes, k),
-                          min_time, repeats)
-    float32 = _spring_pass_float32(springs, x, v, ks, decay, gain, fv, dl, min_time, repeats) if lanes else None
-    divider = _divider_floor(x, m.edges, min_time, repeats)
-    # the substep's real forces, from the real state
-    f = f0.copy()
-    _rep_springs(x, v, springs, ks, decay, gain, fv, dl, f, tmp, scratch, lanes, 1)
-    # ---- 2-3. node update (on copies of x, v)
-    xc, vc = x.copy(), v.copy()
-    rows["node_update"] = _us(lambda k: _rep_nodes(m, xc, vc, f, meff, damp_inv, fa, ms, 0,
-                                                   dt, anchor_out, lanes, k), min_time, repeats)
-    meff[:] = 0.0
-    _constant_damping(m.mass, m.b0, m.b1, ms, dt, meff, damp_inv)
-    _rep_nodes(m, x, v, f, meff, damp_inv, fa, ms, 0, dt, anchor_out, lanes, 1)  # the real state moves on
-    # ---- 4. volume barrier: flag pass, then the implicit step on the flagged tets (their nodes restored)
-    rows["barrier_flag"] = 0.0
-    rows["barrier_step"] = 0.0
-    flagged = 0
-    full_pass = 0.0
-    watch = np.empty(nt, dtype=np.int64)
-    n_watch = 0
-    if barrier_on:
-        flags_c, n_flagged_c, watch_c = flags.copy(), n_flagged.copy(), watch.copy()
-
-        def flag_pass(full: bool) -> Callable[[int], None]:
-            return lambda k: _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, m.watch_delta, flags_c,
-                                               n_flagged_c, watch_c, full, k)
-
-        rows["barrier_flag"] = _us(flag_pass(False), min_time, repeats)
-        full_pass = _us(flag_pass(True), min_time, repeats)
-        n_watch = _rep_barrier_flag(x, m.tets, m.rest_volume, m.vol_threshold, m.watch_delta, flags, n_flagged,
-                                    watch, True, 0)
-        flagged = int(n_flagged.sum())
-        if flagged:
-            tet_nodes = np.unique(m.tets[np.flatnonzero(flags.any(axis=1))].ravel()).astype(np.int64)
-            x0, v0 = x.copy(), v.copy()
-            visit = (flags, n_flagged, watch, n_watch)
-
-            def step(run: bool) -> Callable[[int], None]:
-                return lambda k: _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, visit, anchor_vol,
-                                                   lanes, run, k)
-
-            rows["barrier_step"] = _us_difference(step(True), step(False), min_time / DIFF_ROUNDS, repeats)
-            x[:], v[:] = x0, v0
-            _rep_barrier_step(m, x, v, x0, v0, tet_nodes, meff, held, ks, dt, visit, anchor_vol, lanes, True, 1)
-    # ---- 5. contacts: the nodes that penetrated the jaws in this substep are pushed out; restore them
-    surf = np.ascontiguousarray(m.surface_nodes, dtype=np.int64)
-    x0, v0 = x.copy(), v.copy()
-    t_save = state.t.copy()
-    g_save = state.g_force.copy()
-    jaw_save, cs_save, cf_save = out.jaw_out.copy(), out.contact_state.copy(), out.contact_force.copy()
-
-    # restore only the nodes the pass moves (a few dozen): restoring all surface nodes costs several times the
-    # contacts themselves, and the difference of two timings would drown in the machine's noise
-    moved = np.zeros(n, dtype=np.bool_)
-    for _ in range(3):  # (the contacts' memory changes between repetitions: the union over a few)
-        _rep_contacts(m, state, out, x, v, x0, v0, surf, meff, held, u, tj, sub_info, res, 0, True, 1)
-        moved |= np.any(x != x0, axis=(1, 2)) | np.any(v != v0, axis=(1, 2))
-    x[:], v[:] = x0, v0
-    touched = np.flatnonzero(moved).astype(np.int64)
-
-    def contacts(run: bool) -> Callable[[int], None]:
-        return lambda k: _rep_contacts(m, state, out, x, v, x0, v0, touched, meff, held, u, tj, sub_info, res, 0,
-                                       run, k)
-
-    rows["contacts"] = _us_difference(contacts(True), contacts(False), min_time / DIFF_ROUNDS, repeats)
-    if not (np.array_equal(x[~moved], x0[~moved]) and np.array_equal(v[~moved], v0[~moved])):
-        raise RuntimeError("profile: the contacts moved nodes outside the set restored between repetitions")
-    x[:], v[:] = x0, v0
-    _rep_contacts(m, state, out, x, v, x0, v0, surf, meff, held, u, tj, sub_info, res, 0, True, 1)
-    contact_nodes = int(np.count_nonzero(held > 0))
-    # (the kernel's time, grasper pinch and readouts were advanced by the repetitions: put them back)
-    state.t[:], state.g_force[:] = t_save, g_save
-    out.jaw_out[:], out.contact_state[:], out.contact_force[:] = jaw_save, cs_save, cf_save
-    # ---- the whole call, per substep (many outer steps per call, as the env's 33 ms agent step)
-    steps = 33
-    whole_ms = _us(lambda k: sim.step(k * steps), min_time, repeats) / steps  # us per outer step
-    whole = whole_ms / sim.n_sub
-    total = sum(rows[p] for p in PHASES)
+    """us per substep of each part (:data:`PHASES`) and of the whole kernel call for ``sim``'s batch, from its
+    current state (restored afterwards: ``sim`` is left as it was)."""
+    calls = Restored(sim)
+    m = calls.model
+    nb = sim.batch_size
+    chain = ("barrier", "contacts", "springs")
+    runs = {"all": calls.run(), "restore": calls.restores, "watch_list_off": calls.run("watch_list")}
+    for k in range(1, len(chain) + 1):  # the parts off in turn: barrier; barrier, contacts; all three
+        runs["off:" + ",".join(chain[:k])] = calls.run(*chain[:k])
+    within = [p for p, on in (("maxwell_branch", m.use_sls), ("dashpots", m.use_dashpot)) if on]
+    for part in within:  # switched off from the springs' step (no barrier, no contacts)
+        runs[part + "_off"] = calls.run("barrier", "contacts", part)
+    us = fastest_us(runs, min_time, repeats)
+    calls.run()(1)  # (the contact memory after a call: a batch cloned from one tissue starts without it)
+    contact_nodes = int(np.count_nonzero(sim.held > 0))
+    calls.restore()
+    per_substep = 1.0 / (STEPS_PER_CALL * calls.n_sub)
+    before = [us["all"]] + [us["off:" + ",".join(chain[:k])] for k in range(1, len(chain) + 1)]
+    phases = {part: (before[k] - before[k + 1]) * per_substep for k, part in enumerate(chain)}
+    phases["base"] = (before[-1] - us["restore"]) * per_substep
+    whole = (us["all"] - us["restore"]) * per_substep
+    springs_on = us["off:barrier,contacts"]
+    below = int((volume_ratios(sim.x, m.tets, m.rest_volume) < m.vol_threshold).sum()) if m.kvol.shape[0] else 0
     return {
         "tissues": nb,
-        "layout": "lanes" if lanes else "one tissue",
-        "n_sub": sim.n_sub,
+        "layout": "lanes" if nb >= LANE_MIN else "one tissue at a time",
+        "n_sub": calls.n_sub,
+        "steps_per_call": STEPS_PER_CALL,
         "maxwell_branch": bool(m.use_sls),
         "dashpots": bool(m.use_dashpot),
         "contact_nodes": contact_nodes,
-        "tets_below_barrier_threshold": flagged,
-        "tets_watched": n_watch,
-        "barrier_full_flag_pass_us": _r(full_pass),
-        "phases_us_per_substep": {p: _r(rows[p]) for p in PHASES},
-        "phases_share_of_whole": {p: _r(rows[p] / whole) for p in PHASES},
-        "sum_of_phases_us": _r(total),
-        "whole_us_per_substep": _r(whole),
-        "remainder_us": _r(whole - total),
-        "sum_over_whole": _r(total / whole),
-        "per_tissue_whole_us_per_substep": _r(whole / nb),
-        "springs_float32": float32,
-        "springs_sqrt_div_us": divider,
+        "tets_below_barrier_threshold": below,
+        "phases_us_per_substep": {p: round_sig(phases[p]) for p in PHASES},
+        "phases_share_of_whole": {p: round_sig(phases[p] / whole) for p in PHASES},
+        "whole_us_per_substep": round_sig(whole),
+        "per_tissue_whole_us_per_substep": round_sig(whole / nb),
+        "springs_within_us": {p: round_sig((springs_on - us[p + "_off"]) * per_substep) for p in within},
+        "barrier_full_flag_pass_us": round_sig((us["watch_list_off"] - us["all"]) * per_substep),
+        "springs_float32": _springs_float32(sim, min_time, repeats),
+        "springs_sqrt_div_us": _divider_floor(sim.x, m.edges, min_time, repeats),
     }
 
 
-PROFILE_ROUNDS = 3
-
-
-def profile_substep_rounds(sim, min_time: float, repeats: int, rounds: int = PROFILE_ROUNDS) -> dict:
-    """:func:`profile_substep` ``rounds`` times from the same state of ``sim`` (restored before each round), each
-    time taken as its fastest round: every phase and the whole call are sampled across the same stretch of time, so
-    a stretch of load on the machine cannot fall on one of them alone."""
-    snapshot = {k: a.copy() for k, a in vars(sim).items() if isinstance(a, np.ndarray) and a.flags.writeable}
-    runs = []
-    for _ in range(rounds):
-        for k, a in snapshot.items():
-            getattr(sim, k)[...] = a
-        runs.append(profile_substep(sim, min_time / rounds, repeats))
-    return _fastest(runs)
-
-
-def _fastest(runs: list[dict]) -> dict:
-    """One :func:`profile_substep` row from several: each time the fastest, the sums and shares made from those."""
-    row = dict(runs[0])
-    phases = {p: min(r["phases_us_per_substep"][p] for r in runs) for p in PHASES}
-    whole = min(r["whole_us_per_substep"] for r in runs)
-    total = sum(phases.values())
-    nb = row["tissues"]
-    row.update({
-        "barrier_full_flag_pass_us": min(r["barrier_full_flag_pass_us"] for r in runs),
-        "phases_us_per_substep": phases,
-        "phases_share_of_whole": {p: _r(phases[p] / whole) for p in PHASES},
-        "sum_of_phases_us": _r(total),
-        "whole_us_per_substep": whole,
-        "remainder_us": _r(whole - total),
-        "sum_over_whole": _r(total / whole),
-        "per_tissue_whole_us_per_substep": _r(whole / nb),
-        "springs_sqrt_div_us": {k: min(r["springs_sqrt_div_us"][k] for r in runs) for k in row["springs_sqrt_div_us"]},
-    })
-    if row["springs_float32"] is not None:
-        row["springs_float32"] = {"us_per_substep": min(r["springs_float32"]["us_per_substep"] for r in runs),
-                                  "force_rel_err": max(r["springs_float32"]["force_rel_err"] for r in runs)}
-    return row
-
-
 def profile_substeps(quick: bool, progress: Callable[[str], None] = lambda s: None, resolution="coarse") -> dict:
-    """:func:`profile_substep_rounds` of the grasped coarse spleen, one tissue and a batch of
-    :data:`PROFILE_BATCH`."""
+    """:func:`profile_substep` of the grasped coarse spleen, one tissue and a batch of :data:`PROFILE_BATCH`."""
     from ..physics.simulation import Simulation
 
     min_time = 0.1 if quick else 0.5
-    repeats = 3
+    repeats = 1 if quick else 3
     settle_s, close_s = (0.5, 1.0) if quick else (2.0, 2.0)
     progress(f"profile: grasping the {resolution} spleen")
-    scene, sim1 = _grasped(resolution, settle_s, close_s)
-    progress("profile: substep phases, one tissue")
-    one = profile_substep_rounds(sim1, min_time, repeats)
+    scene, sim1 = grasped(resolution, settle_s, close_s)
+    progress("profile: substep parts, one tissue")
+    one = profile_substep(sim1, min_time, repeats)
     simb = Simulation(scene.model, PROFILE_BATCH, dt=DT_OUTER, grasper=scene.grasper)
-    _clone(sim1, simb)
-    progress(f"profile: substep phases, batch of {PROFILE_BATCH}")
-    batch = profile_substep_rounds(simb, min_time, repeats)
+    clone(sim1, simb)
+    progress(f"profile: substep parts, batch of {PROFILE_BATCH}")
+    batch = profile_substep(simb, min_time, repeats)
     return {"resolution": resolution, "nodes": scene.model.n_nodes, "springs": int(len(scene.model.edges)),
             "tets": int(len(scene.model.tets)), "surface_nodes": int(len(scene.mesh.surface_nodes)),
             "min_time_per_measurement_s": min_time, "rows": [one, batch]}
@@ -561,12 +340,13 @@ def profile_agent_step(quick: bool, progress: Callable[[str], None] = lambda s: 
             "n_envs": n_envs,
             "physics_ms_per_agent_step": steps,
             "agent_steps_timed": n_steps,
-            "ms": {"physics": _r(physics), "task": _r(task_ms), "readouts_finite_volume": _r(readouts),
-                   "python_rest": _r(vec - physics - task_ms - readouts), "sb3_vec_env_step": _r(vec)},
-            "share_of_sb3_step": {"physics": _r(physics / vec), "task": _r(task_ms / vec),
-                                  "readouts_finite_volume": _r(readouts / vec),
-                                  "python_rest": _r((vec - physics - task_ms - readouts) / vec)},
-            "agent_steps_per_s": _r(n_envs / vec * 1e3),
+            "ms": {"physics": round_sig(physics), "task": round_sig(task_ms),
+                   "readouts_finite_volume": round_sig(readouts),
+                   "python_rest": round_sig(vec - physics - task_ms - readouts), "sb3_vec_env_step": round_sig(vec)},
+            "share_of_sb3_step": {"physics": round_sig(physics / vec), "task": round_sig(task_ms / vec),
+                                  "readouts_finite_volume": round_sig(readouts / vec),
+                                  "python_rest": round_sig((vec - physics - task_ms - readouts) / vec)},
+            "agent_steps_per_s": round_sig(n_envs / vec * 1e3),
         })
         if n_envs == config.n_envs:
             progress("profile: policy inference")
@@ -593,8 +373,8 @@ def profile_agent_step(quick: bool, progress: Callable[[str], None] = lambda s: 
                         for _ in range(k):
                             policy(t)  # what the rollout calls: actions, values, log-probabilities
 
-                inference[f"predict_batch{batch}_ms"] = _r(ms(predict))
-                inference[f"forward_batch{batch}_ms"] = _r(ms(forward))
+                inference[f"predict_batch{batch}_ms"] = round_sig(ms(predict))
+                inference[f"forward_batch{batch}_ms"] = round_sig(ms(forward))
             del model
         venv.close()
     return {"resolution": config.env.resolution, "min_time_per_measurement_s": min_time, "rows": rows,
@@ -672,12 +452,14 @@ def profile_training(quick: bool, progress: Callable[[str], None] = lambda s: No
         "n_envs": config.n_envs, "n_steps": config.ppo["n_steps"], "agent_steps": total,
         "n_epochs": config.ppo["n_epochs"], "batch_size": config.ppo["batch_size"],
         "validation_episodes": config.validation_episodes, "validation_mu": list(config.validation_mu),
-        "seconds": {"learn": _r(learn), "rollout": _r(times["rollout"]), "update": _r(times["update"]),
-                    "learn_rest": _r(learn - times["rollout"] - times["update"]), "one_validation": _r(validation)},
-        "rollout_agent_steps_per_s": _r(total / times["rollout"]) if times["rollout"] > 0 else None,
-        "extrapolated_default_run": {"total_timesteps": config.total_timesteps, "checkpoints": _r(checkpoints),
-                                     "hours": {k: _r(s / 3600.0) for k, s in full_s.items()},
-                                     "share": {k: _r(s / full_total) for k, s in full_s.items()}},
+        "seconds": {"learn": round_sig(learn), "rollout": round_sig(times["rollout"]),
+                    "update": round_sig(times["update"]),
+                    "learn_rest": round_sig(learn - times["rollout"] - times["update"]),
+                    "one_validation": round_sig(validation)},
+        "rollout_agent_steps_per_s": round_sig(total / times["rollout"]) if times["rollout"] > 0 else None,
+        "extrapolated_default_run": {"total_timesteps": config.total_timesteps, "checkpoints": round_sig(checkpoints),
+                                     "hours": {k: round_sig(s / 3600.0) for k, s in full_s.items()},
+                                     "share": {k: round_sig(s / full_total) for k, s in full_s.items()}},
     }
 
 
@@ -695,7 +477,7 @@ def run_profile(quick: bool = False, progress: Callable[[str], None] = lambda s:
     report["agent_step"] = profile_agent_step(quick, progress)
     if training:
         report["training"] = profile_training(quick, progress)
-    report["elapsed_s"] = _r(time.perf_counter() - t0)
+    report["elapsed_s"] = round_sig(time.perf_counter() - t0)
     return report
 
 
@@ -705,62 +487,82 @@ def _divider_line(one: dict, batch: dict) -> str:
     return ("The springs' square roots and divisions alone (one of each per spring and tissue, nothing else: the "
             "vector divider's floor under a spring pass that keeps the spring law's arithmetic), us per substep, "
             f"float64 / float32: one tissue {f1['float64']} / {f1['float32']}, batch {fb['float64']} / {fb['float32']} "
-            f"({_r(fb['float64'] / nb)} / {_r(fb['float32'] / nb)} per tissue); float64 at {one['n_sub']} substeps per "
-            f"ms: {_r(f1['float64'] * one['n_sub'])} us per simulated ms one tissue, "
-            f"{_r(fb['float64'] * batch['n_sub'] / nb)} per tissue of the batch.")
+            f"({round_sig(fb['float64'] / nb)} / {round_sig(fb['float32'] / nb)} per tissue); float64 at "
+            f"{one['n_sub']} substeps per ms: {round_sig(f1['float64'] * one['n_sub'])} us per simulated ms one "
+            "tissue, "
+            f"{round_sig(fb['float64'] * batch['n_sub'] / nb)} per tissue of the batch.")
 
 
-def markdown_table(report: dict) -> str:
-    """The profile's tables (markdown)."""
-    lines = []
-    sub = report["substep"]
+#: the parts' rows in the substep table
+PHASE_LABELS = {"barrier": "volume barrier", "contacts": "contacts (jaws)", "springs": "springs",
+                "base": "base (forces, node update, loop)"}
+WITHIN_LABELS = {"maxwell_branch": "Maxwell branch", "dashpots": "dashpots"}
+
+
+def _substep_table(sub: dict) -> list[str]:
+    """The per-substep table and notes (markdown lines)."""
     one, batch = sub["rows"]
-    lines += [f"Per substep, {sub['resolution']} spleen ({sub['nodes']} nodes, {sub['springs']} springs, "
-              f"{sub['tets']} tets), jaws closed (contact nodes: {one['contact_nodes']} one tissue), n_sub "
-              f"{one['n_sub']}, Maxwell branch {'on' if one['maxwell_branch'] else 'off'}:", "",
-              f"| phase | one tissue us | share | batch {batch['tissues']} us | per tissue us | share |",
-              "|---|---|---|---|---|---|"]
+    nb = batch["tissues"]
+    lines = [f"Per substep, {sub['resolution']} spleen ({sub['nodes']} nodes, {sub['springs']} springs, "
+             f"{sub['tets']} tets), jaws closed (contact nodes: {one['contact_nodes']} one tissue), n_sub "
+             f"{one['n_sub']}, Maxwell branch {'on' if one['maxwell_branch'] else 'off'}, dashpots "
+             f"{'on' if one['dashpots'] else 'off'}; each part is what the kernel call ({one['steps_per_call']} outer "
+             "steps) saves with it switched off, after the parts above it:", "",
+             f"| part | one tissue us | share | batch {nb} us | per tissue us | share |", "|---|---|---|---|---|---|"]
     for p in PHASES:
-        lines.append(f"| {p} | {one['phases_us_per_substep'][p]} | {one['phases_share_of_whole'][p]} | "
-                     f"{batch['phases_us_per_substep'][p]} | "
-                     f"{_r(batch['phases_us_per_substep'][p] / batch['tissues'])} "
+        lines.append(f"| {PHASE_LABELS[p]} | {one['phases_us_per_substep'][p]} | {one['phases_share_of_whole'][p]} | "
+                     f"{batch['phases_us_per_substep'][p]} | {round_sig(batch['phases_us_per_substep'][p] / nb)} "
                      f"| {batch['phases_share_of_whole'][p]} |")
-    for key, label in (("sum_of_phases_us", "sum of phases"), ("whole_us_per_substep", "whole simulate"),
-                       ("remainder_us", "remainder (whole - sum)")):
-        lines.append(f"| {label} | {one[key]} | {_r(one[key] / one['whole_us_per_substep'])} | {batch[key]} | "
-                     f"{_r(batch[key] / batch['tissues'])} | {_r(batch[key] / batch['whole_us_per_substep'])} |")
-    lines += ["", f"Volume barrier: {one['tets_watched']} / {batch['tets_watched']} tets watched (one tissue / batch), "
-              f"{one['tets_below_barrier_threshold']} / {batch['tets_below_barrier_threshold']} flagged; the full "
-              f"flag pass that remakes the watch list (where a node has left its budget) "
-              f"{one['barrier_full_flag_pass_us']} / {batch['barrier_full_flag_pass_us']} us, not in the phases.",
-              "", f"The batch's spring pass in float32 arithmetic (the same code on float32 copies of the state; the "
-              f"physics stays float64): {batch['springs_float32']['us_per_substep']} us "
-              f"({_r(batch['springs_float32']['us_per_substep'] / batch['tissues'])} per tissue) against "
-              f"{batch['phases_us_per_substep']['springs']}, forces within "
-              f"{batch['springs_float32']['force_rel_err']} of float64's (relative to the largest).",
-              "", _divider_line(one, batch),
-              "", "Per agent step, ms (share of the SB3 vector env's step):", "",
-              "| n_envs | physics | task | finite + volume | Python rest | SB3 vec step | agent steps/s |",
-              "|---|---|---|---|---|---|---|"]
-    for r in report["agent_step"]["rows"]:
+    lines.append(f"| whole | {one['whole_us_per_substep']} | 1 | {batch['whole_us_per_substep']} | "
+                 f"{batch['per_tissue_whole_us_per_substep']} | 1 |")
+    for p, us in one["springs_within_us"].items():
+        lines += ["", f"Of the springs, the {WITHIN_LABELS[p]}: {us} / {batch['springs_within_us'][p]} us "
+                  "(one tissue / batch)."]
+    f32 = batch["springs_float32"]["us_per_substep"]
+    springs = one["phases_us_per_substep"]["springs"], batch["phases_us_per_substep"]["springs"]
+    lines += ["", f"Volume barrier: {one['tets_below_barrier_threshold']} / {batch['tets_below_barrier_threshold']} "
+              f"tets below its threshold (one tissue / batch); a full flag pass on every substep instead of the watch "
+              f"list would add {one['barrier_full_flag_pass_us']} / {batch['barrier_full_flag_pass_us']} us.",
+              "", f"The springs in float32 (`Simulation(precision=\"float32\")`, the same grasp): "
+              f"{one['springs_float32']['us_per_substep']} us one tissue, {f32} the batch ({round_sig(f32 / nb)} per "
+              f"tissue), against {springs[0]} / {springs[1]} in float64 (its error against float64: "
+              "`msdgrasp bench physics`).",
+              "", _divider_line(one, batch)]
+    return lines
+
+
+def _agent_step_table(agent: dict) -> list[str]:
+    """The per-agent-step table and the policy's inference (markdown lines)."""
+    lines = ["Per agent step, ms (share of the SB3 vector env's step):", "",
+             "| n_envs | physics | task | finite + volume | Python rest | SB3 vec step | agent steps/s |",
+             "|---|---|---|---|---|---|---|"]
+    for r in agent["rows"]:
         t, sh = r["ms"], r["share_of_sb3_step"]
         lines.append(f"| {r['n_envs']} | {t['physics']} ({sh['physics']}) | {t['task']} ({sh['task']}) | "
                      f"{t['readouts_finite_volume']} ({sh['readouts_finite_volume']}) | {t['python_rest']} "
                      f"({sh['python_rest']}) | {t['sb3_vec_env_step']} | {r['agent_steps_per_s']} |")
-    inf = report["agent_step"]["policy_inference"]
+    inf = agent["policy_inference"]
     lines += ["", f"Policy inference ({inf['policy']}, net {inf['net_arch']}, obs {inf['obs_dim']}, torch threads "
               f"{inf['torch_threads']}), ms: predict 1 obs {inf['predict_batch1_ms']}, predict {PROFILE_BATCH} obs "
               f"{inf[f'predict_batch{PROFILE_BATCH}_ms']}, forward 1 obs {inf['forward_batch1_ms']}, forward "
               f"{PROFILE_BATCH} obs {inf[f'forward_batch{PROFILE_BATCH}_ms']}"]
+    return lines
+
+
+def _training_line(tr: dict) -> str:
+    s, ext = tr["seconds"], tr["extrapolated_default_run"]
+    return (f"Training ({tr['agent_steps']} agent steps, {tr['n_envs']} envs, {tr['n_epochs']} epochs): "
+            f"rollout {s['rollout']} s, PPO update {s['update']} s, one validation {s['one_validation']} s; "
+            f"extrapolated to the default {ext['total_timesteps']} steps: rollout {ext['hours']['rollout']} h, "
+            f"update {ext['hours']['update']} h, validation {ext['hours']['validation']} h (shares "
+            f"{ext['share']['rollout']} / {ext['share']['update']} / {ext['share']['validation']})")
+
+
+def markdown_table(report: dict) -> str:
+    """The profile's tables (markdown)."""
+    lines = _substep_table(report["substep"]) + [""] + _agent_step_table(report["agent_step"])
     if "training" in report:
-        tr = report["training"]
-        s = tr["seconds"]
-        ext = tr["extrapolated_default_run"]
-        lines += ["", f"Training ({tr['agent_steps']} agent steps, {tr['n_envs']} envs, {tr['n_epochs']} epochs): "
-                  f"rollout {s['rollout']} s, PPO update {s['update']} s, one validation {s['one_validation']} s; "
-                  f"extrapolated to the default {ext['total_timesteps']} steps: rollout {ext['hours']['rollout']} h, "
-                  f"update {ext['hours']['update']} h, validation {ext['hours']['validation']} h (shares "
-                  f"{ext['share']['rollout']} / {ext['share']['update']} / {ext['share']['validation']})"]
+        lines += ["", _training_line(report["training"])]
     return "\n".join(lines)
 
 
@@ -768,7 +570,6 @@ def profile_cli(quick: bool, out) -> int:
     """``msdgrasp bench profile``: print the JSON report (and the tables on stderr); ``out`` also writes it
     (JSON and markdown, atomically)."""
     from ..physics.config import atomic_write_text
-    from .report import _out_paths
 
     def progress(msg: str) -> None:
         print(f"[bench] {msg}", file=sys.stderr, flush=True)
@@ -776,7 +577,7 @@ def profile_cli(quick: bool, out) -> int:
     report = run_profile(quick, progress=progress)
     table = markdown_table(report)
     if out is not None:
-        json_path, md_path, _ = _out_paths(out)
+        json_path, md_path, _ = out_paths(out)
         report["files"] = {"json": str(json_path), "markdown": str(md_path)}
         atomic_write_text(json_path, json.dumps(report, indent=2) + "\n")
         atomic_write_text(md_path, table + "\n")

@@ -4,12 +4,13 @@ markdown table and the log-log scaling plot (benchmarks/bench.py measures; this 
 
 from __future__ import annotations
 
-import math
 import os
 import platform
 from pathlib import Path
 
 import numpy as np
+
+from .harness import round_sig
 
 #: batch size of the batched physics measurements: a full lane block (physics/integrator.py), so the
 #: per-tissue figure is what the SIMD-across-tissues path delivers
@@ -29,13 +30,6 @@ TARGETS = {
 }
 
 
-def _r(x: float, nd: int = 3) -> float:
-    """Round to ``nd`` significant digits (JSON readability)."""
-    if x is None or not math.isfinite(x) or x == 0:
-        return x
-    return round(x, -int(math.floor(math.log10(abs(x)))) + nd - 1)
-
-
 # ------------------------------------------------------------------------------------------------
 # targets, report
 # ------------------------------------------------------------------------------------------------
@@ -45,7 +39,7 @@ def _target(value, limit, kind: str, unit: str, note: str = "", cpu_value=None) 
     def ok(v):
         return None if v is None else bool(v <= limit if kind == "<=" else v >= limit)
 
-    d = {"value": value, "target": f"{kind} {_r(limit)}", "unit": unit, "pass": ok(value)}
+    d = {"value": value, "target": f"{kind} {round_sig(limit)}", "unit": unit, "pass": ok(value)}
     if cpu_value is not None:  # the same from process CPU time (less sensitive to a busy machine)
         d["value_cpu_time"] = cpu_value
         d["pass_cpu_time"] = ok(cpu_value)
@@ -73,7 +67,7 @@ def evaluate_targets(report: dict) -> dict:
     if "coarse" in co:
         r = co["coarse"]
         if "overhead_single" in r:
-            cpu = _r(r["single_cpu_us_per_ms"] / nc["coarse"]["single_cpu_us_per_ms"] - 1.0)
+            cpu = round_sig(r["single_cpu_us_per_ms"] / nc["coarse"]["single_cpu_us_per_ms"] - 1.0)
             t["coarse_contact_overhead_le_50pct"] = _target(r["overhead_single"], TARGETS["contact_overhead"], "<=",
                                                             "fraction", "contact / no-contact - 1, one tissue", cpu)
         t["coarse_contact_ge_100x_realtime"] = _target(r["single_us_per_ms"], TARGETS["coarse_contact_us_per_ms"],
@@ -131,7 +125,7 @@ def machine_info() -> dict:
         "cpu_count": os.cpu_count(),
     }
     try:
-        info["load_average_1min"] = _r(os.getloadavg()[0])
+        info["load_average_1min"] = round_sig(os.getloadavg()[0])
     except OSError:
         pass
     return info
@@ -285,7 +279,7 @@ def markdown(report: dict) -> str:
 def speedup(cpu_row: dict, gpu_rows: list[dict]) -> float | None:
     """GPU agent steps/s over ``cpu_row``'s: the float64 GPU row with contact at the same batch (None: none)."""
     same = [g for g in gpu_rows if g["batch"] == cpu_row["batch"] and g["contact"] and g["dtype"] == "float64"]
-    return _r(same[0]["agent_steps_per_s"] / cpu_row["agent_steps_per_s"]) if same else None
+    return round_sig(same[0]["agent_steps_per_s"] / cpu_row["agent_steps_per_s"]) if same else None
 
 
 def plot_gpu(report: dict, path: Path) -> Path | None:
@@ -370,10 +364,3 @@ def plot_scaling(report: dict, path: Path) -> Path | None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     return save_figure(fig, path)
-
-
-def _out_paths(out: Path) -> tuple[Path, Path, Path]:
-    out = Path(out)
-    if out.suffix.lower() != ".json":
-        out = out / "bench.json"
-    return out, out.with_suffix(".md"), out.with_name(out.stem + "_scaling.png")

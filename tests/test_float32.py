@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msdgrasp.benchmarks.bench import _clone, _grasped
+from msdgrasp.benchmarks.harness import clone, grasped
 from msdgrasp.physics.config import ConfigError
 from msdgrasp.physics.integrator import LANE_MIN
 from msdgrasp.physics.reference import DT_OUTER
@@ -18,13 +18,13 @@ from msdgrasp.physics.simulation import Simulation
 @pytest.fixture(scope="module")
 def grasp():
     """The coarse spleen settled and held between the closed jaws (the bench's grasp, shortened)."""
-    return _grasped("coarse", 0.5, 1.0)
+    return grasped("coarse", 0.5, 1.0)
 
 
 def _clone_of(grasp, batch: int, precision: str) -> Simulation:
     scene, held = grasp
     sim = Simulation(scene.model, batch, dt=DT_OUTER, grasper=scene.grasper, precision=precision)
-    _clone(held, sim)
+    clone(held, sim)
     return sim
 
 
