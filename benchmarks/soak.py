@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from ..physics.config import ConfigError
+
 #: the soak's ranges (training defaults: mu 0.3-0.9, stiffness 0.8-1.2, mass 0.9-1.1)
 MU_RANGE = (0.0, 1.5)
 STIFFNESS_RANGE = (0.5, 2.0)
@@ -149,184 +151,254 @@ def _peak_rss_bytes() -> int:
     return int(ru) * (1 if sys.platform == "darwin" else 1024)
 
 
-def run_soak(steps: int = 1_000_000, n_envs: int = 16, seed: int = 0, progress: bool = True,
-             env_factory: Callable[[int], Any] | None = None) -> dict:
-    """Run the soak for ``steps`` agent steps in total (summed over the ``n_envs`` sub-envs).
+def _check_count(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
 
-    ``env_factory(n_envs)`` builds the vector env (default :func:`make_env`, the soak's wide ranges).
-    """
-    from ..physics.config import ConfigError
 
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise ConfigError(f"steps must be an integer >= 1, got {steps!r}")
-    if isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or n_envs < 1:
-        raise ConfigError(f"n_envs must be an integer >= 1, got {n_envs!r}")
-    seed = 0 if seed is None else int(seed)
-    factory = env_factory or make_env
-    t_start = time.perf_counter()
-    rng = np.random.default_rng(seed)
-    env = factory(int(n_envs))
-    N = env.num_envs
-    config = env.config
-    policy = MixedPolicy(config, N, rng)
-    vsteps = math.ceil(steps / N)
-    warmup = max(1, vsteps // 10)
-    sample_every = max(1, vsteps // 100)
+def _flags(info: dict, key: str, n: int) -> np.ndarray:
+    """info[key] as (n,) bools (all False where the env did not report it)."""
+    return np.asarray(info.get(key, np.zeros(n, dtype=bool)), dtype=bool)
 
-    c: dict[str, Any] = {
-        "episodes": 0, "steps": 0, "vector_steps": 0, "silent_nan": 0, "silent_nan_obs": 0, "silent_nan_reward": 0,
-        "silent_nan_final_obs": 0, "blowups": 0, "blowups_unflagged": 0, "nonfinite_info_values": 0,
-        "exceptions": 0, "forced_resets": 0, "episodes_interrupted": 0,
-        "outcomes": {"success": 0, "lost_grasp": 0, "damaged": 0, "numerical_failure": 0, "truncated": 0},
-    }
-    first_tb = None
-    first_nan = None
-    mus: list[float] = []
-    kss: list[float] = []
-    rss_samples: list[tuple[int, int]] = []
-    rss_warm = None
-    reset_seed = seed
 
-    def record_episode_params(idx) -> None:
-        core = getattr(env, "core", None)
-        if core is not None:
-            mus.extend(float(core.mu[i]) for i in idx)
-            kss.extend(float(core.sim.kscale[i]) for i in idx)
+def _not_finite(a: Any, n: int) -> np.ndarray:
+    """(n,) True where a sub-env's row of ``a`` holds a non-finite value."""
+    return ~np.all(np.isfinite(np.asarray(a, dtype=np.float64).reshape(n, -1)), axis=1)
 
-    def full_reset(options=None):
-        nonlocal reset_seed
-        reset_seed += N
-        o, _ = env.reset(seed=reset_seed, options=options)
-        policy.reset_all()
-        record_episode_params(range(N))
-        return o
 
-    obs = full_reset()
-    bar = None
-    if progress:
-        from ..physics.config import needs_extra
+class SoakTally:
+    """What the soak counts over its steps (``counts``) and the first failures' details."""
 
-        with needs_extra("viz", "the progress bar"):
-            from tqdm import tqdm
-        bar = tqdm(total=vsteps * N, unit="step", desc="soak", file=sys.stderr, mininterval=1.0)
-    aborted = None
-    for k in range(vsteps):
-        if k > 0 and rng.random() < 0.002:  # pinned extremes for every sub-env (in-flight episodes dropped)
-            opts = dict(EXTREME_OPTIONS[int(rng.integers(len(EXTREME_OPTIONS)))])
-            try:
-                obs = full_reset(opts)
-                c["forced_resets"] += 1
-                c["episodes_interrupted"] += N
-            except Exception:
-                c["exceptions"] += 1
-                first_tb = first_tb or traceback.format_exc()
-        try:
-            action = policy.act(obs)
-            obs, reward, term, trunc, info = env.step(action)
-        except Exception:
-            c["exceptions"] += 1
-            first_tb = first_tb or traceback.format_exc()
-            try:
-                obs = full_reset()
-            except Exception:
-                c["exceptions"] += 1
-                aborted = "reset after an exception failed too"
-                break
-            continue
+    OUTCOMES = ("success", "lost_grasp", "damaged", "numerical_failure", "truncated")
+    #: the outcomes the env's info flags (outcome: info key)
+    OUTCOME_FLAGS = {"success": "is_success", "lost_grasp": "lost_grasp", "damaged": "damaged"}
+    #: info values that must stay finite wherever the physics has not failed
+    INFO_VALUES = ("pinch_force_N", "slip_distance_m", "lifted_m", "peak_stress_pa", "contact_nodes")
+
+    def __init__(self, n_envs: int) -> None:
+        self.n = n_envs
+        self.counts: dict[str, Any] = {
+            "episodes": 0, "steps": 0, "vector_steps": 0, "silent_nan": 0, "silent_nan_obs": 0,
+            "silent_nan_reward": 0, "silent_nan_final_obs": 0, "blowups": 0, "blowups_unflagged": 0,
+            "nonfinite_info_values": 0, "exceptions": 0, "forced_resets": 0, "episodes_interrupted": 0,
+            "outcomes": dict.fromkeys(self.OUTCOMES, 0),
+        }
+        self.first_traceback: str | None = None
+        self.first_silent_nan: dict | None = None
+
+    def exception(self) -> None:
+        """Count the exception being handled (the first one's traceback is kept)."""
+        self.counts["exceptions"] += 1
+        self.first_traceback = self.first_traceback or traceback.format_exc()
+
+    def step(self, k: int, env, obs, reward, term, trunc, info: dict) -> np.ndarray:
+        """Count vector step ``k``'s results; the sub-envs whose episode ended."""
+        c, n = self.counts, self.n
         c["vector_steps"] += 1
-        c["steps"] += N
-        obs_arr = np.asarray(obs)
-        rew_arr = np.asarray(reward, dtype=np.float64)
-        bad_obs = ~np.all(np.isfinite(obs_arr.reshape(N, -1)), axis=1)
-        bad_rew = ~np.isfinite(rew_arr)
-        bad_final = np.zeros(N, dtype=bool)
-        if "final_obs" in info:
-            bad_final = ~np.all(np.isfinite(np.asarray(info["final_obs"], dtype=np.float64).reshape(N, -1)), axis=1)
+        c["steps"] += n
+        bad = self._silent_nan(k, env, obs, reward, info)
+        failed = _flags(info, "numerical_failure", n)
+        self._blowups(failed, term, info, bad)
+        for key in self.INFO_VALUES:
+            if key in info:
+                v = np.asarray(info[key], dtype=np.float64)
+                c["nonfinite_info_values"] += int((~np.isfinite(v) & ~failed).sum())
+        done = np.flatnonzero(np.asarray(term, dtype=bool) | np.asarray(trunc, dtype=bool))
+        if done.size:
+            self._episodes(done, failed, trunc, info)
+        return done
+
+    def _silent_nan(self, k: int, env, obs, reward, info: dict) -> np.ndarray:
+        """Count non-finite observations, rewards and final observations handed out; (n,) where any was."""
+        c, n = self.counts, self.n
+        bad_obs = _not_finite(obs, n)
+        bad_rew = ~np.isfinite(np.asarray(reward, dtype=np.float64))
+        bad_final = _not_finite(info["final_obs"], n) if "final_obs" in info else np.zeros(n, dtype=bool)
         bad = bad_obs | bad_rew | bad_final
         if np.any(bad):
             c["silent_nan"] += int(bad.sum())
             c["silent_nan_obs"] += int(bad_obs.sum())
             c["silent_nan_reward"] += int(bad_rew.sum())
             c["silent_nan_final_obs"] += int(bad_final.sum())
-            if first_nan is None:
+            if self.first_silent_nan is None:
                 i = int(np.flatnonzero(bad)[0])
-                first_nan = {"vector_step": k, "env": i, "mu": float(env.core.mu[i]) if hasattr(env, "core") else None}
-        failed = np.asarray(info.get("numerical_failure", np.zeros(N, dtype=bool)), dtype=bool)
-        if np.any(failed):
-            c["blowups"] += int(failed.sum())
-            err = info.get("error")
-            for i in np.flatnonzero(failed):
-                flagged = bool(term[i]) and err is not None and bool(str(np.asarray(err)[i])) and not bad[i]
-                if not flagged:
-                    c["blowups_unflagged"] += 1
-        ok_env = ~failed
-        for key in ("pinch_force_N", "slip_distance_m", "lifted_m", "peak_stress_pa", "contact_nodes"):
-            if key in info:
-                v = np.asarray(info[key], dtype=np.float64)
-                c["nonfinite_info_values"] += int((~np.isfinite(v) & ok_env).sum())
-        done = np.asarray(term, dtype=bool) | np.asarray(trunc, dtype=bool)
-        if np.any(done):
-            idx = np.flatnonzero(done)
-            c["episodes"] += len(idx)
-            out = c["outcomes"]
-            out["success"] += int(np.asarray(info.get("is_success", np.zeros(N, bool)))[idx].sum())
-            out["lost_grasp"] += int(np.asarray(info.get("lost_grasp", np.zeros(N, bool)))[idx].sum())
-            out["damaged"] += int(np.asarray(info.get("damaged", np.zeros(N, bool)))[idx].sum())
-            out["numerical_failure"] += int(failed[idx].sum())
-            out["truncated"] += int(np.asarray(trunc, dtype=bool)[idx].sum())
-            for i in idx:
-                policy.new_episode(int(i))
-            record_episode_params(idx)
+                mu = float(env.core.mu[i]) if hasattr(env, "core") else None
+                self.first_silent_nan = {"vector_step": k, "env": i, "mu": mu}
+        return bad
+
+    def _blowups(self, failed: np.ndarray, term, info: dict, bad: np.ndarray) -> None:
+        """Count blow-ups, and those not reported as a termination with ``info['error']`` and finite output."""
+        if not np.any(failed):
+            return
+        self.counts["blowups"] += int(failed.sum())
+        err = info.get("error")
+        for i in np.flatnonzero(failed):
+            flagged = bool(term[i]) and err is not None and bool(str(np.asarray(err)[i])) and not bad[i]
+            if not flagged:
+                self.counts["blowups_unflagged"] += 1
+
+    def _episodes(self, done: np.ndarray, failed: np.ndarray, trunc, info: dict) -> None:
+        self.counts["episodes"] += len(done)
+        out = self.counts["outcomes"]
+        for name, key in self.OUTCOME_FLAGS.items():
+            out[name] += int(_flags(info, key, self.n)[done].sum())
+        out["numerical_failure"] += int(failed[done].sum())
+        out["truncated"] += int(np.asarray(trunc, dtype=bool)[done].sum())
+
+
+class _SoakEnv:
+    """The soak's vector env with its controllers: resets (seeded apart), the episode parameters drawn so far
+    (friction and stiffness scale) and the RSS samples."""
+
+    def __init__(self, env, policy: MixedPolicy, seed: int) -> None:
+        self.env, self.policy, self.n = env, policy, env.num_envs
+        self.reset_seed = seed
+        self.mus: list[float] = []
+        self.kss: list[float] = []
+        self.rss_samples: list[tuple[int, int]] = []
+        self.rss_warm: int | None = None
+
+    def record_episode_params(self, idx) -> None:
+        core = getattr(self.env, "core", None)
+        if core is not None:
+            self.mus.extend(float(core.mu[i]) for i in idx)
+            self.kss.extend(float(core.sim.kscale[i]) for i in idx)
+
+    def full_reset(self, options: dict | None = None) -> np.ndarray:
+        self.reset_seed += self.n
+        obs, _ = self.env.reset(seed=self.reset_seed, options=options)
+        self.policy.reset_all()
+        self.record_episode_params(range(self.n))
+        return obs
+
+    def new_episodes(self, done: np.ndarray) -> None:
+        for i in done:
+            self.policy.new_episode(int(i))
+        self.record_episode_params(done)
+
+    def sample_rss(self, steps: int, warm: bool) -> None:
+        rss = _rss_bytes()
+        self.rss_samples.append((steps, rss))
+        if self.rss_warm is None and warm:
+            self.rss_warm = rss
+
+
+def _progress_bar(total: int):
+    from ..physics.config import needs_extra
+
+    with needs_extra("viz", "the progress bar"):
+        from tqdm import tqdm
+    return tqdm(total=total, unit="step", desc="soak", file=sys.stderr, mininterval=1.0)
+
+
+def _soak_loop(soak: _SoakEnv, tally: SoakTally, rng: np.random.Generator, vsteps: int, bar) -> str | None:
+    """Run ``vsteps`` vector steps; why the run stopped early (None: it did not)."""
+    n = soak.n
+    warmup = max(1, vsteps // 10)
+    sample_every = max(1, vsteps // 100)
+    obs = soak.full_reset()
+    for k in range(vsteps):
+        if k > 0 and rng.random() < 0.002:  # pinned extremes for every sub-env (in-flight episodes dropped)
+            opts = dict(EXTREME_OPTIONS[int(rng.integers(len(EXTREME_OPTIONS)))])
+            try:
+                obs = soak.full_reset(opts)
+                tally.counts["forced_resets"] += 1
+                tally.counts["episodes_interrupted"] += n
+            except Exception:
+                tally.exception()
+        try:
+            obs, reward, term, trunc, info = soak.env.step(soak.policy.act(obs))
+        except Exception:
+            tally.exception()
+            try:
+                obs = soak.full_reset()
+            except Exception:
+                tally.exception()
+                return "reset after an exception failed too"
+            continue
+        soak.new_episodes(tally.step(k, soak.env, obs, reward, term, trunc, info))
         if k % sample_every == 0 or k == vsteps - 1:
-            rss = _rss_bytes()
-            rss_samples.append((c["steps"], rss))
-            if rss_warm is None and k >= warmup:
-                rss_warm = rss
+            soak.sample_rss(tally.counts["steps"], k >= warmup)
         if bar is not None:
-            bar.update(N)
+            bar.update(n)
+    return None
+
+
+def _frac_outside(a: np.ndarray, lo_hi: tuple[float, float]) -> float | None:
+    return round(float(np.mean((a < lo_hi[0]) | (a > lo_hi[1]))), 4) if a.size else None
+
+
+def _seen(a: np.ndarray) -> list[float] | None:
+    return [round(float(a.min()), 4), round(float(a.max()), 4)] if a.size else None
+
+
+def _randomization_report(soak: _SoakEnv) -> dict:
+    mu_a, ks_a = np.array(soak.mus), np.array(soak.kss)
+    return {
+        "mu_range": list(MU_RANGE), "stiffness_scale_range": list(STIFFNESS_RANGE),
+        "mass_scale_range": list(MASS_RANGE),
+        "n_sub": int(soak.env.core.sim.n_sub) if hasattr(soak.env, "core") else None,
+        "episodes_drawn": int(mu_a.size),
+        "mu_seen": _seen(mu_a),
+        "stiffness_seen": _seen(ks_a),
+        "fraction_mu_outside_training": _frac_outside(mu_a, TRAIN_MU),
+        "fraction_stiffness_outside_training": _frac_outside(ks_a, TRAIN_STIFFNESS),
+    }
+
+
+def _memory_report(soak: _SoakEnv) -> dict:
+    samples = soak.rss_samples
+    last = samples[-1][1] if samples else _rss_bytes()
+    warm = soak.rss_warm
+    if warm is None:  # a run too short for a warm-up: growth over the run
+        warm = samples[0][1] if samples else last
+    growth = last / warm - 1.0 if warm else 0.0
+    return {
+        "peak_rss_mb": round(_peak_rss_bytes() / 2**20, 1),
+        "rss_after_warmup_mb": round(warm / 2**20, 1),
+        "rss_last_mb": round(last / 2**20, 1),
+        "growth_after_warmup": round(growth, 4),
+        "growth_target": MEMORY_GROWTH_TARGET,
+        "growth_ok": bool(growth < MEMORY_GROWTH_TARGET),
+        "samples": [[s, round(r / 2**20, 1)] for s, r in samples],
+    }
+
+
+def run_soak(steps: int = 1_000_000, n_envs: int = 16, seed: int = 0, progress: bool = True,
+             env_factory: Callable[[int], Any] | None = None) -> dict:
+    """Run the soak for ``steps`` agent steps in total (summed over the ``n_envs`` sub-envs).
+
+    ``env_factory(n_envs)`` builds the vector env (default :func:`make_env`, the soak's wide ranges).
+    """
+    _check_count("steps", steps)
+    _check_count("n_envs", n_envs)
+    seed = 0 if seed is None else int(seed)
+    t_start = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    env = (env_factory or make_env)(int(n_envs))
+    n = env.num_envs
+    soak = _SoakEnv(env, MixedPolicy(env.config, n, rng), seed)
+    tally = SoakTally(n)
+    vsteps = math.ceil(steps / n)
+    bar = _progress_bar(vsteps * n) if progress else None
+    aborted = _soak_loop(soak, tally, rng, vsteps, bar)
     if bar is not None:
         bar.close()
     env.close()
     elapsed = time.perf_counter() - t_start
-
-    last = rss_samples[-1][1] if rss_samples else _rss_bytes()
-    if rss_warm is None:  # a run too short for a warm-up: growth over the run
-        rss_warm = rss_samples[0][1] if rss_samples else last
-    growth = last / rss_warm - 1.0 if rss_warm else 0.0
-    mu_a, ks_a = np.array(mus), np.array(kss)
-
-    def frac_outside(a, lo_hi):
-        return round(float(np.mean((a < lo_hi[0]) | (a > lo_hi[1]))), 4) if a.size else None
-
+    c = tally.counts
     report = {
         "steps_requested": int(steps),
-        "n_envs": N,
+        "n_envs": n,
         "seed": seed,
-        **{k: v for k, v in c.items()},
-        "first_traceback": first_tb,
-        "first_silent_nan": first_nan,
+        **c,
+        "first_traceback": tally.first_traceback,
+        "first_silent_nan": tally.first_silent_nan,
         "aborted": aborted,
-        "modes": policy.mode_counts,
-        "extreme_actions": policy.extreme_actions,
-        "randomization": {
-            "mu_range": list(MU_RANGE), "stiffness_scale_range": list(STIFFNESS_RANGE),
-            "mass_scale_range": list(MASS_RANGE),
-            "n_sub": int(env.core.sim.n_sub) if hasattr(env, "core") else None,
-            "episodes_drawn": int(mu_a.size),
-            "mu_seen": [round(float(mu_a.min()), 4), round(float(mu_a.max()), 4)] if mu_a.size else None,
-            "stiffness_seen": [round(float(ks_a.min()), 4), round(float(ks_a.max()), 4)] if ks_a.size else None,
-            "fraction_mu_outside_training": frac_outside(mu_a, TRAIN_MU),
-            "fraction_stiffness_outside_training": frac_outside(ks_a, TRAIN_STIFFNESS),
-        },
-        "memory": {
-            "peak_rss_mb": round(_peak_rss_bytes() / 2**20, 1),
-            "rss_after_warmup_mb": round(rss_warm / 2**20, 1),
-            "rss_last_mb": round(last / 2**20, 1),
-            "growth_after_warmup": round(growth, 4),
-            "growth_target": MEMORY_GROWTH_TARGET,
-            "growth_ok": bool(growth < MEMORY_GROWTH_TARGET),
-            "samples": [[s, round(r / 2**20, 1)] for s, r in rss_samples],
-        },
+        "modes": soak.policy.mode_counts,
+        "extreme_actions": soak.policy.extreme_actions,
+        "randomization": _randomization_report(soak),
+        "memory": _memory_report(soak),
         "elapsed_s": round(elapsed, 2),
         "steps_per_s": round(c["steps"] / elapsed, 1) if elapsed > 0 else None,
     }
@@ -336,7 +408,7 @@ def run_soak(steps: int = 1_000_000, n_envs: int = 16, seed: int = 0, progress: 
 
 
 def soak_cli(args) -> int:
-    from ..physics.config import ConfigError, atomic_write_text
+    from ..physics.config import atomic_write_text
 
     raw = getattr(args, "steps", 1_000_000)
     try:
