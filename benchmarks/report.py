@@ -131,148 +131,184 @@ def machine_info() -> dict:
     return info
 
 
+def _no_contact_section(ph: dict) -> list[str]:
+    b = BATCH
+    lines = ["## Physics without contact (us of compute per simulated ms)", "",
+             f"| resolution | nodes | springs | n_sub | single | x real time | batch {b} total | per tissue "
+             f"| ns per spring and substep: single / batch {b} |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in ph["no_contact"]:
+        lines.append(f"| {r['resolution']} | {r['nodes']} | {r['springs']} | {r['n_sub']} | "
+                     f"{r['single_us_per_ms']} | "
+                     f"{r['single_realtime_factor']} | {r[f'batch{b}_total_us_per_ms']} | "
+                     f"{r[f'batch{b}_per_tissue_us_per_ms']} | {r.get('single_ns_per_spring_substep', '-')} / "
+                     f"{r.get(f'batch{b}_ns_per_spring_substep', '-')} |")
+    s = ph["scaling"]
+    lines += ["", f"Log-log exponent of cost vs nodes: {s['exponent_us_per_ms_vs_nodes']} per simulated ms, "
+                  f"{s['exponent_us_per_substep_vs_nodes']} per substep.", ""]
+    return lines
+
+
+def _contact_section(ph: dict) -> list[str]:
+    b = BATCH
+    lines = ["## Physics with contact (jaws closed on the inferior pole)", "",
+             f"| resolution | nodes | n_sub | contact nodes | single | x real time | overhead "
+             f"| batch {b} total | per tissue |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in ph["contact"]:
+        lines.append(f"| {r['resolution']} | {r['nodes']} | {r['n_sub']} | {r['contact_nodes']} | "
+                     f"{r['single_us_per_ms']} | {r['single_realtime_factor']} | {r.get('overhead_single', '-')} | "
+                     f"{r[f'batch{b}_total_us_per_ms']} | {r[f'batch{b}_per_tissue_us_per_ms']} |")
+    lines.append("")
+    for r in ph["contact"]:
+        if r.get("float32"):
+            f = r["float32"]
+            lines += [f"float32 (`Simulation(precision=\"float32\")`, {r['resolution']}): "
+                      f"{f['single_us_per_ms']} us per simulated ms for one tissue, "
+                      f"{f[f'batch{b}_per_tissue_us_per_ms']} per tissue of {b}; against float64 from the same "
+                      f"grasp over {f['compare_ms']} ms: positions within {f['max_position_error_m']} m, pinch "
+                      f"within {f['pinch_rel_error']} relative, {f['same_contact_state']} of the nodes in the "
+                      "same contact state.", ""]
+    return lines
+
+
+def _numpy_section(nr: dict) -> list[str]:
+    cc = nr["cross_check"]
+    lines = ["## NumPy reference", "",
+             f"Cross-check ({cc['resolution']}): max rel. force diff {cc['max_rel_diff_forces']:.2e}, "
+             f"Maxwell {cc['max_rel_diff_maxwell_forces']:.2e}, displacement after {cc['state_steps_ms']} ms "
+             f"{cc['max_rel_diff_displacement']:.2e}.", "",
+             "| resolution | nodes | NumPy us/ms | ours us/ms | ours/NumPy |", "|---|---|---|---|---|"]
+    for r in nr["rows"]:
+        lines.append(f"| {r['resolution']} | {r['nodes']} | {r['numpy_us_per_ms']} | {r['numba_us_per_ms']} | "
+                     f"{r['ratio_ours_over_numpy']} |")
+    return lines + [""]
+
+
+def _mujoco_section(mj: dict) -> list[str]:
+    b = BATCH
+    lines = ["## MuJoCo flex", ""]
+    if not mj["available"]:
+        return lines + [f"Not available: {mj['reason']}", ""]
+    lines += [f"MuJoCo {mj['version']}: {mj['model']}.", "",
+              f"| resolution | nodes | MuJoCo us/ms | ours us/ms | ours/MuJoCo | ours, batch {b}, per tissue "
+              "| MuJoCo/ours (batched) | finite |", "|---|---|---|---|---|---|---|---|"]
+    for r in mj["rows"]:
+        if "error" in r:
+            lines.append(f"| {r['resolution']} | - | error: {r['error']} | | | | | |")
+        else:
+            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['mujoco_us_per_ms']} | "
+                         f"{r['ours_us_per_ms']} | {r['ratio_ours_over_mujoco']} | "
+                         f"{r.get(f'ours_batch{b}_per_tissue_us_per_ms', '-')} | "
+                         f"{r.get('speedup_batch_per_tissue', '-')} | {r['finite']} |")
+    return lines + [""]
+
+
+def _env_section(env: dict) -> list[str]:
+    lines = ["## Env (agent steps/s, coarse spleen, random actions)", "",
+             "| env | N | total steps/s | per env steps/s |", "|---|---|---|---|",
+             f"| GraspLiftEnv | 1 | {env['single']['steps_per_s']} | {env['single']['steps_per_s']} |"]
+    for r in env["vector"]:
+        lines.append(f"| GraspLiftVectorEnv | {r['n_envs']} | {r['total_steps_per_s']} | "
+                     f"{r['per_env_steps_per_s']} |")
+    return lines + [""]
+
+
+def _gpu_section(gpu: dict) -> list[str]:
+    lines = ["## GPU (agent steps/s of a device-resident batch, 33 physics ms per agent step)", ""]
+    if not gpu["available"]:
+        lines += [f"Not measured: {gpu['reason']}.", ""]
+    if gpu["rows"]:
+        lines += ["| batch | contact | dtype | agent steps/s | ms per agent step |", "|---|---|---|---|---|"]
+        lines += [f"| {r['batch']} | {'yes' if r['contact'] else 'no'} | {r['dtype']} | {r['agent_steps_per_s']} "
+                  f"| {r['ms_per_agent_step']} |" for r in gpu["rows"]]
+        lines.append("")
+    if gpu.get("task_rows"):
+        lines += ["The whole task step (CudaGraspLiftCore: physics, observation, reward, autoreset):", "",
+                  "| batch | envs in contact | dtype | agent steps/s | ms per agent step |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {r['batch']} | {r['contact_fraction']} | {r['dtype']} | {r['agent_steps_per_s']} "
+                  f"| {r['ms_per_agent_step']} |" for r in gpu["task_rows"]]
+        lines.append("")
+    return lines
+
+
+def _cpu_reference_section(cpu: dict, gpu: dict | None) -> list[str]:
+    measured = gpu or {}
+    gpu_rows = measured.get("rows", []) if measured.get("available") else []
+    gpu_task = measured.get("task_rows", []) if measured.get("available") else []
+    lines = [f"Beside it, {cpu['device']} of the same machine: the same grasped tissues and task step (GPU / CPU: "
+             "over the float64 GPU row with contact at the same batch):", "",
+             "| what | batch | agent steps/s | ms per agent step | GPU / CPU |", "|---|---|---|---|---|"]
+    for kind, rows, against in (("physics", cpu["rows"], gpu_rows), ("task", cpu["task_rows"], gpu_task)):
+        for r in rows:
+            ratio = speedup(r, against)
+            lines.append(f"| {kind} | {r['batch']} | {r['agent_steps_per_s']} | {r['ms_per_agent_step']} "
+                         f"| {'-' if ratio is None else f'{ratio}x'} |")
+    return lines + [""]
+
+
+def _learners_section(learners: dict) -> list[str]:
+    lines = ["## Learners on the GPU task (agent steps/s, training included)", ""]
+    if "env_steps_per_s" not in learners:
+        return lines + [f"Not measured: {learners['reason']}.", ""]
+    return lines + [f"Batch {learners['batch']}, {learners['agent_steps']} agent steps, "
+                    f"torch on {learners['torch_device']}.",
+                    "", "| env alone | rsl-rl PPO | SB3 PPO | SB3 / rsl-rl |", "|---|---|---|---|",
+                    f"| {learners['env_steps_per_s']} | {learners['rsl_steps_per_s']} | "
+                    f"{learners['sb3_steps_per_s']} | {learners['sb3_over_rsl']} |", ""]
+
+
+def _precision_section(prec: dict) -> list[str]:
+    lines = ["## float32 against float64 (the GPU task, same seed and scripted grasp, one episode)", ""]
+    if "max_position_diff_m" not in prec:
+        return lines + [f"Not measured: {prec['reason']}.", ""]
+    where = "a GPU" if prec["available"] else f"numba's CUDA simulator ({prec['reason'].split(':')[0]})"
+    lines += [f"On {where}: spleen resolution {prec['resolution']}, {prec['num_envs']} envs, "
+              f"{prec['agent_steps']} agent steps, {prec['env_steps_in_contact']} env steps with contact.",
+              "", "| measure | value |", "|---|---|"]
+    lines += [f"| {k} | {prec[k]:.3g} |" for k in ("max_position_diff_m", "max_reward_diff", "max_obs_diff",
+                                                  "max_pinch_rel_diff", "contact_state_agreement")]
+    lines += [f"| {k} | {prec[k]} |" for k in ("envs_ended_on_another_step", "envs_with_another_outcome")]
+    return lines + [""]
+
+
+def _targets_section(targets: dict) -> list[str]:
+    lines = ["## Targets", "", "| target | value (wall) | limit | pass | value (CPU time) | pass (CPU) |",
+             "|---|---|---|---|---|---|"]
+    yn = {True: "yes", False: "NO", None: "-"}
+    for k, v in targets.items():
+        lines.append(f"| {k} | {v['value']} | {v['target']} | {yn[v['pass']]} | {v.get('value_cpu_time', '-')} | "
+                     f"{yn[v.get('pass_cpu_time')]} |")
+    return lines + [""]
+
+
 def markdown(report: dict) -> str:
+    """The bench report as markdown: the machine, then a section per part the report holds."""
     lines = [f"# msdgrasp bench {report['what']}{' (quick)' if report['quick'] else ''}", ""]
     m = report["machine"]
     lines += [f"Python {m['python']}, NumPy {m['numpy']}, numba {m['numba']}, {m['cpu_count']} CPUs, "
               f"{m['platform']}; load {m.get('load_average_1min', '?')}; total {report['elapsed_s']} s.", ""]
     ph = report.get("physics", {})
-    b = BATCH
-    if ph.get("no_contact"):
-        lines += ["## Physics without contact (us of compute per simulated ms)", "",
-                  f"| resolution | nodes | springs | n_sub | single | x real time | batch {b} total | per tissue "
-                  f"| ns per spring and substep: single / batch {b} |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for r in ph["no_contact"]:
-            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['springs']} | {r['n_sub']} | "
-                         f"{r['single_us_per_ms']} | "
-                         f"{r['single_realtime_factor']} | {r[f'batch{b}_total_us_per_ms']} | "
-                         f"{r[f'batch{b}_per_tissue_us_per_ms']} | {r.get('single_ns_per_spring_substep', '-')} / "
-                         f"{r.get(f'batch{b}_ns_per_spring_substep', '-')} |")
-        s = ph["scaling"]
-        lines += ["", f"Log-log exponent of cost vs nodes: {s['exponent_us_per_ms_vs_nodes']} per simulated ms, "
-                      f"{s['exponent_us_per_substep_vs_nodes']} per substep.", ""]
-    if ph.get("contact"):
-        lines += ["## Physics with contact (jaws closed on the inferior pole)", "",
-                  f"| resolution | nodes | n_sub | contact nodes | single | x real time | overhead "
-                  f"| batch {b} total | per tissue |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for r in ph["contact"]:
-            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['n_sub']} | {r['contact_nodes']} | "
-                         f"{r['single_us_per_ms']} | {r['single_realtime_factor']} | {r.get('overhead_single', '-')} | "
-                         f"{r[f'batch{b}_total_us_per_ms']} | {r[f'batch{b}_per_tissue_us_per_ms']} |")
-        lines.append("")
-        for r in ph["contact"]:
-            if r.get("float32"):
-                f = r["float32"]
-                lines += [f"float32 (`Simulation(precision=\"float32\")`, {r['resolution']}): "
-                          f"{f['single_us_per_ms']} us per simulated ms for one tissue, "
-                          f"{f[f'batch{b}_per_tissue_us_per_ms']} per tissue of {b}; against float64 from the same "
-                          f"grasp over {f['compare_ms']} ms: positions within {f['max_position_error_m']} m, pinch "
-                          f"within {f['pinch_rel_error']} relative, {f['same_contact_state']} of the nodes in the "
-                          "same contact state.", ""]
-    if ph.get("numpy_reference"):
-        nr = ph["numpy_reference"]
-        cc = nr["cross_check"]
-        lines += ["## NumPy reference", "",
-                  f"Cross-check ({cc['resolution']}): max rel. force diff {cc['max_rel_diff_forces']:.2e}, "
-                  f"Maxwell {cc['max_rel_diff_maxwell_forces']:.2e}, displacement after {cc['state_steps_ms']} ms "
-                  f"{cc['max_rel_diff_displacement']:.2e}.", "",
-                  "| resolution | nodes | NumPy us/ms | ours us/ms | ours/NumPy |", "|---|---|---|---|---|"]
-        for r in nr["rows"]:
-            lines.append(f"| {r['resolution']} | {r['nodes']} | {r['numpy_us_per_ms']} | {r['numba_us_per_ms']} | "
-                         f"{r['ratio_ours_over_numpy']} |")
-        lines.append("")
-    mj = ph.get("mujoco")
-    if mj:
-        lines += ["## MuJoCo flex", ""]
-        if not mj["available"]:
-            lines += [f"Not available: {mj['reason']}", ""]
-        else:
-            lines += [f"MuJoCo {mj['version']}: {mj['model']}.", "",
-                      f"| resolution | nodes | MuJoCo us/ms | ours us/ms | ours/MuJoCo | ours, batch {b}, per tissue "
-                      "| MuJoCo/ours (batched) | finite |", "|---|---|---|---|---|---|---|---|"]
-            for r in mj["rows"]:
-                if "error" in r:
-                    lines.append(f"| {r['resolution']} | - | error: {r['error']} | | | | | |")
-                else:
-                    lines.append(f"| {r['resolution']} | {r['nodes']} | {r['mujoco_us_per_ms']} | "
-                                 f"{r['ours_us_per_ms']} | {r['ratio_ours_over_mujoco']} | "
-                                 f"{r.get(f'ours_batch{b}_per_tissue_us_per_ms', '-')} | "
-                                 f"{r.get('speedup_batch_per_tissue', '-')} | {r['finite']} |")
-            lines.append("")
-    env = report.get("env")
-    if env:
-        lines += ["## Env (agent steps/s, coarse spleen, random actions)", "",
-                  "| env | N | total steps/s | per env steps/s |", "|---|---|---|---|",
-                  f"| GraspLiftEnv | 1 | {env['single']['steps_per_s']} | {env['single']['steps_per_s']} |"]
-        for r in env["vector"]:
-            lines.append(f"| GraspLiftVectorEnv | {r['n_envs']} | {r['total_steps_per_s']} | "
-                         f"{r['per_env_steps_per_s']} |")
-        lines.append("")
+    # (physics part, its section): each where the report holds it
+    for key, section in (("no_contact", _no_contact_section), ("contact", _contact_section)):
+        if ph.get(key):
+            lines += section(ph)
+    for key, section in (("numpy_reference", _numpy_section), ("mujoco", _mujoco_section)):
+        if ph.get(key):
+            lines += section(ph[key])
+    if report.get("env"):
+        lines += _env_section(report["env"])
     gpu = report.get("gpu")
     if gpu is not None:
-        lines += ["## GPU (agent steps/s of a device-resident batch, 33 physics ms per agent step)", ""]
-        if not gpu["available"]:
-            lines += [f"Not measured: {gpu['reason']}.", ""]
-        if gpu["rows"]:
-            lines += ["| batch | contact | dtype | agent steps/s | ms per agent step |", "|---|---|---|---|---|"]
-            lines += [f"| {r['batch']} | {'yes' if r['contact'] else 'no'} | {r['dtype']} | {r['agent_steps_per_s']} "
-                      f"| {r['ms_per_agent_step']} |" for r in gpu["rows"]]
-            lines.append("")
-        if gpu.get("task_rows"):
-            lines += ["The whole task step (CudaGraspLiftCore: physics, observation, reward, autoreset):", "",
-                      "| batch | envs in contact | dtype | agent steps/s | ms per agent step |",
-                      "|---|---|---|---|---|"]
-            lines += [f"| {r['batch']} | {r['contact_fraction']} | {r['dtype']} | {r['agent_steps_per_s']} "
-                      f"| {r['ms_per_agent_step']} |" for r in gpu["task_rows"]]
-            lines.append("")
-    cpu = report.get("gpu_cpu_reference")
-    if cpu is not None:
-        gpu_rows = (gpu or {}).get("rows", []) if (gpu or {}).get("available") else []
-        gpu_task = (gpu or {}).get("task_rows", []) if (gpu or {}).get("available") else []
-        lines += [f"Beside it, {cpu['device']} of the same machine: the same grasped tissues and task step (GPU / CPU: "
-                  "over the float64 GPU row with contact at the same batch):", "",
-                  "| what | batch | agent steps/s | ms per agent step | GPU / CPU |", "|---|---|---|---|---|"]
-        for kind, rows, against in (("physics", cpu["rows"], gpu_rows), ("task", cpu["task_rows"], gpu_task)):
-            for r in rows:
-                ratio = speedup(r, against)
-                lines.append(f"| {kind} | {r['batch']} | {r['agent_steps_per_s']} | {r['ms_per_agent_step']} "
-                             f"| {'-' if ratio is None else f'{ratio}x'} |")
-        lines.append("")
-    learners = report.get("learners")
-    if learners is not None:
-        lines += ["## Learners on the GPU task (agent steps/s, training included)", ""]
-        if "env_steps_per_s" not in learners:
-            lines += [f"Not measured: {learners['reason']}.", ""]
-        else:
-            lines += [f"Batch {learners['batch']}, {learners['agent_steps']} agent steps, "
-                      f"torch on {learners['torch_device']}.",
-                      "", "| env alone | rsl-rl PPO | SB3 PPO | SB3 / rsl-rl |", "|---|---|---|---|",
-                      f"| {learners['env_steps_per_s']} | {learners['rsl_steps_per_s']} | "
-                      f"{learners['sb3_steps_per_s']} | {learners['sb3_over_rsl']} |", ""]
-    prec = report.get("precision")
-    if prec is not None:
-        lines += ["## float32 against float64 (the GPU task, same seed and scripted grasp, one episode)", ""]
-        if "max_position_diff_m" not in prec:
-            lines += [f"Not measured: {prec['reason']}.", ""]
-        else:
-            where = "a GPU" if prec["available"] else f"numba's CUDA simulator ({prec['reason'].split(':')[0]})"
-            lines += [f"On {where}: spleen resolution {prec['resolution']}, {prec['num_envs']} envs, "
-                      f"{prec['agent_steps']} agent steps, {prec['env_steps_in_contact']} env steps with contact.",
-                      "", "| measure | value |", "|---|---|"]
-            lines += [f"| {k} | {prec[k]:.3g} |" for k in ("max_position_diff_m", "max_reward_diff", "max_obs_diff",
-                                                          "max_pinch_rel_diff", "contact_state_agreement")]
-            lines += [f"| {k} | {prec[k]} |" for k in ("envs_ended_on_another_step", "envs_with_another_outcome")]
-            lines.append("")
+        lines += _gpu_section(gpu)
+    if report.get("gpu_cpu_reference") is not None:
+        lines += _cpu_reference_section(report["gpu_cpu_reference"], gpu)
+    for key, section in (("learners", _learners_section), ("precision", _precision_section)):
+        if report.get(key) is not None:
+            lines += section(report[key])
     if report["targets"]:
-        lines += ["## Targets", "", "| target | value (wall) | limit | pass | value (CPU time) | pass (CPU) |",
-                  "|---|---|---|---|---|---|"]
-        yn = {True: "yes", False: "NO", None: "-"}
-        for k, v in report["targets"].items():
-            lines.append(f"| {k} | {v['value']} | {v['target']} | {yn[v['pass']]} | {v.get('value_cpu_time', '-')} | "
-                         f"{yn[v.get('pass_cpu_time')]} |")
-        lines.append("")
+        lines += _targets_section(report["targets"])
     return "\n".join(lines)
 
 
