@@ -184,7 +184,7 @@ def interleaved(packages: list[str], rounds: int, steps_one: int = 40, steps_bat
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m msdgrasp.benchmarks.interleaved",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("packages", nargs="?", help="comma-separated package names on sys.path (msdgrasp: this build)")
@@ -202,46 +202,56 @@ def main(argv: list[str] | None = None) -> int:
                         help="the CPU every build's worker runs on (default: the lowest this process may use)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)  # (a build's worker process)
     parser.add_argument("--steps", default="40,2,64", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    if args.worker:
-        if args.cpu is not None:
-            os.sched_setaffinity(0, {args.cpu})
-        _worker(args.worker, *(int(s) for s in args.steps.split(",")))
-        return 0
+    return parser
+
+
+def _pinned_cpu(parser: argparse.ArgumentParser, cpu: int | None) -> int | None:
+    """The CPU every worker runs on: ``cpu`` checked against the ones this process may use, else the lowest."""
     cpus = allowed_cpus()
-    if cpus is None and args.cpu is not None:
+    if cpus is None and cpu is not None:
         parser.error("--cpu: this OS cannot pin a process to a CPU; leave --cpu out")
-    if cpus is not None and args.cpu is not None and args.cpu not in cpus:
-        parser.error(f"--cpu must be one of the CPUs this process may use, {cpus}; got {args.cpu}")
-    cpu = args.cpu if args.cpu is not None else (cpus[0] if cpus else None)
-    if not args.packages:
+    if cpus is not None and cpu is not None and cpu not in cpus:
+        parser.error(f"--cpu must be one of the CPUs this process may use, {cpus}; got {cpu}")
+    return cpu if cpu is not None else (cpus[0] if cpus else None)
+
+
+def _builds(parser: argparse.ArgumentParser, packages: str | None) -> list[str]:
+    """The builds named by ``packages``, each imported (before any worker compiles its kernels)."""
+    if not packages:
         parser.error("packages: give one or more comma-separated package names")
-    names = [p for p in args.packages.split(",") if p]
+    names = [p for p in packages.split(",") if p]
     if len(set(names)) != len(names):
-        parser.error(f"packages must differ, got {args.packages!r}")
-    for name in names:  # every package, before any worker compiles its kernels
+        parser.error(f"packages must differ, got {packages!r}")
+    for name in names:
         try:
             importlib.import_module(name + ".physics.simulation")
         except ImportError as exc:
             parser.error(f"package {name!r} cannot be imported: {exc}")
+    return names
+
+
+def _check_workload(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     if args.env and args.sphere:
         parser.error("--env and --sphere: give one of them")
     if args.batch_ms is not None and (args.env or args.sphere):
         parser.error("--batch-ms times the physics' batch: not with --env or --sphere")
     if args.batch_ms is not None and args.batch_ms < 1:
         parser.error(f"--batch-ms must be >= 1, got {args.batch_ms}")
-    try:
-        if args.sphere:
-            results = interleaved([f"sphere:{n}" for n in names], args.rounds, steps_one=40, steps_batch=40, batch=2,
-                                  cpu=cpu)
-            results = {name[7:]: r for name, r in results.items()}
-        elif args.env:
-            results = interleaved([f"env:{n}" for n in names], args.rounds, steps_one=20, steps_batch=2, cpu=cpu)
-            results = {name[4:]: r for name, r in results.items()}
-        else:
-            results = interleaved(names, args.rounds, steps_batch=args.batch_ms or 2, cpu=cpu)
-    except ValueError as exc:
-        parser.error(f"--{exc}")
+
+
+def _timed(args: argparse.Namespace, names: list[str], cpu: int | None) -> dict[str, dict[str, float]]:
+    """:func:`interleaved` of the workload ``args`` asks for, by build name."""
+    if args.sphere:
+        results = interleaved([f"sphere:{n}" for n in names], args.rounds, steps_one=40, steps_batch=40, batch=2,
+                              cpu=cpu)
+        return {name[7:]: r for name, r in results.items()}
+    if args.env:
+        results = interleaved([f"env:{n}" for n in names], args.rounds, steps_one=20, steps_batch=2, cpu=cpu)
+        return {name[4:]: r for name, r in results.items()}
+    return interleaved(names, args.rounds, steps_batch=args.batch_ms or 2, cpu=cpu)
+
+
+def _print_results(args: argparse.Namespace, cpu: int | None, results: dict[str, dict[str, float]]) -> None:
     print("every build's worker on CPU " + (str(cpu) if cpu is not None else "the OS chose (not pinned)"))
     if args.env:
         print(f"{'build':14s} single env us per agent step: median / q1 / min | vector env of 64, per env: "
@@ -253,6 +263,24 @@ def main(argv: list[str] | None = None) -> int:
     for name, r in results.items():
         print(f"{name:14s} {r['one_median']:7.1f} {r['one_q1']:7.1f} {r['one_min']:7.1f} | "
               f"{r['batch_median']:6.1f} {r['batch_q1']:6.1f} {r['batch_min']:6.1f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.worker:
+        if args.cpu is not None:
+            os.sched_setaffinity(0, {args.cpu})
+        _worker(args.worker, *(int(s) for s in args.steps.split(",")))
+        return 0
+    cpu = _pinned_cpu(parser, args.cpu)
+    names = _builds(parser, args.packages)
+    _check_workload(parser, args)
+    try:
+        results = _timed(args, names, cpu)
+    except ValueError as exc:
+        parser.error(f"--{exc}")
+    _print_results(args, cpu, results)
     return 0
 
 
