@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..experiments.calibration import fit_compression, tissue_config_dict, validate_curves
+from ..experiments.calibration import FitSettings, fit_compression, tissue_config_dict, validate_curves
 from ..physics.config import (TISSUE_FILE, ConfigError, atomic_write_text, builtin_config, from_dict, read_config_file,
                               require_extra, write_yaml)
 from ..experiments.compression import (
@@ -149,7 +149,8 @@ def calibrate_cli(args: argparse.Namespace) -> int:
     validate_curves(curves, float(z.max() - z.min()), where=str(data_path))
 
     try:
-        result = fit_compression(curves, mesh, base, max_evals=max_evals, progress=not args.quiet, fit=args.fit)
+        settings = FitSettings(base_params=base, max_evals=max_evals, progress=not args.quiet, fit=args.fit)
+        result = fit_compression(curves, mesh, settings)
     except FloatingPointError as exc:
         raise ConfigError(f"{exc}; config {cfg_path}") from None
     doc = tissue_config_dict(result, mesh_section, data_path)

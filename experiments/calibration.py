@@ -284,60 +284,48 @@ def _neutral_start(
     return out
 
 
-def fit_compression(
-    curves: Sequence[CompressionCurve],
-    mesh: TetMesh,
-    base_params: TissueParams | None = None,
-    init: Mapping[str, float] | None = None,
-    bounds: Mapping[str, tuple[float, float]] | None = None,
-    max_evals: int = 200,
-    progress: bool = False,
-    *,
-    diff_step: float = 0.02,
-    max_substeps: int = 32,
-    samples: int = 150,
-    dt_s: float = 1e-3,
-    ftol: float = 1e-3,
-    xtol: float = 1e-3,
-    fit: str | Sequence[str] = "viscoelastic",
-) -> CalibrationResult:
-    """Fit uniform-mode constants (``fit``: a set of :data:`FIT_SETS` or a list of :data:`ALL_NAMES`) to
-    measured compression curves.
+@dataclass(frozen=True)
+class FitSettings:
+    """How :func:`fit_compression` fits: what it adjusts, from where, within what, and its budget (SI units)."""
 
-    Parameters
-    ----------
-    curves : measured curves (one per rate): deformation in mm, force in N, constant plate speed from
-        zero deformation, as :func:`~.experiments.read_compression_csv` returns them.
-    mesh : the sample's mesh; its z-extent is the sample height.
-    base_params : every non-fitted field (density/mass, spring dashpot, ...); default ``TissueParams()``.
-        Non-fitted constants of :data:`ALL_NAMES` keep the base parameters' uniform equivalent.
-    init : starting values (any subset of the fitted constants). Default: the base parameters' uniform
-        equivalent (:func:`equivalent_uniform`), then scaled to the data by one simulation: K1, K2 (and
-        b0, b1 where fitted) multiplied by the least-squares factor between measured and simulated forces
-        (with dl_c fixed that scales the whole force law, so the quasi-static force scales by the same
-        factor). Given keys are used as they are (no scaling). Zero K2/b0/b1/g in the base parameters get
-        neutral starting values (:func:`_neutral_start`); every start is kept a factor 1.5 inside its
-        bounds.
-    bounds : ``{name: (lo, hi)}`` overriding :func:`default_bounds` (:data:`DEFAULT_BOUNDS`, dl_c capped
-        at half the mean edge length); must be > 0 (log space).
-    max_evals : hard budget of simulations (Jacobian columns included).
-    progress : print one line per simulation to stderr.
-    diff_step : forward-difference step in log-parameter (a relative change of the parameter).
-    max_substeps : guesses needing more substeps per ``dt_s`` than this (or 4x the starting guess's,
-        whichever is larger) get large residuals instead of a simulation.
-    samples : force samples per simulated curve (interpolated at the measured deformations).
-    ftol, xtol : ``least_squares`` stopping tolerances (relative cost change; step size in log-parameter).
-        The defaults stop once an iteration improves the cost by less than 0.1 %: a calibration
-        against noisy data gains nothing from more digits, and each iteration costs 6 simulations.
-    """
-    from scipy.optimize import least_squares
+    #: every non-fitted field (density/mass, spring dashpot, ...); None: ``TissueParams()``. Non-fitted constants
+    #: of :data:`ALL_NAMES` keep the base parameters' uniform equivalent
+    base_params: TissueParams | None = None
+    #: starting values (any subset of the fitted constants). None: the base parameters' uniform equivalent
+    #: (:func:`equivalent_uniform`), then scaled to the data by one simulation: K1, K2 (and b0, b1 where fitted)
+    #: multiplied by the least-squares factor between measured and simulated forces (with dl_c fixed that scales
+    #: the whole force law, so the quasi-static force scales by the same factor). Given keys are used as they are
+    #: (no scaling). Zero K2/b0/b1/g in the base parameters get neutral starting values (:func:`_neutral_start`);
+    #: every start is kept a factor 1.5 inside its bounds
+    init: Mapping[str, float] | None = None
+    #: ``{name: (lo, hi)}`` overriding :func:`default_bounds` (:data:`DEFAULT_BOUNDS`, dl_c capped at half the mean
+    #: edge length); must be > 0 (log space)
+    bounds: Mapping[str, tuple[float, float]] | None = None
+    #: hard budget of simulations (Jacobian columns included), >= 2
+    max_evals: int = 200
+    #: print one line per simulation to stderr
+    progress: bool = False
+    #: forward-difference step in log-parameter (a relative change of the parameter)
+    diff_step: float = 0.02
+    #: guesses needing more substeps per ``dt_s`` than this (or 4x the starting guess's, whichever is larger) get
+    #: large residuals instead of a simulation
+    max_substeps: int = 32
+    #: force samples per simulated curve (interpolated at the measured deformations)
+    samples: int = 150
+    #: outer step of the simulations, s
+    dt_s: float = 1e-3
+    #: ``least_squares`` stopping tolerances (relative cost change; step size in log-parameter). The defaults stop
+    #: once an iteration improves the cost by less than 0.1 %: a calibration against noisy data gains nothing from
+    #: more digits, and each iteration costs 6 simulations
+    ftol: float = 1e-3
+    xtol: float = 1e-3
+    #: the constants fitted: a set of :data:`FIT_SETS` or a list of :data:`ALL_NAMES`
+    fit: str | Sequence[str] = "viscoelastic"
 
-    t_start = time.perf_counter()
-    if isinstance(max_evals, bool) or not isinstance(max_evals, (int, np.integer)) or max_evals < 2:
-        raise ConfigError(f"max_evals must be an integer >= 2, got {max_evals!r}")
-    base = base_params or TissueParams()
-    names = fit_names(fit)
-    init_given = _check_params("init", init, names)
+
+def _box(names: Sequence[str], bounds: Mapping[str, tuple[float, float]] | None,
+         mesh: TetMesh) -> tuple[dict[str, float], dict[str, float]]:
+    """(lo, hi) of each fitted constant: :func:`default_bounds` overridden by ``bounds``, checked."""
     bnd = {**default_bounds(mesh), **_check_params("bounds", bounds, names)}
     lo: dict[str, float] = {}
     hi: dict[str, float] = {}
@@ -349,167 +337,232 @@ def fit_compression(
         if not (math.isfinite(a) and math.isfinite(b) and 0.0 < a < b):
             raise ConfigError(f"bounds.{name} = ({a:g}, {b:g}) must satisfy 0 < lo < hi (finite)")
         lo[name], hi[name] = a, b
-    for name, v in init_given.items():
-        if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
-            raise ConfigError(f"init.{name} must be a finite number > 0, got {v!r}")
+    return lo, hi
 
-    z = mesh.nodes[:, 2]
-    height = float(z.max() - z.min())
-    validate_curves(curves, height)
-    rates = tuple(float(c.rate_mm_per_min) for c in curves)
-    if len(set(rates)) != len(rates):
-        raise ConfigError(f"data: each rate must appear in one curve only, got rates {rates}")
-    d_meas = [np.asarray(c.deformation_mm, dtype=np.float64) for c in curves]
-    f_meas = [np.asarray(c.force_N, dtype=np.float64) for c in curves]
-    f_all = np.concatenate(f_meas)
-    max_def_m = max(float(d.max()) for d in d_meas) * 1e-3
-    # simulate a hair beyond the last measured point (np.interp would clamp at the end anyway)
-    frac = min(MAX_DEFORMATION_FRACTION, 1.005 * max_def_m / height)
-    cfg = CompressionConfig(rates_mm_per_min=rates, deformation_fraction=frac, samples=int(samples), dt_s=dt_s)
-    penalty = 10.0 * float(np.max(np.abs(f_all))) + 1.0
 
-    n_evals = 0
-    cache: dict[bytes, np.ndarray] = {}
-    best: dict = {"cost": math.inf, "values": None}
-    substep_cap = [int(max_substeps)]
+@dataclass
+class _Measured:
+    """The measured curves as the fit reads them, and the compression that simulates them all in one call."""
 
-    def simulate(values: dict[str, float]) -> np.ndarray | None:
+    curves: Sequence[CompressionCurve]
+    d_mm: list[np.ndarray]
+    f_N: list[np.ndarray]
+    #: every curve's forces, concatenated (the residuals' order)
+    f_all: np.ndarray
+    #: largest measured deformation, m
+    max_def_m: float
+    #: each test's duration to that deformation, s
+    durations_s: list[float]
+    config: CompressionConfig
+    #: the residual of a guess that is not simulated (unstable or too stiff), N
+    penalty: float
+
+    @classmethod
+    def of(cls, curves: Sequence[CompressionCurve], mesh: TetMesh, settings: FitSettings) -> _Measured:
+        z = mesh.nodes[:, 2]
+        height = float(z.max() - z.min())
+        validate_curves(curves, height)
+        rates = tuple(float(c.rate_mm_per_min) for c in curves)
+        if len(set(rates)) != len(rates):
+            raise ConfigError(f"data: each rate must appear in one curve only, got rates {rates}")
+        d_mm = [np.asarray(c.deformation_mm, dtype=np.float64) for c in curves]
+        f_N = [np.asarray(c.force_N, dtype=np.float64) for c in curves]
+        f_all = np.concatenate(f_N)
+        max_def_m = max(float(d.max()) for d in d_mm) * 1e-3
+        # simulate a hair beyond the last measured point (np.interp would clamp at the end anyway)
+        frac = min(MAX_DEFORMATION_FRACTION, 1.005 * max_def_m / height)
+        config = CompressionConfig(rates_mm_per_min=rates, deformation_fraction=frac, samples=int(settings.samples),
+                                   dt_s=settings.dt_s)
+        return cls(curves, d_mm, f_N, f_all, max_def_m, [max_def_m / (r * 1e-3 / 60.0) for r in rates], config,
+                   10.0 * float(np.max(np.abs(f_all))) + 1.0)
+
+
+class _Simulations:
+    """The fit's simulations of the measured tests: residuals per guess, counted against the budget."""
+
+    def __init__(self, mesh: TetMesh, base: TissueParams, data: _Measured, settings: FitSettings) -> None:
+        self.mesh, self.base, self.data, self.settings = mesh, base, data, settings
+        self.n_evals = 0
+        self.substep_cap = int(settings.max_substeps)
+
+    def substeps(self, values: dict[str, float]) -> int:
+        """Substeps per outer step the explicit scheme needs for ``values``."""
+        model = compression_model(self.mesh, _uniform_params(self.base, values))
+        return max(1, math.ceil(self.settings.dt_s / (0.9 * model.critical_dt())))
+
+    def residuals(self, values: dict[str, float]) -> np.ndarray | None:
         """Residuals for ``values`` (every constant of ALL_NAMES; one run_compression call), or None if
         unstable / too stiff."""
-        nonlocal n_evals
-        params = _uniform_params(base, values)
-        model = compression_model(mesh, params)
-        n_sub = max(1, math.ceil(dt_s / (0.9 * model.critical_dt())))
-        if n_sub > substep_cap[0]:
+        if self.substeps(values) > self.substep_cap:
             return None
-        if n_evals >= max_evals:
+        if self.n_evals >= self.settings.max_evals:
             raise _BudgetExhausted
-        n_evals += 1
+        self.n_evals += 1
         try:
             with np.errstate(all="ignore"):
-                sim = run_compression(mesh, params, cfg)
+                sim = run_compression(self.mesh, _uniform_params(self.base, values), self.data.config)
         except FloatingPointError:
             return None
-        res = []
-        for c_sim, d, f in zip(sim, d_meas, f_meas):
-            res.append(np.interp(d, c_sim.deformation_mm, c_sim.force_N) - f)
-        r = np.concatenate(res)
+        d = self.data
+        r = np.concatenate([np.interp(dm, c.deformation_mm, c.force_N) - f for c, dm, f in zip(sim, d.d_mm, d.f_N)])
         return r if np.all(np.isfinite(r)) else None
 
-    # -- starting point ---------------------------------------------------------------------------
-    durations = [max_def_m / (r * 1e-3 / 60.0) for r in rates]
-    start = equivalent_uniform(mesh, base)  # every constant of ALL_NAMES; the non-fitted ones stay
+
+def _start(sims: _Simulations, names: tuple[str, ...], box: tuple[dict, dict],
+           init_given: dict[str, float]) -> dict[str, float]:
+    """The fit's starting point, every constant of ALL_NAMES (see :attr:`FitSettings.init`); sets the substep cap
+    from it."""
+    lo, hi = box
+    data = sims.data
+    start = equivalent_uniform(sims.mesh, sims.base)  # every constant of ALL_NAMES; the non-fitted ones stay
     start.update(init_given)
-    start = _neutral_start(start, lo, hi, max_def_m, set(init_given), durations)
-    model0 = compression_model(mesh, _uniform_params(base, start))
-    n_sub0 = max(1, math.ceil(dt_s / (0.9 * model0.critical_dt())))
-    substep_cap[0] = max(int(max_substeps), 4 * n_sub0)
-    if not init_given:
-        r0 = simulate(start)
-        if r0 is not None:
-            f_sim = r0 + f_all
-            denom = float(f_sim @ f_sim)
-            scale = float(np.clip((f_sim @ f_all) / denom, 1e-3, 1e3)) if denom > 0 else 1.0
-            for k in ("k1_n_per_m", "k2_n_per_m3", "b0_n_s_per_m", "b1_n_s_per_m2"):
-                if k in names:
-                    start[k] = start[k] * scale
-            start = _neutral_start(start, lo, hi, max_def_m, set(), durations)
-            if progress:
-                print(f"calibrate: start scaled to the data by {scale:.4g}", file=sys.stderr)
-    ref = np.array([start[k] for k in names])
-    xlo = np.log(np.array([lo[k] for k in names]) / ref)
-    xhi = np.log(np.array([hi[k] for k in names]) / ref)
-    x0 = np.zeros(len(names))  # strictly inside the box (see _neutral_start)
-    fixed = {k: v for k, v in start.items() if k not in names}
+    start = _neutral_start(start, lo, hi, data.max_def_m, set(init_given), data.durations_s)
+    sims.substep_cap = max(int(sims.settings.max_substeps), 4 * sims.substeps(start))
+    if init_given:
+        return start
+    r0 = sims.residuals(start)
+    if r0 is None:
+        return start
+    f_sim = r0 + data.f_all
+    denom = float(f_sim @ f_sim)
+    scale = float(np.clip((f_sim @ data.f_all) / denom, 1e-3, 1e3)) if denom > 0 else 1.0
+    for k in ("k1_n_per_m", "k2_n_per_m3", "b0_n_s_per_m", "b1_n_s_per_m2"):
+        if k in names:
+            start[k] = start[k] * scale
+    if sims.settings.progress:
+        print(f"calibrate: start scaled to the data by {scale:.4g}", file=sys.stderr)
+    return _neutral_start(start, lo, hi, data.max_def_m, set(), data.durations_s)
 
-    def values_of(x: np.ndarray) -> dict[str, float]:
-        return {k: float(v) for k, v in zip(names, ref * np.exp(x))}
 
-    def fun(x: np.ndarray) -> np.ndarray:
-        key = np.round(np.asarray(x, dtype=np.float64), 12).tobytes()
-        if key in cache:
-            return cache[key]
-        values = values_of(x)
-        r = simulate({**fixed, **values})
+class _LogProblem:
+    """The least-squares problem in ``x = log(p / start)`` of the fitted constants: cached residuals, the best
+    point seen, a forward-difference Jacobian that counts its simulations."""
+
+    def __init__(self, sims: _Simulations, names: tuple[str, ...], box: tuple[dict, dict],
+                 start: dict[str, float]) -> None:
+        lo, hi = box
+        self.sims, self.names = sims, names
+        self.ref = np.array([start[k] for k in names])
+        self.xlo = np.log(np.array([lo[k] for k in names]) / self.ref)
+        self.xhi = np.log(np.array([hi[k] for k in names]) / self.ref)
+        self.fixed = {k: v for k, v in start.items() if k not in names}
+        self.cache: dict[bytes, np.ndarray] = {}
+        self.best: dict = {"cost": math.inf, "values": None}
+
+    @staticmethod
+    def key(x: np.ndarray) -> bytes:
+        return np.round(np.asarray(x, dtype=np.float64), 12).tobytes()
+
+    def values_of(self, x: np.ndarray) -> dict[str, float]:
+        return {k: float(v) for k, v in zip(self.names, self.ref * np.exp(x))}
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        key = self.key(x)
+        if key in self.cache:
+            return self.cache[key]
+        values = self.values_of(x)
+        r = self.sims.residuals({**self.fixed, **values})
         if r is None:
-            r = np.full(len(f_all), penalty)
+            r = np.full(len(self.sims.data.f_all), self.sims.data.penalty)
         cost = 0.5 * float(r @ r)
-        if cost < best["cost"]:
-            best.update(cost=cost, values=values, x=np.array(x, dtype=np.float64))
-        if progress:
+        if cost < self.best["cost"]:
+            self.best.update(cost=cost, values=values, x=np.array(x, dtype=np.float64))
+        if self.sims.settings.progress:
             rms = math.sqrt(2.0 * cost / len(r))
             print(
-                f"calibrate: sim {n_evals:4d}  rmse {rms:.4g} N  "
+                f"calibrate: sim {self.sims.n_evals:4d}  rmse {rms:.4g} N  "
                 + "  ".join(f"{k.split('_')[0]}={v:.4g}" for k, v in values.items()),
                 file=sys.stderr,
             )
-        cache[key] = r
+        self.cache[key] = r
         return r
 
-    def jac(x: np.ndarray) -> np.ndarray:
-        f0 = fun(x)
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        f0 = self.fun(x)
         J = np.empty((len(f0), len(x)))
+        step = self.sims.settings.diff_step
         for i in range(len(x)):
-            h = diff_step if x[i] + diff_step <= xhi[i] else -diff_step
+            h = step if x[i] + step <= self.xhi[i] else -step
             xp = np.array(x, dtype=np.float64)
             xp[i] += h
-            J[:, i] = (fun(xp) - f0) / h
+            J[:, i] = (self.fun(xp) - f0) / h
         return J
 
-    success, message = False, ""
-    try:
-        sol = least_squares(
-            fun,
-            x0,
-            jac=jac,
-            bounds=(xlo, xhi),
-            method="trf",
-            x_scale=1.0,
-            ftol=ftol,
-            xtol=xtol,
-            gtol=1e-8,
-            max_nfev=max_evals,
-        )
-        success = bool(sol.status > 0)
-        message = str(sol.message)
-    except _BudgetExhausted:
-        message = f"stopped after max_evals = {max_evals} simulations (best point so far returned)"
+    def solve(self) -> tuple[bool, str]:
+        """Run ``least_squares`` from the start (x = 0, strictly inside the box: see _neutral_start) within the
+        budget; (success, message)."""
+        from scipy.optimize import least_squares
+
+        s = self.sims.settings
+        try:
+            sol = least_squares(self.fun, np.zeros(len(self.names)), jac=self.jac, bounds=(self.xlo, self.xhi),
+                                method="trf", x_scale=1.0, ftol=s.ftol, xtol=s.xtol, gtol=1e-8, max_nfev=s.max_evals)
+        except _BudgetExhausted:
+            return False, f"stopped after max_evals = {s.max_evals} simulations (best point so far returned)"
+        return bool(sol.status > 0), str(sol.message)
+
+
+def _result(problem: _LogProblem, success: bool, message: str, t_start: float) -> CalibrationResult:
+    """The :class:`CalibrationResult` of the best point ``problem`` has seen."""
+    best = problem.best
     if best["values"] is None:
         raise FloatingPointError(
             "calibration: no stable simulation at any evaluated parameter set (check the start values)"
         )
+    data = problem.sims.data
     fitted = best["values"]
-    r_best = cache[np.round(best["x"], 12).tobytes()]
-    if np.all(r_best == penalty):
+    r_best = problem.cache[problem.key(best["x"])]
+    if np.all(r_best == data.penalty):
         success = False
         message = "every simulation was unstable or too stiff; " + message
-    f_sim_all = r_best + f_all
-    rmse = float(np.sqrt(np.mean(r_best**2)))
-    if np.std(f_sim_all) > 0 and np.std(f_all) > 0:
-        corr = float(np.corrcoef(f_all, f_sim_all)[0, 1])
-    else:
-        corr = float("nan")
+    f_sim_all = r_best + data.f_all
+    ok = np.std(f_sim_all) > 0 and np.std(data.f_all) > 0
+    corr = float(np.corrcoef(data.f_all, f_sim_all)[0, 1]) if ok else float("nan")
     per_rate, sims = {}, []
     k0 = 0
-    for c, f in zip(curves, f_meas):
+    for c, f in zip(data.curves, data.f_N):
         r = r_best[k0 : k0 + len(f)]
         per_rate[float(c.rate_mm_per_min)] = float(np.sqrt(np.mean(r**2)))
         sims.append(f + r)
         k0 += len(f)
-    init_used = {k: float(v) for k, v in zip(names, ref)}
     return CalibrationResult(
         params=dict(fitted),
-        rmse_N=rmse,
+        rmse_N=float(np.sqrt(np.mean(r_best**2))),
         correlation=corr,
         rmse_per_rate=per_rate,
-        n_evals=n_evals,
+        n_evals=problem.sims.n_evals,
         success=success,
         message=message,
-        tissue_params=_uniform_params(base, {**fixed, **fitted}),
-        init=init_used,
+        tissue_params=_uniform_params(problem.sims.base, {**problem.fixed, **fitted}),
+        init={k: float(v) for k, v in zip(problem.names, problem.ref)},
         simulated_force_N=sims,
         wall_s=time.perf_counter() - t_start,
     )
+
+
+def fit_compression(curves: Sequence[CompressionCurve], mesh: TetMesh,
+                    settings: FitSettings = FitSettings()) -> CalibrationResult:
+    """Fit uniform-mode constants (``settings.fit``: a set of :data:`FIT_SETS` or a list of :data:`ALL_NAMES`) to
+    measured compression curves.
+
+    ``curves``: measured curves (one per rate): deformation in mm, force in N, constant plate speed from zero
+    deformation, as :func:`~.experiments.read_compression_csv` returns them. ``mesh``: the sample's mesh; its
+    z-extent is the sample height. ``settings``: :class:`FitSettings`.
+    """
+    t_start = time.perf_counter()
+    max_evals = settings.max_evals
+    if isinstance(max_evals, bool) or not isinstance(max_evals, (int, np.integer)) or max_evals < 2:
+        raise ConfigError(f"max_evals must be an integer >= 2, got {max_evals!r}")
+    base = settings.base_params or TissueParams()
+    names = fit_names(settings.fit)
+    init_given = _check_params("init", settings.init, names)
+    box = _box(names, settings.bounds, mesh)
+    for name, v in init_given.items():
+        if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
+            raise ConfigError(f"init.{name} must be a finite number > 0, got {v!r}")
+    sims = _Simulations(mesh, base, _Measured.of(curves, mesh, settings), settings)
+    problem = _LogProblem(sims, names, box, _start(sims, names, box, init_given))
+    return _result(problem, *problem.solve(), t_start)
 
 
 # =================================================================================================

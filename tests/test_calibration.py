@@ -26,6 +26,7 @@ from msdgrasp.experiments.calibration import (
     FIT_SETS,
     PARAM_NAMES,
     CalibrationResult,
+    FitSettings,
     default_bounds,
     fit_compression,
     validate_curves,
@@ -94,7 +95,8 @@ def noisy_curves(clean_curves):
 def fit(noisy_curves, mesh, base_params):
     base = TissueParams(stiffness_mode="uniform", density_kg_m3=1050.0, **GUESS)
     t0 = time.perf_counter()
-    result = fit_compression(noisy_curves, mesh, base, init=GUESS, max_evals=FIT_MAX_EVALS, fit="paper")
+    result = fit_compression(noisy_curves, mesh,
+                             FitSettings(base_params=base, init=GUESS, max_evals=FIT_MAX_EVALS, fit="paper"))
     result.wall_s = time.perf_counter() - t0
     return result
 
@@ -125,7 +127,7 @@ def ve_curves(mesh):
 @pytest.fixture(scope="module")
 def ve_fit(ve_curves, mesh):
     base = TissueParams(stiffness_mode="uniform", density_kg_m3=1050.0, **GUESS_VE, **VE_FIXED)
-    return fit_compression(ve_curves[1], mesh, base, init=GUESS_VE, max_evals=FIT_MAX_EVALS)
+    return fit_compression(ve_curves[1], mesh, FitSettings(base_params=base, init=GUESS_VE, max_evals=FIT_MAX_EVALS))
 
 
 def test_viscoelastic_truth_is_rate_dependent_in_the_mean_plate_force(ve_curves):
@@ -256,21 +258,21 @@ def test_validate_curves_accepts_good_data(noisy_curves, mesh):
 
 def test_fit_rejects_bad_arguments(noisy_curves, mesh):
     with pytest.raises(ConfigError, match="bounds.k1_n_per_m"):
-        fit_compression(noisy_curves, mesh, bounds={"k1_n_per_m": (10.0, 1.0)})
+        fit_compression(noisy_curves, mesh, FitSettings(bounds={"k1_n_per_m": (10.0, 1.0)}))
     with pytest.raises(ConfigError, match="bounds.b0_n_s_per_m"):
-        fit_compression(noisy_curves, mesh, bounds={"b0_n_s_per_m": (0.0, 1.0)}, fit="paper")
+        fit_compression(noisy_curves, mesh, FitSettings(bounds={"b0_n_s_per_m": (0.0, 1.0)}, fit="paper"))
     with pytest.raises(ConfigError, match="unknown key.*b0_n_s_per_m"):  # the viscoelastic fit leaves b0 alone
-        fit_compression(noisy_curves, mesh, bounds={"b0_n_s_per_m": (0.1, 1.0)})
+        fit_compression(noisy_curves, mesh, FitSettings(bounds={"b0_n_s_per_m": (0.1, 1.0)}))
     with pytest.raises(ConfigError, match="fit = 'bogus' is not allowed"):
-        fit_compression(noisy_curves, mesh, fit="bogus")
+        fit_compression(noisy_curves, mesh, FitSettings(fit="bogus"))
     with pytest.raises(ConfigError, match="distinct constants"):
-        fit_compression(noisy_curves, mesh, fit=["k1_n_per_m", "youngs_modulus_pa"])
+        fit_compression(noisy_curves, mesh, FitSettings(fit=["k1_n_per_m", "youngs_modulus_pa"]))
     with pytest.raises(ConfigError, match="unknown key"):
-        fit_compression(noisy_curves, mesh, init={"youngs_modulus_pa": 1e4})
+        fit_compression(noisy_curves, mesh, FitSettings(init={"youngs_modulus_pa": 1e4}))
     with pytest.raises(ConfigError, match="init.k1_n_per_m"):
-        fit_compression(noisy_curves, mesh, init={"k1_n_per_m": -3.0})
+        fit_compression(noisy_curves, mesh, FitSettings(init={"k1_n_per_m": -3.0}))
     with pytest.raises(ConfigError, match="max_evals"):
-        fit_compression(noisy_curves, mesh, max_evals=0)
+        fit_compression(noisy_curves, mesh, FitSettings(max_evals=0))
     dup = [noisy_curves[0], noisy_curves[0]]
     with pytest.raises(ConfigError, match="one curve only"):
         fit_compression(dup, mesh)
