@@ -38,7 +38,7 @@ from ..physics.mesh_io import mesh_spec
 from ..physics.scenario import sphere_scene, spleen_scene
 
 
-def _resolution(value: str | int | None) -> str | int | None:
+def resolution_arg(value: str | int | None) -> str | int | None:
     """A mesh resolution argument: a name (coarse, ...) or a node count."""
     if value is None:
         return None
@@ -56,7 +56,7 @@ def compress_cli(args: argparse.Namespace) -> int:
     cfg_path = args.config or builtin_config("tissue/sphere.yaml")
     params = load_tissue_params(cfg_path)
     overrides = {} if args.diameter_mm is None else {"diameter_m": args.diameter_mm * 1e-3}
-    mesh = mesh_spec(cfg_path).build(_resolution(args.resolution), **overrides)
+    mesh = mesh_spec(cfg_path).build(resolution_arg(args.resolution), **overrides)
     cfg = from_dict(
         CompressionConfig,
         {
@@ -97,7 +97,7 @@ def grasp_cli(args: argparse.Namespace) -> int:
     _require_viz("grasp", progress=not args.quiet)
     protocol = GraspProtocol(**({"pull_time_s": args.pull_time} if args.pull_time is not None else {}))
     mus = args.mu or [0.4, 0.6, 0.8]
-    scene = spleen_scene(args.config, args.grasper, _resolution(args.resolution))
+    scene = spleen_scene(args.config, args.grasper, resolution_arg(args.resolution))
     runs = run_grasp(scene, mus, protocol, progress=not args.quiet)
     out = Path(args.out)
     files = []
@@ -116,7 +116,7 @@ def grasp_cli(args: argparse.Namespace) -> int:
 def grasp_sphere_cli(args: argparse.Namespace) -> int:
     """``msdgrasp experiment grasp-sphere``: pinch force vs jaw displacement on the sphere (CSV + PNG)."""
     _require_viz("grasp-sphere", progress=False)
-    scene = sphere_scene(args.config, args.grasper, _resolution(args.resolution))
+    scene = sphere_scene(args.config, args.grasper, resolution_arg(args.resolution))
     data = run_sphere_grasp(scene)
     out = Path(args.out)
     csv = write_sphere_grasp_csv(data, out / "grasp_sphere.csv")

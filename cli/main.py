@@ -55,11 +55,11 @@ def _cmd_pinch_hold(args: argparse.Namespace) -> int:
 
     from ..experiments.pinch_hold import result_dict, run_pinch_hold
     from ..physics.config import check_range
-    from .experiments import _resolution
+    from .experiments import resolution_arg
 
     check_range("--mu", args.mu, 0.0, None, lo_inclusive=False)
     check_range("--pinch", args.pinch, 0.0, None, lo_inclusive=False)
-    result = run_pinch_hold(_resolution(args.resolution), mu=args.mu, pinch_N=args.pinch)
+    result = run_pinch_hold(resolution_arg(args.resolution), mu=args.mu, pinch_N=args.pinch)
     print(json.dumps(result_dict(result), indent=2))
     return 0
 
