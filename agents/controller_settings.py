@@ -1,22 +1,39 @@
-"""Settings of the built-in controllers, checked where they are given: in a policy spec
-(``slipfeedback:key=value,...``), in a training config (``residual_base``) or in code. Imports nothing of the
-package, so that the training config can check a controller without loading the controllers."""
+"""Settings of the built-in controllers, checked where they are given: in a policy spec (``fixed:<N>``,
+``slipfeedback:key=value,...``, parsed by :mod:`.controller_registry` through these records), in a training config
+(``residual_base``) or in code. Imports nothing of the package: a record is plain data with its checks."""
 
 from __future__ import annotations
 
 import dataclasses
-import math
 
 #: the longest a pinch-gated pull waits for the pinch reading beyond the contact rule, agent steps (1 s at 30 Hz): a
 #: force sensor that reads low (bias, a weak force loop) delays the pull, never stalls it
 GATE_WAIT_STEPS = 30
 
-#: the settings a ``slipfeedback:key=value,...`` spec may give, and the SlipFeedbackPolicy argument each sets
+#: the settings a ``slipfeedback:key=value,...`` spec may give (initial=N, gain=N per mm, pull=fraction of the top
+#: speed, max=N, gate=share of the set-point, oracle=multiple of the oracle's minimal force at the episode's mu,
+#: estimator=a friction estimator's file or ``builtin``, margin=multiple of the minimal force at the estimate, told=1:
+#: the estimate replaced by the episode's mu), and the SlipFeedbackPolicy argument each sets
 SLIPFEEDBACK_KEYS = {"initial": "initial_force_N", "gain": "gain_N_per_mm", "pull": "pull", "max": "max_force_N",
                      "gate": "pinch_gate", "oracle": "oracle_margin", "margin": "estimate_margin",
                      "estimator": "friction_estimator", "told": "told_mu"}
 #: the spec keys whose value is a path, not a number
 PATH_KEYS = ("estimator",)
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedForceSettings:
+    """The fixed-force controller's settings (``agents.controllers.FixedForcePolicy``); ValueError naming the field
+    on a bad one."""
+
+    force_N: float = 2.5  # the pinch force it closes to and holds, N
+    pull: float = 0.5  # pull speed, a fraction of the arm's top speed
+
+    def __post_init__(self) -> None:
+        if not self.force_N > 0:
+            raise ValueError(f"force_N must be > 0 (a force in newtons), got {self.force_N!r}")
+        if not 0 < self.pull <= 1:
+            raise ValueError(f"pull must be in (0, 1], got {self.pull!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,38 +80,3 @@ class SlipFeedbackSettings:
             raise ValueError(f"estimate_margin must be in [0.5, 3], got {self.estimate_margin!r}")
         if self.told_mu not in (0, 1):
             raise ValueError(f"told_mu must be 0 or 1, got {self.told_mu!r}")
-
-
-def slipfeedback_options(spec: str) -> dict[str, float | str]:
-    """SlipFeedbackPolicy's keyword arguments of a ``slipfeedback:key=value,...`` spec, checked; ValueError naming
-    the key or the field on a bad one. Keys: initial (N), gain (N per mm of slip), pull (fraction of the top pull
-    speed), max (N), gate (the share of the set-point the pinch reading reaches before the pull), oracle (the initial
-    grip as a multiple of the oracle's minimal force at the episode's mu), estimator (the path of a friction
-    estimator, or ``builtin``, the package's: the grip set before the pull from the friction it estimates while the
-    jaws close), margin (that grip over the minimal force at the estimate), told (1: the estimate replaced by the
-    episode's mu from the reset info: a privileged teacher)."""
-    body = spec.split(":", 1)[1]
-    options: dict[str, float | str] = {}
-    for part in body.split(","):
-        key, sep, value = part.partition("=")
-        key = key.strip()
-        if not sep or key not in SLIPFEEDBACK_KEYS:
-            raise ValueError(f"policy {spec!r}: 'slipfeedback:key=value,...' takes keys "
-                             f"{', '.join(SLIPFEEDBACK_KEYS)}; got {part!r}")
-        if key in PATH_KEYS:
-            if not value.strip():
-                raise ValueError(f"policy {spec!r}: {key} expects a file path, got {value!r}")
-            options[SLIPFEEDBACK_KEYS[key]] = value.strip()
-            continue
-        try:
-            number = float(value)
-        except ValueError:
-            number = math.nan
-        if not math.isfinite(number):
-            raise ValueError(f"policy {spec!r}: {key} expects a number, got {value!r}")
-        options[SLIPFEEDBACK_KEYS[key]] = number
-    try:
-        SlipFeedbackSettings(**{k: v for k, v in options.items() if k != "friction_estimator"})
-    except ValueError as exc:
-        raise ValueError(f"policy {spec!r}: {exc}") from None
-    return options

@@ -13,8 +13,12 @@ A policy maps observations to actions for a batch of episodes::
 * :class:`OraclePolicy`: knows mu; uses the smallest fixed force that lifts without slip at that mu
   (found by bisection in simulation, cached per mu) plus a margin: the physical limit a learned policy
   is measured against.
-* :class:`ModelPolicy`: a Stable-Baselines3 model; :class:`TorchScriptPolicy`: a torch PPO policy (a saved
-  model is run through its learner: :func:`msdgrasp.agents.learners.learner_of_model`).
+* :class:`TorchScriptPolicy`: a torch PPO policy (:class:`.model_policy.ModelPolicy`, a Stable-Baselines3 model, lives
+  apart: loading one reads its training config, :mod:`.models`, which asks this module's registry about a controller;
+  a saved model is run through its learner: :func:`msdgrasp.agents.learners.learner_of_model`).
+
+The controllers register at the end of this module (:mod:`.controller_registry`, re-exported here): a policy spec
+names one by its registered name, and the rest of the package asks the registry what a controller is.
 """
 
 from __future__ import annotations
@@ -30,7 +34,14 @@ import numpy as np
 from ..envs.core import GraspLiftConfig, pinch_action, pull_action, setpoint_interface
 from ..envs.task import N_OBS, OBS, obs_group
 from ..physics.config import needs_extra, to_dict
-from .controller_settings import GATE_WAIT_STEPS, SlipFeedbackSettings, slipfeedback_options
+from .controller_registry import (  # noqa: F401 (the registry's interface: import it from here)
+    Controller, SpecOptions, baselines, check_controller_spec, controller_names, controller_of, controllers_help,
+    display_name, get_controller, is_controller, make_controller, parse_controller_spec, policy_usage,
+    register_controller, residual_bases, spec_forms, suite_baselines, unregister_controller,
+)
+from .controller_settings import (
+    GATE_WAIT_STEPS, PATH_KEYS, SLIPFEEDBACK_KEYS, FixedForceSettings, SlipFeedbackSettings,
+)
 from .friction import FrictionEstimator, closing_features, with_estimator
 from .result_cache import cached_float
 
@@ -61,10 +72,7 @@ class FixedForcePolicy:
 
     def __init__(self, config: GraspLiftConfig | None = None, force_N: float = 2.5, pull: float = 0.5,
                  gain: float = 2.0, name: str | None = None) -> None:
-        if not force_N > 0:
-            raise ValueError(f"force_N must be > 0, got {force_N!r}")
-        if not 0 < pull <= 1:
-            raise ValueError(f"pull must be in (0, 1], got {pull!r}")
+        FixedForceSettings(force_N, pull)  # (ValueError naming a bad one)
         self.config = config or GraspLiftConfig()
         self.force_N = float(force_N)
         self.force = np.array([self.force_N])
@@ -101,7 +109,7 @@ class FixedForcePolicy:
             jaw = np.where(self._grasped, np.clip(self.gain * (self.force - pinch) / self.force, -1.0, 1.0), 1.0)
         if cfg.pull_action == "travel":  # a travel set-point that advances at the pull speed once grasped
             travel = obs[:, _TRAVEL] * cfg.lift_target_m
-            step = self.pull * _max_pull_speed(cfg) * cfg.agent_dt_s
+            step = self.pull * max_pull_speed(cfg) * cfg.agent_dt_s
             target = np.where(self._grasped, np.minimum(travel + step, cfg.max_travel_m), 0.0)
             pull = 2.0 * target / cfg.max_travel_m - 1.0
         elif cfg.pull_action == "forward_speed":
@@ -295,7 +303,8 @@ ORACLE_TOLERANCE_N = 0.02
 
 
 @functools.lru_cache(maxsize=8)
-def _max_pull_speed(config: GraspLiftConfig) -> float:
+def max_pull_speed(config: GraspLiftConfig) -> float:
+    """The arm's top pull speed on the task ``config``, m/s (its own, else its grasper file's)."""
     if config.max_pull_speed_m_s is not None:
         return config.max_pull_speed_m_s
     from ..physics.config import builtin_config
@@ -422,34 +431,6 @@ def minimal_force(config: GraspLiftConfig, mu: float, pull: float = 0.5, toleran
     return _minimal_force_cached(config, float(mu), float(pull), float(tolerance_N))
 
 
-class ModelPolicy:
-    """A trained Stable-Baselines3 model (deterministic actions)."""
-
-    def __init__(self, path: str | Path, name: str | None = None) -> None:
-        from .learners.sb3_layout import load_model, model_train_config
-
-        self.model = load_model(path)
-        if name is None:  # named by what it is: "PPO (seed 3)" when its training config is saved with it
-            cfg = model_train_config(path)
-            name = f"BC of {cfg.bc_dataset}" if cfg.bc_dataset else f"{cfg.algo.upper()} (seed {cfg.seed})"
-        self.name = name
-
-    @classmethod
-    def from_model(cls, model, name: str = "model") -> "ModelPolicy":
-        """Wrap an in-memory SB3 model (e.g. during training) without saving and reloading it."""
-        self = cls.__new__(cls)
-        self.model = model
-        self.name = name
-        return self
-
-    def reset(self, infos: Sequence[dict[str, Any]]) -> None:
-        pass
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        action, _ = self.model.predict(np.atleast_2d(obs), deterministic=True)
-        return np.asarray(action, dtype=np.float32)
-
-
 class TorchScriptPolicy:
     """A policy exported by the torch-native PPO (:func:`.torch_ppo.train_torch`): ``policy.pt``, TorchScript of
     the actor (deterministic, observation normaliser inside), with ``policy.json`` beside it (the actor's
@@ -499,30 +480,50 @@ def idle_action(config: GraspLiftConfig) -> np.ndarray:
 
 
 def make_policy(spec: str, config: GraspLiftConfig | None = None) -> Policy:
-    """'fixed' | 'fixed:<N>' | 'reactive' | 'slipfeedback' | 'slipfeedback:key=value,...' | 'oracle' | 'zero' |
-    'idle' | a path to a saved model of any learner (run by the learner recorded beside it)."""
+    """The policy of a spec: a registered controller (``fixed``, ``fixed:<N>``, ``slipfeedback:key=value,...``,
+    :func:`controller_names`) or a path to a saved model of any learner (run by the learner recorded beside it)."""
     config = config or GraspLiftConfig()
-    if spec == "zero":
-        return ConstantPolicy([0.0, 0.0], "zero")
-    if spec == "idle":
-        return ConstantPolicy(idle_action(config), "idle")
-    if spec == "fixed":
-        return FixedForcePolicy(config)
-    if spec.startswith("fixed:"):
-        try:
-            return FixedForcePolicy(config, float(spec.split(":", 1)[1]))
-        except ValueError as exc:
-            raise ValueError(f"policy {spec!r}: 'fixed:<force in N>' expects a positive number ({exc})") from None
-    if spec == "reactive":
-        return SlipReactivePolicy(config)
-    if spec == "slipfeedback":
-        return SlipFeedbackPolicy(config)
-    if spec.startswith("slipfeedback:"):
-        policy = SlipFeedbackPolicy(config, **with_estimator(slipfeedback_options(spec)))
-        policy.name = spec
-        return policy
-    if spec == "oracle":
-        return OraclePolicy(config)
+    if is_controller(spec):
+        return make_controller(spec, config)
     from .learners.base import learner_of_model
 
     return learner_of_model(spec).load_policy(Path(spec))
+
+
+# ------------------------------------------------------------------------------------------------
+# the built-in controllers (adding one: its class above and one entry here; docs/learners.md)
+# ------------------------------------------------------------------------------------------------
+
+
+def _fixed_display(name: str) -> str | None:
+    """'fixed2.5N' (a fixed-force policy's name) -> 'fixed 2.5 N'."""
+    return f"fixed {name[5:-1]} N" if name.startswith("fixed") and name.endswith("N") else None
+
+
+def _zero(config: GraspLiftConfig) -> ConstantPolicy:
+    return ConstantPolicy([0.0, 0.0], "zero")
+
+
+def _idle(config: GraspLiftConfig) -> ConstantPolicy:
+    return ConstantPolicy(idle_action(config), "idle")
+
+
+register_controller(
+    "fixed", FixedForcePolicy, settings=FixedForceSettings, display=_fixed_display,
+    options=SpecOptions(positional="force_N", usage="<N>"), suite_baseline=True, residual_base=True,
+    help="close to a fixed pinch force (default 2.5 N; fixed:<N> sets it), then pull holding it")
+register_controller(
+    "reactive", SlipReactivePolicy, display="slip-reactive", baseline=True, residual_base=True,
+    help="slip-reactive: a light grip, raised a step whenever the jaws sense slip")
+register_controller(
+    "slipfeedback", SlipFeedbackPolicy, settings=SlipFeedbackSettings, display="slip-feedback",
+    options=SpecOptions(keys=SLIPFEEDBACK_KEYS, path_keys=PATH_KEYS,
+                        usage="initial=N,gain=N,pull=F,max=N,gate=F,oracle=X,estimator=FILE|builtin,margin=X,told=0|1"),
+    resolve=with_estimator, suite_baseline=True, residual_base=True, needs_setpoint_interface=True,
+    reports_pull=True,
+    help="slip-feedback: a light grip raised in proportion to the slip since lifting began (reads no force)")
+register_controller(
+    "oracle", OraclePolicy, display="oracle (min. force + 10%)", baseline=True,
+    help="told mu: the smallest fixed force that lifts without slip at it, plus 10 %")
+register_controller("zero", _zero, help="action 0 every step")
+register_controller("idle", _idle, help="never touches the tissue: no force, no pull")

@@ -48,9 +48,10 @@ from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig
 from ..physics.config import (  # noqa: F401 (nan_to_none re-exported)
     ConfigError, atomic_write_text, from_dict, nan_to_none, needs_extra, save_figure, to_dict,
 )
-from .controller_settings import slipfeedback_options
-from .controllers import OraclePolicy, idle_action, make_policy, minimal_force
-from .friction import with_estimator
+from .controllers import (  # noqa: F401 (is_controller, display_name re-exported)
+    OraclePolicy, baselines, check_controller_spec, display_name, idle_action, is_controller, make_policy,
+    minimal_force, spec_forms,
+)
 from .reference import references_at
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
@@ -62,13 +63,8 @@ DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
 #: unseen tissue: stiffness and mass scales outside the training ranges (0.8-1.2, 0.9-1.1), at UNSEEN_MU
 UNSEEN_CONDITIONS = ({"stiffness_scale": 0.6}, {"stiffness_scale": 1.5}, {"mass_scale": 0.8}, {"mass_scale": 1.25})
 UNSEEN_MU = 0.5
-#: baselines every evaluation includes (a learned policy is always shown beside them)
-ALWAYS = ("reactive", "oracle")
 MAX_GRID_VALUES = 101
 MU_MAX = 10.0  # the env accepts mu in [0, 10]
-BUILTIN_POLICIES = ("fixed", "fixed:<N>", "reactive", "slipfeedback", "slipfeedback:key=value,...", "oracle", "zero",
-                    "idle")
-_NAMED = ("fixed", "reactive", "slipfeedback", "oracle", "zero", "idle")
 
 CSV_COLUMNS = (
     "policy", "mu", "success_rate", "mean_peak_pinch_N", "force_ratio", "peak_pinch_over_oracle_min",
@@ -341,33 +337,13 @@ def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: Gr
 # ------------------------------------------------------------------------------------------------
 
 
-def is_controller(spec: str) -> bool:
-    """Whether a policy spec names a built-in controller (``fixed:<N>`` and ``slipfeedback:...`` included), not a
-    saved model."""
-    return spec in _NAMED or spec.startswith(("fixed:", "slipfeedback:"))
-
-
 def check_policy_spec(spec: str) -> None:
-    """Raise ConfigError for an unusable spec (bad ``fixed:<N>``, unknown name, missing model file)."""
+    """Raise ConfigError for an unusable spec (a controller's bad options, unknown name, missing model file)."""
     if not isinstance(spec, str) or not spec.strip():
-        raise ConfigError(f"policy {spec!r}: empty policy spec; use one of {', '.join(BUILTIN_POLICIES)} "
+        raise ConfigError(f"policy {spec!r}: empty policy spec; use one of {', '.join(spec_forms())} "
                           "or a model path")
-    if spec in _NAMED:
-        return
-    if spec.startswith("fixed:"):
-        value = spec.split(":", 1)[1]
-        try:
-            force = float(value)
-        except ValueError:
-            force = float("nan")
-        if not (math.isfinite(force) and force > 0):
-            raise ConfigError(f"policy {spec!r}: 'fixed:<N>' expects a positive force in newtons, got {value!r}")
-        return
-    if spec.startswith("slipfeedback:"):
-        try:
-            with_estimator(slipfeedback_options(spec))  # (a named estimator file loads, or the spec is refused)
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+    if is_controller(spec):
+        check_controller_spec(spec)  # (a file its options name loads, or the spec is refused)
         return
     path = Path(spec)
     if path.is_dir():
@@ -379,7 +355,7 @@ def check_policy_spec(spec: str) -> None:
     if looks_like_path:
         raise ConfigError(f"policy {spec!r}: model file not found: {path}")
     raise ConfigError(
-        f"unknown policy {spec!r}: use one of {', '.join(BUILTIN_POLICIES)} or the path of a saved model "
+        f"unknown policy {spec!r}: use one of {', '.join(spec_forms())} or the path of a saved model "
         f"({model_kinds()})"
     )
 
@@ -449,21 +425,6 @@ def _style(k: int) -> dict[str, Any]:
     """Distinct marker and line style per policy (curves often coincide, e.g. at success rate 1)."""
     return {"marker": _MARKERS[k % len(_MARKERS)], "linestyle": _LINES[k % len(_LINES)],
             "markersize": 7 - 0.6 * (k % 4), "alpha": 0.9}
-
-
-def display_name(name: str) -> str:
-    """What a policy is, for plots and tables: 'reactive' -> 'slip-reactive', 'fixed2.5N' -> 'fixed 2.5 N'."""
-    if name == "reactive":
-        return "slip-reactive"
-    if name == "slipfeedback":
-        return "slip-feedback"
-    if name.startswith("slipfeedback:"):
-        return f"slip-feedback ({name.split(':', 1)[1]})"
-    if name == "oracle":
-        return "oracle (min. force + 10%)"
-    if name.startswith("fixed") and name.endswith("N"):
-        return f"fixed {name[5:-1]} N"
-    return name
 
 
 def _dodge(k: int, n: int) -> float:
@@ -622,9 +583,10 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     Every spec is validated (and every model loaded) before any episode runs or anything is written. Episode i (at
     every mu) is reset with ``seed + i``: by default the sealed evaluation seeds (:mod:`.protocol`); the result
     records ``"seeds": {"first", "count", "sealed"}``.
-    The slip-reactive and oracle baselines are always added. Without ``config`` the task is the one the
-    model(s) were trained on (their saved config), else (controllers only) the default training's. Each policy also
-    runs at ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass outside the training ranges).
+    The registry's baselines (:func:`.controllers.baselines`: slip-reactive and oracle) are always added. Without
+    ``config`` the task is the one the model(s) were trained on (their saved config), else (controllers only) the
+    default training's. Each policy also runs at ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass
+    outside the training ranges).
     With ``runner`` (:mod:`.parallel`: local processes or Ray) every (policy, mu) cell, unseen condition and
     minimal-force bisection is its own job, models travel to the jobs as bytes (no shared disk needed), and
     the numbers are the same as without (same episodes, same seeds); recordings are made here.
@@ -637,7 +599,7 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     for spec in policies:
         check_policy_spec(spec)
     # the baselines are always there: a learned policy is never shown alone
-    policies += [b for b in ALWAYS if b not in policies]
+    policies += [b for b in baselines() if b not in policies]
     # controllers alone run on the default training's task, as in the suite (not on the env's version-0 defaults)
     config, trained_on = task_of(policies, config) if config is not None else trained_task_of(policies)
     mus = [float(m) for m in mus]

@@ -44,8 +44,8 @@ def estimator_path(value: str) -> Path:
 
 
 def with_estimator(options: dict[str, Any]) -> dict[str, Any]:
-    """The slip-feedback options ``options`` (``controller_settings.slipfeedback_options``) with the friction estimator
-    they name loaded in place of its name (ConfigError naming the file where it is missing or not one) and the
+    """The slip-feedback options ``options`` (a spec's, ``controller_registry.parse_controller_spec``) with the friction
+    estimator they name loaded in place of its name (ConfigError naming the file where it is missing or not one) and the
     initial grip, unless given, its probe grip; ``options`` unchanged where they name none."""
     if "friction_estimator" not in options:
         return options

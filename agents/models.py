@@ -16,22 +16,19 @@ from pydantic import with_config
 from typing_extensions import TypedDict
 
 from ..envs.core import (
-    GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization, setpoint_interface,
+    GraspLiftConfig, RandomizationConfig, benchmark_config, hidden_entries, ramp_randomization,
 )
 from ..physics.device_layout import Precision
 from ..physics.config import (
     RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
     builtin_config, read_extending_yaml, replace,
 )
-from .controller_settings import slipfeedback_options
-from .friction import with_estimator
+from .controllers import Controller, check_controller_spec, controller_of, residual_bases, spec_forms
 from .protocol import DEMONSTRATION_SEED_OFFSET, VALIDATION_SEED_OFFSET, check_not_sealed
 
 PositiveInt = Annotated[Int, Ge(1)]
 Unit = Annotated[Real, Ge(0), Le(1)]
 _Scale = Annotated[Real, Ge(0), Le(2)]
-#: the controllers a residual policy may correct (besides a ``slipfeedback:key=value,...`` spec)
-RESIDUAL_BASES = ("slipfeedback", "reactive", "fixed")
 
 
 @with_config(RECORD_CONFIG)
@@ -158,9 +155,9 @@ class TrainConfig:
     actor_privileged: tuple[Literal["mu", "perturbations"], ...] = ()
     #: residual policy (agents/residual.py): the model's action is a correction added to this controller's,
     #: clip(controller + residual_scale x model, -1, 1), in training and wherever the model runs; the controller
-    #: needs the task's interface (slipfeedback: a force set-point and a pull speed). slipfeedback, reactive, fixed,
-    #: or a slip-feedback controller with its settings (``slipfeedback:initial=0.7,gain=0.8,pull=0.25``, the
-    #: policy spec of ``msdgrasp evaluate``). None: the model acts alone
+    #: needs the task's interface (slipfeedback: a force set-point and a pull speed). A controller registered as a
+    #: residual base (slipfeedback, reactive, fixed), with its settings too (``slipfeedback:initial=0.7,gain=0.8,
+    #: pull=0.25``, the policy spec of ``msdgrasp evaluate``). None: the model acts alone
     residual_base: Str | None = None
     #: the largest correction, in action units (the action range is [-1, 1]): one for both actions, or one per
     #: action (jaw, pull); 0 leaves that action to the controller
@@ -237,63 +234,88 @@ class TrainConfig:
         if self.validation_patience is not None and self.validation_episodes == 0:
             raise ConfigError(f"validation_patience: {self.validation_patience} needs validation_episodes >= 1 (it "
                               "counts validations), got validation_episodes 0; set validation_patience: null")
-        if self.actor_hidden:
-            if not self.asymmetric_critic:
-                raise ConfigError("actor_hidden needs asymmetric_critic: true (the actor's mask hides the entries)")
-            hidden_entries(self.actor_hidden)
-        if self.actor_privileged and not self.asymmetric_critic:
-            raise ConfigError("actor_privileged needs asymmetric_critic: true (the actor's mask shows the entries)")
-        if "perturbations" in self.actor_privileged and not self.env.privileged_perturbations:
-            raise ConfigError("actor_privileged: 'perturbations' needs env.privileged_perturbations: true (the "
-                              "entries it shows)")
-        if self.asymmetric_critic and self.algo != "ppo":
-            raise ConfigError(f"asymmetric_critic is implemented for algo 'ppo' only, got algo {self.algo!r}")
-        if self.asymmetric_critic and not self.env.privileged_obs:
-            raise ConfigError("asymmetric_critic: true needs env.privileged_obs: true (the critic's extra inputs)")
+        _check_critic(self)
         if self.squash_actions and self.algo == "ppo" and not self.ppo.get("use_sde", False):
             raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
                               "set squash_actions: false to train PPO without gSDE")
-        if self.residual_base is not None:
-            if self.bc_teacher is not None:
-                raise ConfigError("give either residual_base (learn a correction on a controller) or bc_teacher "
-                                  "(clone a controller first), not both")
-            if self.residual_base not in RESIDUAL_BASES and not self.residual_base.startswith("slipfeedback:"):
-                raise ConfigError(f"residual_base = {self.residual_base!r} is not a controller; choose one of "
-                                  f"{', '.join(RESIDUAL_BASES)} or 'slipfeedback:key=value,...'")
-            if self.residual_base.startswith("slipfeedback:"):
-                try:  # (a named friction estimator's file loads, or the config is refused)
-                    with_estimator(slipfeedback_options(self.residual_base))
-                except ValueError as exc:
-                    raise ConfigError(f"residual_base: {exc}") from None
-            if self.residual_base.startswith("slipfeedback") and not setpoint_interface(self.env):
-                raise ConfigError("residual_base: slipfeedback needs env.jaw_action: force and env.pull_action: "
-                                  f"forward_speed, got {self.env.jaw_action!r} / {self.env.pull_action!r}")
-        if self.residual_start == "pull" and not (self.residual_base or "").startswith("slipfeedback"):
-            raise ConfigError(f"residual_start: pull needs a slip-feedback residual_base (the controller whose pull "
-                              f"starts the correction), got residual_base {self.residual_base!r}")
+        _check_residual(self)
         if self.init_model is not None and self.bc_teacher is not None:
             raise ConfigError("give either init_model (start from a trained model) or bc_teacher (clone a teacher "
                               "first), not both")
         if self.randomization_ramp is not None:
-            if self.train_randomization is None:
-                raise ConfigError("randomization_ramp needs train_randomization (the randomisation it ramps to)")
-            check_range("randomization_ramp[1]", self.randomization_ramp[1], self.randomization_ramp[0], None,
-                        lo_inclusive=False)
-            # (the training env is built on train_randomization, whose stiffness and mass ranges size its substeps)
-            start, end = self.env.randomization, self.train_randomization
-            if end.stiffness_scale_range[1] < start.stiffness_scale_range[1]:
-                raise ConfigError(f"train_randomization.stiffness_scale_range[1] = {end.stiffness_scale_range[1]!r} "
-                                  f"must be >= env.randomization's {start.stiffness_scale_range[1]!r}, where "
-                                  "randomization_ramp starts")
-            if end.mass_scale_range[0] > start.mass_scale_range[0]:
-                raise ConfigError(f"train_randomization.mass_scale_range[0] = {end.mass_scale_range[0]!r} must be <= "
-                                  f"env.randomization's {start.mass_scale_range[0]!r}, where randomization_ramp starts")
+            _check_ramp(self)
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
         """The training config at ``path``, strictly; ``extends:`` builds it on another file
         (:func:`~msdgrasp.physics.config.read_extending_yaml`)."""
         return from_dict(cls, read_extending_yaml(path), where=Path(path).name)
+
+
+def _check_critic(config: TrainConfig) -> None:
+    """The actor's and the critic's inputs: what the actor hides or sees beyond the task needs the asymmetric critic
+    (its mask), which needs PPO and the privileged entries."""
+    if config.actor_hidden:
+        if not config.asymmetric_critic:
+            raise ConfigError("actor_hidden needs asymmetric_critic: true (the actor's mask hides the entries)")
+        hidden_entries(config.actor_hidden)
+    if config.actor_privileged and not config.asymmetric_critic:
+        raise ConfigError("actor_privileged needs asymmetric_critic: true (the actor's mask shows the entries)")
+    if "perturbations" in config.actor_privileged and not config.env.privileged_perturbations:
+        raise ConfigError("actor_privileged: 'perturbations' needs env.privileged_perturbations: true (the "
+                          "entries it shows)")
+    if config.asymmetric_critic and config.algo != "ppo":
+        raise ConfigError(f"asymmetric_critic is implemented for algo 'ppo' only, got algo {config.algo!r}")
+    if config.asymmetric_critic and not config.env.privileged_obs:
+        raise ConfigError("asymmetric_critic: true needs env.privileged_obs: true (the critic's extra inputs)")
+
+
+def _residual_controller(config: TrainConfig) -> Controller:
+    """The controller ``residual_base`` names, its settings checked (a friction estimator's file loads) and its
+    interface on the task; ConfigError naming the field."""
+    base = config.residual_base
+    if config.bc_teacher is not None:
+        raise ConfigError("give either residual_base (learn a correction on a controller) or bc_teacher "
+                          "(clone a controller first), not both")
+    entry = controller_of(base)
+    if entry is None or not entry.residual_base:
+        raise ConfigError(f"residual_base = {base!r} is not a controller a residual may correct; choose one of "
+                          f"{', '.join(spec_forms(residual_bases()))}")
+    try:
+        check_controller_spec(base)
+    except ConfigError as exc:
+        raise ConfigError(f"residual_base: {exc}") from None
+    if not entry.runs_on(config.env):
+        raise ConfigError(f"residual_base: {entry.name} needs env.jaw_action: force and env.pull_action: "
+                          f"forward_speed, got {config.env.jaw_action!r} / {config.env.pull_action!r}")
+    return entry
+
+
+def _check_residual(config: TrainConfig) -> None:
+    """``residual_base`` a controller a residual may correct, and ``residual_start: pull`` one that reports when its
+    pull starts."""
+    entry = _residual_controller(config) if config.residual_base is not None else None
+    if config.residual_start == "pull" and not (entry is not None and entry.reports_pull):
+        able = " or ".join(e.shown for e in residual_bases() if e.reports_pull)
+        raise ConfigError(f"residual_start: pull needs a {able} residual_base (the controller whose pull "
+                          f"starts the correction), got residual_base {config.residual_base!r}")
+
+
+def _check_ramp(config: TrainConfig) -> None:
+    """The curriculum ramps from env.randomization to train_randomization, whose stiffness and mass ranges size the
+    training env's substeps: they must cover the start's."""
+    if config.train_randomization is None:
+        raise ConfigError("randomization_ramp needs train_randomization (the randomisation it ramps to)")
+    check_range("randomization_ramp[1]", config.randomization_ramp[1], config.randomization_ramp[0], None,
+                lo_inclusive=False)
+    start, end = config.env.randomization, config.train_randomization
+    if end.stiffness_scale_range[1] < start.stiffness_scale_range[1]:
+        raise ConfigError(f"train_randomization.stiffness_scale_range[1] = {end.stiffness_scale_range[1]!r} "
+                          f"must be >= env.randomization's {start.stiffness_scale_range[1]!r}, where "
+                          "randomization_ramp starts")
+    if end.mass_scale_range[0] > start.mass_scale_range[0]:
+        raise ConfigError(f"train_randomization.mass_scale_range[0] = {end.mass_scale_range[0]!r} must be <= "
+                          f"env.randomization's {start.mass_scale_range[0]!r}, where randomization_ramp starts")
 
 
 #: the built-in config of the default run (``msdgrasp train`` without ``--config``)

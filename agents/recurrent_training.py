@@ -166,10 +166,10 @@ class RecurrentConfig:
 
 def teacher_policy(config: RecurrentConfig):
     """The teacher of ``config`` (ConfigError naming the field where its spec is not a controller told mu)."""
-    from .controllers import make_policy
+    from .controllers import is_controller, make_policy
 
     try:
-        teacher = make_policy(config.teacher, config.env) if config.teacher.startswith("slipfeedback:") else None
+        teacher = make_policy(config.teacher, config.env) if is_controller(config.teacher) else None
     except (ValueError, ConfigError) as exc:
         raise ConfigError(f"teacher: {exc}") from None
     if not getattr(teacher, "told_mu", False):

@@ -364,13 +364,13 @@ def assemble_reference(config: GraspLiftConfig, cells: dict[tuple[float, float],
     result on the same ``episodes`` reference episodes. Per mu: each pull's Q_p, the least of them (R; on a tie the
     faster pull, the shorter episode) and its pull. Without the check run :func:`compute_reference` adds (``check``,
     ``time_to_lift_s``)."""
-    from .controllers import _max_pull_speed
+    from .controllers import max_pull_speed
 
     mus = sorted({m for m, _ in cells})
     pulls = sorted({p for _, p in cells})
     if any((m, p) not in cells for m in mus for p in pulls):
         raise ValueError("cells must hold every (mu, pull) of their grid")
-    top = _max_pull_speed(config)
+    top = max_pull_speed(config)
     rows = []
     for m in mus:
         per_pull = [{"pull": p, "pull_speed_m_s": p * top, "quantile_N": cells[(m, p)]["quantile_N"],

@@ -48,15 +48,15 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig, setpoint_interface
+from ..envs.core import GraspLiftConfig, RandomizationConfig, RewardConfig
 from ..envs.perturbations import Condition, rule_of, suite_conditions
 from ..envs.task import config_record, peak_charge_points
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
-    ALWAYS, DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
+    DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
     evaluate_policy, expand_policy_specs, nan_to_none, trained_ranges_of, trained_task_of,
 )
-from .controllers import episode_minimal_forces
+from .controllers import episode_minimal_forces, suite_baselines
 from .parallel import Runner, run_jobs
 from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
 from .reference import references_at
@@ -74,9 +74,6 @@ POOLED_EPISODES = EPISODES * len(MUS)
 #: version 1's grid and episodes per mu
 MUS_V1 = (0.3, 0.5, 0.8)
 EPISODES_V1 = 10
-#: the suite's baselines (reactive and oracle are added to every evaluation; the fixed force beside them), and the
-#: slip-feedback controller where the task has the interface it drives (a force set-point and a pull speed)
-BASELINES = (*ALWAYS, "fixed")
 
 
 #: the conditions of version 2 (those of version 1 on the grid MUS)
@@ -327,16 +324,14 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
     specs = expand_policy_specs(policies)
     for spec in specs:
         check_policy_spec(spec)
-    if baselines:
-        specs += [b for b in BASELINES if b not in specs]
     config, trained_on = trained_task_of(specs)
     if task is not None:
         if trained_on is not None:
             raise ConfigError(f"task: a model runs on the task it was trained on ({trained_on}); give controllers "
                               "alone with a task")
         config, trained_on = task, "the task given"
-    if baselines and setpoint_interface(config) and "slipfeedback" not in specs:
-        specs.append("slipfeedback")
+    if baselines:  # (the registry's: every evaluation's and the suite's own, where the task has their interface)
+        specs += [b for b in suite_baselines(config) if b not in specs]
     ranges = trained_ranges_of(specs)
     built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
     names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..envs.core import GraspLiftConfig
 from ..physics.config import ConfigError, atomic_write_text, from_dict, needs_extra, save_figure, to_dict
-from .controllers import make_policy
+from .controllers import baselines, make_policy
 from .evaluation import display_name, evaluate_policy, nan_to_none, oracle_curve, task_of
 from .learners.base import get_learner, learner_of_config, learner_of_run
 from .parallel import Job, Runner, land, run_in_folder
@@ -121,7 +121,7 @@ def _validation_history(run: Path) -> list[dict[str, Any]]:
 def _baselines(env_dict: dict[str, Any], episodes: int, mus: Sequence[float], evaluation_seed: int) -> dict[str, Any]:
     env = from_dict(GraspLiftConfig, env_dict, where="env")
     out = {name: evaluate_policy(make_policy(name, env), mus, episodes, env, evaluation_seed)
-           for name in ("reactive", "oracle")}
+           for name in baselines()}
     out["oracle_minimal_force"] = oracle_curve(env, mus)
     out["reference_force_N"], out["reference"] = references_at(env, mus)
     return out
@@ -239,7 +239,7 @@ def _point_result(base: dict[str, Any], recs: list[dict[str, Any]]) -> dict[str,
         "per_seed": seed_recs,
         "aggregate": {k: aggregate([r[k] for r in seed_recs]) for k in AGGREGATED},
         "baselines": {name: _row_metrics(base[name], minimal, base.get("reference_force_N")) | {"rows": base[name]}
-                      for name in ("reactive", "oracle")},
+                      for name in baselines()},
         "oracle_minimal_force": base["oracle_minimal_force"],
         "reference": base.get("reference"), "reference_force_N": base.get("reference_force_N"),
     }
@@ -410,8 +410,8 @@ def format_markdown(result: dict[str, Any]) -> str:
 
     for rec in result["per_seed"]:
         lines.append(row(rec.get("policy") or f"PPO (seed {rec['seed']})", rec))
-    lines.append(row(display_name("reactive"), result["baselines"]["reactive"]))
-    lines.append(row(display_name("oracle"), result["baselines"]["oracle"]))
+    for name, rec in result["baselines"].items():  # (those the result was made with)
+        lines.append(row(display_name(name), rec))
     curve = result["oracle_minimal_force"]
     lines.append("| oracle minimal force (N) | " + " | ".join(f"{f:.2f}" for f in curve["minimal_force_N"])
                  + " | | | | | |")

@@ -224,8 +224,7 @@ def format_sweep_markdown(result: dict[str, Any]) -> str:
         lines += ["", "Baselines on the task (point 0's; points that change the task have their own in "
                       "point_<k>/seeds.md):",
                   "", "| policy | success 0.3-0.9 | peak pinch (N) | ratio to oracle min |", "|---|---|---|---|"]
-        for name in ("reactive", "oracle"):
-            b = base[name]
+        for name, b in base.items():  # (those the result was made with)
             lines.append(f"| {name} | {fmt_value(b['success_ref'])} | {fmt_value(b['peak_pinch_ref_N'], 2)} "
                          f"| {fmt_value(b['peak_pinch_over_oracle_min'], 2)} |")
     lines += ["", f"Wall time {result['wall_s']:.0f} s, {result['workers']} jobs at a time ({result['runner']})."]

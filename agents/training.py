@@ -34,7 +34,8 @@ from .learners.base import numbered_files
 from .learners.sb3_layout import FINAL_MODEL, LAYOUT, algo_class, is_ppo, load_model, model_config_path  # noqa: F401
 from .learners.sb3_layout import model_train_config  # noqa: F401 (re-exported)
 from .models import TrainConfig
-from .controllers import ModelPolicy, make_policy
+from .controllers import make_policy
+from .model_policy import ModelPolicy
 from .evaluation import evaluate_policy
 # validation episodes are seeded from seed + VALIDATION_SEED_OFFSET (re-exported), far below the sealed evaluation
 # seeds that ``msdgrasp evaluate`` draws from (agents/protocol.py)

@@ -209,12 +209,13 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 def _default_policies() -> list[str]:
     """Without --policy: the trained models of the default run folder; none there is an error, not a controller
     evaluated in their place."""
+    from ..agents.controllers import controller_names
     from ..agents.learners import default_learner
 
     models = _default_models()
     if not models:
         raise _usage(f"evaluate: no --policy given and no trained model in {default_learner(None).default_out} "
-                     "(or its seed_<k>/); give --policy PATH|fixed|reactive|oracle")
+                     f"(or its seed_<k>/); give --policy PATH|{'|'.join(controller_names())}")
     return models
 
 
@@ -272,7 +273,7 @@ def _seeds_sentence(record: dict) -> str:
 def _training_task(path: Path, policies: list[str]):
     """``--training-task CONFIG``: the episodes that training config draws (its task with its perturbations at
     their full ranges, as its validation runs). Controllers only: a model runs on the task it was trained on."""
-    from ..agents.evaluation import is_controller
+    from ..agents.controllers import is_controller
     from ..agents.learners.sb3_layout import load_train_config
 
     models = [spec for spec in policies if not is_controller(spec)]
@@ -456,9 +457,14 @@ def _cmd_select(args: argparse.Namespace) -> int:
 
 def add_rl_commands(sub) -> None:
     """Add train / evaluate / record / replay / soak to the ``msdgrasp`` subparsers ``sub``."""
+    from ..agents.controllers import baselines, controllers_help, policy_usage
     from ..agents.protocol import EVALUATION_SEED, sealed_range_text
 
     names = _learner_names()
+    # the controllers a --policy may name, from their registry (agents/controllers.py)
+    usage = policy_usage()
+    listed = {"epilog": f"controllers (--policy NAME[:OPTIONS]):\n{controllers_help()}",
+              "formatter_class": argparse.RawDescriptionHelpFormatter}
     sealed = sealed_range_text()
     refused = f"seeds that would reach the sealed evaluation seeds {sealed} are refused (exit 2)"
     t = sub.add_parser("train", help=f"train a grasp policy (learners: {', '.join(names)}; docs/learners.md)")
@@ -500,14 +506,11 @@ def add_rl_commands(sub) -> None:
     sw.add_argument("--quiet", action="store_true", help="no progress output")
     sw.set_defaults(func=_cmd_sweep)
 
-    e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu")
+    e = sub.add_parser("evaluate", help="success and pinch force of policies across a grid of friction mu", **listed)
     e.add_argument("--policy", action="append", default=None, metavar="SPEC",
-                   help="PATH (a saved model of any learner; it runs on the task it was trained on) | fixed | "
-                        "fixed:<N> | reactive | slipfeedback[:initial=N,gain=N,pull=F,max=N,gate=F,oracle=X,"
-                        "estimator=FILE|builtin,margin=X,told=0|1] | oracle (repeatable; "
-                        "default: the model of the default "
-                        "learner's run in logs/train, else of every logs/train/seed_*/; none there is an error). "
-                        "reactive and oracle are always added")
+                   help=f"PATH (a saved model of any learner; it runs on the task it was trained on) | {usage} "
+                        "(repeatable; default: the model of the default learner's run in logs/train, else of every "
+                        f"logs/train/seed_*/; none there is an error). {' and '.join(baselines())} are always added")
     e.add_argument("--mu-grid", default=None,
                    help="start:stop:step (stop included) or a comma list (default: the training range 0.3-0.9 "
                         "and the unseen 0.15, 0.2, 1.0, 1.2)")
@@ -551,10 +554,9 @@ def add_rl_commands(sub) -> None:
     e.add_argument("--quiet", action="store_true", help="no progress output")
     e.set_defaults(func=_cmd_evaluate)
 
-    co = sub.add_parser("collect", help="record a policy's episodes as a Minari dataset (demonstrations)")
+    co = sub.add_parser("collect", help="record a policy's episodes as a Minari dataset (demonstrations)", **listed)
     co.add_argument("--policy", required=True, metavar="SPEC",
-                    help="PATH (a saved model: its own task) | fixed | fixed:<N> | reactive | "
-                         "slipfeedback[:key=value,...] | oracle (the benchmark task)")
+                    help=f"PATH (a saved model: its own task) | {usage} (the benchmark task)")
     co.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
                     help="a controller's episodes are drawn from this training's randomised task (default: the "
                          "benchmark task's own randomisation)")
@@ -644,10 +646,9 @@ def add_rl_commands(sub) -> None:
     _add_runner_args(sl, "the seeds' selections")
     sl.set_defaults(func=_cmd_select)
 
-    r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)")
+    r = sub.add_parser("record", help="record one episode of a policy to a rerun file (.rrd)", **listed)
     r.add_argument("--policy", required=True, metavar="SPEC",
-                   help="PATH (a saved model: it runs on the task it was trained on) | fixed | fixed:<N> | reactive "
-                        "| slipfeedback | oracle | zero | idle")
+                   help=f"PATH (a saved model: it runs on the task it was trained on) | {usage}")
     r.add_argument("--mu", type=float, default=0.5, help="friction coefficient (default 0.5)")
     r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     r.add_argument("--out", type=Path, default=Path("logs") / "record" / "episode.rrd",

@@ -19,7 +19,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 
 import msdgrasp  # noqa: F401  registers msdgrasp/GraspLift-v0
-from msdgrasp.agents.controllers import ModelPolicy
+from msdgrasp.agents.model_policy import ModelPolicy
 from msdgrasp.agents.evaluation import evaluate_policy
 
 

@@ -63,7 +63,7 @@ def test_the_training_env_sends_the_controllers_action_plus_the_correction():
 
 
 def test_a_trained_residual_model_runs_on_its_controller_wherever_it_is_loaded(tmp_path):
-    from msdgrasp.agents.controllers import ModelPolicy
+    from msdgrasp.agents.model_policy import ModelPolicy
     from msdgrasp.agents.learners import learner_of_model
     from msdgrasp.agents.training import train
     from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv

@@ -126,7 +126,7 @@ def short_run(tmp_path_factory):
 def test_short_run_saves_models_that_load_and_act(short_run):
     import json
 
-    from msdgrasp.agents.controllers import ModelPolicy
+    from msdgrasp.agents.model_policy import ModelPolicy
     from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
 
     out, summary = short_run

@@ -118,7 +118,7 @@ class SB3Learner(Learner):
         return model_train_config(path).algo
 
     def load_policy(self, model: Path, name: str | None = None):
-        from ..controllers import ModelPolicy
+        from ..model_policy import ModelPolicy
         from ..residual import with_residual
 
         return with_residual(ModelPolicy(model, name), model_train_config(model))
