@@ -23,6 +23,7 @@ import tempfile
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -36,7 +37,8 @@ ENV_ID = "msdgrasp/GraspLift-v0"
 _ID = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*-v\d+$")
 
 
-def _minari():
+def import_minari() -> ModuleType:
+    """The ``minari`` module; ConfigError naming the extra to install where it is missing."""
     try:
         import minari
     except ImportError as exc:
@@ -78,7 +80,7 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
     controller, that of the training config file ``train_config`` (default: the benchmark task, ``TrainConfig().env``,
     with its own randomisation). Everything is
     checked before an episode runs."""
-    minari = _minari()
+    minari = import_minari()
     import gymnasium as gym
 
     from ..envs.registration import register_envs

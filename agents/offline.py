@@ -28,9 +28,9 @@ CLONE_EPOCHS = 40
 
 
 def _load(dataset_id: str, datasets_path_: Path):
-    from .demonstrations import _minari, datasets_path
+    from .demonstrations import datasets_path, import_minari
 
-    minari = _minari()
+    minari = import_minari()
     folder = datasets_path_ / dataset_id
     if not (folder / "card.json").is_file():
         raise ConfigError(f"dataset {dataset_id!r}: no {folder / 'card.json'} (datasets made by msdgrasp collect carry "

@@ -155,7 +155,9 @@ class TorchPPOConfig:
         }
 
 
-def _rsl():
+def rsl_vec_env() -> type:
+    """rsl-rl's ``VecEnv`` base class; ImportError naming the extra to install where rsl-rl is missing (so a learner
+    can check for it before a run)."""
     try:
         import rsl_rl  # noqa: F401
         from rsl_rl.env import VecEnv
@@ -171,7 +173,7 @@ def actor_columns(config: GraspLiftConfig, frame_dim: int) -> np.ndarray:
 
 def make_torch_env(core, device: str, seed: int = 0):
     """The rsl-rl VecEnv of a core (:class:`GraspLiftTorchEnv`), every env reset (CPU env i seeded seed + i)."""
-    VecEnv = _rsl()
+    VecEnv = rsl_vec_env()
     import torch
     from tensordict import TensorDict
 
@@ -258,7 +260,7 @@ def train_torch(config: TorchPPOConfig, out_dir: str | Path, progress: bool = Tr
 
     Returns the summary: training time (``train_s``, rollouts and updates; ``selection_s`` after it), agent
     steps, and the shipped policy's iteration and validation success and peak pinch per mu."""
-    _rsl()
+    rsl_vec_env()
     import torch
     from rsl_rl.runners import OnPolicyRunner
 

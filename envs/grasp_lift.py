@@ -15,7 +15,9 @@ from ..physics.config import ConfigError, require_extra
 from .core import BENCHMARK_VERSION, OBS_NAMES, GraspLiftConfig, GraspLiftCore
 
 
-def _config(config: GraspLiftConfig | dict | None, **overrides: Any) -> GraspLiftConfig:
+def env_config(config: GraspLiftConfig | dict | None, **overrides: Any) -> GraspLiftConfig:
+    """The task config an env is built with: ``config`` (None: the defaults; a dict: its fields) with ``overrides``
+    changing fields by name (ConfigError naming a bad one)."""
     from ..physics.config import from_dict, to_dict
 
     if config is None:
@@ -87,7 +89,9 @@ def _require_reset(env: Any) -> None:
         raise ResetNeeded(f"{type(env).__name__}: step() before the first reset(); call reset() first")
 
 
-def _check_action(action: Any, batch: int | None) -> np.ndarray:
+def checked_action(action: Any, batch: int | None) -> np.ndarray:
+    """``action`` as float64, shape (2,) (``batch`` None) or (batch, 2); ValueError on another shape or a non-finite
+    entry."""
     a = np.asarray(action, dtype=np.float64)
     shape = (2,) if batch is None else (batch, 2)
     if a.shape != shape:
@@ -252,7 +256,7 @@ class GraspLiftEnv(gym.Env):
     def __init__(self, config: GraspLiftConfig | dict | None = None, render_mode: str | None = None, **overrides: Any):
         super().__init__()
         self.render_mode = check_render_mode(render_mode, type(self).__name__)
-        self.config = _config(config, **overrides)
+        self.config = env_config(config, **overrides)
         self.core = GraspLiftCore(self.config, 1)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
@@ -278,7 +282,7 @@ class GraspLiftEnv(gym.Env):
 
     def step(self, action):
         _require_reset(self)
-        a = _check_action(action, None)
+        a = checked_action(action, None)
         obs, reward, terminated, truncated, infos = self.core.step(a[None])
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), env_info(infos, 0)
 
@@ -338,7 +342,7 @@ class GraspLiftVectorEnv(VectorEnv):
             raise ConfigError(f"autoreset_mode = {autoreset_mode!r} is not supported; choose one of {sorted(modes)}")
         self.autoreset_mode = mode
         self.metadata = {**type(self).metadata, "autoreset_mode": mode}
-        self.config = _config(config, **overrides)
+        self.config = env_config(config, **overrides)
         self.num_envs = int(num_envs)
         self.core = GraspLiftCore(self.config, self.num_envs)
         self.single_action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -374,7 +378,7 @@ class GraspLiftVectorEnv(VectorEnv):
 
     def step(self, actions):
         _require_reset(self)
-        a = _check_action(actions, self.num_envs)
+        a = checked_action(actions, self.num_envs)
         # NEXT_STEP: the sub-envs that ended last step are reset now; the physics steps the whole batch in one
         # call, so theirs is stepped too and then overwritten by the reset (which sets every part of the state),
         # with their random streams put back first: as if only reset
@@ -422,7 +426,7 @@ def _benchmark(scene: str, version: int, overrides: dict[str, Any]) -> GraspLift
     if "config" in overrides:
         raise ValueError("the benchmark ids are a fixed task: change its fields by name (gym.make(id, "
                          "time_limit_s=5.0)), or build GraspLiftEnv(config=...) for another task")
-    return _config(benchmark_config(scene, version), **overrides)
+    return env_config(benchmark_config(scene, version), **overrides)
 
 
 def make_benchmark_env(scene: str = "spleen", render_mode: str | None = None, version: int = BENCHMARK_VERSION,

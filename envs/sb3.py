@@ -42,7 +42,7 @@ from gymnasium import spaces
 from ..physics.config import needs_extra
 from ..physics.device_layout import Precision
 from .core import GraspLiftConfig, GraspLiftCore
-from .grasp_lift import _check_action, _config, check_render_mode
+from .grasp_lift import check_render_mode, checked_action, env_config
 
 with needs_extra("train", "the Stable-Baselines3 adapter"):
     from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
@@ -81,7 +81,7 @@ class GraspLiftSB3VecEnv(VecEnv):
     def __init__(self, num_envs: int, config: GraspLiftConfig | dict | None = None, seed: int | None = None,
                  render_mode: str | None = "rgb_array", precision: Precision = "float64", **overrides: Any) -> None:
         check_render_mode(render_mode, type(self).__name__)
-        self.core = GraspLiftCore(_config(config, **overrides), int(num_envs), precision)
+        self.core = GraspLiftCore(env_config(config, **overrides), int(num_envs), precision)
         self._render_mode = render_mode
         obs_space = spaces.Box(-np.inf, np.inf, (self.core.obs_dim,), np.float32)
         act_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
@@ -116,7 +116,7 @@ class GraspLiftSB3VecEnv(VecEnv):
 
     def step_async(self, actions: np.ndarray) -> None:
         """Store (num_envs, 2) actions in [-1, 1] (clipped); NaN/inf or a wrong shape raise ValueError."""
-        self._actions = _check_action(actions, self.num_envs)
+        self._actions = checked_action(actions, self.num_envs)
 
     def step_wait(self) -> VecEnvStepReturn:
         if self._actions is None:
@@ -284,7 +284,7 @@ class CudaSB3VecEnv(VecEnv):
         return self.core.reset().copy_to_host()
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = _check_action(actions, self.num_envs)
+        self._actions = checked_action(actions, self.num_envs)
 
     def step_wait(self) -> VecEnvStepReturn:
         if self._actions is None:

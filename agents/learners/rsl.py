@@ -37,9 +37,9 @@ class RslLearner(Learner):
     parallel_seeds = False
 
     def check_available(self) -> None:
-        from ..torch_ppo import _rsl
+        from ..torch_ppo import rsl_vec_env
 
-        _rsl()
+        rsl_vec_env()
 
     def owns_config(self, config: Any) -> bool:
         from ..torch_ppo import TorchPPOConfig
