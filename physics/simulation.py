@@ -173,6 +173,21 @@ class Simulation:
         self.mscale = np.ones(B)
         self.f_ext = np.zeros((B, n, 3), dtype=real)
 
+        self._init_grasper(grasper)
+        self._init_plates(plates)
+
+        self.jaw_out = np.zeros((B, 3, N_JAW_COLS))
+        self.plate_out = np.zeros((B, len(self.plates), 3))
+        self.anchor_out = np.zeros((B, 3))
+        self.contact_state = np.zeros((B, n), dtype=np.int8)
+        self.contact_force = np.zeros((B, n, 3), dtype=real)
+        self.held = np.zeros((B, n), dtype=np.int8)
+        self._finite = np.ones(B, dtype=np.bool_)
+        self.reset()
+
+    def _init_grasper(self, grasper: GrasperParams | None) -> None:
+        """The grasper's per-tissue arrays: pose, jaw radius (m) and its limits, commands, force loop, friction."""
+        B = self.batch_size
         self.grasper = grasper
         gp = grasper or GrasperParams()
         self.g_tip = np.zeros((B, 3))
@@ -189,7 +204,9 @@ class Simulation:
         self.mu_s = np.full(B, gp.mu)
         self.mu_k = np.full(B, gp.mu_k)
 
-        P = len(plates)
+    def _init_plates(self, plates: Sequence[Plate]) -> None:
+        """The plates' arrays, checked: unit normals and friction (shared), start points (m) and velocities (m/s)."""
+        B, P = self.batch_size, len(plates)
         self.plates = tuple(plates)
         self.pl_normal = np.zeros((P, 3))
         self.pl_point = np.zeros((B, P, 3))
@@ -204,15 +221,6 @@ class Simulation:
             self.pl_mu[p] = plate.mu
         self._plate_init = np.array([p.point for p in plates], dtype=np.float64).reshape(P, 3)
         self._plate_vel = np.array([p.velocity for p in plates], dtype=np.float64).reshape(P, 3)
-
-        self.jaw_out = np.zeros((B, 3, N_JAW_COLS))
-        self.plate_out = np.zeros((B, P, 3))
-        self.anchor_out = np.zeros((B, 3))
-        self.contact_state = np.zeros((B, n), dtype=np.int8)
-        self.contact_force = np.zeros((B, n, 3), dtype=real)
-        self.held = np.zeros((B, n), dtype=np.int8)
-        self._finite = np.ones(B, dtype=np.bool_)
-        self.reset()
 
     # ------------------------------------------------------------------------------------------
     def _idx(self, indices) -> np.ndarray:
