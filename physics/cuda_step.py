@@ -1,11 +1,12 @@
 """The physics step on a CUDA GPU (numba's CUDA target): :func:`.integrator.simulate`'s records, one thread block
-per tissue. Only the loops are written here: springs and tets (a thread each) write their forces to a scratch;
-each node (a thread) *gathers* them in the order in which the CPU kernel scatters them, so its force is the same
-sum term by term (no atomics), and advances; tets below the volume barrier's threshold are flagged in parallel
-and thread 0 integrates the barrier on them and resolves the contacts in the CPU's order. What a spring, a tet, a
-node and a contact compute is the CPU kernel's own functions (:func:`.forces.spring_body`,
-:func:`.forces.implicit_volume_barrier`, the node bodies in :mod:`.integrator`, :mod:`.contact`) compiled for the GPU
-from their source (:func:`device_twin`): one source, two backends.
+per tissue, each substep's phases a device function, the threads meeting between them. Springs (a thread each)
+write their forces to a scratch; each node (a thread) *gathers* them in the order in which the CPU kernel scatters
+them, so its force is the same sum term by term (no atomics), and advances; tets below the volume barrier's
+threshold are flagged in parallel and thread 0 integrates the barrier on them and resolves the contacts in the CPU's
+order. Written here is which thread does what and where the threads meet; the loops over springs and nodes, and
+what a spring, a tet, a node and a contact compute, are the CPU kernel's own functions (:mod:`.integrator`,
+:mod:`.forces`, :mod:`.contact`), compiled for the GPU from their source (:func:`device_twin`): one source, two
+backends.
 The scratch's host-side layout is in :mod:`.device_layout`. Under ``NUMBA_ENABLE_CUDASIM=1`` the kernel runs in
 numba's CUDA simulator (slow: tests only), with the CPU's arithmetic bit for bit; on a GPU, fused multiply-adds
 round differently (~1e-16 relative per operation).
@@ -14,7 +15,6 @@ round differently (~1e-16 relative per operation).
 from __future__ import annotations
 
 import functools
-import math
 import types
 from typing import NamedTuple
 
@@ -26,12 +26,15 @@ check_numba_cuda_numpy(installed_version("numba-cuda"), np.__version__)  # befor
 
 from numba import config as _numba_config  # noqa: E402
 from numba import cuda  # noqa: E402
-from numba.core.dispatcher import Dispatcher  # noqa: E402
+from numba.core.registry import CPUDispatcher  # noqa: E402
 
-from . import contact as _contact  # noqa: E402
 from . import forces as _forces  # noqa: E402
-from . import integrator as _integrator  # noqa: E402
+from .contact import (advance_jaws, clear_contact_node, clear_readouts, jaw_candidates, jaw_directions,  # noqa: E402
+                      plate_contacts, resolve_jaw_contacts)
 from .device_layout import FLOAT32_FIELDS, PRECISIONS, field_pairs, make_scratch, with_precision  # noqa: E402, F401
+from .forces import below_barrier  # noqa: E402
+from .integrator import (anchor_readout, dashpot_pass, gather_and_advance_nodes, listed_volume_barrier,  # noqa: E402
+                         maxwell_factors, pinch_force_loop, springs_to_scratch)
 from .records import SimModel, SimReadout, SimState  # noqa: E402
 
 #: threads per block (one block per tissue); the loops stride over springs, tets and nodes
@@ -46,186 +49,119 @@ FLAG_LIST = 64
 MAX_REGISTERS = 64
 
 
+def _bound(py, callees: dict):
+    """``py`` with the numba CPU functions it calls bound to their GPU twins (or to ``callees``, by name). Its
+    globals are a copy: what it calls must be defined before it is bound."""
+    calls = {name: device_twin(g) for name in py.__code__.co_names
+             if isinstance(g := py.__globals__.get(name), CPUDispatcher) and name not in callees}
+    return types.FunctionType(py.__code__, {**py.__globals__, **calls, **callees}, py.__name__, py.__defaults__,
+                              py.__closure__)
+
+
 @functools.cache  # one twin per function: the kernel and every caller share it
 def device_twin(cpu_function, **callees):
     """The GPU twin of a CPU kernel function: its Python source compiled by numba's CUDA target, with the
     numba functions it calls bound to their own twins (or to ``callees``, by name). One source, two targets:
     an edit of the CPU function changes both."""
-    py = cpu_function.py_func
-    calls = {name: device_twin(g) for name in py.__code__.co_names
-             if isinstance(g := py.__globals__.get(name), Dispatcher) and name not in callees}
-    bound = types.FunctionType(py.__code__, {**py.__globals__, **calls, **callees}, py.__name__, py.__defaults__,
-                               py.__closure__)
-    return cuda.jit(device=True)(bound)
+    return cuda.jit(device=True)(_bound(cpu_function.py_func, callees))
 
 
-# the kernel's per-element functions: the CPU kernel's own
-_tet_edges = device_twin(_forces._tet_edges)  # (the task kernel's volume-ratio check, envs/cuda_core.py)
-_spring_body = device_twin(_forces.spring_body)
-_anchor_spring_force = device_twin(_integrator.anchor_spring_force)
-_nodal_damping = device_twin(_integrator.nodal_damping)
-_damping_factors = device_twin(_integrator.damping_factors)
-_advance_node = device_twin(_integrator.advance_node)
-_below_barrier = device_twin(_forces.below_barrier)
-_implicit_volume_barrier = device_twin(_forces.implicit_volume_barrier)
-_barrier_impulse = device_twin(_forces.barrier_impulse)
-_implicit_spring_dashpots = device_twin(_forces.implicit_spring_dashpots)
-_jaw_directions = device_twin(_contact.jaw_directions)
-_clear_readouts = device_twin(_contact.clear_readouts)
-_clear_contact_node = device_twin(_contact.clear_contact_node)
-_force_loop = device_twin(_integrator._force_loop)
-_advance_jaws = device_twin(_contact.advance_jaws)
-_jaw_candidates = device_twin(_contact.jaw_candidates)
-_resolve_jaw_contacts = device_twin(_contact.resolve_jaw_contacts)
-_plate_contacts = device_twin(_contact.plate_contacts)
-
-
-@cuda.jit(device=True)
-def _sort_ints(a, k):
-    """Insertion sort of a[:k] (a few flagged tets) in place."""
-    for i in range(1, k):
-        key = a[i]
-        j = i - 1
-        while j >= 0 and a[j] > key:
-            a[j + 1] = a[j]
-            j -= 1
-        a[j + 1] = key
+def _device(fn):
+    """A device function of the GPU kernel alone; the CPU kernel's functions it calls run as their twins."""
+    return cuda.jit(device=True)(_bound(fn, {}))
 
 
 def _kernel(fn):
-    """``cuda.jit`` with :data:`MAX_REGISTERS` (the simulator takes no register cap: it runs Python)."""
+    """``cuda.jit`` with :data:`MAX_REGISTERS` (the simulator takes no register cap: it runs Python), the CPU
+    kernel's functions it calls bound to their twins."""
+    fn = _bound(fn, {})
     return cuda.jit(fn) if _numba_config.ENABLE_CUDASIM else cuda.jit(max_registers=MAX_REGISTERS)(fn)
+
+
+tet_edges = device_twin(_forces._tet_edges)  # (the task kernel's volume-ratio check, envs/cuda_core.py)
+_tet_edges = tet_edges  # (its former name, until its last importer moves)
+
+
+@_device
+def _barrier(m, s, w, b, ks, dt, n_flagged, flag_list):
+    """4. Volume barrier: tets flagged and listed in parallel; only where any is (as on the CPU), thread 0 integrates
+    the barrier on the listed ones in the CPU's (tet) order (:func:`.integrator.listed_volume_barrier`; a scan over
+    every tet's flag, 810 dependent loads on the coarse spleen, cost as much as the rest of the substep)."""
+    for t in range(cuda.threadIdx.x, m.tets.shape[0], cuda.blockDim.x):
+        on = below_barrier(s.x[b], m.tets, m.rest_volume, m.vol_threshold, t)
+        w.tet_on[b, t] = 1 if on else 0
+        if on:
+            slot = cuda.atomic.add(n_flagged, 0, 1)
+            if slot < FLAG_LIST:
+                flag_list[slot] = t
+    cuda.syncthreads()
+    if cuda.threadIdx.x == 0 and n_flagged[0] > 0:
+        listed_volume_barrier(m, s, w, b, ks, dt, flag_list, n_flagged[0])
+    cuda.syncthreads()
+
+
+@_device
+def _contacts(m, s, out, w, b, sub_info, res, flagged):
+    """5. Contacts: cleared and tested in parallel, resolved by thread 0 in the CPU's (surface) order."""
+    tid, nth, last_sub = cuda.threadIdx.x, cuda.blockDim.x, sub_info[2]
+    x, v, held = s.x[b], s.v[b], s.held[b]
+    for q in range(tid, m.surface_nodes.shape[0], nth):
+        clear_contact_node(b, m, out, held, last_sub, q)
+    cuda.syncthreads()
+    vr = 0.0  # (thread 0) the jaws' radial speed in this substep
+    if tid == 0:
+        if last_sub:
+            anchor_readout(m, out, w, b, flagged[0])
+        s.t[b] += sub_info[0]
+        plate_contacts(b, x, v, w.meff[b], m, s, out, sub_info, res, held)
+        if m.jaw_active:
+            vr = advance_jaws(b, s, sub_info[0])
+    cuda.syncthreads()
+    if m.jaw_active:  # (a node's test reads that node only: the order of the tests does not matter)
+        jaw_candidates(b, x, m, s, (w.u[b], w.tj[b]), w.cand[b], tid, nth)
+        cuda.syncthreads()
+        if tid == 0:
+            resolve_jaw_contacts(b, x, v, w.meff[b], m, s, out, (w.u[b], w.tj[b]), sub_info, res, (held, w.cand[b]), vr)
+        cuda.syncthreads()
 
 
 @_kernel
 def _simulate_kernel(m, s, out, w, n_steps):
-    """Advance tissue blockIdx.x by ``n_steps`` outer steps (see the module docstring)."""
+    """Advance tissue blockIdx.x by ``n_steps`` outer steps (see the module docstring): each substep the phases of
+    :func:`.integrator.simulate`, a device function each, the threads meeting between them."""
     b = cuda.blockIdx.x
     if b >= s.x.shape[0]:
         return
-    tid, nth = cuda.threadIdx.x, cuda.blockDim.x
-    x, v, n, ne = s.x, s.v, s.x.shape[1], m.edges.shape[0]
-    nt = m.tets.shape[0] if m.kvol.shape[0] > 0 else 0
+    tid = cuda.threadIdx.x
     dt, inv_sub = m.dt_outer / m.n_sub, 1.0 / m.n_sub
-    decay = math.exp(-dt / m.tau)
-    gain = m.tau / dt * (1.0 - decay)
+    maxwell = maxwell_factors(dt, m.tau)
     ks, ms = s.kscale[b], s.mscale[b]
-    flags = (False, m.use_sls)  # (the dashpots act in their own implicit pass)
     res = cuda.local.array(6, np.float64)
     n_flagged = cuda.shared.array(1, np.int32)  # tets of this tissue below the barrier's threshold in this substep
     flag_list = cuda.shared.array(FLAG_LIST, np.int32)  # (their indices, in the order the threads found them)
-    vr = 0.0  # (thread 0) the jaws' radial speed in this substep
     if tid == 0:
-        _clear_readouts(b, out)
-        _jaw_directions(s.g_axis[b], s.g_e1[b], w.u[b], w.tj[b])
+        clear_readouts(b, out)
+        jaw_directions(s.g_axis[b], s.g_e1[b], w.u[b], w.tj[b])
     cuda.syncthreads()
     for step in range(n_steps):
         last_step = step == n_steps - 1
         if tid == 0 and m.jaw_active:
-            _force_loop(s.g_force, s.g_vradius, b)
+            pinch_force_loop(s.g_force, s.g_vradius, b)
         for sub in range(m.n_sub):
-            last_sub = last_step and sub == m.n_sub - 1
-            sub_info = (dt, inv_sub if last_step else 0.0, last_sub, inv_sub)
-            # ---- 1a. springs: the force on the first node (and the Maxwell state) to the scratch
-            for e in range(tid, ne, nth):
-                i, j = m.edges[e, 0], m.edges[e, 1]
-                d = (x[b, j, 0] - x[b, i, 0], x[b, j, 1] - x[b, i, 1], x[b, j, 2] - x[b, i, 2])
-                dash = (0.0, 0.0, 0.0, 0.0)
-                kve = m.kv[e] if m.use_sls else m.k1[e]  # (kv may be empty without the branch, which ignores it;
-                # fv, dl_prev and kv read as their own types, so float32 storage keeps float32 arithmetic)
-                w.fe[b, e, 0], w.fe[b, e, 1], w.fe[b, e, 2], fve, dle = _spring_body(
-                    d, (m.rest_length[e], m.k1[e], m.k2[e], m.dlc[e]), ks, dash,
-                    (s.fv[b, e], s.dl_prev[b, e], kve, decay, gain), flags, 1.0, 1e-15)
-                if m.use_sls:
-                    s.fv[b, e], s.dl_prev[b, e] = fve, dle
+            sub_info = (dt, inv_sub if last_step else 0.0, last_step and sub == m.n_sub - 1, inv_sub)
+            springs_to_scratch(m, s, w, b, ks, maxwell, tid, cuda.blockDim.x)
             if tid == 0:
                 n_flagged[0] = 0
             cuda.syncthreads()
-            # ---- 2-3. nodes: gather in the CPU's order, then symplectic Euler with implicit damping, anchors
-            for i in range(tid, n, nth):
-                mi = m.mass[i] * ms
-                f0 = mi * m.gravity[0] + s.f_ext[b, i, 0]  # (mass x scale) x g, as the CPU groups it
-                f1 = mi * m.gravity[1] + s.f_ext[b, i, 1]
-                f2 = mi * m.gravity[2] + s.f_ext[b, i, 2]
-                for p in range(w.edge_ptr[i], w.edge_ptr[i + 1]):
-                    e, sg = w.edge_idx[p], w.edge_sign[p]  # (f + (-1 x g) is f - g, bit for bit)
-                    f0, f1, f2 = f0 + sg * w.fe[b, e, 0], f1 + sg * w.fe[b, e, 1], f2 + sg * w.fe[b, e, 2]
-                if m.fixed[i]:  # the anchor holds the node against its whole force
-                    w.fa[b, i, 0], w.fa[b, i, 1], w.fa[b, i, 2] = -f0, -f1, -f2
-                    v[b, i, 0], v[b, i, 1], v[b, i, 2] = 0.0, 0.0, 0.0
-                    continue
-                xc = (x[b, i, 0], x[b, i, 1], x[b, i, 2])
-                xr = (m.x_rest[i, 0], m.x_rest[i, 1], m.x_rest[i, 2])
-                if m.anchor_k[i] > 0.0:
-                    a0, a1, a2 = _anchor_spring_force(xc, xr, ms, m.anchor_k[i], m.anchor_offset)
-                    f0, f1, f2 = f0 + a0, f1 + a1, f2 + a2
-                    w.fa[b, i, 0], w.fa[b, i, 1], w.fa[b, i, 2] = a0, a1, a2
-                damp = _nodal_damping(xc, xr, m.b0[i], m.b1[i]) if m.b1[i] != 0.0 else m.b0[i]
-                dinv, w.meff[b, i] = _damping_factors(mi, damp, dt)
-                xn, vn = _advance_node(xc, (v[b, i, 0], v[b, i, 1], v[b, i, 2]), (f0, f1, f2), mi, dinv, dt)
-                x[b, i, 0], x[b, i, 1], x[b, i, 2] = xn
-                v[b, i, 0], v[b, i, 1], v[b, i, 2] = vn
+            gather_and_advance_nodes(m, s, w, b, ms, dt, tid, cuda.blockDim.x)
             cuda.syncthreads()
-            # ---- 3b. spring dashpots, implicit: thread 0 in the CPU's (edge) order
-            if m.use_dashpot:
+            if m.use_dashpot:  # ---- 3b. spring dashpots, implicit: thread 0 in the CPU's (edge) order
                 if tid == 0:
-                    for c in range(3):
-                        w.dash_out[b, c] = 0.0
-                    _implicit_spring_dashpots(x[b], v[b], w.meff[b], m.fixed, m.edges, m.cdash, ks, dt, w.dash_out[b])
+                    dashpot_pass(s.x[b], s.v[b], w.meff[b], m.fixed, (m.edges, m.cdash), ks, dt, w.dash_out[b])
                 cuda.syncthreads()
-            # ---- 4. volume barrier: tets flagged and listed in parallel; only where any is (as on the CPU), thread 0
-            # sorts the list into the CPU's (tet) order and integrates the barrier on those tets (a scan over every
-            # tet's flag, 810 dependent loads on the coarse spleen, cost as much as the rest of the substep)
-            if nt > 0:
-                for t in range(tid, nt, nth):
-                    on = _below_barrier(x[b], m.tets, m.rest_volume, m.vol_threshold, t)
-                    w.tet_on[b, t] = 1 if on else 0
-                    if on:
-                        slot = cuda.atomic.add(n_flagged, 0, 1)
-                        if slot < FLAG_LIST:
-                            flag_list[slot] = t
-                cuda.syncthreads()
-                if tid == 0 and n_flagged[0] > 0:
-                    for c in range(3):
-                        w.vol_out[b, c] = 0.0
-                    k = n_flagged[0]
-                    if k <= FLAG_LIST:
-                        _sort_ints(flag_list, k)
-                        for q in range(k):
-                            _barrier_impulse(x[b], v[b], w.meff[b], (m.fixed, s.held[b]), m.tets, m.rest_volume,
-                                             m.kvol, m.vol_threshold, ks, dt, flag_list[q], w.vol_out[b])
-                    else:
-                        _implicit_volume_barrier(x[b], v[b], w.meff[b], (m.fixed, s.held[b]), m.tets, m.rest_volume,
-                                                 m.kvol, m.vol_threshold, ks, dt, w.tet_on[b], w.vol_out[b])
-                cuda.syncthreads()
-            # ---- 5. contacts: cleared and tested in parallel, resolved by thread 0 in the CPU's (surface) order
-            for q in range(tid, m.surface_nodes.shape[0], nth):
-                _clear_contact_node(b, m, out, s.held[b], last_sub, q)
-            cuda.syncthreads()
-            if tid == 0:
-                if last_sub:
-                    for i in range(n):
-                        if m.fixed[i] or m.anchor_k[i] > 0.0:
-                            for c in range(3):
-                                out.anchor_out[b, c] += w.fa[b, i, c]
-                    if m.use_dashpot:  # (after the nodes' share, in the CPU's order)
-                        for c in range(3):
-                            out.anchor_out[b, c] += w.dash_out[b, c]
-                    if nt > 0 and n_flagged[0] > 0:
-                        for c in range(3):
-                            out.anchor_out[b, c] += w.vol_out[b, c]
-                s.t[b] += dt
-                _plate_contacts(b, x[b], v[b], w.meff[b], m, s, out, sub_info, res, s.held[b])
-                if m.jaw_active:
-                    vr = _advance_jaws(b, s, dt)
-            cuda.syncthreads()
-            if m.jaw_active:  # (a node's test reads that node only: the order of the tests does not matter)
-                _jaw_candidates(b, x[b], m, s, (w.u[b], w.tj[b]), w.cand[b], tid, nth)
-                cuda.syncthreads()
-                if tid == 0:
-                    _resolve_jaw_contacts(b, x[b], v[b], w.meff[b], m, s, out, (w.u[b], w.tj[b]), sub_info, res,
-                                          (s.held[b], w.cand[b]), vr)
-                cuda.syncthreads()
+            if m.kvol.shape[0] > 0:
+                _barrier(m, s, w, b, ks, dt, n_flagged, flag_list)
+            _contacts(m, s, out, w, b, sub_info, res, n_flagged)
 
 
 def to_device(record: NamedTuple) -> NamedTuple:

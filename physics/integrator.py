@@ -33,6 +33,7 @@ floating-point operations in the same order, so a tissue's trajectory is bitwise
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
@@ -49,15 +50,21 @@ from .contact import (
     plate_contacts,
 )
 from .forces import (
+    barrier_impulse,
     displacement_spread,
     flag_watched,
     implicit_spring_dashpots,
+    implicit_volume_barrier,
     implicit_volume_barrier_lanes,
+    spring_body,
     spring_loop,
     spring_loop_lanes,
     watch_barrier,
 )
 from .records import SimModel, SimReadout, SimState, Springs
+
+if TYPE_CHECKING:
+    from .device_layout import CudaScratch
 
 
 #: lane blocks hold a multiple of this many tissues: LLVM vectorises the loops over lanes in chunks of 8 doubles
@@ -156,15 +163,12 @@ def _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, forward):
 @njit(cache=True, error_model="numpy")
 def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     """:func:`simulate` for the L tissues of one lane block: x, v (N,3,L) and fv, dl_prev (E,L) are the
-    block's state in lanes (lane l is tissue lane0 + l); the rest of the state is read from ``state``."""
+    block's state in lanes (lane l is tissue lane0 + l); the rest of the state is read from ``state``.
+    Each substep runs the phases of the module docstring."""
     m = model
-    mass, b0, b1, fixed = m.mass, m.b0, m.b1, m.fixed
-    tets, rest_volume, kvol = m.tets, m.rest_volume, m.kvol
-    t, anchor_out, g_force, g_vradius = state.t, out.anchor_out, state.g_force, state.g_vradius
     n_sub = m.n_sub
     n = x.shape[0]
     nl = x.shape[2]
-    ne = fv.shape[0]
     lanes = nl > 1
     dt = m.dt_outer / n_sub
     f = np.empty((n, 3, nl), dtype=x.dtype)
@@ -173,71 +177,43 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
     x_one = x.reshape((n, 3 * nl)) if lanes else x.reshape((n, 3))
     v_one = v.reshape((n, 3 * nl)) if lanes else v.reshape((n, 3))
     f_one = f.reshape((n, 3 * nl)) if lanes else f.reshape((n, 3))
-    # effective mass m + dt b of each node: the implicit nodal damper acts on the *constrained* velocity,
-    # so a contact impulse must also overcome it (else reaction forces read low by 1 + dt b/m)
-    meff = np.empty((n, nl))
-    damp_inv = np.empty((n, nl))
-    fa = np.empty((3, nl))  # anchor spring force of one node
-    tmp = np.empty((3, nl), dtype=x.dtype)
-    spring_scratch = np.zeros((9, 0 if lanes else ne), dtype=x.dtype)
-    # the springs' scalars in the state's type (a float32 state computes its springs in float32; float64: as they are)
-    units = np.empty(4, dtype=x.dtype)  # 1, 1e-15, e^(-dt/tau), (tau/dt)(1 - e^(-dt/tau))
+    ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
+    ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
+    ne = fv.shape[0]
     # the springs with kv of E entries: the one-tissue loop reads it unconditionally (zeros without the branch);
     # their dashpots act in their own implicit pass after the node update, not in the force loop
     springs = Springs(m.edges, m.rest_length, m.k1, m.k2, m.dlc, m.cdash,
                       m.kv if m.kv.shape[0] == ne else np.zeros(ne, dtype=m.kv.dtype), False, m.use_sls)
-    ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
-    ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
-    res = np.empty(6)
-    decay = math.exp(-dt / m.tau)
-    gain = m.tau / dt * (1.0 - decay)
-    units[0] = 1.0
-    units[1] = 1e-15
-    units[2] = decay
-    units[3] = gain
-    ks_springs = np.empty(nl, dtype=x.dtype)
-    for lane in range(nl):
-        ks_springs[lane] = ks[lane]
-    flags = np.zeros((tets.shape[0], nl), dtype=np.int8)  # per tet and tissue: below the barrier's threshold
-    n_flagged = np.zeros(nl, dtype=np.int64)  # per tissue: tets below the barrier's threshold
-    # the flag pass's watch list (forces.watch_barrier): the tets a full pass found near the threshold, the
-    # positions it saw (the first substep makes one; the next comes where a node has moved m.watch_delta)
-    watch = np.empty(tets.shape[0], dtype=np.int64)
-    n_watch = -1
-    x_ref = np.empty((n, 3 * nl))
-    lohi = np.empty((3, 3 * nl))
+    ks_springs, units, tmp, spring_scratch = _spring_setup(m, x, ks, dt, ne)
+    # effective mass m + dt b of each node: the implicit nodal damper acts on the *constrained* velocity,
+    # so a contact impulse must also overcome it (else reaction forces read low by 1 + dt b/m)
+    meff = np.empty((n, nl))
+    damp_inv = np.empty((n, nl))
+    _constant_damping(m.mass, m.b0, m.b1, ms, dt, meff, damp_inv)
+    node_work = (meff, damp_inv, np.empty((3, nl)))  # (and the anchor spring force of one node)
+    watching = _barrier_work(m.tets.shape[0], n, nl)
+    n_watch = -1  # (no watch list yet: the first substep makes one)
     anchor_vol = np.zeros(3)  # the anchors' force against the spring dashpots in one tissue's substep, N
     anchor_lanes = np.zeros((nl, 3))  # per tissue: the anchors' force against the volume barrier in a substep, N
     held = state.held[lane0 : lane0 + nl]  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
     u = np.empty((nl, 3, 3))  # per tissue: jaw outward directions
     tj = np.empty((nl, 3, 3))  # per tissue: jaw lateral directions
+    res = np.empty(6)
     cand = np.empty(0, dtype=np.int8)  # (no separate test pass on the CPU: jaw_contacts tests where it resolves)
-    _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv)
-    node_work = (meff, damp_inv, fa)
-    f0 = np.empty((n, 3, nl), dtype=x.dtype)  # gravity + external forces: constant during the call
+    f0 = _start_block(lane0, x, m, state, out, ms, (u, tj))
     f_flat = f.reshape(n * 3 * nl)
     f0_flat = f0.reshape(n * 3 * nl)
-    for lane in range(nl):
-        b = lane0 + lane
-        for i in range(n):
-            for c in range(3):
-                f0[i, c, lane] = mass[i] * ms[lane] * m.gravity[c] + state.f_ext[b, i, c]
-    for lane in range(nl):
-        b = lane0 + lane
-        clear_readouts(b, out)
-        jaw_directions(state.g_axis[b], state.g_e1[b], u[lane], tj[lane])
     inv_sub = 1.0 / n_sub
     for step in range(n_steps):
         last_step = step == n_steps - 1
         if m.jaw_active:
             for lane in range(nl):
-                b = lane0 + lane
-                _force_loop(g_force, g_vradius, b)
+                pinch_force_loop(state.g_force, state.g_vradius, lane0 + lane)
         for sub in range(n_sub):
             last_sub = last_step and sub == n_sub - 1
-            avg = 1.0 / n_sub if last_step else 0.0
-            sub_info = (dt, avg, last_sub, inv_sub)  # what the contacts' readouts need
-            # ---- 1. forces
+            sub_info = (dt, inv_sub if last_step else 0.0, last_sub, inv_sub)  # what the contacts' readouts need
+            acc = (out.anchor_out, lane0, last_sub)  # where (and whether) the anchors' readout adds up
+            # ---- 1. forces (in the loop itself: as a function, even inlined, they cost 1 % of a one-tissue substep)
             for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
                 f_flat[k] = f0_flat[k]
             if lanes:
@@ -248,46 +224,20 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                             dl_prev.reshape(ne), f_one, spring_scratch, units[0], units[1])
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
             if lanes:
-                _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, anchor_out)
+                _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, out.anchor_out)
             else:  # a literal bound: once LLVM inlines the call, the lane loops vanish for one tissue
-                _update_nodes(m, x, v, f, node_work, ms, 1, lane0, last_sub, dt, anchor_out)
+                _update_nodes(m, x, v, f, node_work, ms, 1, lane0, last_sub, dt, out.anchor_out)
             # ---- 3b. the spring dashpots, implicit
             if m.use_dashpot:
-                for lane in range(nl):
-                    anchor_vol[:] = 0.0
-                    if lanes:
-                        implicit_spring_dashpots(x[:, :, lane], v[:, :, lane], meff[:, lane], fixed, m.edges, m.cdash,
-                                                 ks[lane], dt, anchor_vol)
-                    else:
-                        implicit_spring_dashpots(x_one, v_one, meff[:, 0], fixed, m.edges, m.cdash, ks[0], dt,
-                                                 anchor_vol)
-                    if last_sub:
-                        for c in range(3):
-                            anchor_out[lane0 + lane, c] += anchor_vol[c]
+                _dashpot_lanes(x, v, (x_one, v_one), meff, m, ks, dt, anchor_vol, acc)
             # ---- 4. the volume barrier, implicit, on the tets below its threshold (flagged across lanes)
-            if kvol.shape[0] > 0:
-                # a full pass where the nodes have left its budget (or are not finite), else the watched tets only
-                if n_watch < 0 or not displacement_spread(x_one, x_ref, nl, lohi) <= m.watch_delta:
-                    n_watch = watch_barrier(x, tets, rest_volume, m.vol_threshold, m.watch_delta, flags, n_flagged,
-                                            watch)
-                    for k in range(x_ref.shape[0]):
-                        for c in range(x_ref.shape[1]):
-                            x_ref[k, c] = x_one[k, c]
-                else:
-                    flag_watched(x, tets, rest_volume, m.vol_threshold, watch, n_watch, flags, n_flagged)
-                anchor_lanes[:] = 0.0
-                if lanes or n_flagged[0] > 0:  # (one tissue: its (N,3,1) block)
-                    implicit_volume_barrier_lanes(x, v, meff, (fixed, held), tets, rest_volume, kvol, m.vol_threshold,
-                                                  ks, dt, (flags, watch, n_watch), anchor_lanes)
-                if last_sub:
-                    for lane in range(nl):
-                        if n_flagged[lane] > 0:
-                            for c in range(3):
-                                anchor_out[lane0 + lane, c] += anchor_lanes[lane, c]
-            # ---- 5. contacts, one tissue at a time (branchy, few nodes)
+            if m.kvol.shape[0] > 0:
+                n_watch = _volume_barrier(x, v, x_one, (meff, held), m, ks, dt, (watching, n_watch), anchor_lanes, acc)
+            # ---- 5. contacts, one tissue at a time (branchy, few nodes; in the loop itself: as a function, even
+            # inlined, they cost 4 % of a one-tissue substep)
             for lane in range(nl):
                 b = lane0 + lane
-                t[b] += dt
+                state.t[b] += dt
                 # (N,3) views of one lane, strided in a lane block: one compiled contact code for both paths
                 xb = x[:, :, lane]
                 vb = v[:, :, lane]
@@ -300,7 +250,119 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
 
 
 @njit(cache=True, error_model="numpy")
-def _force_loop(g_force, g_vradius, b):
+def _spring_setup(m, x, ks, dt, ne):
+    """The spring loops' work for a block of the model's E = ``ne`` springs: (ks (L,), units (4,), tmp (3,L), scratch
+    (9,E) or (9,0)), in the state's type (a float32 state computes its springs in float32; float64: as they are).
+    units: 1, 1e-15, e^(-dt/tau), (tau/dt)(1 - e^(-dt/tau))."""
+    nl = x.shape[2]
+    units = np.empty(4, dtype=x.dtype)
+    units[0] = 1.0
+    units[1] = 1e-15
+    units[2], units[3] = maxwell_factors(dt, m.tau)
+    ks_springs = np.empty(nl, dtype=x.dtype)
+    for lane in range(nl):
+        ks_springs[lane] = ks[lane]
+    tmp = np.empty((3, nl), dtype=x.dtype)
+    return ks_springs, units, tmp, np.zeros((9, 0 if nl > 1 else ne), dtype=x.dtype)
+
+
+@njit(cache=True, error_model="numpy")
+def _barrier_work(nt, n, nl):
+    """The volume barrier's flags for ``nt`` tets and ``nl`` tissues of ``n`` nodes: (flags (T,L) int8: below the
+    threshold; n_flagged (L,): how many per tissue; the watch list (T,) of :func:`.forces.watch_barrier`: the tets a
+    full pass found near the threshold; x_ref (N,3L), the positions it saw, m; lohi (3,3L) scratch)."""
+    flags = np.zeros((nt, nl), dtype=np.int8)
+    n_flagged = np.zeros(nl, dtype=np.int64)
+    watch = np.empty(nt, dtype=np.int64)
+    return flags, n_flagged, watch, np.empty((n, 3 * nl)), np.empty((3, 3 * nl))
+
+
+@njit(cache=True, error_model="numpy")
+def _start_block(lane0, x, m, state, out, ms, dirs):
+    """At the start of a call: the block's readouts cleared, its jaws' directions (u, tj) set, and its constant
+    nodal load returned: gravity + external forces f0 (N,3,L), N (they do not change during the call)."""
+    n, nl = x.shape[0], x.shape[2]
+    u, tj = dirs
+    f0 = np.empty((n, 3, nl), dtype=x.dtype)
+    for lane in range(nl):
+        b = lane0 + lane
+        for i in range(n):
+            for c in range(3):
+                f0[i, c, lane] = m.mass[i] * ms[lane] * m.gravity[c] + state.f_ext[b, i, c]
+    for lane in range(nl):
+        b = lane0 + lane
+        clear_readouts(b, out)
+        jaw_directions(state.g_axis[b], state.g_e1[b], u[lane], tj[lane])
+    return f0
+
+
+@njit(cache=True, error_model="numpy")
+def dashpot_pass(x: np.ndarray, v: np.ndarray, meff: np.ndarray, fixed: np.ndarray, dashpots: tuple, ks: float,
+                 dt: float, anchor: np.ndarray) -> None:
+    """Step 3b for one tissue: the spring dashpots, implicit (:func:`.forces.implicit_spring_dashpots`) on x, v
+    (N,3) with effective masses meff (N,), kg, anchors ``fixed``, ``dashpots`` (edges, cdash N s/m), stiffness scale
+    ks, substep dt, s; ``anchor`` (3,) is set to the force the anchors supply against them, N. The GPU kernel's pass
+    too. (Arrays, not the model record of several dozen: it runs per tissue and substep.)"""
+    for c in range(3):
+        anchor[c] = 0.0
+    implicit_spring_dashpots(x, v, meff, fixed, dashpots[0], dashpots[1], ks, dt, anchor)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _dashpot_lanes(x, v, one, meff, m, ks, dt, anchor_vol, acc):
+    """:func:`dashpot_pass` for each tissue of the block (``one``: the (N,3) views of x, v for a block of one); in
+    the last substep the anchors' force adds to the readout ``acc`` (anchor_out, lane0, last_sub)."""
+    anchor_out, lane0, last_sub = acc
+    for lane in range(x.shape[2]):
+        if x.shape[2] > 1:
+            dashpot_pass(x[:, :, lane], v[:, :, lane], meff[:, lane], m.fixed, (m.edges, m.cdash), ks[lane], dt,
+                         anchor_vol)
+        else:
+            dashpot_pass(one[0], one[1], meff[:, 0], m.fixed, (m.edges, m.cdash), ks[0], dt, anchor_vol)
+        if last_sub:
+            for c in range(3):
+                anchor_out[lane0 + lane, c] += anchor_vol[c]
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _volume_barrier(x, v, x_one, nodes, m, ks, dt, watching, anchor_lanes, acc):
+    """Step 4: the volume barrier, implicit, on the tets below its threshold, flagged across lanes by a full pass
+    where the nodes have left the watch list's budget m.watch_delta (or are not finite), else on the watched tets
+    only. ``nodes``: (meff (N,L) kg, held); ``watching``: (:func:`_barrier_work`'s, the watch list's length or -1);
+    the anchors' force (N) adds to the readout ``acc`` in the last substep. Returns the watch list's length."""
+    meff, held = nodes
+    (flags, n_flagged, watch, x_ref, lohi), n_watch = watching
+    anchor_out, lane0, last_sub = acc
+    nl = x.shape[2]
+    if n_watch < 0 or not displacement_spread(x_one, x_ref, nl, lohi) <= m.watch_delta:
+        n_watch = watch_barrier(x, m.tets, m.rest_volume, m.vol_threshold, m.watch_delta, flags, n_flagged, watch)
+        for k in range(x_ref.shape[0]):
+            for c in range(x_ref.shape[1]):
+                x_ref[k, c] = x_one[k, c]
+    else:
+        flag_watched(x, m.tets, m.rest_volume, m.vol_threshold, watch, n_watch, flags, n_flagged)
+    anchor_lanes[:] = 0.0
+    if nl > 1 or n_flagged[0] > 0:  # (one tissue: its (N,3,1) block)
+        implicit_volume_barrier_lanes(x, v, meff, (m.fixed, held), m.tets, m.rest_volume, m.kvol, m.vol_threshold,
+                                      ks, dt, (flags, watch, n_watch), anchor_lanes)
+    if last_sub:
+        for lane in range(nl):
+            if n_flagged[lane] > 0:
+                for c in range(3):
+                    anchor_out[lane0 + lane, c] += anchor_lanes[lane, c]
+    return n_watch
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def maxwell_factors(dt: float, tau: float) -> tuple[float, float]:
+    """(e^(-dt/tau), (tau/dt)(1 - e^(-dt/tau))): the Maxwell branches' decay and gain over a substep dt, s, of
+    relaxation time tau, s (:func:`.forces.spring_body`)."""
+    decay = math.exp(-dt / tau)
+    return decay, tau / dt * (1.0 - decay)
+
+
+@njit(cache=True, error_model="numpy")
+def pinch_force_loop(g_force: np.ndarray, g_vradius: np.ndarray, b: int) -> None:
     """The jaw motor's 1 kHz pinch-force loop of tissue b, run once per outer step: closing speed
     proportional to the force error of the last step, limited to the motor's speed (P control of the
     radius rate = integral action on the radius, so a steady set-point is held without offset).
@@ -408,6 +470,104 @@ def _update_nodes(model, x, v, f, work, ms, nl, lane0, last_sub, dt, anchor_out)
                                   (f[i, 0, lane], f[i, 1, lane], f[i, 2, lane]), mi * ms[lane], damp_inv[i, lane], dt)
             v[i, 0, lane], v[i, 1, lane], v[i, 2, lane] = vn
             x[i, 0, lane], x[i, 1, lane], x[i, 2, lane] = xn
+
+
+# The GPU kernel's loops over springs and nodes (:mod:`.cuda_step`: a thread block per tissue b, a thread per spring
+# or node: first = the thread, stride = the block's threads), written as CPU functions so that the CPU runs and
+# tests them too. w is the kernel's scratch (:func:`.device_layout.make_scratch`).
+
+
+@njit(cache=True, error_model="numpy")
+def springs_to_scratch(m: SimModel, s: SimState, w: CudaScratch, b: int, ks: float, maxwell: tuple[float, float],
+                       first: int, stride: int) -> None:
+    """Step 1 without the scatter, for springs first, first + stride, ... of tissue b (stiffness scale ks; maxwell:
+    :func:`maxwell_factors`): each spring's force on its first node to w.fe, N, and its Maxwell state advanced."""
+    x, flags = s.x, (False, m.use_sls)  # (the dashpots act in their own implicit pass)
+    for e in range(first, m.edges.shape[0], stride):
+        i, j = m.edges[e, 0], m.edges[e, 1]
+        d = (x[b, j, 0] - x[b, i, 0], x[b, j, 1] - x[b, i, 1], x[b, j, 2] - x[b, i, 2])
+        kve = m.kv[e] if m.use_sls else m.k1[e]  # (kv may be empty without the branch, which ignores it;
+        # fv, dl_prev and kv read as their own types, so float32 storage keeps float32 arithmetic)
+        w.fe[b, e, 0], w.fe[b, e, 1], w.fe[b, e, 2], fve, dle = spring_body(
+            d, (m.rest_length[e], m.k1[e], m.k2[e], m.dlc[e]), ks, (0.0, 0.0, 0.0, 0.0),
+            (s.fv[b, e], s.dl_prev[b, e], kve, maxwell[0], maxwell[1]), flags, 1.0, 1e-15)
+        if m.use_sls:
+            s.fv[b, e], s.dl_prev[b, e] = fve, dle
+
+
+@njit(cache=True, error_model="numpy")
+def gather_and_advance_nodes(m: SimModel, s: SimState, w: CudaScratch, b: int, ms: float, dt: float, first: int,
+                             stride: int) -> None:
+    """Steps 2-3 for nodes first, first + stride, ... of tissue b (mass scale ms): gravity, the external load and
+    the springs' forces from w.fe gathered in the order in which :func:`.forces.spring_loop` scatters them (the same
+    sum, term by term), then symplectic Euler with implicit damping. An anchored node is held (its anchor's force to
+    w.fa, N), a sprung one pulled (likewise); the effective masses to w.meff, kg."""
+    x, v = s.x, s.v
+    for i in range(first, x.shape[1], stride):
+        mi = m.mass[i] * ms
+        f0 = mi * m.gravity[0] + s.f_ext[b, i, 0]  # (mass x scale) x g, as the CPU groups it
+        f1 = mi * m.gravity[1] + s.f_ext[b, i, 1]
+        f2 = mi * m.gravity[2] + s.f_ext[b, i, 2]
+        for p in range(w.edge_ptr[i], w.edge_ptr[i + 1]):
+            e, sg = w.edge_idx[p], w.edge_sign[p]  # (f + (-1 x g) is f - g, bit for bit)
+            f0, f1, f2 = f0 + sg * w.fe[b, e, 0], f1 + sg * w.fe[b, e, 1], f2 + sg * w.fe[b, e, 2]
+        if m.fixed[i]:  # the anchor holds the node against its whole force
+            w.fa[b, i, 0], w.fa[b, i, 1], w.fa[b, i, 2] = -f0, -f1, -f2
+            v[b, i, 0], v[b, i, 1], v[b, i, 2] = 0.0, 0.0, 0.0
+            continue
+        xc = (x[b, i, 0], x[b, i, 1], x[b, i, 2])
+        xr = (m.x_rest[i, 0], m.x_rest[i, 1], m.x_rest[i, 2])
+        if m.anchor_k[i] > 0.0:
+            a0, a1, a2 = anchor_spring_force(xc, xr, ms, m.anchor_k[i], m.anchor_offset)
+            f0, f1, f2 = f0 + a0, f1 + a1, f2 + a2
+            w.fa[b, i, 0], w.fa[b, i, 1], w.fa[b, i, 2] = a0, a1, a2
+        damp = nodal_damping(xc, xr, m.b0[i], m.b1[i]) if m.b1[i] != 0.0 else m.b0[i]
+        dinv, w.meff[b, i] = damping_factors(mi, damp, dt)
+        xn, vn = advance_node(xc, (v[b, i, 0], v[b, i, 1], v[b, i, 2]), (f0, f1, f2), mi, dinv, dt)
+        x[b, i, 0], x[b, i, 1], x[b, i, 2] = xn
+        v[b, i, 0], v[b, i, 1], v[b, i, 2] = vn
+
+
+@njit(cache=True, error_model="numpy")
+def listed_volume_barrier(m: SimModel, s: SimState, w: CudaScratch, b: int, ks: float, dt: float,
+                          flag_list: np.ndarray, k: int) -> None:
+    """Step 4's impulses on tissue b's ``k`` flagged tets, listed in ``flag_list`` in any order (sorted into tet order
+    here, in place) or, where more were flagged than the list holds, on every tet flagged in w.tet_on: the impulses
+    of :func:`.forces.implicit_volume_barrier` either way (stiffness scale ks, substep dt, s); the anchors' force to
+    w.vol_out, N."""
+    x, v, meff, pins = s.x[b], s.v[b], w.meff[b], (m.fixed, s.held[b])
+    for c in range(3):
+        w.vol_out[b, c] = 0.0
+    if k > flag_list.shape[0]:
+        implicit_volume_barrier(x, v, meff, pins, m.tets, m.rest_volume, m.kvol, m.vol_threshold, ks, dt, w.tet_on[b],
+                                w.vol_out[b])
+        return
+    for q in range(1, k):  # insertion sort: a few tets
+        t = flag_list[q]
+        j = q - 1
+        while j >= 0 and flag_list[j] > t:
+            flag_list[j + 1] = flag_list[j]
+            j -= 1
+        flag_list[j + 1] = t
+    for q in range(k):
+        barrier_impulse(x, v, meff, pins, m.tets, m.rest_volume, m.kvol, m.vol_threshold, ks, dt, flag_list[q],
+                        w.vol_out[b])
+
+
+@njit(cache=True, error_model="numpy")
+def anchor_readout(m: SimModel, out: SimReadout, w: CudaScratch, b: int, flagged: int) -> None:
+    """The anchors' forces of tissue b's substep into its readout out.anchor_out, N, in the CPU's order: against the
+    nodes (w.fa), the spring dashpots (w.dash_out) and, where ``flagged`` tets were, the volume barrier (w.vol_out)."""
+    for i in range(m.fixed.shape[0]):
+        if m.fixed[i] or m.anchor_k[i] > 0.0:
+            for c in range(3):
+                out.anchor_out[b, c] += w.fa[b, i, c]
+    if m.use_dashpot:  # (after the nodes' share, as on the CPU)
+        for c in range(3):
+            out.anchor_out[b, c] += w.dash_out[b, c]
+    if flagged > 0:
+        for c in range(3):
+            out.anchor_out[b, c] += w.vol_out[b, c]
 
 
 @njit(cache=True, error_model="numpy")

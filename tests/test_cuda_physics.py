@@ -45,6 +45,30 @@ def _pair(threads: int):
     return scene, sims
 
 
+def test_the_gpu_code_reaches_no_cpu_function():
+    """Every numba CPU function the kernel and its device functions call, directly or through others, is bound to
+    its GPU twin (in the simulator a CPU function would run unnoticed; on a GPU the kernel would not compile)."""
+    from numba.core.registry import CPUDispatcher
+
+    from msdgrasp.physics import cuda_step
+
+    seen, todo = set(), [cuda_step._simulate_kernel]
+    while todo:
+        kernel = todo.pop()
+        fn = getattr(kernel, "py_func", None) or kernel.fn  # (a GPU's dispatcher, or the simulator's)
+        if fn in seen:
+            continue
+        seen.add(fn)
+        for name in fn.__code__.co_names:
+            g = fn.__globals__.get(name)
+            assert not isinstance(g, CPUDispatcher), f"{fn.__name__} calls the CPU's {name}"
+            if type(g).__name__ in ("FakeCUDAKernel", "CUDADispatcher"):
+                todo.append(g)
+    names = {fn.__name__ for fn in seen}
+    assert {"_simulate_kernel", "_barrier", "_contacts", "springs_to_scratch", "spring_body", "advance_node",
+            "listed_volume_barrier", "barrier_impulse", "resolve_jaw_contacts"} <= names
+
+
 def test_cuda_step_matches_the_cpu_kernel_through_a_grasp_with_stick_and_slip():
     from msdgrasp.physics.cuda_step import FLAG_LIST
     from msdgrasp.physics.forces import flag_barrier

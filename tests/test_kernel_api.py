@@ -45,16 +45,115 @@ def test_no_kernel_function_takes_more_than_twelve_parameters(folder):
     assert _long_signatures(ROOT / folder) == [], f"pass records or tuples instead (at most {MAX_PARAMS})"
 
 
+def _calls(path: Path, names: set[str] | None = None) -> set[str]:
+    """The names the functions of ``path`` (those in ``names``, default all) call."""
+    return {n.func.id if isinstance(n.func, ast.Name) else getattr(n.func, "attr", "")
+            for fn in ast.walk(ast.parse(path.read_text()))
+            if isinstance(fn, ast.FunctionDef) and (names is None or fn.name in names)
+            for n in ast.walk(fn) if isinstance(n, ast.Call)}
+
+
 def test_the_gpu_kernel_calls_the_cpu_bodies_instead_of_repeating_them():
-    """The kernel in cuda_step calls the twins of the per-element bodies and computes no spring law, tet
-    gradient or square root of its own (those live in the bodies, shared with the CPU loops)."""
-    tree = ast.parse((ROOT / "physics" / "cuda_step.py").read_text())
-    kernel = next(n for n in ast.walk(tree) if isinstance(n, ast.FunctionDef) and n.name == "_simulate_kernel")
-    called = {n.func.id if isinstance(n.func, ast.Name) else getattr(n.func, "attr", "")
-              for n in ast.walk(kernel) if isinstance(n, ast.Call)}
-    assert {"_spring_body", "_implicit_volume_barrier", "_advance_node", "_damping_factors", "_nodal_damping",
-            "_anchor_spring_force"} <= called
-    assert not called & {"_spring_force", "spring_force", "_volume_gradients", "_volume6", "sqrt"}
+    """The GPU kernel (cuda_step's kernel and device functions) runs the CPU kernel's own functions and computes no
+    spring law, tet gradient or square root of its own. Its loops over springs and nodes and its barrier pass are CPU
+    functions (integrator's), which call the per-element bodies shared with the CPU loops."""
+    gpu = _calls(ROOT / "physics" / "cuda_step.py")
+    assert {"springs_to_scratch", "gather_and_advance_nodes", "listed_volume_barrier", "dashpot_pass", "below_barrier",
+            "maxwell_factors", "plate_contacts", "jaw_candidates", "resolve_jaw_contacts"} <= gpu
+    law = {"_spring_force", "spring_force", "_volume_gradients", "_volume6", "sqrt"}
+    assert not gpu & (law | {"spring_body", "barrier_impulse", "advance_node"})
+    loops = _calls(ROOT / "physics" / "integrator.py",
+                   {"springs_to_scratch", "gather_and_advance_nodes", "listed_volume_barrier"})
+    assert {"spring_body", "advance_node", "damping_factors", "nodal_damping", "anchor_spring_force", "barrier_impulse",
+            "implicit_volume_barrier"} <= loops
+    assert not loops & law
+
+
+def _gpu_test_tissue(mesh, **params):
+    """(model record, state record, readout record) of one coarse spleen at a perturbed state: compliant anchors on
+    the hilum, five rigid ones elsewhere, displacement-dependent damping, a Maxwell branch, scales and a load."""
+    from dataclasses import replace
+
+    from msdgrasp.physics import reference
+    from msdgrasp.physics.simulation import Simulation
+    from msdgrasp.physics.tissue import TissueModel
+
+    p = replace(reference.spleen_params(), damping_disp_rate_per_m_s=500.0, relaxation_strength=0.3, **params)
+    model = TissueModel.from_params(mesh, p, fixed_nodes=mesh.node_sets["hilum"], anchor_stiffness_n_per_m=8.0)
+    sim = Simulation(model, 1, max_stiffness_scale=1.2, min_mass_scale=0.8)
+    rng = np.random.default_rng(7)
+    sim.set_state(model.rest_positions + 4e-4 * rng.standard_normal((model.n_nodes, 3)))
+    sim.v[0] = 0.02 * rng.standard_normal((model.n_nodes, 3))
+    sim.fv[0] = 0.01 * rng.standard_normal(len(model.edges))
+    sim.set_scales(stiffness=1.1, mass=0.9)
+    sim.f_ext[0, 11] = (0.03, 0.05, -0.04)
+    fixed = model.fixed.copy()
+    fixed[np.setdiff1d(np.arange(model.n_nodes), mesh.node_sets["hilum"])[:5]] = True
+    m = sim.kernel_model()._replace(fixed=fixed)
+    m = m._replace(n_sub=1, dt_outer=m.dt_outer / m.n_sub)  # one substep per call
+    return m, sim.kernel_state(), sim.kernel_readout()
+
+
+def _copy(record):
+    return type(record)(*[a.copy() if isinstance(a, np.ndarray) else a for a in record])
+
+
+def test_the_gpu_loops_run_on_the_cpu_make_the_cpu_kernels_substep_to_the_bit(spleen_coarse):
+    """springs_to_scratch and gather_and_advance_nodes, the GPU kernel's loops (a thread per spring or node), run here
+    in three threads' strides: the forces gathered in the scatter's order give the CPU kernel's substep bitwise
+    (positions, velocities, Maxwell state, the anchors' readout), rigid and sprung anchors included."""
+    from msdgrasp.physics.device_layout import make_scratch
+    from msdgrasp.physics.integrator import (anchor_readout, gather_and_advance_nodes, maxwell_factors, simulate,
+                                             springs_to_scratch)
+
+    m, st, out = _gpu_test_tissue(spleen_coarse)
+    m = m._replace(kvol=m.kvol[:0])  # springs and nodes only (no contacts: no grasper, no plates)
+    assert m.use_sls and not m.use_dashpot and not m.jaw_active and np.any(m.b1 != 0)
+    assert np.any(m.fixed & (m.anchor_k == 0)) and np.any(~m.fixed & (m.anchor_k > 0))
+    gst, gout, w = _copy(st), _copy(out), make_scratch(m, 1)
+    simulate(m, st, out, 1)
+    dt = m.dt_outer
+    maxwell = maxwell_factors(dt, m.tau)
+    for first in range(3):
+        springs_to_scratch(m, gst, w, 0, gst.kscale[0], maxwell, first, 3)
+    for first in range(3):
+        gather_and_advance_nodes(m, gst, w, 0, gst.mscale[0], dt, first, 3)
+    gout.anchor_out[:] = 0.0
+    anchor_readout(m, gout, w, 0, 0)
+    for name in ("x", "v", "fv", "dl_prev"):
+        np.testing.assert_array_equal(getattr(gst, name), getattr(st, name), err_msg=name)
+    np.testing.assert_array_equal(gout.anchor_out, out.anchor_out)
+    assert not np.array_equal(gst.x, _gpu_test_tissue(spleen_coarse)[1].x) and np.abs(out.anchor_out).max() > 0
+
+
+def test_the_gpus_listed_barrier_is_the_scan_over_the_flags_to_the_bit(spleen_coarse):
+    """listed_volume_barrier, the GPU's barrier pass on its list of flagged tets (in the order the threads found
+    them), gives implicit_volume_barrier's scan over every flag bitwise; with more tets than the list holds it scans."""
+    from msdgrasp.physics.device_layout import make_scratch
+    from msdgrasp.physics.forces import below_barrier, implicit_volume_barrier
+    from msdgrasp.physics.integrator import listed_volume_barrier
+
+    m, st, _ = _gpu_test_tissue(spleen_coarse, volume_threshold=1.0)  # (any volume loss flags a tet)
+    flags = np.array([below_barrier(st.x[0], m.tets, m.rest_volume, m.vol_threshold, t) for t in range(len(m.tets))],
+                     dtype=np.int8)
+    k = int(flags.sum())
+    assert 10 < k < len(m.tets)
+    rng = np.random.default_rng(3)
+    meff = rng.uniform(0.5, 1.5, len(m.mass)) * m.mass
+    st.held[0, m.tets[np.flatnonzero(flags)[0]]] = 1  # (a held node in a flagged tet)
+    want_x, want_v, want_anchor = st.x[0].copy(), st.v[0].copy(), np.zeros(3)
+    implicit_volume_barrier(want_x, want_v, meff, (m.fixed, st.held[0]), m.tets, m.rest_volume, m.kvol,
+                            m.vol_threshold, 1.1, 2e-4, flags, want_anchor)
+    assert not np.array_equal(want_v, st.v[0]) and np.abs(want_anchor).max() > 0
+    for room in (k + 5, k - 1):  # the list, shuffled; a list too short: the scan
+        gst, w = _copy(st), make_scratch(m, 1)
+        w.meff[0], w.tet_on[0], w.vol_out[0] = meff, flags, 7.0
+        flag_list = np.zeros(room, dtype=np.int32)
+        flag_list[:min(k, room)] = rng.permutation(np.flatnonzero(flags))[:room]
+        listed_volume_barrier(m, gst, w, 0, 1.1, 2e-4, flag_list, k)
+        np.testing.assert_array_equal(gst.x[0], want_x)
+        np.testing.assert_array_equal(gst.v[0], want_v)
+        np.testing.assert_array_equal(w.vol_out[0], want_anchor)
 
 
 def test_spring_body_is_the_spring_law_along_the_spring_with_its_dashpot_and_maxwell_branch():
