@@ -27,7 +27,7 @@ from numba import cuda
 from numba.cuda.random import create_xoroshiro128p_states, xoroshiro128p_normal_float64, xoroshiro128p_uniform_float64
 
 from ..physics.config import ConfigError, check_choice, check_range
-from ..physics.cuda_step import PRECISIONS, THREADS_PER_BLOCK, CudaBatch, _tet_edges, device_twin, to_device
+from ..physics.cuda_step import PRECISIONS, THREADS_PER_BLOCK, CudaBatch, device_twin, tet_edges, to_device
 from . import task
 from .core import GraspLiftConfig, GraspLiftCore, check_pin
 from .task import PINNABLE, TaskState, task_state
@@ -63,7 +63,7 @@ def _task_kernel(m, s, out, p, ts, rng):
             ok = ok if math.isfinite(s.x[b, i, c]) and math.isfinite(s.v[b, i, c]) else 0
     lo = math.inf
     for t in range(tid, m.tets.shape[0], cuda.blockDim.x):
-        r = _tet_edges(s.x[b], m.tets, t)[9] / m.rest_volume[t]
+        r = tet_edges(s.x[b], m.tets, t)[9] / m.rest_volume[t]
         lo = r if r < lo else lo  # (as forces.min_volume_ratios compares)
     lo_sh[tid], ok_sh[tid] = lo, ok
     cuda.syncthreads()

@@ -79,7 +79,6 @@ def _kernel(fn):
 
 
 tet_edges = device_twin(_forces._tet_edges)  # (the task kernel's volume-ratio check, envs/cuda_core.py)
-_tet_edges = tet_edges  # (its former name, until its last importer moves)
 
 
 @_device
