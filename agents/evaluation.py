@@ -1,12 +1,12 @@
 """Evaluate grasp policies across a grid of friction coefficients (``msdgrasp evaluate``).
 
-For every policy and every mu of the grid, ``episodes`` episodes run as ONE batch of a
+For every policy and every mu of the grid, ``episodes`` episodes run in a batch of a
 :class:`~msdgrasp.envs.grasp_lift.GraspLiftVectorEnv` (mu pinned through the reset options, every other
-randomisation as configured, episode ``i`` seeded ``seed + i``). :func:`evaluate` starts at the sealed evaluation
-seeds (:data:`~.protocol.EVALUATION_SEED`, which no training, validation, fit or sweep draws from) and records
-``"seeds": {"first", "count", "sealed"}`` in ``evaluation.json``; another ``seed`` makes a result marked not sealed.
-The batch is stepped through the core (``env.core.step``) so that no sub-env is auto-reset mid-evaluation; each
-episode's metrics are frozen at the step it ends.
+randomisation as configured, episode ``i`` seeded ``seed + i``; :mod:`.rollout`). :func:`evaluate` starts at the
+sealed evaluation seeds (:data:`~.protocol.EVALUATION_SEED`, which no training, validation, fit or sweep draws from)
+and records ``"seeds": {"first", "count", "sealed"}`` in ``evaluation.json``; another ``seed`` makes a result marked
+not sealed. The episodes run as one job list (:mod:`.evaluation_jobs`, the driver the robustness suite runs too), in
+this process or on a runner; the plots are :mod:`.evaluation_plots`'.
 
 Per (policy, mu) row:
 
@@ -45,18 +45,17 @@ from typing import Any
 import numpy as np
 
 from ..envs.core import DAMAGE_PRESSURE_PA, GraspLiftConfig, RandomizationConfig  # noqa: F401 (DAMAGE_PRESSURE_PA re-exported)
-from ..physics.config import (  # noqa: F401 (nan_to_none re-exported)
-    ConfigError, atomic_write_text, from_dict, nan_to_none, needs_extra, save_figure, to_dict,
+from ..physics.config import ConfigError, atomic_write_text, nan_to_none, to_dict  # noqa: F401 (nan_to_none re-exported)
+from .controllers import (  # noqa: F401 (display_name re-exported)
+    baselines, check_controller_spec, display_name, is_controller, make_policy, spec_forms,
 )
-from .controllers import (  # noqa: F401 (is_controller, display_name re-exported)
-    OraclePolicy, baselines, check_controller_spec, display_name, idle_action, is_controller, make_policy,
-    minimal_force, spec_forms,
-)
+from .evaluation_jobs import JobList, PolicyPayload, curve_record, policy_payload
+from .evaluation_plots import plot_pinch, plot_success
 from .reference import references_at
 from .learners.base import learner_of_model, model_kinds
 from .parallel import Runner
 from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
-from .stats import bootstrap_ci, wilson_interval
+from .rollout import PULL_STARTED_M, evaluate_policy  # noqa: F401 (re-exported: the per-policy evaluation)
 
 #: the training range (0.3-0.9) and beyond it on both sides (0.15, 0.2, 1.0, 1.2: unseen in training)
 DEFAULT_MU_GRID = "0.15,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0,1.2"
@@ -140,199 +139,6 @@ def parse_mu_grid(text: str) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------
-# running episodes
-# ------------------------------------------------------------------------------------------------
-
-
-def _config_for(config: GraspLiftConfig, options: dict[str, float]) -> GraspLiftConfig:
-    """``config`` with its randomisation ranges widened to admit the pinned stiffness / mass scales (the
-    env sizes its stability substeps from those ranges; the draws themselves are discarded when pinned)."""
-    from dataclasses import replace
-
-    rnd = config.randomization
-    ks = options.get("stiffness_scale")
-    ms = options.get("mass_scale")
-    if ks is not None and ks > rnd.stiffness_scale_range[1]:
-        rnd = replace(rnd, stiffness_scale_range=(rnd.stiffness_scale_range[0], float(ks)))
-    if ms is not None and ms < rnd.mass_scale_range[0]:
-        rnd = replace(rnd, mass_scale_range=(float(ms), rnd.mass_scale_range[1]))
-    return config if rnd is config.randomization else replace(config, randomization=rnd)
-
-
-#: the grasper's travel from which a pull counts as started (``peak_pinch_before_pull_N``), m
-PULL_STARTED_M = 1e-3
-
-
-def _run_batch(env, policy, mus: Sequence[float], seeds: Sequence[int],
-               options: dict[str, float] | None = None) -> dict[str, np.ndarray]:
-    """Run ``len(seeds) <= env.num_envs`` episodes, episode k at friction ``mus[k]``; per-episode metrics
-    (frozen at the end)."""
-    B = env.num_envs
-    n = len(seeds)
-    # unused slots (a short last chunk) run too, with seeds continuing the sequence, and are ignored
-    all_seeds = [int(s) for s in seeds] + [int(seeds[-1]) + 1 + k for k in range(B - n)]
-    all_mus = [float(m) for m in mus] + [float(mus[-1])] * (B - n)
-    obs, info = env.reset(seed=all_seeds, options={"mu": all_mus, **(options or {})})
-    policy.reset([{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in info.items()} for i in range(B)])
-    core = env.core
-    done = np.zeros(B, dtype=bool)
-    out = {
-        "success": np.zeros(B, dtype=bool),
-        "peak_pinch_N": np.zeros(B),
-        "peak_pinch_before_pull_N": np.zeros(B),
-        "pinch_sum_N": np.zeros(B),
-        "setpoint_change_sum_N": np.zeros(B),
-        "return": np.zeros(B),
-        "steps": np.zeros(B, dtype=np.int64),
-        "slip_mm": np.zeros(B),
-        "peak_stress_kPa": np.zeros(B),
-        "time_above_damage_s": np.zeros(B),
-        "time_to_lift_s": np.full(B, np.nan),
-        "outcome": np.full(B, "timeout", dtype=object),
-    }
-    # the pinch-force set-point the policy commands (jaw_action = force), to measure how much it moves step to step
-    force_setpoints = env.config.jaw_action == "force"
-    previous_setpoint = np.full(B, np.nan)
-    for _ in range(env.config.max_episode_steps + 1):
-        act = np.asarray(policy.act(obs), dtype=np.float64).reshape(B, 2)
-        if not np.all(np.isfinite(act[~done])):
-            bad = int(np.flatnonzero(~np.all(np.isfinite(act), axis=1) & ~done)[0])
-            raise ConfigError(f"policy {getattr(policy, 'name', 'policy')!r} returned a non-finite action at "
-                              f"mu={all_mus[bad]:g}")
-        act = np.where(done[:, None], idle_action(env.config), act)  # finished tissues just rest
-        # ended episodes no longer count: their tissues stand still (each tissue's physics is the same in any
-        # batch, so the others' are unchanged)
-        obs, rew, term, trunc, inf = core.step(act, advance=np.flatnonzero(~done))
-        live = ~done
-        out["pinch_sum_N"][live] += inf["pinch_force_N"][live]
-        if force_setpoints:
-            setpoint = core.pinch_setpoint(np.clip(act[:, 0], -1.0, 1.0))
-            moved = live & np.isfinite(previous_setpoint)
-            out["setpoint_change_sum_N"][moved] += np.abs(setpoint - previous_setpoint)[moved]
-            previous_setpoint = np.where(live, setpoint, previous_setpoint)
-        # where the peak is set: the grip before the grasper has pulled PULL_STARTED_M (closing, squeezing)
-        before = live & (inf["travel_m"] < PULL_STARTED_M)
-        out["peak_pinch_before_pull_N"][before] = np.maximum(out["peak_pinch_before_pull_N"][before],
-                                                             inf["pinch_force_N"][before])
-        out["return"][live] += rew[live]
-        out["steps"][live] += 1
-        out["time_above_damage_s"][live & (inf["peak_stress_pa"] > DAMAGE_PRESSURE_PA)] += env.config.agent_dt_s
-        ended = live & (term | trunc)
-        if ended.any():
-            out["success"][ended] = inf["is_success"][ended]
-            out["peak_pinch_N"][ended] = core.peak_pinch[ended]
-            out["slip_mm"][ended] = core.slip_total[ended] * 1e3
-            out["peak_stress_kPa"][ended] = core.peak_stress[ended] * 1e-3
-            out["time_to_lift_s"][ended] = core.time_to_lift[ended]
-            for i in np.flatnonzero(ended):
-                if inf["is_success"][i]:
-                    o = "success"
-                elif inf["numerical_failure"][i]:
-                    o = "numerical_failure"
-                elif inf["lost_grasp"][i]:
-                    o = "lost_grasp"
-                elif inf["slipped"][i]:
-                    o = "slipped"  # more than lift_slip_tolerance_m after lifting began: ran out the clock
-                elif term[i] and inf["damaged"][i]:
-                    o = "damaged"
-                else:
-                    o = "timeout"
-                out["outcome"][i] = o
-            done |= ended
-        if done.all():
-            break
-    out["mean_pinch_N"] = out.pop("pinch_sum_N") / np.maximum(out["steps"], 1)
-    # mean |change| of the pinch set-point from one agent step to the next (NaN without a force set-point)
-    change = out.pop("setpoint_change_sum_N") / np.maximum(out["steps"] - 1, 1)
-    out["setpoint_change_N"] = change if force_setpoints else np.full(B, np.nan)
-    return {k: v[:n] for k, v in out.items()}
-
-
-def _summarise(mu: float, ep: dict[str, np.ndarray]) -> dict[str, Any]:
-    ttl = ep["time_to_lift_s"]
-    lifted = np.isfinite(ttl)
-    outcomes = {o: int(np.sum(ep["outcome"] == o)) for o in sorted(set(ep["outcome"].tolist()))}
-    n = int(len(ep["success"]))
-    return {
-        "mu": float(mu),
-        "success_rate": float(np.mean(ep["success"])),
-        "success_ci95": list(wilson_interval(int(np.sum(ep["success"])), n)),
-        "mean_peak_pinch_N": float(np.mean(ep["peak_pinch_N"])),
-        "peak_pinch_ci95_N": list(bootstrap_ci(ep["peak_pinch_N"])),
-        "max_peak_pinch_N": float(np.max(ep["peak_pinch_N"])),
-        "mean_peak_pinch_before_pull_N": float(np.mean(ep["peak_pinch_before_pull_N"])),
-        "mean_pinch_N": float(np.mean(ep["mean_pinch_N"])),
-        "mean_setpoint_change_N": float(np.mean(ep["setpoint_change_N"])),
-        "mean_return": float(np.mean(ep["return"])),
-        "mean_slip_mm": float(np.mean(ep["slip_mm"])),
-        "mean_peak_stress_kPa": float(np.mean(ep["peak_stress_kPa"])),
-        "max_peak_stress_kPa": float(np.max(ep["peak_stress_kPa"])),
-        "mean_time_above_damage_s": float(np.mean(ep["time_above_damage_s"])),
-        "mean_time_to_lift_s": float(np.mean(ttl[lifted])) if lifted.any() else float("nan"),
-        "episodes": int(len(ep["success"])),
-        "outcomes": outcomes,
-        "per_episode": {
-            "success": [bool(v) for v in ep["success"]],
-            "peak_pinch_N": [float(v) for v in ep["peak_pinch_N"]],
-            "peak_pinch_before_pull_N": [float(v) for v in ep["peak_pinch_before_pull_N"]],
-            "mean_pinch_N": [float(v) for v in ep["mean_pinch_N"]],
-            "setpoint_change_N": [float(v) for v in ep["setpoint_change_N"]],
-            "return": [float(v) for v in ep["return"]],
-            "slip_mm": [float(v) for v in ep["slip_mm"]],
-            "peak_stress_kPa": [float(v) for v in ep["peak_stress_kPa"]],
-            "time_above_damage_s": [float(v) for v in ep["time_above_damage_s"]],
-            "time_to_lift_s": [float(v) for v in ttl],
-            "steps": [int(v) for v in ep["steps"]],
-            "outcome": [str(v) for v in ep["outcome"]],
-        },
-    }
-
-
-def evaluate_policy(policy, mus: Sequence[float], episodes: int = 10, config: GraspLiftConfig | None = None,
-                    seed: int = 0, n_envs: int | None = None, *, _envs: dict | None = None,
-                    progress: bool = False, options: dict[str, float] | None = None) -> list[dict[str, Any]]:
-    """One row of metrics per mu (see the module docstring) for ``policy`` over ``episodes`` episodes each.
-
-    Episode ``i`` (at every mu) is seeded ``seed + i`` with reset options ``{"mu": mu, **options}``
-    (``options`` pins e.g. ``stiffness_scale`` beyond the training range: the env is then built for it,
-    which changes only its stability substeps). ``n_envs`` caps the batch size (default: every episode at
-    every mu in one batch; an episode's result does not depend on the batch).
-    """
-    options = dict(options or {})
-    from ..envs.grasp_lift import GraspLiftVectorEnv
-
-    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
-        raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
-    if n_envs is not None and (isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or n_envs < 1):
-        raise ConfigError(f"n_envs must be an integer >= 1 or None, got {n_envs!r}")
-    config = _config_for(config or GraspLiftConfig(), options)
-    # every (mu, episode) pair in one batch unless n_envs caps it: one batched env runs the tissues in SIMD lanes
-    # (from 16 up), and each episode's result is the same in any batch (its own seed and random stream)
-    pairs = [(float(mu), seed + i) for mu in mus for i in range(episodes)]
-    batch = int(min(n_envs or len(pairs), len(pairs)))
-    envs = _envs if _envs is not None else {}
-    key = (config, batch)
-    if key not in envs:
-        envs[key] = GraspLiftVectorEnv(batch, config)
-    env = envs[key]
-    t0 = time.perf_counter()
-    chunks = [_run_batch(env, policy, [mu for mu, _ in part], [s for _, s in part], options)
-              for part in (pairs[k:k + batch] for k in range(0, len(pairs), batch))]
-    ep_all = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-    rows = []
-    for m, mu in enumerate(mus):
-        row = _summarise(float(mu), {k: v[m * episodes:(m + 1) * episodes] for k, v in ep_all.items()})
-        rows.append(row)
-        if progress:
-            print(f"  {getattr(policy, 'name', 'policy')}: mu={float(mu):g} success={row['success_rate']:.2f} "
-                  f"peak pinch={row['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
-    if progress:
-        print(f"  {getattr(policy, 'name', 'policy')}: {len(pairs)} episodes in {time.perf_counter() - t0:.1f} s",
-              file=sys.stderr)
-    return rows
-
-
-# ------------------------------------------------------------------------------------------------
 # policy specs
 # ------------------------------------------------------------------------------------------------
 
@@ -399,7 +205,7 @@ def _mu_label(mu: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------------
-# evaluate: run, write, plot
+# evaluate: check, run, summarise, write
 # ------------------------------------------------------------------------------------------------
 
 
@@ -417,114 +223,12 @@ def _csv_text(results: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
-_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
-_LINES = ("-", "--", "-.", ":")
-
-
-def _style(k: int) -> dict[str, Any]:
-    """Distinct marker and line style per policy (curves often coincide, e.g. at success rate 1)."""
-    return {"marker": _MARKERS[k % len(_MARKERS)], "linestyle": _LINES[k % len(_LINES)],
-            "markersize": 7 - 0.6 * (k % 4), "alpha": 0.9}
-
-
-def _dodge(k: int, n: int) -> float:
-    """Sideways offset of policy k of n, so that coinciding points of different policies stay visible."""
-    return (k - (n - 1) / 2) * 0.006
-
-
-def _errorbars(ax, results, key: str, ci_key: str, suffix: str = "") -> list[str]:
-    """One error-bar curve per policy of ``row[key]`` with ``row[ci_key]`` as its interval (policies
-    dodged sideways); returns the line colours."""
-    colours = []
-    for k, pol in enumerate(results):
-        rows = pol["rows"]
-        mus = np.array([r["mu"] for r in rows]) + _dodge(k, len(results))
-        value = np.array([r[key] for r in rows])
-        ci = np.array([r[ci_key] for r in rows])
-        line = ax.errorbar(mus, value, yerr=[value - ci[:, 0], ci[:, 1] - value], capsize=2, elinewidth=0.8,
-                           label=display_name(pol["name"]) + suffix, **_style(k))
-        colours.append(line[0].get_color())
-    return colours
-
-
-def _finish(ax, fig, xlabel: str, ylabel: str, title: str, results, intervals: str, path: Path) -> Path:
-    n = sorted({r["episodes"] for pol in results for r in pol["rows"]})
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(f"{title} (n = {'/'.join(map(str, n))} episodes per point, {intervals})", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)  # beside, not over, the data
-    fig.tight_layout()
-    return save_figure(fig, path)
-
-
-def _plot_success(results, config: GraspLiftConfig, path: Path) -> Path:
-    with needs_extra("train", "the evaluation's plots"):
-        import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    lo, hi = config.randomization.mu_range
-    fig, ax = plt.subplots(figsize=(10.0, 4.4))
-    ax.axvspan(lo, hi, color="tab:gray", alpha=0.15, label=f"training range of mu [{lo:g}, {hi:g}]")
-    _errorbars(ax, results, "success_rate", "success_ci95")
-    ax.set_ylim(-0.05, 1.05)
-    return _finish(ax, fig, "friction coefficient mu", "success rate (slip-free lift)",
-                   "Grasp-and-lift success vs friction", results, "95% Wilson intervals", path)
-
-
-def _plot_pinch(results, oracle_curve: dict[str, Any], path: Path) -> Path:
-    with needs_extra("train", "the evaluation's plots"):
-        import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(10.0, 4.4))
-    colours = _errorbars(ax, results, "mean_peak_pinch_N", "peak_pinch_ci95_N", " (mean peak, all episodes)")
-    failed_label = "a failed episode's peak pinch"
-    for k, (pol, colour) in enumerate(zip(results, colours)):
-        dodge = _dodge(k, len(results))
-        for r in pol["rows"]:  # failed episodes are in the mean: show them
-            bad = [p for p, ok in zip(r["per_episode"]["peak_pinch_N"], r["per_episode"]["success"]) if not ok]
-            if bad:
-                ax.scatter([r["mu"] + dodge] * len(bad), bad, marker="x", s=14, color=colour, linewidths=0.8,
-                           label=failed_label, zorder=3)
-                failed_label = None
-    limit = oracle_curve["search_limit_N"]
-    held = [f if f < limit - 1e-9 else np.nan for f in oracle_curve["minimal_force_N"]]
-    ax.plot(oracle_curve["mu"], held, color="black", linestyle="--", marker="+",
-            label=f"minimal slip-free force (oracle bisection; none up to {limit:g} N where missing)")
-    ax.set_ylim(bottom=0)
-    return _finish(ax, fig, "friction coefficient mu", "peak pinch force (N)", "Peak pinch force vs friction",
-                   results, "95% bootstrap intervals; x: failed episodes", path)
-
-
-def _minimal_force_job(config: GraspLiftConfig | dict[str, Any], mu: float) -> float:
-    if isinstance(config, dict):
-        config = from_dict(GraspLiftConfig, config, where="env")
-    ref = OraclePolicy(config)
-    # the same rounding, pull and tolerance as OraclePolicy.reset: shares its cache
-    return float(minimal_force(config, round(float(mu), 3), ref.pull, ref.tolerance))
-
-
 def oracle_curve(config: GraspLiftConfig, mus: Sequence[float], progress: bool = False) -> dict[str, Any]:
     """The oracle's minimal slip-free fixed force at each mu (bisection in simulation, cached per mu)."""
-    forces = []
-    for mu in mus:
-        t0 = time.perf_counter()
-        forces.append(_minimal_force_job(config, float(mu)))
-        if progress:
-            print(f"  minimal force: mu={float(mu):g} -> {forces[-1]:.3f} N ({time.perf_counter() - t0:.1f} s)",
-                  file=sys.stderr)
-    return _curve_record(config, mus, forces)
-
-
-def _curve_record(config: GraspLiftConfig, mus: Sequence[float], forces: Sequence[float]) -> dict[str, Any]:
-    ref = OraclePolicy(config)
-    return {"mu": [float(m) for m in mus], "minimal_force_N": [float(f) for f in forces], "oracle_margin": ref.margin,
-            "pull": ref.pull, "tolerance_N": ref.tolerance,
-            # the bisection's upper end: a minimal force equal to it means no force up to it holds
-            "search_limit_N": 2.0 * config.reference_force_N}
+    jobs = JobList()
+    jobs.add_minimal_forces(lambda mu: ("oracle", mu), config, mus)
+    forces = [f for _, f in jobs.run(on_done=_print_minimal_force if progress else None)]
+    return curve_record(config, mus, forces)
 
 
 def _model_paths(policies: Sequence[str]) -> list[Path]:
@@ -573,26 +277,10 @@ def trained_task_of(policies: Sequence[str]) -> tuple[GraspLiftConfig, str | Non
     return config, trained_on
 
 
-def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
-             config: GraspLiftConfig | None = None, seed: int = EVALUATION_SEED, record: bool = False,
-             progress: bool = True, n_envs: int | None = None, video: bool = False,
-             conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS,
-             runner: Runner | None = None) -> dict[str, Any]:
-    """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
-
-    Every spec is validated (and every model loaded) before any episode runs or anything is written. Episode i (at
-    every mu) is reset with ``seed + i``: by default the sealed evaluation seeds (:mod:`.protocol`); the result
-    records ``"seeds": {"first", "count", "sealed"}``.
-    The registry's baselines (:func:`.controllers.baselines`: slip-reactive and oracle) are always added. Without
-    ``config`` the task is the one the model(s) were trained on (their saved config), else (controllers only) the
-    default training's. Each policy also runs at ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass
-    outside the training ranges).
-    With ``runner`` (:mod:`.parallel`: local processes or Ray) every (policy, mu) cell, unseen condition and
-    minimal-force bisection is its own job, models travel to the jobs as bytes (no shared disk needed), and
-    the numbers are the same as without (same episodes, same seeds); recordings are made here.
-    Returns ``{"results": [...], "oracle_minimal_force": {...}, "files": {...}, "recordings": [...]}``.
-    """
-    out_dir = Path(out_dir)
+def _checked_run(policies: Sequence[str], mus: Sequence[float], episodes: int, seed: int, out_dir: Path,
+                 config: GraspLiftConfig | None) -> tuple[list[str], list[float], GraspLiftConfig, str | None]:
+    """An evaluation's inputs checked before anything runs: (specs with the baselines, mu, task, where the task came
+    from); ConfigError naming the input otherwise."""
     policies = expand_policy_specs(policies)
     if not policies:
         raise ConfigError("no policy to evaluate: give at least one --policy")
@@ -613,8 +301,11 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
     check_evaluation_seeds(seed, int(episodes), "seed")
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
-    built = [build_policy(spec, config) for spec in policies]
+    return policies, mus, config, trained_on
 
+
+def _unique_names(built: Sequence[Any]) -> list[str]:
+    """The policies' display names, a repeated one numbered (``fixed2.5N``, ``fixed2.5N_2``)."""
     names: list[str] = []
     for pol in built:
         base = str(getattr(pol, "name", "policy")) or "policy"
@@ -622,72 +313,105 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         while name in names:
             name, k = f"{base}_{k}", k + 1
         names.append(name)
+    return names
 
-    t_start = time.perf_counter()
-    envs: dict = {}
-    if runner is not None:
-        results, curve, unseen = _evaluate_on(runner, policies, names, mus, episodes, config, seed, n_envs,
-                                              conditions, progress)
-    else:
-        results = []
-        for spec, name, pol in zip(policies, names, built):
-            if progress:
-                print(f"evaluating {name} ({spec}) on {len(mus)} mu x {episodes} episodes", file=sys.stderr)
-            t0 = time.perf_counter()
-            rows = evaluate_policy(pol, mus, episodes, config, seed, n_envs, _envs=envs, progress=progress)
-            results.append({"spec": spec, "name": name, "rows": rows, "seconds": round(time.perf_counter() - t0, 2)})
-        if progress:
-            print("oracle minimal-force curve", file=sys.stderr)
-        curve = oracle_curve(config, mus, progress=progress)
-        unseen = []
-        for spec, name, pol in zip(policies, names, built):
-            for opts in conditions:
-                row = evaluate_policy(pol, [UNSEEN_MU], episodes, config, seed, n_envs, _envs=envs, options=opts)[0]
-                unseen.append({"policy": name, "conditions": {"mu": UNSEEN_MU, **opts}, **row})
-                if progress:
-                    print(f"  {name}: {opts} at mu={UNSEEN_MU:g}: success={row['success_rate']:.2f} "
-                          f"peak pinch={row['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
+
+def _evaluation_jobs(payloads: Sequence[PolicyPayload], mus: Sequence[float], episodes: int, config: GraspLiftConfig,
+                     seed: int, n_envs: int | None, conditions: Sequence[dict[str, float]], split: bool) -> JobList:
+    """The evaluation's jobs: each policy on the grid (``split``: one job per mu, to spread them over a runner's
+    workers; else one job, the whole grid in one batch), on every unseen tissue, and the oracle's force per mu."""
+    jobs = JobList()
+    parts = [[m] for m in mus] if split else [list(mus)]
+    for p, payload in enumerate(payloads):
+        for part in parts:
+            jobs.add_rows(("grid", p), payload, config, part, episodes, seed, n_envs)
+        for c, opts in enumerate(conditions):
+            jobs.add_rows(("unseen", p, c), payload, config, [UNSEEN_MU], episodes, seed, n_envs, opts)
+    jobs.add_minimal_forces(lambda mu: ("oracle", mu), config, mus)
+    return jobs
+
+
+def _print_minimal_force(tag: tuple, force: float) -> None:
+    print(f"  minimal force: mu={tag[-1]:g} -> {force:.3f} N", file=sys.stderr)
+
+
+def _progress_printer(names: Sequence[str], conditions: Sequence[dict[str, float]]):
+    """``on_done`` of the evaluation's jobs: a line per row as its job finishes."""
+
+    def done(tag: tuple, res: Any) -> None:
+        if tag[0] == "oracle":
+            return _print_minimal_force(tag, res)
+        where = [f"mu={r['mu']:g}" for r in res] if tag[0] == "grid" else [f"{conditions[tag[2]]} at mu={UNSEEN_MU:g}"]
+        for label, row in zip(where, res):
+            print(f"  {names[tag[1]]}: {label} success={row['success_rate']:.2f} "
+                  f"peak pinch={row['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
+
+    return done
+
+
+def _run_evaluation(policies: Sequence[str], names: Sequence[str], mus: Sequence[float], episodes: int,
+                    config: GraspLiftConfig, seed: int, n_envs: int | None, conditions: Sequence[dict[str, float]],
+                    runner: Runner | None, progress: bool) -> tuple[list[dict], dict[str, Any], list[dict]]:
+    """(results per policy, the oracle's curve, the unseen-tissue rows) of :func:`evaluate`, from one job list run in
+    this process or on ``runner``."""
+    payloads = [policy_payload(spec, name) for spec, name in zip(policies, names)]
+    jobs = _evaluation_jobs(payloads, mus, episodes, config, seed, n_envs, conditions, split=runner is not None)
+    if progress:
+        print(f"evaluating {', '.join(names)} on {len(mus)} mu x {episodes} episodes: {len(jobs.jobs)} jobs in "
+              f"{'this process' if runner is None else runner.label}", file=sys.stderr)
+    out = jobs.run(runner, _progress_printer(names, conditions) if progress else None)
+    results = [{"spec": spec, "name": name, "rows": [], "seconds": 0.0} for spec, name in zip(policies, names)]
+    unseen, forces = [], []
+    for (tag, res), seconds in zip(out, jobs.seconds):
+        if tag[0] == "grid":
+            results[tag[1]]["rows"] += res
+            results[tag[1]]["seconds"] += seconds
+        elif tag[0] == "unseen":
+            unseen.append({"policy": names[tag[1]], "conditions": {"mu": UNSEEN_MU, **conditions[tag[2]]}, **res[0]})
+        else:
+            forces.append(res)
+    for pol in results:
+        pol["seconds"] = round(pol["seconds"], 2)
+    return results, curve_record(config, mus, forces), unseen
+
+
+def _add_force_ratios(results: list[dict[str, Any]], curve: dict[str, Any],
+                      config: GraspLiftConfig) -> tuple[dict[str, float | None], dict[str, Any]]:
+    """Each row's force ratio: over the reference (a slower pull cannot lower it) where the task has a table and mu is
+    on its grid, and over the nominal oracle at pull 0.5 beside it. Returns the references and what they are."""
     minimal = dict(zip(curve["mu"], curve["minimal_force_N"]))
-    # the force ratio: over the reference (a slower pull cannot lower it) where the task has a table and mu is on its
-    # grid; the ratio to the nominal oracle at pull 0.5 stays beside it
-    references, reference = references_at(config, [float(m) for m in mus])
+    references, reference = references_at(config, [float(m) for m in curve["mu"]])
     for pol in results:
         for r in pol["rows"]:
             r["peak_pinch_over_oracle_min"] = r["mean_peak_pinch_N"] / minimal[r["mu"]]
             ref = references.get(f"{r['mu']:g}")
             r["force_ratio"] = r["mean_peak_pinch_N"] / ref if ref else None  # (None: no reference at this mu)
+    return references, reference
 
-    recordings: list[str] = []
-    if record:
-        recordings = _record_all(names, built, mus, config, seed, out_dir / "recordings", progress)
-    if video:
-        recordings += _record_all(names, built, mus, config, seed, out_dir / "videos", progress, suffix=".mp4")
 
-    summary = {
-        "seeds": seeds_record(seed, episodes),
-        "config": to_dict(config),
-        "evaluation": {
-            "mu_grid": mus,
-            "episodes": int(episodes),
-            "seed": int(seed),
-            "seeds": [int(seed) + i for i in range(int(episodes))],
-            "reset_options": "{'mu': mu}; other randomisation as configured",
-            "n_envs": n_envs,
-            "runner": "this process" if runner is None else runner.label,
-            "policies": policies,
-            "training_mu_range": list(config.randomization.mu_range),
-            "training_config_from": trained_on,
-            "success": "info['is_success'] at the episode's end: lift_target_m reached and held hold_time_s "
-                       "with less than hold_slip_tolerance_m slip",
-            "seconds": round(time.perf_counter() - t_start, 2),
-        },
-        "results": results,
-        "oracle_minimal_force": curve,
-        "reference": reference,
-        "reference_force_N": references,
-        "unseen_conditions": unseen,
-        "recordings": recordings,
+def _evaluation_record(policies: Sequence[str], mus: Sequence[float], episodes: int, seed: int, n_envs: int | None,
+                       config: GraspLiftConfig, trained_on: str | None, runner: Runner | None,
+                       seconds: float) -> dict[str, Any]:
+    """How the evaluation ran, as ``evaluation.json`` records it."""
+    return {
+        "mu_grid": list(mus),
+        "episodes": int(episodes),
+        "seed": int(seed),
+        "seeds": [int(seed) + i for i in range(int(episodes))],
+        "reset_options": "{'mu': mu}; other randomisation as configured",
+        "n_envs": n_envs,
+        "runner": "this process" if runner is None else runner.label,
+        "policies": list(policies),
+        "training_mu_range": list(config.randomization.mu_range),
+        "training_config_from": trained_on,
+        "success": "info['is_success'] at the episode's end: lift_target_m reached and held hold_time_s "
+                   "with less than hold_slip_tolerance_m slip",
+        "seconds": round(seconds, 2),
     }
+
+
+def _write_outputs(out_dir: Path, summary: dict[str, Any], config: GraspLiftConfig) -> dict[str, str]:
+    """``evaluation.json``, ``evaluation.csv`` and the two plots in ``out_dir`` (atomically); their paths."""
     files = {
         "json": out_dir / "evaluation.json",
         "csv": out_dir / "evaluation.csv",
@@ -695,87 +419,60 @@ def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_d
         "pinch_png": out_dir / "pinch_vs_mu.png",
     }
     atomic_write_text(files["json"], json.dumps(nan_to_none(summary), indent=2) + "\n")
-    atomic_write_text(files["csv"], _csv_text(results))
-    _plot_success(results, config, files["success_png"])
-    _plot_pinch(results, curve, files["pinch_png"])
-    return {"results": results, "oracle_minimal_force": curve, "files": {k: str(v) for k, v in files.items()},
-            "recordings": recordings, "unseen_conditions": unseen, "config": config, "seeds": summary["seeds"]}
+    atomic_write_text(files["csv"], _csv_text(summary["results"]))
+    plot_success(summary["results"], config, files["success_png"])
+    plot_pinch(summary["results"], summary["oracle_minimal_force"], files["pinch_png"])
+    return {k: str(v) for k, v in files.items()}
 
 
-# ------------------------------------------------------------------------------------------------
-# the evaluation as independent jobs (a Runner: local processes or Ray)
-# ------------------------------------------------------------------------------------------------
+def evaluate(policies: Sequence[str], mus: Sequence[float], episodes: int, out_dir: str | Path,
+             config: GraspLiftConfig | None = None, seed: int = EVALUATION_SEED, record: bool = False,
+             progress: bool = True, n_envs: int | None = None, video: bool = False,
+             conditions: Sequence[dict[str, float]] = UNSEEN_CONDITIONS,
+             runner: Runner | None = None) -> dict[str, Any]:
+    """Evaluate every policy spec on every mu; write JSON, CSV, two PNGs (and recordings) into ``out_dir``.
 
-
-#: spec or the model's file name, display name, the model's files by name (None: a built-in controller)
-PolicyPayload = tuple[str, str, dict[str, bytes] | None]
-
-
-def _payload(spec: str, name: str) -> PolicyPayload:
-    """What a job needs to rebuild a policy on any machine: a built-in spec, or the model's files (the model
-    and the file that records its learner and config, :meth:`~.learners.Learner.model_files`)."""
-    if is_controller(spec):
-        return spec, name, None
-    path = Path(spec)
-    files = learner_of_model(path).model_files(path)
-    return path.name, name, {n: p.read_bytes() for n, p in files.items()}
-
-
-def _policy_of(payload: PolicyPayload, config: GraspLiftConfig):
-    spec, name, files = payload
-    if files is None:
-        return make_policy(spec, config)
-    import tempfile
-
-    with tempfile.TemporaryDirectory(prefix="msdgrasp-model-") as tmp:
-        for file_name, data in files.items():
-            (Path(tmp) / file_name).write_bytes(data)
-        path = Path(tmp) / spec
-        # loaded into memory: the folder may go
-        return learner_of_model(path).load_policy(path, name)
-
-
-def _cell_job(payload: PolicyPayload, config_dict: dict[str, Any], mu: float, episodes: int, seed: int,
-              n_envs: int | None, options: dict[str, float] | None) -> dict[str, Any]:
-    config = from_dict(GraspLiftConfig, config_dict, where="env")
-    return evaluate_policy(_policy_of(payload, config), [mu], episodes, config, seed, n_envs, options=options)[0]
-
-
-def _evaluate_on(runner: Runner, policies, names, mus, episodes, config, seed, n_envs, conditions, progress):
-    """(results, oracle curve, unseen rows) of :func:`evaluate`, every cell a job on ``runner``."""
-    cfg = to_dict(config)
-    payloads = [_payload(spec, name) for spec, name in zip(policies, names)]
-    jobs: list = []
-    where: list[tuple[str, int, Any]] = []
-    for p, payload in enumerate(payloads):
-        for mu in mus:
-            jobs.append((_cell_job, (payload, cfg, float(mu), int(episodes), int(seed), n_envs, None)))
-            where.append(("cell", p, mu))
-        for opts in conditions:
-            jobs.append((_cell_job, (payload, cfg, UNSEEN_MU, int(episodes), int(seed), n_envs, dict(opts))))
-            where.append(("unseen", p, opts))
-    for mu in mus:
-        jobs.append((_minimal_force_job, (cfg, float(mu))))
-        where.append(("oracle", -1, mu))
-
-    def done(k: int, res: Any) -> None:
-        kind, p, what = where[k]
-        if progress and kind != "oracle":
-            label = f"mu={what:g}" if kind == "cell" else f"{what} at mu={UNSEEN_MU:g}"
-            print(f"  {names[p]}: {label} success={res['success_rate']:.2f} "
-                  f"peak pinch={res['mean_peak_pinch_N']:.2f} N", file=sys.stderr)
-
-    t0 = time.perf_counter()
-    with runner:
-        out = runner.run(jobs, on_done=done)
-    seconds = round(time.perf_counter() - t0, 2)
-    results = [{"spec": spec, "name": name, "seconds": seconds,
-                "rows": [r for (kind, p, _), r in zip(where, out) if kind == "cell" and p == k]}
-               for k, (spec, name) in enumerate(zip(policies, names))]
-    unseen = [{"policy": names[p], "conditions": {"mu": UNSEEN_MU, **opts}, **r}
-              for (kind, p, opts), r in zip(where, out) if kind == "unseen"]
-    forces = [r for (kind, _, _), r in zip(where, out) if kind == "oracle"]
-    return results, _curve_record(config, mus, forces), unseen
+    Every spec is validated (and every model loaded) before any episode runs or anything is written. Episode i (at
+    every mu) is reset with ``seed + i``: by default the sealed evaluation seeds (:mod:`.protocol`); the result
+    records ``"seeds": {"first", "count", "sealed"}``.
+    The registry's baselines (:func:`.controllers.baselines`: slip-reactive and oracle) are always added. Without
+    ``config`` the task is the one the model(s) were trained on (their saved config), else (controllers only) the
+    default training's. Each policy also runs at ``UNSEEN_MU`` on every tissue of ``conditions`` (stiffness / mass
+    outside the training ranges).
+    The episodes run as one job list (:mod:`.evaluation_jobs`): in this process, or with ``runner`` (:mod:`.parallel`:
+    local processes or Ray) every (policy, mu) cell, unseen condition and minimal-force bisection a job of its own,
+    models travelling to the jobs as bytes (no shared disk needed); the numbers are the same either way (same
+    episodes, same seeds). Recordings are made here.
+    Returns ``{"results": [...], "oracle_minimal_force": {...}, "files": {...}, "recordings": [...]}``.
+    """
+    out_dir = Path(out_dir)
+    policies, mus, config, trained_on = _checked_run(policies, mus, episodes, seed, out_dir, config)
+    built = [build_policy(spec, config) for spec in policies]
+    names = _unique_names(built)
+    t_start = time.perf_counter()
+    results, curve, unseen = _run_evaluation(policies, names, mus, episodes, config, seed, n_envs, conditions,
+                                             runner, progress)
+    references, reference = _add_force_ratios(results, curve, config)
+    recordings: list[str] = []
+    if record:
+        recordings = _record_all(names, built, mus, config, seed, out_dir / "recordings", progress)
+    if video:
+        recordings += _record_all(names, built, mus, config, seed, out_dir / "videos", progress, suffix=".mp4")
+    summary = {
+        "seeds": seeds_record(seed, episodes),
+        "config": to_dict(config),
+        "evaluation": _evaluation_record(policies, mus, episodes, seed, n_envs, config, trained_on, runner,
+                                         time.perf_counter() - t_start),
+        "results": results,
+        "oracle_minimal_force": curve,
+        "reference": reference,
+        "reference_force_N": references,
+        "unseen_conditions": unseen,
+        "recordings": recordings,
+    }
+    files = _write_outputs(out_dir, summary, config)
+    return {"results": results, "oracle_minimal_force": curve, "files": files, "recordings": recordings,
+            "unseen_conditions": unseen, "config": config, "seeds": summary["seeds"]}
 
 
 # ------------------------------------------------------------------------------------------------

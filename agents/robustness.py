@@ -37,7 +37,6 @@ defined (:data:`CONDITIONS_V1`) and its results readable (:func:`leaderboard_mar
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import math
@@ -53,11 +52,12 @@ from ..envs.perturbations import Condition, rule_of, suite_conditions
 from ..envs.task import config_record, peak_charge_points
 from ..physics.config import ConfigError, atomic_write_text, from_dict, to_dict
 from .evaluation import (
-    DAMAGE_PRESSURE_PA, _minimal_force_job, _payload, _policy_of, build_policy, check_policy_spec,
-    evaluate_policy, expand_policy_specs, nan_to_none, trained_ranges_of, trained_task_of,
+    DAMAGE_PRESSURE_PA, build_policy, check_policy_spec, expand_policy_specs, nan_to_none, trained_ranges_of,
+    trained_task_of,
 )
+from .evaluation_jobs import JobList, PolicyPayload, policy_payload
 from .controllers import episode_minimal_forces, suite_baselines
-from .parallel import Runner, run_jobs
+from .parallel import Runner
 from .protocol import EVALUATION_SEED, check_evaluation_seeds, seeds_record
 from .reference import references_at
 from .stats import mean_of_runs, stratified_bootstrap_ci, wilson_interval, wilson_lower_bound
@@ -165,12 +165,6 @@ def inside_ranges(condition: Condition, ranges: RandomizationConfig) -> bool:
 
 SUITES["in_range"] = _in_range(CONDITIONS)
 PROTOCOLS["in_range", 2] = SuiteProtocol(2, MUS, EPISODES, SUITES["in_range"], pooled=True)
-
-
-def _suite_job(payload, config_dict: dict[str, Any], mus: Sequence[float], episodes: int, seed: int,
-               options: dict[str, float]) -> list[dict[str, Any]]:
-    config = from_dict(GraspLiftConfig, config_dict, where="env")
-    return evaluate_policy(_policy_of(payload, config), list(mus), episodes, config, seed, options=options or None)
 
 
 def _hindsight_job(config_dict: dict[str, Any], mus: Sequence[float], episodes: int, seed: int,
@@ -289,24 +283,30 @@ def select_conditions(suite: str, only: Sequence[str]) -> tuple[Condition, ...]:
     return tuple(c for k, c in enumerate(conditions) if k in wanted)
 
 
-def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int | None = None,
-              seed: int = EVALUATION_SEED, runner: Runner | None = None, progress: bool = True,
-              hindsight: bool = False, only: Sequence[str] | None = None, baselines: bool = True,
-              task: GraspLiftConfig | None = None) -> dict[str, Any]:
-    """Run ``suite`` (its current version, :data:`SUITE_VERSION`) on every policy spec and the baselines; write
-    ``suite_<suite>.json`` and ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and
-    every model loaded before any episode runs. ``episodes``: per mu of a condition on the whole grid (default the
-    protocol's, :data:`EPISODES`; fewer run, marked ``"protocol": false``); a condition at fewer mu runs more per mu,
-    so each pools ``episodes`` x the grid's mu count. ``seed``: episode i at every mu is reset with ``seed + i``
-    (default the sealed evaluation seeds; another is recorded as not sealed). ``runner``: each (policy, condition) a
-    job (local processes or Ray), same numbers as without.
-    ``hindsight``: also search each episode's minimal fixed force in the conditions of HINDSIGHT_AXES
-    (:func:`.controllers.episode_minimal_forces`; about 3 CPU-minutes per condition and mu): what a policy that
-    grips every episode with just enough force would reach there. ``only``: run these of the suite's conditions
-    alone (:func:`select_conditions`: axes or condition names); the result says it is a subset, whose scores are
-    not the suite's. ``baselines``: add the baselines (False: the policies given alone, e.g. a second run on the same
-    episodes whose baselines an earlier run has). ``task``: the task for controllers alone (default: the default
-    training's, TrainConfig().env); a model always runs on its own."""
+@dataclasses.dataclass(frozen=True)
+class SuiteRun:
+    """A suite run's inputs, checked: its suite and protocol, episodes per mu of the grid, conditions (with each one's
+    episodes per mu), policy specs (the baselines added) and task."""
+
+    suite: str
+    protocol: SuiteProtocol
+    episodes: int
+    conditions: tuple[Condition, ...]
+    per_mu: list[int]
+    specs: list[str]
+    config: GraspLiftConfig
+    trained_on: str | None
+
+    @property
+    def subset(self) -> bool:
+        """Whether it runs fewer conditions than its suite has."""
+        return len(self.conditions) < len(SUITES[self.suite])
+
+
+def suite_run(policies: Sequence[str], out_dir: Path, suite: str, episodes: int | None, seed: int,
+              only: Sequence[str] | None, baselines: bool, task: GraspLiftConfig | None) -> SuiteRun:
+    """The checked inputs of :func:`run_suite` (its arguments' meanings); ConfigError naming a bad one, before any
+    episode runs or anything is written."""
     if suite not in SUITES:
         raise ConfigError(f"suite = {suite!r} is not known; choose one of {', '.join(map(repr, SUITES))}")
     # the protocol's grid and episodes; its conditions are SUITES[suite]
@@ -315,7 +315,6 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         episodes = protocol.episodes
     if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
         raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
-    out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output folder {out_dir} exists and is not a folder")
     conditions = SUITES[suite] if only is None else select_conditions(suite, only)
@@ -332,91 +331,128 @@ def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robust
         config, trained_on = task, "the task given"
     if baselines:  # (the registry's: every evaluation's and the suite's own, where the task has their interface)
         specs += [b for b in suite_baselines(config) if b not in specs]
-    ranges = trained_ranges_of(specs)
-    built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
-    names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]
-    payloads = [_payload(spec, name) for spec, name in zip(specs, names)]
-    jobs, where = [], []
-    for p, payload in enumerate(payloads):
-        for c, cond in enumerate(conditions):
-            cfg = to_dict(condition_config(config, cond))
-            jobs.append((_suite_job, (payload, cfg, cond.mus, per_mu[c], int(seed), dict(cond.options))))
-            where.append((p, c))
-    all_mus = sorted({m for cond in conditions for m in cond.mus})
-    nominal = to_dict(config)
-    jobs += [(_minimal_force_job, (nominal, m)) for m in all_mus]
-    searched = [c for c, cond in enumerate(conditions) if hindsight and cond.axis in HINDSIGHT_AXES]
-    jobs += [(_hindsight_job, (to_dict(condition_config(config, conditions[c])), conditions[c].mus, per_mu[c],
-                               int(seed), dict(conditions[c].options))) for c in searched]
+    return SuiteRun(suite, protocol, int(episodes), tuple(conditions), per_mu, specs, config, trained_on)
 
-    def done(k: int, res: Any) -> None:
-        if progress and k < len(where):
-            p, c = where[k]
-            print(f"  {names[p]}: {conditions[c].name}: success "
+
+def _suite_jobs(run: SuiteRun, payloads: Sequence[PolicyPayload], seed: int, hindsight: bool) -> JobList:
+    """The suite's jobs: every (policy, condition) cell on the condition's task, the oracle's force at every mu of
+    the nominal task, and (``hindsight``) each episode's minimal fixed force in the conditions of HINDSIGHT_AXES."""
+    jobs = JobList()
+    tasks = [condition_config(run.config, cond) for cond in run.conditions]
+    for p, payload in enumerate(payloads):
+        for c, cond in enumerate(run.conditions):
+            jobs.add_rows(("cell", p, c), payload, tasks[c], cond.mus, run.per_mu[c], seed, None, cond.options)
+    jobs.add_minimal_forces(lambda mu: ("oracle", mu), run.config, sorted({m for c in run.conditions for m in c.mus}))
+    for c, cond in enumerate(run.conditions):
+        if hindsight and cond.axis in HINDSIGHT_AXES:
+            jobs.add(("hindsight", c), _hindsight_job, to_dict(tasks[c]), cond.mus, run.per_mu[c], seed,
+                     dict(cond.options))
+    return jobs
+
+
+def _suite_printer(names: Sequence[str], conditions: Sequence[Condition]):
+    """``on_done`` of the suite's jobs: a line per (policy, condition) cell as it finishes."""
+
+    def done(tag: tuple, res: Any) -> None:
+        if tag[0] == "cell":
+            print(f"  {names[tag[1]]}: {conditions[tag[2]].name}: success "
                   f"{np.mean([r['success_rate'] for r in res]):.3f} of {sum(r['episodes'] for r in res)} episodes",
                   file=sys.stderr)
 
+    return done
+
+
+def _board_row(name: str, spec: str, cells: list[dict[str, Any]], conditions: Sequence[Condition],
+               inside: Sequence[bool]) -> dict[str, Any]:
+    """A policy's leaderboard row from its cells: the score (success averaged over the conditions) with its
+    stratified bootstrap interval, the mean force ratio and time to lift, the worst condition, and the same inside
+    the training ranges."""
+    success = [c["success_rate"] for c in cells]
+    ratios = [c["force_ratio"] for c in cells if math.isfinite(c["force_ratio"])]
+    lifts = [c["mean_time_to_lift_s"] for c in cells if math.isfinite(c["mean_time_to_lift_s"])]
+    worst = int(np.argmin(success))
+    in_range = [c for c, ok in zip(cells, inside) if ok]
+    in_ratios = [c["force_ratio"] for c in in_range if math.isfinite(c["force_ratio"])]
+    # the score's interval: episodes resampled within each condition (a stratified bootstrap, conditions fixed)
+    outcomes = [np.array([[float(v) for r in c["rows"] for v in r["per_episode"]["success"]]]) for c in cells]
+    _, lo, hi = stratified_bootstrap_ci(outcomes, mean_of_runs)
+    return {"policy": name, "spec": spec, "score": float(np.mean(success)), "score_ci95": [float(lo), float(hi)],
+            "mean_force_ratio": float(np.mean(ratios)) if ratios else math.nan,
+            "mean_time_to_lift_s": float(np.mean(lifts)) if lifts else math.nan,
+            "worst_condition": conditions[worst].name, "worst_success_rate": success[worst],
+            "worst_lower_bound": min(c["success_lower_bound"] for c in cells),
+            "in_range_worst_success_rate": min((c["success_rate"] for c in in_range), default=math.nan),
+            "in_range_worst_lower_bound": min((c["success_lower_bound"] for c in in_range), default=math.nan),
+            "in_range_max_force_ratio": max(in_ratios, default=math.nan),
+            "max_peak_pressure_kPa": max(c["max_peak_pressure_kPa"] for c in cells)}
+
+
+def _ratio_denominators(config: GraspLiftConfig, minimal: dict[float, float]) -> tuple[dict, dict, dict]:
+    """(what each mu's force ratios divide by, the reference forces, what they are): the reference (a slower pull
+    cannot lower it) where the task has a table; a task without one reads against the nominal oracle at pull 0.5, and
+    the result says so."""
+    references, reference = references_at(config, list(minimal))
+    if reference["kind"] != "reference":
+        return minimal, references, reference
+    return {m: (references[f"{m:g}"] or math.nan) for m in minimal}, references, reference
+
+
+def run_suite(policies: Sequence[str], out_dir: str | Path, suite: str = "robustness", episodes: int | None = None,
+              seed: int = EVALUATION_SEED, runner: Runner | None = None, progress: bool = True,
+              hindsight: bool = False, only: Sequence[str] | None = None, baselines: bool = True,
+              task: GraspLiftConfig | None = None) -> dict[str, Any]:
+    """Run ``suite`` (its current version, :data:`SUITE_VERSION`) on every policy spec and the baselines; write
+    ``suite_<suite>.json`` and ``leaderboard_<suite>.md`` into ``out_dir`` (atomically). Every spec is validated and
+    every model loaded before any episode runs. ``episodes``: per mu of a condition on the whole grid (default the
+    protocol's, :data:`EPISODES`; fewer run, marked ``"protocol": false``); a condition at fewer mu runs more per mu,
+    so each pools ``episodes`` x the grid's mu count. ``seed``: episode i at every mu is reset with ``seed + i``
+    (default the sealed evaluation seeds; another is recorded as not sealed). Each (policy, condition) is a job of one
+    job list (:mod:`.evaluation_jobs`, the driver ``msdgrasp evaluate`` runs too), run in this process or on
+    ``runner`` (local processes or Ray), with the same numbers.
+    ``hindsight``: also search each episode's minimal fixed force in the conditions of HINDSIGHT_AXES
+    (:func:`.controllers.episode_minimal_forces`; about 3 CPU-minutes per condition and mu): what a policy that
+    grips every episode with just enough force would reach there. ``only``: run these of the suite's conditions
+    alone (:func:`select_conditions`: axes or condition names); the result says it is a subset, whose scores are
+    not the suite's. ``baselines``: add the baselines (False: the policies given alone, e.g. a second run on the same
+    episodes whose baselines an earlier run has). ``task``: the task for controllers alone (default: the default
+    training's, TrainConfig().env); a model always runs on its own."""
+    out_dir = Path(out_dir)
+    run = suite_run(policies, out_dir, suite, episodes, seed, only, baselines, task)
+    conditions, config, specs = run.conditions, run.config, run.specs
+    ranges = trained_ranges_of(specs)
+    built = [build_policy(spec, config) for spec in specs]  # (loads every model: a bad one fails here)
+    names = [str(getattr(p, "name", spec)) for p, spec in zip(built, specs)]
+    jobs = _suite_jobs(run, [policy_payload(spec, name) for spec, name in zip(specs, names)], int(seed), hindsight)
     t0 = time.perf_counter()
-    with runner or contextlib.nullcontext():
-        out = run_jobs(jobs, runner, done)
+    out = dict(jobs.run(runner, _suite_printer(names, conditions) if progress else None))
     # the bisection's cap (twice the reference force) means no fixed force up to it held: no minimal force known
     cap = 2.0 * config.reference_force_N
-    minimal = {m: (float(f) if f < cap else math.nan)
-               for m, f in zip(all_mus, out[len(where):len(where) + len(all_mus)])}
-    references, reference = references_at(config, all_mus)
-    # the force ratios read against the reference (a slower pull cannot lower it), where the task has a table; a
-    # task without one reads against the nominal oracle at pull 0.5, and the result says so
-    denominators = ({m: (references[f"{m:g}"] or math.nan) for m in all_mus} if reference["kind"] == "reference"
-                    else minimal)
+    minimal = {tag[1]: (float(f) if f < cap else math.nan) for tag, f in out.items() if tag[0] == "oracle"}
+    denominators, references, reference = _ratio_denominators(config, minimal)
     inside = [inside_ranges(cond, ranges) for cond in conditions]
-    hindsight_cells: list[dict[str, Any] | None] = [None] * len(conditions)
-    for c, forces in zip(searched, out[len(where) + len(all_mus):]):
-        hindsight_cells[c] = _hindsight_cell(forces, minimal)
-    table = [[_cell(out[k], denominators) for k in range(p * len(conditions), (p + 1) * len(conditions))]
-             for p in range(len(specs))]
-    board = []
-    for p, name in enumerate(names):
-        cells = table[p]
-        success = [c["success_rate"] for c in cells]
-        ratios = [c["force_ratio"] for c in cells if math.isfinite(c["force_ratio"])]
-        lifts = [c["mean_time_to_lift_s"] for c in cells if math.isfinite(c["mean_time_to_lift_s"])]
-        worst = int(np.argmin(success))
-        in_range = [c for c, ok in zip(cells, inside) if ok]
-        in_ratios = [c["force_ratio"] for c in in_range if math.isfinite(c["force_ratio"])]
-        # the score's interval: episodes resampled within each condition (a stratified bootstrap, conditions fixed)
-        outcomes = [np.array([[float(v) for r in c["rows"] for v in r["per_episode"]["success"]]]) for c in cells]
-        _, lo, hi = stratified_bootstrap_ci(outcomes, mean_of_runs)
-        board.append({"policy": name, "spec": specs[p], "score": float(np.mean(success)),
-                      "score_ci95": [float(lo), float(hi)],
-                      "mean_force_ratio": float(np.mean(ratios)) if ratios else math.nan,
-                      "mean_time_to_lift_s": float(np.mean(lifts)) if lifts else math.nan,
-                      "worst_condition": conditions[worst].name, "worst_success_rate": success[worst],
-                      "worst_lower_bound": min(c["success_lower_bound"] for c in cells),
-                      "in_range_worst_success_rate": min((c["success_rate"] for c in in_range), default=math.nan),
-                      "in_range_worst_lower_bound": min((c["success_lower_bound"] for c in in_range),
-                                                        default=math.nan),
-                      "in_range_max_force_ratio": max(in_ratios, default=math.nan),
-                      "max_peak_pressure_kPa": max(c["max_peak_pressure_kPa"] for c in cells)})
+    table = [[_cell(out["cell", p, c], denominators) for c in range(len(conditions))] for p in range(len(specs))]
+    board = [_board_row(name, spec, cells, conditions, inside) for name, spec, cells in zip(names, specs, table)]
     order = sorted(range(len(board)), key=lambda p: (-board[p]["score"], board[p]["mean_force_ratio"]))
-    subset = len(conditions) < len(SUITES[suite])
+    protocol = run.protocol
     result = {
-        "suite": suite, "version": protocol.version, "episodes": int(episodes),
+        "suite": suite, "version": protocol.version, "episodes": run.episodes,
         "protocol_episodes": protocol.episodes, "mu_grid": list(protocol.mus),
         # the protocol as it stands: its episodes (or more) on every condition
-        "protocol": int(episodes) >= protocol.episodes and not subset,
-        "seed": int(seed), "seeds": seeds_record(int(seed), max(per_mu)),
-        "subset": subset,
+        "protocol": run.episodes >= protocol.episodes and not run.subset,
+        "seed": int(seed), "seeds": seeds_record(int(seed), max(run.per_mu)),
+        "subset": run.subset,
         "seconds": round(time.perf_counter() - t0, 2), "runner": "this process" if runner is None else runner.label,
-        "task_from": trained_on or "the benchmark task (TrainConfig().env)",
+        "task_from": run.trained_on or "the benchmark task (TrainConfig().env)",
         "config": to_dict(config),
         "damage_pressure_kPa": DAMAGE_PRESSURE_PA * 1e-3,
         "oracle_minimal_force_N": {str(m): f for m, f in minimal.items()},
         "reference": reference,
         "reference_force_N": references,
         "conditions": [{**dataclasses.asdict(c), "episodes_per_mu": n, "pooled_episodes": n * len(c.mus)}
-                       for c, n in zip(conditions, per_mu)],
+                       for c, n in zip(conditions, run.per_mu)],
         "inside_training_ranges": inside,
-        "hindsight": hindsight_cells if hindsight else None,
+        "hindsight": [_hindsight_cell(out["hindsight", c], minimal) if ("hindsight", c) in out else None
+                      for c in range(len(conditions))] if hindsight else None,
         "leaderboard": [board[p] for p in order],
         "results": [{"policy": names[p], "spec": specs[p],
                      "cells": [{"axis": cond.axis, "condition": cond.name, **cell}

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from msdgrasp.agents import controllers, evaluation
+from msdgrasp.agents import controllers, evaluation, evaluation_jobs
 from msdgrasp.agents.models import TrainConfig
 from msdgrasp.agents.protocol import (
     DEMONSTRATION_SEED_OFFSET, EVALUATION_SEED, SEALED_SEEDS, VALIDATION_SEED_OFFSET, check_not_sealed, is_sealed,
@@ -241,7 +241,7 @@ def test_evaluation_commands_default_to_the_sealed_range():
 
 
 def test_an_evaluation_records_its_seeds_and_whether_they_are_sealed(tmp_path, monkeypatch):
-    monkeypatch.setattr(evaluation, "_minimal_force_job", lambda cfg, mu: 1.25)  # (the bisection: seconds)
+    monkeypatch.setattr(evaluation_jobs, "minimal_force_job", lambda cfg, mu: 1.25)  # (the bisection: seconds)
     monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)
     sealed = evaluation.evaluate(["fixed"], [0.5], 2, tmp_path / "sealed", progress=False, conditions=())
     data = json.loads((tmp_path / "sealed" / "evaluation.json").read_text())

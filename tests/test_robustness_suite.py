@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from msdgrasp.agents import robustness
+from msdgrasp.agents import evaluation_jobs, robustness
 from msdgrasp.agents.protocol import EVALUATION_SEED, SEALED_SEEDS
 from msdgrasp.agents.reference import reference_force_N
 from msdgrasp.agents.robustness import (CONDITIONS, CONDITIONS_V1, EPISODES, MUS, POOLED_EPISODES, PROTOCOLS,
@@ -93,7 +93,7 @@ def test_the_suite_writes_its_leaderboard_with_the_baselines_and_refuses_the_gri
     stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
                 Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
     monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
-    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)  # (the bisection: minutes)
+    monkeypatch.setattr(evaluation_jobs, "minimal_force_job", lambda cfg, mu: 1.25)  # (the bisection: minutes)
     from msdgrasp.agents import controllers
 
     monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)  # (the oracle's own bisection)
@@ -242,7 +242,7 @@ def test_the_suite_reports_the_hindsight_oracle_where_the_placement_changes(tmp_
     stand_in = (Condition("nominal", "nominal", mus=(0.5,)),
                 Condition("actuation", "latency 3 steps", {"latency_steps": (3, 3)}, mus=(0.5,)))
     monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
-    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)
+    monkeypatch.setattr(evaluation_jobs, "minimal_force_job", lambda cfg, mu: 1.25)
     monkeypatch.setattr(robustness, "_hindsight_job", lambda cfg, mus, n, seed, opts: {"0.5": [1.5, None]})
     from msdgrasp.agents import controllers
 
@@ -273,7 +273,7 @@ def test_a_subset_of_the_conditions_runs_alone_and_says_so(tmp_path, monkeypatch
         "latency 3 steps", "pinch ceiling 3 N"]
     assert [c.name for c in robustness.select_conditions("robustness", ["pinch ceiling 3 N", "nominal"])] == [
         "nominal", "pinch ceiling 3 N"]  # (the protocol's order)
-    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)
+    monkeypatch.setattr(evaluation_jobs, "minimal_force_job", lambda cfg, mu: 1.25)
     from msdgrasp.agents import controllers
 
     monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)
@@ -300,7 +300,7 @@ def test_a_run_with_the_protocols_episodes_is_the_protocol_and_a_seed_outside_th
     monkeypatch.setitem(robustness.SUITES, "robustness", stand_in)
     monkeypatch.setitem(robustness.PROTOCOLS, ("robustness", SUITE_VERSION),
                         robustness.SuiteProtocol(SUITE_VERSION, (0.5,), 1, stand_in, pooled=True))
-    monkeypatch.setattr(robustness, "_minimal_force_job", lambda cfg, mu: 1.25)
+    monkeypatch.setattr(evaluation_jobs, "minimal_force_job", lambda cfg, mu: 1.25)
     from msdgrasp.agents import controllers
 
     monkeypatch.setattr(controllers, "_minimal_force_cached", lambda *args: 1.25)

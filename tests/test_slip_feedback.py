@@ -181,13 +181,14 @@ def test_a_slower_pull_lifts_with_less_grip():
 
 def test_a_spec_runs_as_a_controller_in_evaluations_and_the_suite():
     """A parameterised spec is a controller (no model file is looked for) and travels to a worker as its spec."""
-    from msdgrasp.agents.evaluation import _payload, _policy_of, is_controller
+    from msdgrasp.agents.evaluation import is_controller
+    from msdgrasp.agents.evaluation_jobs import policy_of, policy_payload
 
     spec = "slipfeedback:initial=0.7,gain=0.8,pull=0.25"
     assert is_controller(spec) and not is_controller("logs/train/seed_0/best_model.zip")
-    payload = _payload(spec, spec)
+    payload = policy_payload(spec, spec)
     assert payload[2] is None
-    assert _policy_of(payload, TASK).gain == 0.8
+    assert policy_of(payload, TASK).gain == 0.8
 
 
 def test_evaluate_runs_controllers_alone_on_the_default_training_s_task(tmp_path):

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from msdgrasp.agents.evaluation import _summarise, display_name
+from msdgrasp.agents.evaluation import display_name
+from msdgrasp.agents.rollout import summarise
 from msdgrasp.agents.stats import wilson_interval
 
 
@@ -30,7 +31,7 @@ def test_summary_rows_carry_intervals_that_contain_their_estimates():
           "peak_stress_kPa": np.zeros(10), "time_above_damage_s": np.zeros(10), "time_to_lift_s": np.full(10, 2.0),
           "steps": np.full(10, 100),
           "outcome": np.array(["success"] * 7 + ["slipped"] * 3)}
-    row = _summarise(0.5, ep)
+    row = summarise(0.5, ep)
     lo, hi = row["success_ci95"]
     assert lo < 0.7 < hi and hi - lo > 0.4  # 10 episodes: a wide interval
     lo, hi = row["peak_pinch_ci95_N"]

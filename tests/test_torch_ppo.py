@@ -148,11 +148,12 @@ def test_a_short_cpu_run_exports_a_policy_that_acts_as_the_trained_actor(tmp_pat
     perturbed[:, 4] += 1.0  # a force reading does
     assert not np.array_equal(policy.act(perturbed), a)
     # msdgrasp evaluate takes it like an SB3 model: by path, on the task it was trained on, in worker processes
-    from msdgrasp.agents.evaluation import _payload, _policy_of, task_of
+    from msdgrasp.agents.evaluation import task_of
+    from msdgrasp.agents.evaluation_jobs import policy_of, policy_payload
 
     spec = str(tmp_path / "policy.pt")
     assert task_of([spec], None) == (config.env, str(tmp_path / "policy.json"))
-    shipped = _policy_of(_payload(spec, "torch"), config.env)
+    shipped = policy_of(policy_payload(spec, "torch"), config.env)
     assert shipped.name == "torch" and np.array_equal(shipped.act(core.obs), a)
 
 
