@@ -11,7 +11,7 @@ import json
 import os
 from pathlib import Path
 
-from .rl import _add_runner_args, _runner, _usage
+from .rl import add_runner_args, runner_from_args, usage_error
 
 
 def _pulls(text: str) -> list[float]:
@@ -19,11 +19,12 @@ def _pulls(text: str) -> list[float]:
     try:
         values = [float(p) for p in parts]
     except ValueError:
-        raise _usage(f"--pulls {text!r}: expected a comma list of fractions of the arm's top speed in (0, 1], "
-                     "e.g. 0.25,0.3,0.5") from None
+        raise usage_error(f"--pulls {text!r}: expected a comma list of fractions of the arm's top speed in (0, 1], "
+                          "e.g. 0.25,0.3,0.5") from None
     for v in values:
         if not 0.0 < v <= 1.0:
-            raise _usage(f"--pulls: pull {v:g} is out of range; allowed (0, 1] (a fraction of the arm's top speed)")
+            raise usage_error(f"--pulls: pull {v:g} is out of range; allowed (0, 1] (a fraction of the arm's top "
+                              "speed)")
     return values
 
 
@@ -35,30 +36,32 @@ def _cmd_reference(args: argparse.Namespace) -> int:
     from ..envs.core import GraspLiftConfig, benchmark_config
 
     if args.out.suffix != ".json":
-        raise _usage(f"--out must be a .json file, got {args.out}")
+        raise usage_error(f"--out must be a .json file, got {args.out}")
     if args.out.is_dir():
-        raise _usage(f"--out {args.out} is a folder; give a file name such as {args.out / 'spleen.json'}")
+        raise usage_error(f"--out {args.out} is a folder; give a file name such as {args.out / 'spleen.json'}")
     if args.config is not None and args.scene is not None:
-        raise _usage("give either --scene (the benchmark task of that scene) or --config (a training config's task)")
+        raise usage_error("give either --scene (the benchmark task of that scene) or --config (a training config's "
+                          "task)")
     if args.episodes < 1:
-        raise _usage(f"--episodes must be >= 1, got {args.episodes}")
+        raise usage_error(f"--episodes must be >= 1, got {args.episodes}")
     last = REFERENCE_SEEDS.stop - args.episodes
     if not REFERENCE_SEEDS.start <= args.seed <= last:
-        raise _usage(f"--seed must keep the reference episodes in the reference seeds [{REFERENCE_SEEDS.start}, "
-                     f"{REFERENCE_SEEDS.stop}); allowed {REFERENCE_SEEDS.start}..{last}, got {args.seed}")
+        raise usage_error(f"--seed must keep the reference episodes in the reference seeds [{REFERENCE_SEEDS.start}, "
+                          f"{REFERENCE_SEEDS.stop}); allowed {REFERENCE_SEEDS.start}..{last}, got {args.seed}")
     if not 0.0 < args.tolerance <= 0.1:
-        raise _usage(f"--tolerance must be in (0, 0.1] N, got {args.tolerance}")
+        raise usage_error(f"--tolerance must be in (0, 0.1] N, got {args.tolerance}")
     if args.config is not None:
         if not args.config.is_file():
-            raise _usage(f"--config: no such file: {args.config}")
+            raise usage_error(f"--config: no such file: {args.config}")
         config = GraspLiftConfig.from_yaml(args.config)
     else:
         config = benchmark_config(args.scene or "spleen")
     mus = [float(m) for m in parse_mu_grid(args.mu_grid)]
     if mus[0] <= 0.0:
-        raise _usage(f"--mu-grid: mu must be > 0, got {mus[0]:g}")
+        raise usage_error(f"--mu-grid: mu must be > 0, got {mus[0]:g}")
     pulls = _pulls(args.pulls)
-    runner = _runner(args, os.cpu_count() or 1)  # (processes, one per core, unless --workers / --ray / --address)
+    # (processes, one per core, unless --workers / --ray / --address)
+    runner = runner_from_args(args, os.cpu_count() or 1)
     # every finished search is kept beside the table until it is written: a stopped run goes on where it stopped
     journal = args.out.with_name(args.out.name + ".cells.jsonl")
     with runner:
@@ -97,6 +100,6 @@ def add_reference_command(sub) -> None:
                    help=f"episode i is reset with seed + i (default {REFERENCE_SEED})")
     p.add_argument("--tolerance", type=float, default=TOLERANCE_N,
                    help=f"the bisection's tolerance on the grip, N (default {TOLERANCE_N:g})")
-    _add_runner_args(p, "every (mu, pull) search as its own job")
+    add_runner_args(p, "every (mu, pull) search as its own job")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_cmd_reference)
