@@ -23,6 +23,7 @@ names one by its registered name, and the rest of the package asks the registry 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -160,38 +161,39 @@ class SlipFeedbackPolicy:
     pull waits for the pinch to reach the gate's share of that (``mu_estimate`` holds each episode's estimate).
     """
 
-    def __init__(self, config: GraspLiftConfig | None = None, initial_force_N: float = 0.55,
-                 gain_N_per_mm: float = 1.0, max_force_N: float = 4.0, pull: float = 0.5, contact_jaws: int = 2,
-                 settle_steps: int = 6, pinch_gate: float = 0.0, oracle_margin: float = 0.0,
-                 estimate_margin: float = 1.2, friction_estimator: FrictionEstimator | None = None,
-                 told_mu: bool = False) -> None:
+    def __init__(self, config: GraspLiftConfig | None = None, settings: SlipFeedbackSettings | None = None,
+                 friction_estimator: FrictionEstimator | None = None, **fields: Any) -> None:
+        """``settings``: the controller's parameter record (default :class:`SlipFeedbackSettings`), with any of its
+        ``fields`` given by keyword replaced (``SlipFeedbackPolicy(task, gain_N_per_mm=0.5)``)."""
         self.config = config or GraspLiftConfig()
         if not setpoint_interface(self.config):
             raise ValueError("the slip-feedback controller needs jaw_action: force and pull_action: forward_speed, "
                              f"got {self.config.jaw_action!r} / {self.config.pull_action!r}")
-        SlipFeedbackSettings(initial_force_N, gain_N_per_mm, max_force_N, pull, contact_jaws, settle_steps,
-                             pinch_gate, oracle_margin, estimate_margin, float(told_mu))
-        if told_mu and friction_estimator is None:
+        if "told_mu" in fields:  # (a flag where it is given by keyword; a 0/1 number in the record)
+            fields["told_mu"] = float(fields["told_mu"])
+        st = dataclasses.replace(settings or SlipFeedbackSettings(), **fields)
+        if st.told_mu and friction_estimator is None:
             raise ValueError("told_mu needs a friction_estimator (its probe grip and force table; the told mu replaces "
                              "its estimate)")
         if friction_estimator is not None:
-            if not pinch_gate or oracle_margin:
+            if not st.pinch_gate or st.oracle_margin:
                 raise ValueError("friction_estimator needs pinch_gate > 0 (the estimate is made when the gate opens) "
                                  "and oracle_margin 0 (told mu, nothing is estimated)")
-            if not math.isclose(initial_force_N, friction_estimator.probe_force_N):
+            if not math.isclose(st.initial_force_N, friction_estimator.probe_force_N):
                 raise ValueError(f"initial_force_N must be the friction estimator's probe grip, "
-                                 f"{friction_estimator.probe_force_N} N, got {initial_force_N!r}")
-        self.initial = float(initial_force_N)
-        self.gain = float(gain_N_per_mm)
-        self.max_force = float(max_force_N)
-        self.pull = float(pull)
-        self.contact_jaws = int(contact_jaws)
-        self.settle_steps = int(settle_steps)
-        self.pinch_gate = float(pinch_gate)
-        self.oracle_margin = float(oracle_margin)
-        self.estimate_margin = float(estimate_margin)
+                                 f"{friction_estimator.probe_force_N} N, got {st.initial_force_N!r}")
+        self.settings = st
+        self.initial = float(st.initial_force_N)
+        self.gain = float(st.gain_N_per_mm)
+        self.max_force = float(st.max_force_N)
+        self.pull = float(st.pull)
+        self.contact_jaws = int(st.contact_jaws)
+        self.settle_steps = int(st.settle_steps)
+        self.pinch_gate = float(st.pinch_gate)
+        self.oracle_margin = float(st.oracle_margin)
+        self.estimate_margin = float(st.estimate_margin)
         self.estimator = friction_estimator
-        self.told_mu = bool(told_mu)
+        self.told_mu = bool(st.told_mu)
         self.name = "slipfeedback"
         self._size(1)
 
