@@ -1,0 +1,565 @@
+"""A finite-element reference for the mass-spring network, on the same meshes and load cases.
+
+What is compared. The MSD's springs are derived from a Young's modulus E (van Gelder or Lloyd,
+:mod:`~msdgrasp.physics.tissue`). Here the same tets carry a continuum solid with that E: linear P1 elasticity at
+small strain and a compressible neo-Hookean solid, W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2, at large strain
+(scikit-fem, the optional extra ``fem``; imported inside the functions that need it). Both models see the same
+prescribed node displacements (:class:`LoadCase`): nodes moved by a rigid indenter or plate, nodes held on the far
+side, every other node free; the force is the indenter's total reaction along the loading axis, N.
+
+Quasi-static MSD. The network's equilibrium under the prescribed displacements is solved directly (Newton on the
+springs' energy, the volume barrier included; :func:`msd_forces`): the state a damped run relaxes to once the
+Maxwell branches have relaxed, i.e. the relaxed (long-time) modulus E the springs are derived from. The residual is
+the kernel's own force law (:meth:`~msdgrasp.physics.tissue.TissueModel.internal_forces` and
+:func:`~msdgrasp.physics.forces.volume_forces`).
+
+Load cases (all loaded along z):
+
+* ``cube`` (bonded): a cube between two plates glued to it (top face moved down, bottom face held, every
+  component prescribed; the sides free to bulge), on a Kuhn-split grid as the built-in meshes use;
+* ``cube-slip``: the same cube between frictionless plates (only z prescribed on the faces, rigid motions pinned):
+  uniform uniaxial stress, so the lateral expansion gives the effective Poisson ratio of the network;
+* ``sphere``: the shipped gmsh sphere indented at its top pole by a bonded flat punch (the surface nodes within
+  :data:`INDENTER_RADIUS_FRACTION` R of the pole axis), the same patch at the bottom held;
+* ``spleen``: the built-in spleen indented through its thickness at the middle of its long axis (surface nodes
+  within :data:`SPLEEN_INDENTER_RADIUS_M` of the top point) with the opposite patch held.
+
+Strain is the indenter's travel over the case's height along z. The continuum Poisson ratio is a parameter:
+0.25 is the isotropic network's own (Cauchy relations; :data:`~msdgrasp.physics.tissue.NETWORK_POISSON_RATIO`), the
+fair test of the discretisation; a near-incompressible tissue (0.45-0.49) shows what the network's fixed ratio
+costs.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..physics.config import ConfigError, from_dict, needs_extra, to_dict
+from ..physics.forces import volume_forces
+from ..physics.mesh import TetMesh, boundary_faces, tet_signed_volumes
+from ..physics.mesh_io import sphere_even_mesh
+from ..physics.mesh_gen import spleen_mesh
+from ..physics.reference import numpy_barrier_slopes, numpy_spring_law
+from ..physics.tissue import TissueModel, TissueParams, hertz_sphere_force
+
+#: the load cases :func:`load_case` builds
+CASES = ("cube", "cube-slip", "sphere", "spleen")
+#: cells per cube edge for the named resolutions (about the node counts of the built-in meshes')
+CUBE_CELLS = {"coarse": 5, "medium": 9, "fine": 15}
+#: the cube's edge, m (a grasped slab of spleen: its thickness is ~40 mm)
+CUBE_SIDE_M = 0.03
+#: radius of the bonded punch on the sphere, as a fraction of the sphere radius
+INDENTER_RADIUS_FRACTION = 0.4
+#: radius of the bonded punch (and of the held patch) on the spleen, m
+SPLEEN_INDENTER_RADIUS_M = 0.012
+#: strains of the comparison: small (linear) and large (neo-Hookean)
+SMALL_STRAIN = 0.02
+LARGE_STRAINS = (0.10, 0.20)
+#: the acceptance band of the small-strain comparison (|MSD / FEM - 1|)
+SMALL_STRAIN_RTOL = 0.10
+#: the closed-form checks of the FEM solver must hold to this relative error before it is a reference
+FEM_CHECK_RTOL = 0.02
+
+
+def _skfem():
+    with needs_extra("fem", "the finite-element reference (scikit-fem)"):
+        import skfem
+    return skfem
+
+
+# =================================================================================================
+# meshes and load cases
+# =================================================================================================
+
+
+def cube_mesh(side_m: float = CUBE_SIDE_M, cells: int = 5) -> TetMesh:
+    """A cube of edge ``side_m`` (m) centred on the origin, ``cells`` cells per edge, each split into six Kuhn
+    tets (reflected about the centre planes so the grid is symmetric, as the built-in meshes' grids are)."""
+    if not (isinstance(cells, (int, np.integer)) and cells >= 1):
+        raise ConfigError(f"cube cells must be an integer >= 1, got {cells!r}")
+    if not (math.isfinite(side_m) and side_m > 0):
+        raise ConfigError(f"cube side_m must be > 0, got {side_m!r}")
+    n = int(cells)
+    ax = np.linspace(-0.5 * side_m, 0.5 * side_m, n + 1)
+    nodes = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), axis=-1).reshape(-1, 3)
+    idx = np.arange(len(nodes)).reshape(n + 1, n + 1, n + 1)
+    cell = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    d = np.where(2 * cell + 1 >= n, 1, -1)  # each cell's diagonal runs away from the centre
+    start = np.where(d > 0, cell, cell + 1)
+    tets = []
+    for perm in itertools.permutations(range(3)):
+        cur = start.copy()
+        verts = [idx[cur[:, 0], cur[:, 1], cur[:, 2]]]
+        for a in perm:
+            cur[:, a] += d[:, a]
+            verts.append(idx[cur[:, 0], cur[:, 1], cur[:, 2]])
+        tets.append(np.stack(verts, axis=1))
+    t = np.concatenate(tets).astype(np.int64)
+    neg = tet_signed_volumes(nodes, t) < 0
+    t[neg] = t[neg][:, [0, 2, 1, 3]]
+    surface = np.unique(boundary_faces(t, "cube"))
+    return TetMesh(nodes, t, node_sets={"surface": surface}, name=f"cube-{n}")
+
+
+@dataclass
+class LoadCase:
+    """Prescribed node displacements along z: ``moved`` nodes travel -z by the indenter's travel, ``held`` nodes
+    stay; ``bonded``: every component of those nodes is prescribed (glued plates / punch), else only z, with
+    ``pins`` (node, axis) removing the free rigid motions."""
+
+    name: str
+    mesh: TetMesh
+    moved: np.ndarray
+    held: np.ndarray
+    bonded: bool
+    #: the case's height along z (strain = travel / height), m
+    height_m: float
+    pins: list[tuple[int, int]] = field(default_factory=list)
+    #: (-x face, +x face) node sets of a cube, for the lateral expansion
+    sides: tuple[np.ndarray, np.ndarray] | None = None
+
+    def prescribed(self) -> np.ndarray:
+        """Indices of the prescribed degrees of freedom (3 i + axis)."""
+        comps = (0, 1, 2) if self.bonded else (2,)
+        dofs = [3 * np.concatenate([self.moved, self.held]) + c for c in comps]
+        dofs += [np.array([3 * i + a]) for i, a in self.pins]
+        return np.unique(np.concatenate(dofs))
+
+    def targets(self, travel_m: float) -> np.ndarray:
+        """Displacement (3N,) with the prescribed values at the prescribed dofs, m."""
+        u = np.zeros(3 * self.mesh.n_nodes)
+        u[3 * self.moved + 2] = -travel_m
+        return u
+
+    def force(self, f_ext: np.ndarray) -> float:
+        """The indenter's push (N, > 0 in compression) from the external nodal forces (3N,) it exerts."""
+        return float(-f_ext[3 * self.moved + 2].sum())
+
+
+def _resolution_name(resolution: str) -> str:
+    key = str(resolution).strip().lower()
+    if key not in CUBE_CELLS:
+        raise ConfigError(f"resolution = {resolution!r} is not allowed; choose one of {list(CUBE_CELLS)}")
+    return key
+
+
+def load_case(name: str, resolution: str = "coarse") -> LoadCase:
+    """One of :data:`CASES` at a resolution (coarse, medium, fine)."""
+    res = _resolution_name(resolution)
+    if name in ("cube", "cube-slip"):
+        mesh = cube_mesh(CUBE_SIDE_M, CUBE_CELLS[res])
+        z = mesh.nodes[:, 2]
+        tol = 1e-9 * CUBE_SIDE_M
+        top = np.flatnonzero(z > z.max() - tol)
+        bottom = np.flatnonzero(z < z.min() + tol)
+        x = mesh.nodes[:, 0]
+        sides = (np.flatnonzero(x < x.min() + tol), np.flatnonzero(x > x.max() - tol))
+        pins: list[tuple[int, int]] = []
+        if name == "cube-slip":
+            # the bottom node nearest the axis holds x and y; the bottom node farthest along +x holds y (rotation)
+            b = mesh.nodes[bottom]
+            c = int(bottom[np.argmin(np.hypot(b[:, 0], b[:, 1]))])
+            f = int(bottom[np.argmax(b[:, 0] - np.abs(b[:, 1]))])
+            pins = [(c, 0), (c, 1), (f, 1)]
+        return LoadCase(name, mesh, top, bottom, name == "cube", CUBE_SIDE_M, pins, sides)
+    if name == "sphere":
+        mesh = sphere_even_mesh(0.05, res)
+        surf = mesh.surface_nodes
+        p = mesh.nodes[surf]
+        radius = 0.5 * float(np.ptp(mesh.nodes[:, 2]))
+        near_axis = np.hypot(p[:, 0], p[:, 1]) <= INDENTER_RADIUS_FRACTION * radius + 1e-12
+        moved = surf[near_axis & (p[:, 2] > 0)]
+        held = surf[near_axis & (p[:, 2] < 0)]
+        return LoadCase(name, mesh, moved, held, True, 2.0 * radius)
+    if name == "spleen":
+        mesh = spleen_mesh(res)
+        surf = mesh.surface_nodes
+        p = mesh.nodes[surf]
+        # the middle of the long axis: the surface nodes nearest the x-y location of the centroid, on both faces
+        c = mesh.nodes.mean(axis=0)
+        r = np.hypot(p[:, 0] - c[0], p[:, 1] - c[1])
+        moved = surf[(r <= SPLEEN_INDENTER_RADIUS_M) & (p[:, 2] > c[2])]
+        held = surf[(r <= SPLEEN_INDENTER_RADIUS_M) & (p[:, 2] < c[2])]
+        height = float(mesh.nodes[moved, 2].mean() - mesh.nodes[held, 2].mean())
+        return LoadCase(name, mesh, moved, held, True, height)
+    raise ConfigError(f"case = {name!r} is not allowed; choose one of {list(CASES)}")
+
+
+# =================================================================================================
+# the finite-element reference (scikit-fem)
+# =================================================================================================
+
+
+def lame(youngs_modulus_pa: float, poisson: float) -> tuple[float, float]:
+    """(lambda, mu) in Pa."""
+    if not (-1.0 < poisson < 0.5):
+        raise ConfigError(f"poisson = {poisson!r} must be in (-1, 0.5)")
+    lam = youngs_modulus_pa * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+    return lam, youngs_modulus_pa / (2.0 * (1.0 + poisson))
+
+
+def _basis(mesh: TetMesh):
+    skfem = _skfem()
+    m = skfem.MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
+    basis = skfem.Basis(m, skfem.ElementVector(skfem.ElementTetP1()))
+    # the project numbers dof 3 i + axis; scikit-fem's own numbering is read from nodal_dofs (3, N)
+    perm = np.asarray(basis.nodal_dofs).T.ravel()
+    return basis, perm
+
+
+def fem_stiffness(mesh: TetMesh, youngs_modulus_pa: float, poisson: float) -> sp.csr_matrix:
+    """Linear-elastic P1 stiffness matrix (3N x 3N, N/m) in the project's dof order (3 i + axis)."""
+    skfem = _skfem()
+    from skfem.models.elasticity import linear_elasticity
+
+    basis, perm = _basis(mesh)
+    K = skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+    return K[perm][:, perm].tocsr()
+
+
+def _solve_prescribed(K: sp.spmatrix, presc: np.ndarray, u: np.ndarray, rhs: np.ndarray | None = None) -> np.ndarray:
+    """u with its free dofs solving K u = rhs (0 by default) for the prescribed values it holds."""
+    free = np.setdiff1d(np.arange(K.shape[0]), presc)
+    K = K.tocsr()
+    b = -(K[free][:, presc] @ u[presc]) + (0.0 if rhs is None else rhs[free])
+    u = u.copy()
+    u[free] = spla.spsolve(K[free][:, free].tocsc(), b)
+    return u
+
+
+def fem_linear_forces(case: LoadCase, youngs_modulus_pa: float, poisson: float,
+                      strains: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Linear FEM: (indenter force N per strain, displacement (3N,) at unit travel m)."""
+    K = fem_stiffness(case.mesh, youngs_modulus_pa, poisson)
+    u1 = _solve_prescribed(K, case.prescribed(), case.targets(1.0))
+    f1 = case.force(K @ u1)
+    return np.array([f1 * s * case.height_m for s in strains]), u1
+
+
+def _neo_hookean_forms(lam: float, mu: float):
+    skfem = _skfem()
+    from skfem.helpers import ddot, det, grad, inv, mul, trace, transpose
+
+    def kinematics(w):
+        G = grad(w["u"])
+        F = G.copy()
+        for a in range(3):
+            F[a, a] += 1.0
+        J = det(F)
+        Finv = inv(F)
+        return F, J, Finv, transpose(Finv)
+
+    @skfem.LinearForm
+    def residual(v, w):
+        F, J, _, FiT = kinematics(w)
+        P = mu * (F - FiT) + lam * np.log(J) * FiT  # first Piola-Kirchhoff stress
+        return ddot(P, grad(v))
+
+    @skfem.BilinearForm
+    def tangent(u, v, w):
+        F, J, Finv, FiT = kinematics(w)
+        dF = grad(u)
+        dP = (mu * dF + (mu - lam * np.log(J)) * mul(FiT, mul(transpose(dF), FiT))
+              + lam * trace(mul(Finv, dF)) * FiT)
+        return ddot(dP, grad(v))
+
+    return residual, tangent
+
+
+def fem_neo_hookean_forces(case: LoadCase, youngs_modulus_pa: float, poisson: float, strains: Sequence[float],
+                           increments_per_strain: float = 50.0, tol: float = 1e-9,
+                           max_newton: int = 30) -> np.ndarray:
+    """Compressible neo-Hookean FEM (Lame constants from E, nu: the same small-strain limit as the linear one):
+    the indenter force (N) at each strain, loaded in increments with Newton's method at each."""
+    skfem = _skfem()
+    basis, perm = _basis(case.mesh)
+    residual, tangent = _neo_hookean_forms(*lame(youngs_modulus_pa, poisson))
+    n = 3 * case.mesh.n_nodes
+    presc = case.prescribed()
+    free = np.setdiff1d(np.arange(n), presc)
+    inv_perm = np.empty_like(perm)
+    inv_perm[perm] = np.arange(n)
+    u = np.zeros(n)  # the project's dof order
+    out = []
+    done = 0.0
+    for s in sorted(strains):
+        steps = max(1, int(math.ceil((s - done) * increments_per_strain)))
+        for level in np.linspace(done, s, steps + 1)[1:]:
+            target = case.targets(level * case.height_m)
+            u_prev = u.copy()
+            u[presc] = target[presc]
+            # the free dofs start from the linear response to the increment (keeps Newton inside J > 0)
+            scale = None
+            for _ in range(max_newton):
+                w = basis.interpolate(u[inv_perm])
+                R = skfem.asm(residual, basis, u=w)[perm]
+                K = skfem.asm(tangent, basis, u=w).tocsr()[perm][:, perm].tocsr()
+                scale = scale or max(float(np.abs(R[presc]).max()), 1e-30)
+                if float(np.abs(R[free]).max()) <= tol * scale:
+                    break
+                du = spla.spsolve(K[free][:, free].tocsc(), -R[free])
+                u[free] += du
+            else:
+                raise RuntimeError(f"neo-Hookean FEM: Newton did not converge at strain {level:.3f} ({case.name})")
+            del u_prev
+        done = s
+        w = basis.interpolate(u[inv_perm])
+        out.append(case.force(skfem.asm(residual, basis, u=w)[perm]))
+    order = np.argsort(np.argsort(strains))
+    return np.asarray(out)[order]
+
+
+# =================================================================================================
+# the MSD at equilibrium
+# =================================================================================================
+
+
+def msd_model(mesh: TetMesh, params: TissueParams, **overrides) -> TissueModel:
+    """The tissue on ``mesh`` without gravity (the comparison is of the elastic response alone)."""
+    data = {**to_dict(params), "gravity_m_per_s2": (0.0, 0.0, 0.0), **overrides}
+    return TissueModel.from_params(mesh, from_dict(TissueParams, data, where="fem"))
+
+
+def _internal(model: TissueModel, x: np.ndarray) -> np.ndarray:
+    """Spring plus volume-barrier forces on each node (N, 3), N: the kernel's force law at rest (no velocity)."""
+    f = model.internal_forces(x)
+    if model.kvol.size:
+        volume_forces(np.ascontiguousarray(x), model.tets, model.rest_volume, model.kvol, model.volume_threshold,
+                      1.0, f)
+    return f
+
+
+def _tangent(model: TissueModel, x: np.ndarray) -> sp.csr_matrix:
+    """Tangent stiffness (3N x 3N) of the springs at ``x`` (material + geometric terms) plus the Gauss-Newton part
+    of the volume barrier (positive semi-definite; Newton's line search makes up for the rest)."""
+    e = model.edges
+    d = x[e[:, 1]] - x[e[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    nrm = d / length[:, None]
+    dl = length - model.rest_length
+    tension = numpy_spring_law(dl, model.k1, model.k2, model.dlc)
+    slope = model.k1 + 3.0 * model.k2 * np.minimum(np.abs(dl), model.dlc) ** 2
+    nn = nrm[:, :, None] * nrm[:, None, :]
+    # (a compressed spring's negative geometric stiffness is kept: it is what buckles a network)
+    blocks = slope[:, None, None] * nn + (tension / length)[:, None, None] * (np.eye(3)[None] - nn)
+    i, j = e[:, 0], e[:, 1]
+    rows, cols, vals = [], [], []
+    for a in range(3):
+        for b in range(3):
+            v = blocks[:, a, b]
+            rows += [3 * i + a, 3 * j + a, 3 * i + a, 3 * j + a]
+            cols += [3 * i + b, 3 * j + b, 3 * j + b, 3 * i + b]
+            vals += [v, v, -v, -v]
+    n3 = 3 * model.n_nodes
+    K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n3, n3))
+    if model.kvol.size:
+        t = model.tets
+        p0 = x[t[:, 0]]
+        e1, e2, e3 = x[t[:, 1]] - p0, x[t[:, 2]] - p0, x[t[:, 3]] - p0
+        vol = np.einsum("ij,ij->i", e1, np.cross(e2, e3)) / 6.0
+        jac = vol / model.rest_volume
+        _, d2 = numpy_barrier_slopes(jac, model.volume_threshold)
+        act = np.flatnonzero(d2 > 0)
+        if act.size:
+            g1 = np.cross(e2[act], e3[act]) / 6.0
+            g2 = np.cross(e3[act], e1[act]) / 6.0
+            g3 = np.cross(e1[act], e2[act]) / 6.0
+            g = np.stack([-(g1 + g2 + g3), g1, g2, g3], axis=1).reshape(len(act), 12)  # dV/dx of the 4 nodes
+            w = model.kvol[act] * d2[act] / model.rest_volume[act]  # k V0 psi'' (dJ/dV)^2
+            dofs = (3 * t[act][:, :, None] + np.arange(3)[None, None, :]).reshape(len(act), 12)
+            r = np.repeat(dofs, 12, axis=1).ravel()
+            c = np.tile(dofs, (1, 12)).ravel()
+            v = (w[:, None, None] * g[:, :, None] * g[:, None, :]).ravel()
+            K = K + sp.csr_matrix((v, (r, c)), shape=(n3, n3))
+    return K
+
+
+def msd_forces(case: LoadCase, model: TissueModel, strains: Sequence[float], increments_per_strain: float = 50.0,
+               tol: float = 1e-9, max_newton: int = 40) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The network's equilibrium at each strain (loaded in increments, Newton with a backtracking line search on
+    the elastic energy): (indenter force N per strain, node positions (N, 3) per strain)."""
+    x0 = model.rest_positions
+    n = 3 * model.n_nodes
+    presc = case.prescribed()
+    free = np.setdiff1d(np.arange(n), presc)
+    x = x0.copy().ravel()
+    forces, shapes = {}, {}
+    done = 0.0
+    for s in sorted(strains):
+        steps = max(1, int(math.ceil((s - done) * increments_per_strain)))
+        for level in np.linspace(done, s, steps + 1)[1:]:
+            x[presc] = x0.ravel()[presc] + case.targets(level * case.height_m)[presc]
+            scale = None
+            for _ in range(max_newton):
+                f = _internal(model, x.reshape(-1, 3)).ravel()
+                scale = scale or max(float(np.abs(f[presc]).max()), 1e-30)
+                if float(np.abs(f[free]).max()) <= tol * scale:
+                    break
+                K = _tangent(model, x.reshape(-1, 3))
+                dx = spla.spsolve(K[free][:, free].tocsc(), f[free])
+                e0 = model.elastic_energy(x.reshape(-1, 3))
+                step = 1.0
+                for _ls in range(30):
+                    trial = x.copy()
+                    trial[free] += step * dx
+                    if model.elastic_energy(trial.reshape(-1, 3)) <= e0 + 1e-4 * step * float(-f[free] @ dx) + 1e-18:
+                        break
+                    step *= 0.5
+                x = trial
+            else:
+                raise RuntimeError(f"MSD equilibrium: Newton did not converge at strain {level:.3f} ({case.name})")
+        done = s
+        f = _internal(model, x.reshape(-1, 3)).ravel()
+        forces[s] = case.force(-f)  # the indenter balances the internal forces at the moved nodes
+        shapes[s] = x.reshape(-1, 3).copy()
+    return np.array([forces[s] for s in strains]), [shapes[s] for s in strains]
+
+
+def msd_linear_force(case: LoadCase, model: TissueModel) -> tuple[float, np.ndarray]:
+    """The linearised network (springs at rest, K1 only): (indenter force per metre of travel N/m, u (3N,) at unit
+    travel)."""
+    from ..physics.tissue import stiffness_matrix
+
+    K = stiffness_matrix(model.rest_positions, model.edges, model.k1)
+    u1 = _solve_prescribed(K, case.prescribed(), case.targets(1.0))
+    return case.force(K @ u1), u1
+
+
+def poisson_ratio(case: LoadCase, u_unit: np.ndarray) -> float:
+    """Effective Poisson ratio of a cube between frictionless plates: the lateral strain (mean x displacement of the
+    +x face minus the -x face's, over the edge) over the axial strain, from the displacement at unit travel."""
+    if case.sides is None:
+        raise ConfigError(f"case {case.name!r} has no lateral faces to measure")
+    lo, hi = case.sides
+    ux = u_unit[0::3]
+    lateral = (ux[hi].mean() - ux[lo].mean()) / case.height_m
+    axial = -1.0 / case.height_m
+    return float(-lateral / axial)
+
+
+# =================================================================================================
+# closed-form checks of the FEM solver
+# =================================================================================================
+
+
+def bar_check(youngs_modulus_pa: float = 12e3, poisson: float = 0.45, resolution: str = "coarse") -> dict:
+    """A prism between frictionless plates (uniaxial stress): the linear FEM's axial stiffness against E A / L."""
+    case = load_case("cube-slip", resolution)
+    k, _ = fem_linear_forces(case, youngs_modulus_pa, poisson, [1.0 / case.height_m])
+    exact = youngs_modulus_pa * CUBE_SIDE_M**2 / CUBE_SIDE_M
+    return {"check": "bar axial stiffness E A / L (linear FEM, frictionless plates)", "fem_N_per_m": float(k[0]),
+            "closed_form_N_per_m": exact, "rel_error": float(k[0] / exact - 1.0)}
+
+
+def confined_check(youngs_modulus_pa: float = 12e3, poisson: float = 0.45, resolution: str = "coarse") -> dict:
+    """The prism with its sides held laterally (confined compression, uniaxial strain): the linear FEM's stiffness
+    against (lambda + 2 mu) A / L (this one sees the Poisson ratio, the bar's does not)."""
+    case = load_case("cube-slip", resolution)
+    mesh = case.mesh
+    tol = 1e-9 * CUBE_SIDE_M
+    walls = [np.flatnonzero(np.abs(mesh.nodes[:, a]) > 0.5 * CUBE_SIDE_M - tol) for a in (0, 1)]
+    case.pins = [(int(i), 0) for i in walls[0]] + [(int(i), 1) for i in walls[1]]
+    k, _ = fem_linear_forces(case, youngs_modulus_pa, poisson, [1.0 / case.height_m])
+    lam, mu = lame(youngs_modulus_pa, poisson)
+    exact = (lam + 2.0 * mu) * CUBE_SIDE_M
+    return {"check": "confined compression (lambda + 2 mu) A / L (linear FEM)", "fem_N_per_m": float(k[0]),
+            "closed_form_N_per_m": exact, "rel_error": float(k[0] / exact - 1.0)}
+
+
+def neo_hookean_uniaxial_force(youngs_modulus_pa: float, poisson: float, stretch: float, area_m2: float) -> float:
+    """Closed form: the compressive force (N) on a compressible neo-Hookean prism in uniaxial stress at axial stretch
+    ``stretch`` (< 1): the lateral stretch l solves mu (l - 1/l) + lambda ln(s l^2) / l = 0, then the nominal
+    stress is P = mu (s - 1/s) + lambda ln(s l^2) / s."""
+    from scipy.optimize import brentq
+
+    lam, mu = lame(youngs_modulus_pa, poisson)
+    lat = brentq(lambda q: mu * (q - 1.0 / q) + lam * math.log(stretch * q * q) / q, 1.0, 3.0)
+    return float(-(mu * (stretch - 1.0 / stretch) + lam * math.log(stretch * lat * lat) / stretch) * area_m2)
+
+
+def neo_hookean_bar_check(youngs_modulus_pa: float = 12e3, poisson: float = 0.45, strain: float = 0.2) -> dict:
+    """The neo-Hookean FEM on the cube between frictionless plates against :func:`neo_hookean_uniaxial_force`."""
+    case = load_case("cube-slip", "coarse")
+    f = fem_neo_hookean_forces(case, youngs_modulus_pa, poisson, [strain], increments_per_strain=25.0)[0]
+    exact = neo_hookean_uniaxial_force(youngs_modulus_pa, poisson, 1.0 - strain, CUBE_SIDE_M**2)
+    return {"check": f"neo-Hookean uniaxial stress at {strain:.0%} compression (closed form)", "fem_N": float(f),
+            "closed_form_N": exact, "rel_error": float(f / exact - 1.0)}
+
+
+def _plate_contact_force(K: sp.csr_matrix, zdofs: np.ndarray, z: np.ndarray, pins: np.ndarray, depth: float,
+                         max_iter: int = 60) -> float:
+    """Linear body (stiffness K) squeezed between frictionless rigid plates normal to z by a total travel ``depth``:
+    active-set unilateral contact on the surface's z dofs ``zdofs`` at heights ``z`` (m); ``pins`` hold the free
+    in-plane rigid motions (statically: they carry no load, as in
+    :func:`~msdgrasp.physics.tissue.plate_compression_force`). Returns the top plate's force, N."""
+    zmin, zmax = float(z.min()), float(z.max())
+    tol = 1e-9 * (zmax - zmin)
+    top = z >= zmax - 0.5 * depth - tol
+    bot = z <= zmin + 0.5 * depth + tol
+    for _ in range(max_iter):
+        cons = top | bot
+        presc = np.unique(np.concatenate([zdofs[cons], pins]))
+        u = np.zeros(K.shape[0])
+        u[zdofs[cons]] = np.where(top[cons], zmax - depth, zmin) - z[cons]
+        u = _solve_prescribed(K, presc, u)
+        r = (K @ u)[zdofs]
+        zn = z + u[zdofs]
+        ftol = 1e-9 * float(np.max(np.abs(r)))
+        rel_t, rel_b = top & (r > ftol), bot & (r < -ftol)
+        add_t = ~top & (zn > zmax - depth + tol)
+        add_b = ~bot & (zn < zmin - tol)
+        if not (rel_t.any() or rel_b.any() or add_t.any() or add_b.any()):
+            return float(-r[top].sum())
+        top, bot = (top & ~rel_t) | add_t, (bot & ~rel_b) | add_b
+    raise RuntimeError("FEM plate contact: the active set did not converge")
+
+
+def sphere_plate_force(mesh: TetMesh, youngs_modulus_pa: float, poisson: float, depth_m: float,
+                       order: int = 1) -> float:
+    """Linear FEM (P1 or P2 tets on the mesh's tets) of the body between frictionless plates: the plate force, N."""
+    skfem = _skfem()
+    from skfem.models.elasticity import linear_elasticity
+
+    m = skfem.MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
+    elem = skfem.ElementTetP1() if order == 1 else skfem.ElementTetP2()
+    basis = skfem.Basis(m, skfem.ElementVector(elem))
+    K = skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+    zdofs = np.asarray(basis.get_dofs().all("u^3"))
+    z = basis.doflocs[2, zdofs]
+    centre = mesh.nodes.mean(axis=0)
+    pc = int(np.argmin(np.linalg.norm(mesh.nodes - centre, axis=1)))
+    pf = int(np.argmax(np.abs(mesh.nodes[:, 0] - centre[0])))
+    nd = np.asarray(basis.nodal_dofs)
+    pins = np.array([nd[0, pc], nd[1, pc], nd[1, pf]])
+    return _plate_contact_force(K, zdofs, z, pins, depth_m)
+
+
+def hertz_check(youngs_modulus_pa: float = 12e3, poisson: float = 0.25, deformation: float = 0.10,
+                resolutions: Sequence[str] = ("coarse", "medium", "fine"), order: int = 1) -> dict:
+    """The linear FEM sphere between frictionless plates against Hertz at ``deformation`` x the diameter, per mesh,
+    and the Richardson extrapolation of the two finest to zero element size (error ~ h^2, h ~ N^(-1/3)). Unlike the
+    prism checks this one involves contact, which constant-strain tets resolve poorly: it is reported, and the
+    comparison with the MSD uses the bonded (contact-free) load cases."""
+    out = {"check": f"Hertz sphere between frictionless plates at {deformation:.0%} (linear FEM)", "meshes": {}}
+    forces, sizes = [], []
+    for res in resolutions:
+        mesh = sphere_even_mesh(0.05, res)
+        height = float(np.ptp(mesh.nodes[:, 2]))
+        f = sphere_plate_force(mesh, youngs_modulus_pa, poisson, deformation * height, order)
+        exact = hertz_sphere_force(youngs_modulus_pa, 0.5 * height, deformation * height, poisson)
+        out["meshes"][res] = {"nodes": mesh.n_nodes, "fem_N": f, "hertz_N": exact, "rel_error": f / exact - 1.0}
+        forces.append(f)
+        sizes.append(mesh.n_nodes ** (-1.0 / 3.0))
+    (fa, fb), (ha, hb) = forces[-2:], sizes[-2:]
+    extrapolated = fb + (fb - fa) * hb**2 / (ha**2 - hb**2)
+    out["extrapolated_N"] = extrapolated
+    out["hertz_N"] = exact
+    out["rel_error"] = extrapolated / exact - 1.0
+    return out
