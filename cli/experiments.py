@@ -160,3 +160,32 @@ def calibrate_cli(args: argparse.Namespace) -> int:
     summary = {"out": str(written), **result.summary()}
     print(json.dumps(summary, indent=2))
     return 0
+
+
+def fem_cli(args: argparse.Namespace) -> int:
+    """``msdgrasp experiment fem``: the MSD against a finite-element reference on the same meshes (JSON + CSV + PNG)."""
+    from ..experiments.fem import CASES, CUBE_CELLS, ComparisonSettings, compare, plot_comparison, write_comparison_csv
+    from ..physics.config import check_range
+
+    cases = tuple(args.case or ("cube", "cube-slip", "sphere", "spleen"))
+    for c in cases:
+        if c not in CASES:
+            raise ConfigError(f"--case {c!r} is not allowed; choose from {', '.join(CASES)}")
+    resolutions = tuple(args.resolution or ("coarse", "fine"))
+    for r in resolutions:
+        if r not in CUBE_CELLS:
+            raise ConfigError(f"--resolution {r!r} is not allowed; choose from {', '.join(CUBE_CELLS)}")
+    check_range("--poisson", args.poisson, 0.0, 0.5, hi_inclusive=False)
+    require_extra("fem", "msdgrasp experiment fem", "skfem")
+    require_extra("viz", "msdgrasp experiment fem", "matplotlib")
+    params = load_tissue_params(args.config or builtin_config("tissue/spleen.yaml"))
+    result = compare(params, ComparisonSettings(cases=cases, resolutions=resolutions, poisson=args.poisson,
+                                                hertz=not args.no_hertz))
+    out = Path(args.out)
+    csv = write_comparison_csv(result["rows"], out / "fem.csv")
+    png = plot_comparison(result, out / "fem.png")
+    summary = {"csv": str(csv), "png": str(png), **{k: v for k, v in result.items() if k != "curves"}}
+    atomic_write_text(out / "fem.json", json.dumps(summary, indent=2))
+    _print_verdicts(result["verdicts"])
+    print(json.dumps(summary, indent=2))
+    return 0

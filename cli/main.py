@@ -1,6 +1,7 @@
 """The ``msdgrasp`` command line.
 
     msdgrasp experiment compress|grasp|grasp-sphere ...   the paper's experiments (CSV + PNG)
+    msdgrasp experiment fem ...                            the MSD against a finite-element reference
     msdgrasp calibrate --data CSV ...                      fit the tissue's constants to compression curves
     msdgrasp bench [physics|grasp|env|gpu|learners|...]    speed benchmarks (JSON); precision: float32's error;
                                                           compile: a cold first run's compilation
@@ -62,6 +63,12 @@ def _cmd_pinch_hold(args: argparse.Namespace) -> int:
     result = run_pinch_hold(resolution_arg(args.resolution), mu=args.mu, pinch_N=args.pinch)
     print(json.dumps(result_dict(result), indent=2))
     return 0
+
+
+def _cmd_fem(args: argparse.Namespace) -> int:
+    from .experiments import fem_cli
+
+    return fem_cli(args)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -133,6 +140,17 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--mu", type=float, default=0.3, help="jaw friction coefficient (default 0.3)")
     ph.add_argument("--pinch", type=float, default=5.0, help="pinch-force set-point, N (default 5)")
     ph.set_defaults(func=_cmd_pinch_hold)
+
+    fe = exp_sub.add_parser("fem", help="the MSD against a finite-element reference on the same meshes (linear and "
+                            "neo-Hookean; needs the extra fem)")
+    fe.add_argument("--case", action="append", help="cube|cube-slip|sphere|spleen (repeatable; default all)")
+    fe.add_argument("--resolution", action="append", help="coarse|medium|fine (repeatable; default coarse and fine)")
+    fe.add_argument("--poisson", type=float, default=0.25,
+                    help="the continuum's Poisson ratio in [0, 0.5) (default 0.25: the spring network's own)")
+    fe.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/spleen.yaml)")
+    fe.add_argument("--no-hertz", action="store_true", help="skip the FEM's Hertz check (three sphere meshes)")
+    _add_out(fe, "fem")
+    fe.set_defaults(func=_cmd_fem)
 
     cal = sub.add_parser("calibrate", help="fit the tissue's constants to force-deformation curves at several rates")
     cal.add_argument("--data", type=Path, required=True,

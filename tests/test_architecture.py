@@ -128,7 +128,7 @@ def test_the_wheel_lists_every_subpackage():
 
 #: the optional dependencies (pyproject.toml's extras), top-level module names
 OPTIONAL = ("torch", "stable_baselines3", "rerun", "tensorboard", "matplotlib", "tqdm", "imageio", "imageio_ffmpeg",
-            "rsl_rl", "tensordict", "ray", "minari", "mujoco", "gmsh")
+            "rsl_rl", "tensordict", "ray", "minari", "mujoco", "gmsh", "skfem")
 
 CORE_ONLY = textwrap.dedent("""
     import importlib.abc
