@@ -781,22 +781,37 @@ def plot_comparison(result: dict, path) -> object:
 
     curves = result["curves"]
     names = list(dict.fromkeys(c["case"] for c in curves))
-    fig, axes = plt.subplots(1, max(1, len(names)), figsize=(4.2 * max(1, len(names)), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(names) + 1, figsize=(4.2 * (len(names) + 1), 3.8), squeeze=False)
     styles = {"coarse": "-", "medium": "-.", "fine": "--"}
     for ax, name in zip(axes[0], names):
         for c in (c for c in curves if c["case"] == name):
             s = 100.0 * np.concatenate([[0.0], c["strain"]])
             ls = styles.get(c["resolution"], ":")
-            for key, label, color in (("fem_linear_N", "FEM linear", "0.5"), ("fem_neo_hookean_N", "FEM neo-Hookean",
-                                                                             "k"),
-                                      ("msd_van_gelder_N", "MSD shipped", "C3"), ("msd_calibrated_N", "MSD calibrated",
-                                                                                 "C0")):
+            for key, label, color in (("fem_linear_N", "FEM linear", "0.6"), ("fem_neo_hookean_N", "FEM neo-Hookean", "k"),
+                                      ("msd_van_gelder_N", "MSD shipped", "C3"),
+                                      ("msd_calibrated_N", "MSD calibrated", "C0")):
                 ax.plot(s, np.concatenate([[0.0], c[key]]), ls, color=color, label=f"{label} ({c['resolution']})")
-        ax.set_title(name)
+        ax.set_title(f"{name}: force vs strain")
         ax.set_xlabel("strain (%)")
-        ax.set_ylabel("force (N)")
+        ax.set_ylabel("indenter force (N)")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=6)
+        ax.legend(fontsize=6)
+    # the small-strain errors of every derivation, per case and mesh
+    ax = axes[0][-1]
+    small = [r for r in result["rows"] if r["fem"] == "linear" and r["derivation"] != "calibrated"]
+    labels = list(dict.fromkeys(f"{r['case']}/{r['resolution']}" for r in small))
+    keys = list(dict.fromkeys(r["derivation"] for r in small))
+    for j, key in enumerate(keys):
+        vals = [next((100.0 * r["rel_error"] for r in small if r["derivation"] == key
+                      and f"{r['case']}/{r['resolution']}" == lab), np.nan) for lab in labels]
+        ax.bar(np.arange(len(labels)) + (j - 0.5 * (len(keys) - 1)) * 0.8 / max(1, len(keys)), vals,
+               0.8 / max(1, len(keys)), label=key)
+    ax.axhspan(-100 * SMALL_STRAIN_RTOL, 100 * SMALL_STRAIN_RTOL, color="0.9")
+    ax.set_xticks(np.arange(len(labels)), labels, rotation=45, ha="right", fontsize=7)
+    ax.set_ylabel(f"MSD / linear FEM - 1 at {100 * SMALL_STRAIN:g}% (%)")
+    ax.set_title("small strain, per spring derivation")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=6)
     return save_figure(fig, path)
 
 
