@@ -287,28 +287,54 @@ def fem_neo_hookean_forces(case: LoadCase, youngs_modulus_pa: float, poisson: fl
     inv_perm = np.empty_like(perm)
     inv_perm[perm] = np.arange(n)
     u = np.zeros(n)  # the project's dof order
+    nodes, tets = case.mesh.nodes, case.mesh.tets
+
+    def positive(v: np.ndarray) -> bool:  # no tet inverted (ln J undefined)
+        return bool(np.all(tet_signed_volumes(nodes + v.reshape(-1, 3), tets) > 0.0))
+
+    def residual_of(v: np.ndarray) -> np.ndarray:
+        return skfem.asm(residual, basis, u=basis.interpolate(v[inv_perm]))[perm]
+
     out = []
     done = 0.0
+    last_step = np.zeros(n)
     for s in sorted(strains):
         steps = max(1, int(math.ceil((s - done) * increments_per_strain)))
         for level in np.linspace(done, s, steps + 1)[1:]:
             target = case.targets(level * case.height_m)
             u_prev = u.copy()
-            u[presc] = target[presc]
-            # the free dofs start from the linear response to the increment (keeps Newton inside J > 0)
+            # start from the last increment's motion (the path is smooth): the free nodes move with the indenter
+            trial = u + last_step
+            trial[presc] = target[presc]
+            if not positive(trial):
+                trial = u.copy()
+                trial[presc] = target[presc]
+            u = trial
             scale = None
+            R = residual_of(u)
             for _ in range(max_newton):
-                w = basis.interpolate(u[inv_perm])
-                R = skfem.asm(residual, basis, u=w)[perm]
-                K = skfem.asm(tangent, basis, u=w).tocsr()[perm][:, perm].tocsr()
                 scale = scale or max(float(np.abs(R[presc]).max()), 1e-30)
                 if float(np.abs(R[free]).max()) <= tol * scale:
                     break
+                K = skfem.asm(tangent, basis, u=basis.interpolate(u[inv_perm])).tocsr()[perm][:, perm].tocsr()
                 du = spla.spsolve(K[free][:, free].tocsc(), -R[free])
-                u[free] += du
+                # backtrack until no tet inverts and the residual falls (a few halvings at most)
+                step, r0 = 1.0, float(np.linalg.norm(R[free]))
+                for _ls in range(12):
+                    trial = u.copy()
+                    trial[free] += step * du
+                    if positive(trial):
+                        R_trial = residual_of(trial)
+                        if float(np.linalg.norm(R_trial[free])) < r0 or _ls >= 8:
+                            break
+                    step *= 0.5
+                else:
+                    raise RuntimeError(f"neo-Hookean FEM: no admissible Newton step at strain {level:.3f} "
+                                       f"({case.name})")
+                u, R = trial, R_trial
             else:
                 raise RuntimeError(f"neo-Hookean FEM: Newton did not converge at strain {level:.3f} ({case.name})")
-            del u_prev
+            last_step = u - u_prev
         done = s
         w = basis.interpolate(u[inv_perm])
         out.append(case.force(skfem.asm(residual, basis, u=w)[perm]))
@@ -715,7 +741,10 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
                              **({"factor": factor} if key == "calibrated" else {})})
             if name == "cube-slip":
                 continue  # (its purpose is the Poisson ratio; the bonded cube carries the large strains)
-            f_nh = fem_neo_hookean_forces(case, E, nu, strains)
+            try:
+                f_nh = fem_neo_hookean_forces(case, E, nu, strains)
+            except RuntimeError:  # (reported as NaN: no converged reference at these strains)
+                f_nh = np.full(len(strains), math.nan)
             curve = {"case": name, "resolution": res, "strain": strains, "fem_linear_N": [k_fem * s * case.height_m
                                                                                           for s in strains],
                      "fem_neo_hookean_N": f_nh.tolist()}
