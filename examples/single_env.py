@@ -3,8 +3,9 @@
     python examples/single_env.py --steps 20
 
 Makes ``msdgrasp/GraspLift-v2``, resets it with friction pinned (mu 0.5), then steps it with a simple action: the
-pinch-force set-point at action 0.2 (1.8 N: 5 N x ((a + 1) / 2)^2) and a pull slower than action 0's 10 mm/s. Prints each step's reward and the
-info entries that tell how the grasp goes (lift, slip, pinch force), and what the episode's last step returned.
+pinch-force set-point at action 0.2 (1.8 N: 5 N x ((a + 1) / 2)^2) and a pull slower than action 0's 10 mm/s.
+Prints each step's reward and the info entries that tell how the grasp goes (lift, slip, pinch force), and what the
+episode's last step returned.
 """
 
 from __future__ import annotations
