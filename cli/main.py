@@ -149,6 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the continuum's Poisson ratio in [0, 0.5) (default 0.25: the spring network's own)")
     fe.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/spleen.yaml)")
     fe.add_argument("--no-hertz", action="store_true", help="skip the FEM's Hertz check (three sphere meshes)")
+    fe.add_argument("--small-strain-only", action="store_true",
+                    help="only the small-strain (linear) comparison, not the neo-Hookean / nonlinear MSD at 10 and 20 %%")
     _add_out(fe, "fem")
     fe.set_defaults(func=_cmd_fem)
 
