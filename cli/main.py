@@ -150,7 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/spleen.yaml)")
     fe.add_argument("--no-hertz", action="store_true", help="skip the FEM's Hertz check (three sphere meshes)")
     fe.add_argument("--small-strain-only", action="store_true",
-                    help="only the small-strain (linear) comparison, not the neo-Hookean / nonlinear MSD at 10 and 20 %%")
+                    help="only the small-strain (linear) comparison, not the neo-Hookean FEM and nonlinear MSD at "
+                         "10 and 20 %%")
     _add_out(fe, "fem")
     fe.set_defaults(func=_cmd_fem)
 

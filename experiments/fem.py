@@ -654,7 +654,8 @@ def fem_fit_springs(mesh: TetMesh, youngs_modulus_pa: float, poisson: float = 0.
     h = np.einsum("tam,tm->ta", B, Ke.reshape(len(x), 144))
     k = np.clip(np.linalg.solve(G, h[..., None])[..., 0], 0.0, None)
     edges = mesh.edges
-    idx = _edge_index(edges, mesh.n_nodes, mesh.tets[:, _TET_EDGES[:, 0]].ravel(), mesh.tets[:, _TET_EDGES[:, 1]].ravel())
+    idx = _edge_index(edges, mesh.n_nodes, mesh.tets[:, _TET_EDGES[:, 0]].ravel(),
+                      mesh.tets[:, _TET_EDGES[:, 1]].ravel())
     k1 = np.zeros(len(edges))
     np.add.at(k1, idx, k.ravel())
     return k1
@@ -818,7 +819,8 @@ def plot_comparison(result: dict, path) -> object:
         for c in (c for c in curves if c["case"] == name):
             s = 100.0 * np.concatenate([[0.0], c["strain"]])
             ls = styles.get(c["resolution"], ":")
-            for key, label, color in (("fem_linear_N", "FEM linear", "0.6"), ("fem_neo_hookean_N", "FEM neo-Hookean", "k"),
+            for key, label, color in (("fem_linear_N", "FEM linear", "0.6"),
+                                      ("fem_neo_hookean_N", "FEM neo-Hookean", "k"),
                                       ("msd_van_gelder_N", "MSD shipped", "C3"),
                                       ("msd_calibrated_N", "MSD calibrated", "C0")):
                 ax.plot(s, np.concatenate([[0.0], c[key]]), ls, color=color, label=f"{label} ({c['resolution']})")
