@@ -184,8 +184,8 @@ def fem_cli(args: argparse.Namespace) -> int:
     out = Path(args.out)
     csv = write_comparison_csv(result["rows"], out / "fem.csv")
     png = plot_comparison(result, out / "fem.png")
-    summary = {"csv": str(csv), "png": str(png), **{k: v for k, v in result.items() if k != "curves"}}
+    summary = {"csv": str(csv), "png": str(png), **result}
     atomic_write_text(out / "fem.json", json.dumps(summary, indent=2))
     _print_verdicts(result["verdicts"])
-    print(json.dumps(summary, indent=2))
+    print(json.dumps({k: v for k, v in summary.items() if k != "curves"}, indent=2))
     return 0

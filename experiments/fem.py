@@ -839,7 +839,7 @@ def plot_comparison(result: dict, path) -> object:
                       and f"{r['case']}/{r['resolution']}" == lab), np.nan) for lab in labels]
         ax.bar(np.arange(len(labels)) + (j - 0.5 * (len(keys) - 1)) * 0.8 / max(1, len(keys)), vals,
                0.8 / max(1, len(keys)), label=key)
-    ax.axhspan(-100 * SMALL_STRAIN_RTOL, 100 * SMALL_STRAIN_RTOL, color="0.9")
+    ax.axhspan(-100 * SMALL_STRAIN_RTOL, 100 * SMALL_STRAIN_RTOL, color="0.9", zorder=0)
     ax.set_xticks(np.arange(len(labels)), labels, rotation=45, ha="right", fontsize=7)
     ax.set_ylabel(f"MSD / linear FEM - 1 at {100 * SMALL_STRAIN:g}% (%)")
     ax.set_title("small strain, per spring derivation")
