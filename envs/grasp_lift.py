@@ -389,7 +389,7 @@ class GraspLiftVectorEnv(VectorEnv):
         # the envs whose info is not this step's readout (reset now, ended and reset, or failed with an error
         # message) go through Gymnasium's _add_info one by one, in their order; the rest take their entries of
         # the batched readout at once (the same keys, masks, dtypes and values; 4.5 % of a step at 64 envs,
-        # docs/performance.md)
+        # msdgrasp bench env)
         special: dict[int, list[dict[str, Any]]] = {}
         for i in pending:
             self.core.rngs[i].bit_generator.state = streams[i]

@@ -43,9 +43,9 @@ THREADS_PER_BLOCK = 128
 #: grasp); with more, thread 0 scans every tet's flag instead, as the CPU does: the same impulses either way
 FLAG_LIST = 64
 #: registers per thread the physics kernel may use. Uncapped it takes so many that an SM holds 2 blocks (12.5 %
-#: occupancy, measured), and a large batch waits on latency; capped at 64 it holds 8, and spills to the L1. On an
-#: H100 the cap took the task step at 16,384 coarse spleens from 53,200 to 94,400 agent steps/s and a batch of 1
-#: from 153 to 132 (docs/performance.md); 48, 96 and 128 were slower at scale. Spilling changes no arithmetic.
+#: occupancy, measured), and a large batch waits on latency; capped at 64 it holds 8, and spills to the L1. On one
+#: data-centre GPU the cap took the task step at 16,384 coarse spleens from 53,200 to 94,400 agent steps/s and a
+#: batch of 1 from 153 to 132 (msdgrasp bench gpu); 48, 96 and 128 were slower at scale. Spilling changes no arithmetic.
 MAX_REGISTERS = 64
 
 

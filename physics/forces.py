@@ -315,7 +315,7 @@ def implicit_spring_dashpots(
     The pass is one dependency chain (each spring reads the nodes the springs before it moved): node i of a run of
     consecutive springs with the same first node (most of them, in the meshes' edge order) is held in registers
     and stored once at the end of its run, so the chain does not wait for its stores (the paper's sphere: 398 -> 298
-    us per simulated ms, docs/performance.md).
+    us per simulated ms, msdgrasp bench physics).
     Its arithmetic and order are unchanged: the result is bitwise that of kicking both nodes through memory (a
     spring's second node is never its first)."""
     ne = edges.shape[0]
@@ -502,7 +502,7 @@ def flag_barrier(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_c: 
 #: is ~1e-16 of the terms)
 WATCH_SAFETY = 1.25
 #: the displacement budget between full passes, as a fraction of the mesh's mean rest spring length (coarse
-#: spleen under a pinch: the watch list and the full passes' frequency in docs/performance.md)
+#: spleen under a pinch: the watch list and the full passes' frequency, msdgrasp bench profile)
 WATCH_DELTA = 0.02
 
 
