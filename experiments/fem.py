@@ -443,7 +443,9 @@ def msd_forces(case: LoadCase, model: TissueModel, strains: Sequence[float], inc
                     for _ls in range(40):
                         trial = x.copy()
                         trial[free] += step * dx
-                        if model.elastic_energy(trial.reshape(-1, 3)) <= e0 - 1e-4 * step * slope:
+                        # (Armijo, with a round-off allowance: near convergence the energy's decrease is below
+                        # its float precision, and a strict test would stall Newton one step short of the tolerance)
+                        if model.elastic_energy(trial.reshape(-1, 3)) <= e0 - 1e-4 * step * slope + 1e-12 * abs(e0):
                             break
                         step *= 0.5
                     else:
