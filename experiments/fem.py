@@ -47,7 +47,7 @@ from ..physics.mesh import TetMesh, boundary_faces, tet_signed_volumes
 from ..physics.mesh_io import sphere_even_mesh
 from ..physics.mesh_gen import spleen_mesh
 from ..physics.reference import numpy_barrier_slopes, numpy_spring_law
-from ..physics.tissue import TissueModel, TissueParams, hertz_sphere_force
+from ..physics.tissue import TissueModel, TissueParams, assemble_edge_blocks, hertz_sphere_force
 
 #: the load cases :func:`load_case` builds
 CASES = ("cube", "cube-slip", "sphere", "spleen")
@@ -378,16 +378,8 @@ def _tangent(model: TissueModel, x: np.ndarray, convex: bool = False) -> sp.csr_
     if convex:
         tension = np.maximum(tension, 0.0)
     blocks = slope[:, None, None] * nn + (tension / length)[:, None, None] * (np.eye(3)[None] - nn)
-    i, j = e[:, 0], e[:, 1]
-    rows, cols, vals = [], [], []
-    for a in range(3):
-        for b in range(3):
-            v = blocks[:, a, b]
-            rows += [3 * i + a, 3 * j + a, 3 * i + a, 3 * j + a]
-            cols += [3 * i + b, 3 * j + b, 3 * j + b, 3 * i + b]
-            vals += [v, v, -v, -v]
     n3 = 3 * model.n_nodes
-    K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n3, n3))
+    K = assemble_edge_blocks(blocks, e, model.n_nodes)
     if model.kvol.size:
         t = model.tets
         p0 = x[t[:, 0]]
@@ -626,7 +618,7 @@ def fem_fit_springs(mesh: TetMesh, youngs_modulus_pa: float, poisson: float = 0.
     k n n^T blocks are nearest (least squares over the 12 x 12 entries) the linear P1 element matrix
     V B^T D B; negative fits (a spring cannot push when stretched) are clipped to zero; summed over the tets that
     share an edge, as van Gelder's rule is."""
-    from ..physics.tissue import _TET_EDGES, _edge_index
+    from ..physics.tissue import TET_EDGES, edge_index
 
     x = mesh.nodes[mesh.tets]  # (T, 4, 3)
     lam, mu = lame(youngs_modulus_pa, poisson)
@@ -643,7 +635,7 @@ def fem_fit_springs(mesh: TetMesh, youngs_modulus_pa: float, poisson: float = 0.
         + mu * np.einsum("ij,tab->taibj", eye, np.einsum("tak,tbk->tab", g, g)))
     Ke = Ke.reshape(len(x), 12, 12)
     B = np.zeros((len(x), 6, 4, 3, 4, 3))
-    for e, (a, b) in enumerate(_TET_EDGES):
+    for e, (a, b) in enumerate(TET_EDGES):
         d = x[:, b] - x[:, a]
         n = d / np.linalg.norm(d, axis=1, keepdims=True)
         nn = n[:, :, None] * n[:, None, :]
@@ -656,8 +648,8 @@ def fem_fit_springs(mesh: TetMesh, youngs_modulus_pa: float, poisson: float = 0.
     h = np.einsum("tam,tm->ta", B, Ke.reshape(len(x), 144))
     k = np.clip(np.linalg.solve(G, h[..., None])[..., 0], 0.0, None)
     edges = mesh.edges
-    idx = _edge_index(edges, mesh.n_nodes, mesh.tets[:, _TET_EDGES[:, 0]].ravel(),
-                      mesh.tets[:, _TET_EDGES[:, 1]].ravel())
+    idx = edge_index(edges, mesh.n_nodes, mesh.tets[:, TET_EDGES[:, 0]].ravel(),
+                      mesh.tets[:, TET_EDGES[:, 1]].ravel())
     k1 = np.zeros(len(edges))
     np.add.at(k1, idx, k.ravel())
     return k1

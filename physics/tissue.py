@@ -125,7 +125,7 @@ class TissueParams:
     gravity_m_per_s2: tuple[Real, Real, Real] = (0.0, 0.0, -9.81)
 
 
-def _edge_index(edges: np.ndarray, n_nodes: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def edge_index(edges: np.ndarray, n_nodes: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Index into the sorted unique ``edges`` of the undirected pairs (a, b)."""
     lo = np.minimum(a, b).astype(np.int64)
     hi = np.maximum(a, b).astype(np.int64)
@@ -137,7 +137,7 @@ def _edge_index(edges: np.ndarray, n_nodes: int, a: np.ndarray, b: np.ndarray) -
     return idx
 
 
-_TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
 #: Poisson ratio of a central-force network (Cauchy relations; the Voigt average of the modulus rule)
 NETWORK_POISSON_RATIO = 0.25
@@ -152,9 +152,13 @@ def stiffness_matrix(nodes: np.ndarray, edges: np.ndarray, k: np.ndarray) -> sp.
     """Linear stiffness matrix (3N x 3N, N/m) of a spring network at rest: sum of k n n^T blocks."""
     d = nodes[edges[:, 1]] - nodes[edges[:, 0]]
     nrm = d / np.linalg.norm(d, axis=1, keepdims=True)
-    blocks = k[:, None, None] * nrm[:, :, None] * nrm[:, None, :]  # (E,3,3)
+    return assemble_edge_blocks(k[:, None, None] * nrm[:, :, None] * nrm[:, None, :], edges, len(nodes))
+
+
+def assemble_edge_blocks(blocks: np.ndarray, edges: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """The 3N x 3N matrix of per-edge 3x3 blocks ``blocks`` (E,3,3): +B on both nodes' diagonal blocks, -B between
+    them (a spring's stiffness, or its tangent)."""
     i, j = edges[:, 0], edges[:, 1]
-    n = len(nodes)
     rows, cols, vals = [], [], []
     for a in range(3):
         for b in range(3):
@@ -162,7 +166,8 @@ def stiffness_matrix(nodes: np.ndarray, edges: np.ndarray, k: np.ndarray) -> sp.
             rows += [3 * i + a, 3 * j + a, 3 * i + a, 3 * j + a]
             cols += [3 * i + b, 3 * j + b, 3 * j + b, 3 * i + b]
             vals += [bv, bv, -bv, -bv]
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n))
+    n3 = 3 * n_nodes
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n3, n3))
 
 
 def plate_compression_force(
@@ -369,8 +374,8 @@ class TissueModel:
             b0 = np.full(n, params.b0_n_s_per_m)
             b1 = np.full(n, params.b1_n_s_per_m2)
         else:
-            tet_edge = _edge_index(
-                edges, n, mesh.tets[:, _TET_EDGES[:, 0]].ravel(), mesh.tets[:, _TET_EDGES[:, 1]].ravel()
+            tet_edge = edge_index(
+                edges, n, mesh.tets[:, TET_EDGES[:, 0]].ravel(), mesh.tets[:, TET_EDGES[:, 1]].ravel()
             )
             E = params.youngs_modulus_pa
             if params.stiffness_rule == "van_gelder":
