@@ -32,7 +32,6 @@ costs.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -45,7 +44,7 @@ from ..physics.config import ConfigError, from_dict, needs_extra, to_dict
 from ..physics.forces import volume_forces
 from ..physics.mesh import TetMesh, boundary_faces, tet_signed_volumes
 from ..physics.mesh_io import sphere_even_mesh
-from ..physics.mesh_gen import spleen_mesh
+from ..physics.mesh_gen import kuhn_box, spleen_mesh
 from ..physics.reference import numpy_barrier_slopes, numpy_spring_law
 from ..physics.tissue import TissueModel, TissueParams, assemble_edge_blocks, hertz_sphere_force
 
@@ -87,23 +86,8 @@ def cube_mesh(side_m: float = CUBE_SIDE_M, cells: int = 5) -> TetMesh:
     if not (math.isfinite(side_m) and side_m > 0):
         raise ConfigError(f"cube side_m must be > 0, got {side_m!r}")
     n = int(cells)
-    ax = np.linspace(-0.5 * side_m, 0.5 * side_m, n + 1)
-    nodes = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), axis=-1).reshape(-1, 3)
-    idx = np.arange(len(nodes)).reshape(n + 1, n + 1, n + 1)
-    cell = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3)
-    d = np.where(2 * cell + 1 >= n, 1, -1)  # each cell's diagonal runs away from the centre
-    start = np.where(d > 0, cell, cell + 1)
-    tets = []
-    for perm in itertools.permutations(range(3)):
-        cur = start.copy()
-        verts = [idx[cur[:, 0], cur[:, 1], cur[:, 2]]]
-        for a in perm:
-            cur[:, a] += d[:, a]
-            verts.append(idx[cur[:, 0], cur[:, 1], cur[:, 2]])
-        tets.append(np.stack(verts, axis=1))
-    t = np.concatenate(tets).astype(np.int64)
-    neg = tet_signed_volumes(nodes, t) < 0
-    t[neg] = t[neg][:, [0, 2, 1, 3]]
+    grid, t = kuhn_box((n, n, n))  # (the built-in meshes' reflected-Kuhn grid, on [-1, 1]^3)
+    nodes = 0.5 * side_m * grid
     surface = np.unique(boundary_faces(t, "cube"))
     return TetMesh(nodes, t, node_sets={"surface": surface}, name=f"cube-{n}")
 

@@ -55,7 +55,7 @@ def _grid_shape(target: int, extents) -> tuple[int, int, int]:
     return best
 
 
-def _kuhn_box(shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+def kuhn_box(shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Box grid on [-1,1]^3 split into reflected-Kuhn tets: (nodes (N,3), tets (T,4) positive)."""
     nx, ny, nz = shape
     axes = [np.linspace(-1.0, 1.0, k + 1) for k in shape]
@@ -137,7 +137,7 @@ def sphere_mesh(
     if ctr.shape != (3,) or not np.isfinite(ctr).all():
         raise MeshError(f"sphere center must be 3 finite floats, got {center!r}")
     target = _target_nodes(resolution)
-    box, tets = _kuhn_box(_grid_shape(target, (1.0, 1.0, 1.0)))
+    box, tets = kuhn_box(_grid_shape(target, (1.0, 1.0, 1.0)))
     r = 0.5 * diameter_m
     nodes = _box_to_ellipsoid(box, np.array([r, r, r]), np.zeros(3)) + ctr
     surface = np.unique(boundary_faces(tets, "sphere"))
@@ -217,7 +217,7 @@ def spleen_mesh(
     semi = np.array([a, b, c])
     depth, wx, wz = hilum_depth * b, hilum_width * a, hilum_height * c
 
-    box, tets = _kuhn_box(_grid_shape(target, (length_m, width_m, thickness_m)))
+    box, tets = kuhn_box(_grid_shape(target, (length_m, width_m, thickness_m)))
     ell = _box_to_ellipsoid(box, semi, np.array([core * a, 0.0, 0.0]))
     # blunt poles: widen the cross-sections by sqrt(1 + k (x/a)^2) (det = 1 + k (x/a)^2 > 0, no inversion);
     # k = 1 turns the ellipsoid's x-profile 1 - (x/a)^2 into 1 - (x/a)^4, a less tapered pole (real
