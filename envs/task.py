@@ -408,7 +408,7 @@ def column_drawn(p, k):
     return p.draw_law[k] < CONSTANT
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def draw_value(law, a, b, u):
     """A draw column's value from its raw variate ``u`` by its law (.perturbations.LAWS) with parameters a, b."""
     if law == UNIFORM:
@@ -563,7 +563,7 @@ def true_slip_readings(p, jo, k):
     return jo[k, J_SLIP_DIST] / p.agent_dt / p.max_pull, jo[k, J_SLIP] / max(jo[k, J_CONTACT], 1.0)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def force_readings(p, jo, ts, b, k, fresh):
     """Jaw k's normal and tangential force readings (N): the truth ``jo`` with the sensor's noise and the episode's
     bias, low-pass filtered where ``force_filter_s`` is set (``fresh``: the filter starts at this reading)."""
@@ -587,7 +587,7 @@ def force_readings(p, jo, ts, b, k, fresh):
     return normal, tangential
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def observe_jaws(p, out, ts, b, fresh, o):
     """The per-jaw entries of env b's frame ``o`` (forces, contact, slip, friction use); returns the sum of the
     normal-force readings (N) and the mean slip-speed reading (the arm's top speed)."""
@@ -623,7 +623,7 @@ def observe_jaws(p, out, ts, b, fresh, o):
     return pinch_read, slip_read
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def observe_task_state(p, ts, b, fresh, o, tr, pinch_read, slip_read):
     """The task-state entries of env b's frame ``o`` (lift, hold, slips, lag, peak pinch, best lift): the truth (v0,
     v1) or, with ``sensed_task_state`` (v2), the sensed values (``tr``: the arm encoder's travel, m)."""
@@ -651,7 +651,7 @@ def observe_task_state(p, ts, b, fresh, o, tr, pinch_read, slip_read):
     o[I_LIFT_SLIP] = lift_slip / e.lift_slip_tolerance_m
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def observe_privileged(p, s, out, ts, b, o, tr):
     """The privileged entries of env b's frame ``o`` (``privileged_obs``): mu, the scales, the node displacements,
     with ``sensed_task_state`` the truth behind the sensed entries (PRIVILEGED_TRUTH), with
@@ -736,37 +736,37 @@ def peak_force_weight(w, mu):
     return pinned(mu / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def progress_term(w, progress):
     """Pays for the highest lift reached (a fraction of the target), once."""
     return w.progress * progress
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def hold_term(w, hold_gain):
     """Pays for the hold's progress (a fraction of hold_time_s)."""
     return w.hold * hold_gain
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def grasp_term(w, grip_gain):
     """Pays for the grip's rise up to grasp_force_N (a fraction of it)."""
     return w.grasp * grip_gain
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def slip_term(w, slip_m):
     """Charges this step's slip (m, mean over the jaws) per mm."""
     return -w.slip_per_mm * slip_m * 1e3
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def force_term(w, e, pinch_N, dt):
     """Charges the pinch held over the step (N / reference_force_N, per s)."""
     return -w.force_per_s * (pinch_N / e.reference_force_N) * dt
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def peak_force_term(w, e, peak_N, rise_N, weight, success, unsuccessful):
     """Charges the episode's peak pinch (``peak_N``; ``rise_N`` this step's rise of it), friction-weighted
     (``weight``): at success, or as made (each rise when it is made, refunded if the episode fails); with a knee
@@ -787,7 +787,7 @@ def peak_force_term(w, e, peak_N, rise_N, weight, success, unsuccessful):
     return -charge
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def setpoint_change_term(w, e, ts, b):
     """Charges the pinch set-point's move since the last step of this episode (N; force set-points only)."""
     moved = 0.0
@@ -796,26 +796,26 @@ def setpoint_change_term(w, e, ts, b):
     return -w.setpoint_change * moved
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def damage_term(w, damaged):
     """Charges a step whose peak contact pressure is above damage_stress_pa."""
     return -w.damage * (1.0 if damaged else 0.0)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def success_term(w, success):
     """Pays the success bonus."""
     return w.success_bonus * (1.0 if success else 0.0)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def failure_term(w, unsuccessful):
     """Charges every episode that ends without success, running out of time (never touching the tissue) included:
     not touching is then no safe haven."""
     return -w.failure_penalty * (1.0 if unsuccessful else 0.0)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def reward_terms(p, ts, b, progress, hold_gain, grip_gain, slip, pinch, peak_rise, damaged, success, unsuccessful):
     """Every term of env b's reward this step into ``ts.terms[b]`` (REWARD_TERMS); returns their sum."""
     e = p.env
@@ -843,7 +843,7 @@ def reward_terms(p, ts, b, progress, hold_gain, grip_gain, slip, pinch, peak_ris
 # ------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def track_lift_and_grip(p, s, ts, b, pinch, stress):
     """Env b's lift, best lift, grip and peaks after this step; returns (progress: the best lift's rise / target,
     grip_gain: the grip's rise, peak_rise: the peak pinch's rise, N)."""
@@ -866,7 +866,7 @@ def track_lift_and_grip(p, s, ts, b, pinch, stress):
     return progress, grip_gain, peak_rise
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def track_slip_and_hold(p, ts, b, slip):
     """Env b's slip totals and hold after this step (``slip``: the step's slip, m); returns the hold's progress gain."""
     e = p.env
@@ -895,7 +895,7 @@ def track_slip_and_hold(p, ts, b, slip):
     return hold_gain
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def episode_end(p, ts, b, contact, stress, finite, volume_ratio):
     """How env b's episode stands after this step: (success, lost, slipped, damaged, failed, terminated,
     truncated). Success: at the lift target, held hold_time_s, no more slip since lifting began than
@@ -913,7 +913,7 @@ def episode_end(p, ts, b, contact, stress, finite, volume_ratio):
     return success, lost, slipped, damaged, failed, terminated, truncated
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def zero_observation(ts, b):
     """Env b's observation history and observation all zeros (a blown-up tissue: never hand out NaN)."""
     for k in range(ts.frames.shape[1]):
