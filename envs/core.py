@@ -521,7 +521,7 @@ class GraspLiftCore:
         #: v2 the physics stream itself (the streams of earlier versions unchanged)
         self.sensor_rngs = self.rngs if not cfg.sensed_task_state else [np.random.default_rng() for _ in range(B)]
         self._noise_scales = np.zeros((B, N_NOISE))
-        self.params = task_params(self)
+        self._set_params()
         #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
         #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
         self.state = task_state(B, cfg.obs_history, self.frame_dim)
@@ -533,6 +533,12 @@ class GraspLiftCore:
         state = self.__dict__.copy()
         state.pop("_render_cache", None)
         return state
+
+    def _set_params(self) -> None:
+        """The task constants of the current config, and which draw columns a reset draws (once per config, not per
+        reset: the kernel's rule, asked from Python)."""
+        self.params = task_params(self)
+        self._drawn = [bool(column_drawn(self.params, k)) for k in range(len(self.params.draw_law))]
 
     def set_randomization(self, randomization: RandomizationConfig) -> None:
         """Draw the episodes of later resets from ``randomization`` (a training curriculum moves it); episodes under
@@ -547,7 +553,7 @@ class GraspLiftCore:
                 raise ConfigError(f"randomization.{name} = {value!r} must be {op} {bound!r}, the value this env was "
                                   f"built for (build it with the widest randomisation it will draw from)")
         self.config = replace(self.config, randomization=randomization)
-        self.params = task_params(self)
+        self._set_params()
 
     # ------------------------------------------------------------------------------------------
     def seed(self, index: int, seed: int | None, sensor_seed: int = 0) -> None:
@@ -569,8 +575,7 @@ class GraspLiftCore:
         rng = self.rngs[index]
         # always draw every value (keeps the random stream independent of which values are pinned)
         # (random() and standard_normal() are the variates NumPy's uniform() and normal() scale: the same stream)
-        for k, normal in enumerate(self.params.draw_is_normal):
-            drawn = column_drawn(self.params, k)
+        for k, (normal, drawn) in enumerate(zip(self.params.draw_is_normal, self._drawn)):
             self.draws[index, k] = (rng.standard_normal() if normal else rng.random()) if drawn else 0.0
         draw_episode(self.params, self.state, index)
         drawn = self.draws[index]
