@@ -240,11 +240,13 @@ def test_soak_clean_exit_zero_and_validation(tmp_path, capsys):
 
 
 def test_profile_substep_parts_add_up(tmp_path, monkeypatch, capsys):
-    """`msdgrasp bench profile --quick`'s per-substep part: every part of the real kernel's step that runs on the
-    grasped spleen takes time, the parts switched off in turn add up to the whole call, the switches leave the
-    kernel's types alone (no recompilation: a signature of ``simulate`` that the grasp's own steps in float64 and
-    float32 do not use would be one); the command writes its JSON and table (the agent-step and training parts are
-    stubbed here: they need SB3 and take longer)."""
+    """`msdgrasp bench profile --quick`'s per-substep part: the parts switched off in turn add up to the whole call,
+    the whole call takes time, the switches leave the kernel's types alone (no recompilation: a signature of
+    ``simulate`` that the grasp's own steps in float64 and float32 do not use would be one); the command writes its
+    JSON and table (the agent-step and training parts are stubbed here: they need SB3 and take longer). A part's
+    time is a difference of two timings: on a shared machine its sign is noise where the part is small (the Maxwell
+    branch of one tissue is about 0.2 us of 8), so that each switch takes its part away is asserted on the kernel's
+    results (below), not on the clock."""
     from msdgrasp.benchmarks import profile
     from msdgrasp.benchmarks.harness import grasped
     from msdgrasp.physics.integrator import simulate
@@ -258,20 +260,18 @@ def test_profile_substep_parts_add_up(tmp_path, monkeypatch, capsys):
     for row in sub["rows"]:
         phases = row["phases_us_per_substep"]
         assert set(phases) == set(profile.PHASES)
-        for name in profile.PHASES:
-            assert _positive(phases[name]), (row["layout"], name, phases)
+        assert all(math.isfinite(phases[name]) for name in profile.PHASES), (row["layout"], phases)
         assert row["contact_nodes"] > 0  # the jaws hold the tissue while the kernel is timed
         assert _positive(row["whole_us_per_substep"])
         assert math.isclose(sum(phases.values()), row["whole_us_per_substep"], rel_tol=0.01), row
-        # the Maxwell branch is a part of the springs' step, the float32 springs are timed like the float64 ones
-        assert 0.0 < row["springs_within_us"]["maxwell_branch"] < phases["springs"], row
-        assert "dashpots" not in row["springs_within_us"]  # (off in the spleen's config: nothing to switch off)
-        assert _positive(row["springs_float32"]["us_per_substep"]), row
-        assert _positive(row["barrier_full_flag_pass_us"]), row
-        # the divider's floor is one part of the spring pass (its square roots and divisions alone): below the pass
+        # the Maxwell branch is timed within the springs' step; the float32 springs like the float64 ones
+        assert set(row["springs_within_us"]) == {"maxwell_branch"}, row  # (dashpots are off in the spleen's config)
+        assert math.isfinite(row["springs_within_us"]["maxwell_branch"]), row
+        assert math.isfinite(row["springs_float32"]["us_per_substep"]), row
+        assert math.isfinite(row["barrier_full_flag_pass_us"]), row
+        # the divider's floor is timed on its own (no difference): it takes time
         floor = row["springs_sqrt_div_us"]
         assert _positive(floor["float64"]) and _positive(floor["float32"]), floor
-        assert floor["float64"] < phases["springs"], row
     monkeypatch.setattr(profile, "profile_substeps", lambda quick, progress: sub)
     monkeypatch.setattr(profile, "profile_agent_step", lambda quick, progress: {
         "rows": [], "policy_inference": {"policy": "p", "net_arch": [64, 64], "obs_dim": 1, "torch_threads": 1,
@@ -305,5 +305,14 @@ def test_profile_switches_turn_parts_of_the_kernel_off():
     assert held > 0 and np.array_equal(sim.x, x)
     calls.run("contacts")(1)
     assert np.count_nonzero(sim.held > 0) == 0 and not np.array_equal(sim.x, x)
+    # each part the profile times does work in this state: switched off, the kernel's result changes
+    for part in ("springs", "maxwell_branch"):
+        calls.run(part)(1)
+        assert not np.array_equal(sim.x, x), part
+    # the barrier acts only on tets below its volume threshold, the watch list only spares the check of the others
+    below = int((ratios < calls.model.vol_threshold).sum())
+    for part in ("watch_list",) + (("barrier",) if below == 0 else ()):
+        calls.run(part)(1)
+        assert np.array_equal(sim.x, x), part
     calls.run("barrier", "contacts", "springs")(1)  # a model without springs: its spring state is left alone
     assert sim.fv.shape == x.shape[:1] + (len(sim.model.edges),)
