@@ -40,10 +40,10 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from numba import njit
+from ..physics.jit import kernel
 
 from ..physics.config import needs_extra
-from ..physics.integrator import LANE_MIN, simulate
+from ..physics.integrator import LANE_MIN, batch_lanes, simulate
 from ..physics.records import SimModel, SimState
 from ..physics.reference import DT_OUTER
 from .harness import clone, grasped, out_paths, round_sig, time_per_unit
@@ -103,11 +103,12 @@ class Restored:
     def run(self, *parts: str) -> Callable[[int], None]:
         """k restored calls of :data:`STEPS_PER_CALL` outer steps with ``parts`` switched off."""
         model, state = switched_off(self.model, self.state, *parts)
+        lanes = batch_lanes(state.x.shape[0])
 
         def run(k: int) -> None:
             for _ in range(k):
                 self.restore()
-                simulate(model, state, self.out, STEPS_PER_CALL)
+                simulate(model, state, self.out, STEPS_PER_CALL, lanes)
         return run
 
     def restores(self, k: int) -> None:
@@ -136,7 +137,7 @@ def fastest_us(runs: dict[str, Callable[[int], Any]], min_time: float, repeats: 
 # ------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _rep_divider(l2, out, one, reps):
     """A square root and a division per entry of ``l2`` (contiguous), in ``one``'s type: the two operations every spring
     of every tissue needs per substep (its length and the inverse that makes its direction), with nothing else."""

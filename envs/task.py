@@ -1,7 +1,7 @@
 """The GraspLift task per env, written once for both backends: scalar numba functions over records.
 
 One source, two targets (as the physics' contact law): the CPU core (:class:`.core.GraspLiftCore`) calls
-these functions in ``@njit`` loops over its envs, the GPU core (:mod:`.cuda_core`) compiles the same Python
+these functions in ``@kernel`` loops over its envs, the GPU core (:mod:`.cuda_core`) compiles the same Python
 source for the device (:func:`~msdgrasp.physics.cuda_step.device_twin`) and calls them per env from its
 kernels. They use scalar arithmetic and loops only, and write into preallocated arrays:
 
@@ -40,7 +40,7 @@ import typing
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
-from numba import njit
+from ..physics.jit import kernel
 
 from ..physics.contact import (
     G_GAIN, G_PINCH, G_SETPOINT, G_VMAX, J_CONTACT, J_NORMAL, J_PEAK_PRESSURE, J_SLIP, J_SLIP_DIST, J_TX, J_TY, J_TZ,
@@ -331,13 +331,13 @@ def task_state(batch: int, obs_history: int, frame_dim: int, obs_dtype: Any = np
 # ------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def pinned(value, default):
     """``value`` unless it is NaN (not pinned)."""
     return default if math.isnan(value) else value
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def peak_charge_points(w, reference_force_N, peak_pinch, weight):
     """The peak-force charge, points, of an episode whose peak pinch is ``peak_pinch`` N (``w``: the reward record;
     ``weight``: the friction scaling), its slope times ``w.peak_force_beyond_knee`` above ``w.peak_force_knee``
@@ -348,7 +348,7 @@ def peak_charge_points(w, reference_force_N, peak_pinch, weight):
     return min(charge, w.peak_force_knee) + w.peak_force_beyond_knee * max(charge - w.peak_force_knee, 0.0)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def rotate(v0, v1, v2, k0, k1, k2, ang):
     """Rodrigues rotation of v about the unit axis k."""
     c = math.cos(ang)
@@ -359,7 +359,7 @@ def rotate(v0, v1, v2, k0, k1, k2, ang):
             v2 * c + (k0 * v1 - k1 * v0) * sn + k2 * kv * (1 - c))
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def perturb_pose(tip, axis, e1, d, offset_m, tilt_rad, azimuth_rad, tip_out, axis_out, e1_out):
     """The grasp pose moved by an episode's draws ``d`` (draw columns): the tip moves up to ``offset_m``
     normal to the axis (radius drawn as in a ball), the axis tilts up to ``tilt_rad`` about a random normal,
@@ -385,14 +385,14 @@ def perturb_pose(tip, axis, e1, d, offset_m, tilt_rad, azimuth_rad, tip_out, axi
     e1_out[0], e1_out[1], e1_out[2] = f0, f1, f2
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def travel(p, s, ts, b):
     """Grasper pull distance of env b along the pull direction since the episode start, m."""
     return ((s.g_tip[b, 0] - ts.tip0[b, 0]) * p.pull_dir[0] + (s.g_tip[b, 1] - ts.tip0[b, 1]) * p.pull_dir[1]
             + (s.g_tip[b, 2] - ts.tip0[b, 2]) * p.pull_dir[2])
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def region_mean(p, x, b, c):
     """Mean coordinate c of env b's grasp region (summed in node order)."""
     acc = 0.0
@@ -401,14 +401,14 @@ def region_mean(p, x, b, c):
     return acc / p.region.shape[0]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def column_drawn(p, k):
     """Whether draw column k draws a raw variate at a reset: not where its law is a constant (an axis that is off) or
     derived, so the nominal task's random stream is what it was before the axis existed."""
     return p.draw_law[k] < CONSTANT
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def draw_value(law, a, b, u):
     """A draw column's value from its raw variate ``u`` by its law (.perturbations.LAWS) with parameters a, b."""
     if law == UNIFORM:
@@ -427,38 +427,38 @@ def draw_value(law, a, b, u):
     return u  # identity; a derived column: set when the episode starts
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def rest_action(env):
     """The action that leaves the grasper at rest: zero pinch (force) or no closing (speed), and no pull."""
     return (-1.0 if env.jaw_action_force else 0.0), (0.0 if env.pull_action_speed else -1.0)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def shaped_fraction(a, exponent):
     """The fraction in [0, 1] of its range that action ``a`` in [-1, 1] commands: ((a + 1) / 2) ** exponent (an
     exponent above 1 spends more of the action range on the low end)."""
     return (0.5 * (a + 1.0)) ** exponent
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def pinch_setpoint(env, a):
     """Pinch-force set-point (N) of jaw action ``a`` in [-1, 1] (jaw_action = force); ``env``: the config record."""
     return shaped_fraction(a, env.pinch_action_exponent) * env.max_pinch_force_N
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def pull_speed_fraction(env, a):
     """Pull speed, a fraction of the arm's top speed, of pull action ``a`` in [-1, 1] (pull_action = forward_speed)."""
     return shaped_fraction(a, env.pull_action_exponent)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def travel_setpoint(env, a):
     """Pull-distance set-point (m) of pull action ``a`` in [-1, 1] (pull_action = travel)."""
     return 0.5 * (a + 1.0) * env.max_travel_m
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def command(p, s, ts, b, a0, a1):
     """Env b's action (clipped to [-1, 1]) -> the jaw's force set-point or closing speed, and the pull speed."""
     e = p.env
@@ -494,7 +494,7 @@ def command(p, s, ts, b, a0, a1):
         s.g_vpull[b, c] = p.pull_dir[c] * speed
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def noise_scale(p, ts, b, col):
     """The standard deviation of env b's noise column ``col`` (NOISE_COLUMNS) this step, or -1 where the column is
     not drawn (a sensor without noise draws nothing, so the nominal task's random stream is what it was before the
@@ -512,7 +512,7 @@ def noise_scale(p, ts, b, col):
     return r.lift_noise_m if (e.sensed_task_state and r.lift_sensing_tracked and r.lift_noise_m > 0.0) else -1.0
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def noise_scales(p, ts, scales):
     """:func:`noise_scale` of every env and column into ``scales`` (B, N_NOISE)."""
     for b in range(scales.shape[0]):
@@ -520,7 +520,7 @@ def noise_scales(p, ts, scales):
             scales[b, col] = noise_scale(p, ts, b, col)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def sense_task_state(p, ts, b, fresh, pinch_read, slip_read, tr, lift_true):
     """Advance env b's task state as its sensors give it (``ts.sensed``, SENSED) by one frame: ``pinch_read`` the
     sum of the normal-force readings (N), ``slip_read`` the mean of the slip-speed readings (the arm's top speed),
@@ -557,13 +557,13 @@ def sense_task_state(p, ts, b, fresh, pinch_read, slip_read, tr, lift_true):
     sn[S_PEAK_PINCH] = max(sn[S_PEAK_PINCH], pinch_read)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def true_slip_readings(p, jo, k):
     """Jaw k's slip speed (the arm's top speed) and the share of its contact nodes that slip, as they are."""
     return jo[k, J_SLIP_DIST] / p.agent_dt / p.max_pull, jo[k, J_SLIP] / max(jo[k, J_CONTACT], 1.0)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def force_readings(p, jo, ts, b, k, fresh):
     """Jaw k's normal and tangential force readings (N): the truth ``jo`` with the sensor's noise and the episode's
     bias, low-pass filtered where ``force_filter_s`` is set (``fresh``: the filter starts at this reading)."""
@@ -587,7 +587,7 @@ def force_readings(p, jo, ts, b, k, fresh):
     return normal, tangential
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def observe_jaws(p, out, ts, b, fresh, o):
     """The per-jaw entries of env b's frame ``o`` (forces, contact, slip, friction use); returns the sum of the
     normal-force readings (N) and the mean slip-speed reading (the arm's top speed)."""
@@ -623,7 +623,7 @@ def observe_jaws(p, out, ts, b, fresh, o):
     return pinch_read, slip_read
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def observe_task_state(p, ts, b, fresh, o, tr, pinch_read, slip_read):
     """The task-state entries of env b's frame ``o`` (lift, hold, slips, lag, peak pinch, best lift): the truth (v0,
     v1) or, with ``sensed_task_state`` (v2), the sensed values (``tr``: the arm encoder's travel, m)."""
@@ -651,7 +651,7 @@ def observe_task_state(p, ts, b, fresh, o, tr, pinch_read, slip_read):
     o[I_LIFT_SLIP] = lift_slip / e.lift_slip_tolerance_m
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def observe_privileged(p, s, out, ts, b, o, tr):
     """The privileged entries of env b's frame ``o`` (``privileged_obs``): mu, the scales, the node displacements,
     with ``sensed_task_state`` the truth behind the sensed entries (PRIVILEGED_TRUTH), with
@@ -686,10 +686,10 @@ def observe_privileged(p, s, out, ts, b, o, tr):
             o[j + q] = (d[p.priv_col[q]] - p.priv_centre[q]) / p.priv_scale[q]
 
 
-@njit(cache=True, error_model="numpy")
-def observe(p, s, out, ts, b, fresh):
-    """Write env b's current frame (sensor noise ``ts.noise[b]``) into its history and observation;
-    ``fresh`` (a reset): the whole history is the current frame.
+@kernel
+def observe(p, s, out, ts, b):
+    """Write env b's current frame (sensor noise ``ts.noise[b]``) into its history and observation; at a reset
+    (the episode's step 0) the whole history is the current frame and the sensors' filters start from it.
 
     Every entry is what a named sensor gives (:data:`.sensors.SENSORS`); with ``sensed_task_state`` (v2) the task-state
     entries (lift, hold, slips, lag, peak pinch, best lift) come from the sensed values too, and the truth behind them
@@ -697,6 +697,8 @@ def observe(p, s, out, ts, b, fresh):
     e = p.env
     h = e.obs_history
     fd = p.frame_dim
+    # (from the state, not an argument: a literal True / False would compile this function twice)
+    fresh = ts.steps[b] == 0
     if not fresh:  # drop the oldest frame
         for k in range(h - 1):
             for c in range(fd):
@@ -730,43 +732,43 @@ def observe(p, s, out, ts, b, fresh):
 # ------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def peak_force_weight(w, mu):
     """The friction weighting of the peak-force charge at friction ``mu``: mu / peak_force_mu_ref (1 when unset)."""
     return pinned(mu / w.peak_force_mu_ref, 1.0)  # (NaN reference: unset)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def progress_term(w, progress):
     """Pays for the highest lift reached (a fraction of the target), once."""
     return w.progress * progress
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def hold_term(w, hold_gain):
     """Pays for the hold's progress (a fraction of hold_time_s)."""
     return w.hold * hold_gain
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def grasp_term(w, grip_gain):
     """Pays for the grip's rise up to grasp_force_N (a fraction of it)."""
     return w.grasp * grip_gain
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def slip_term(w, slip_m):
     """Charges this step's slip (m, mean over the jaws) per mm."""
     return -w.slip_per_mm * slip_m * 1e3
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def force_term(w, e, pinch_N, dt):
     """Charges the pinch held over the step (N / reference_force_N, per s)."""
     return -w.force_per_s * (pinch_N / e.reference_force_N) * dt
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def peak_force_term(w, e, peak_N, rise_N, weight, success, unsuccessful):
     """Charges the episode's peak pinch (``peak_N``; ``rise_N`` this step's rise of it), friction-weighted
     (``weight``): at success, or as made (each rise when it is made, refunded if the episode fails); with a knee
@@ -787,7 +789,7 @@ def peak_force_term(w, e, peak_N, rise_N, weight, success, unsuccessful):
     return -charge
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def setpoint_change_term(w, e, ts, b):
     """Charges the pinch set-point's move since the last step of this episode (N; force set-points only)."""
     moved = 0.0
@@ -796,26 +798,26 @@ def setpoint_change_term(w, e, ts, b):
     return -w.setpoint_change * moved
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def damage_term(w, damaged):
     """Charges a step whose peak contact pressure is above damage_stress_pa."""
     return -w.damage * (1.0 if damaged else 0.0)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def success_term(w, success):
     """Pays the success bonus."""
     return w.success_bonus * (1.0 if success else 0.0)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def failure_term(w, unsuccessful):
     """Charges every episode that ends without success, running out of time (never touching the tissue) included:
     not touching is then no safe haven."""
     return -w.failure_penalty * (1.0 if unsuccessful else 0.0)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def reward_terms(p, ts, b, progress, hold_gain, grip_gain, slip, pinch, peak_rise, damaged, success, unsuccessful):
     """Every term of env b's reward this step into ``ts.terms[b]`` (REWARD_TERMS); returns their sum."""
     e = p.env
@@ -843,7 +845,7 @@ def reward_terms(p, ts, b, progress, hold_gain, grip_gain, slip, pinch, peak_ris
 # ------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def track_lift_and_grip(p, s, ts, b, pinch, stress):
     """Env b's lift, best lift, grip and peaks after this step; returns (progress: the best lift's rise / target,
     grip_gain: the grip's rise, peak_rise: the peak pinch's rise, N)."""
@@ -866,7 +868,7 @@ def track_lift_and_grip(p, s, ts, b, pinch, stress):
     return progress, grip_gain, peak_rise
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def track_slip_and_hold(p, ts, b, slip):
     """Env b's slip totals and hold after this step (``slip``: the step's slip, m); returns the hold's progress gain."""
     e = p.env
@@ -895,7 +897,7 @@ def track_slip_and_hold(p, ts, b, slip):
     return hold_gain
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def episode_end(p, ts, b, contact, stress, finite, volume_ratio):
     """How env b's episode stands after this step: (success, lost, slipped, damaged, failed, terminated,
     truncated). Success: at the lift target, held hold_time_s, no more slip since lifting began than
@@ -913,7 +915,7 @@ def episode_end(p, ts, b, contact, stress, finite, volume_ratio):
     return success, lost, slipped, damaged, failed, terminated, truncated
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@kernel(inline="always")
 def zero_observation(ts, b):
     """Env b's observation history and observation all zeros (a blown-up tissue: never hand out NaN)."""
     for k in range(ts.frames.shape[1]):
@@ -923,7 +925,7 @@ def zero_observation(ts, b):
         ts.obs[b, c] = 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def update(p, s, out, ts, b, finite, volume_ratio):
     """One agent step of env b after the physics: lift, slip, hold, reward terms, flags, observation and
     the episode's totals. ``finite``: the state is finite; ``volume_ratio``: its smallest tet volume ratio."""
@@ -950,7 +952,7 @@ def update(p, s, out, ts, b, finite, volume_ratio):
     ts.reward[b] = reward
     ts.prev_action[b, 0] = ts.act[b, 0]
     ts.prev_action[b, 1] = ts.act[b, 1]
-    observe(p, s, out, ts, b, False)
+    observe(p, s, out, ts, b)
     if failed:
         zero_observation(ts, b)
     ts.pinch[b] = pinch
@@ -976,7 +978,7 @@ def update(p, s, out, ts, b, finite, volume_ratio):
             ts.terminal_obs[b, c] = ts.obs[b, c]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def restore_settled(p, s, out, b, first, stride):
     """Env b's tissue back to the settled state at rest (nodes and springs ``first``, ``first + stride``, ...:
     a GPU block shares them out among its threads)."""
@@ -993,7 +995,7 @@ def restore_settled(p, s, out, b, first, stride):
         s.dl_prev[b, e] = p.dl_start[e]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def draw_episode(p, ts, b):
     """Turn env b's raw variates in ``ts.draws[b]`` into the episode's draws in place, each column by its law
     (:func:`draw_value`; the declarations of .perturbations): friction, scales, the pose's offset and turns, the
@@ -1003,7 +1005,7 @@ def draw_episode(p, ts, b):
         d[k] = draw_value(p.draw_law[k], p.draw_a[k], p.draw_b[k], d[k])
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def begin_episode(p, s, out, ts, b):
     """Start env b's episode from its draws and pins (after :func:`restore_settled`):
     friction, scales and the perturbed pose, open jaws at rest, cleared episode state, the first frame."""
@@ -1069,7 +1071,7 @@ def begin_episode(p, s, out, ts, b):
     ts.time_to_lift[b] = math.nan
     ts.hold_progress[b] = 0.0
     ts.travel_target[b] = 0.0
-    observe(p, s, out, ts, b, True)
+    observe(p, s, out, ts, b)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1078,21 +1080,21 @@ def begin_episode(p, s, out, ts, b):
 # ------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def command_batch(p, s, ts, actions):
     """Every env's action (B,2) -> its commands."""
     for b in range(actions.shape[0]):
         command(p, s, ts, b, actions[b, 0], actions[b, 1])
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def update_batch(p, s, out, ts, finite, volume_ratio):
     """Every env's step after the physics."""
     for b in range(finite.shape[0]):
         update(p, s, out, ts, b, finite[b], volume_ratio[b])
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def start_episode(p, s, out, ts, b):
     """Env b's new episode from its draws (already turned into values) and pins: the settled tissue, then
     :func:`begin_episode`."""

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from .jit import kernel
 
 #: contact state codes stored per node: on a jaw's inner face or a plate (STICK, SLIP), or pushed by a jaw's side
 #: or end wall (WALL_STICK, WALL_SLIP: the jaw's solid, not its gripping face)
@@ -49,7 +49,7 @@ G_PINCH = 3  # pinch force (sum of the jaws' normal forces) averaged over the la
 G_COLS = 4
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def resolve_node_contact(
     x: np.ndarray,  # (N,3) positions after the explicit prediction (modified)
     v: np.ndarray,  # (N,3) velocities after the explicit prediction (modified)
@@ -110,7 +110,7 @@ def resolve_node_contact(
     v[i, 2] = vz
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def jaw_candidate(
     r: tuple,  # (3 floats) node position relative to the grasper tip (axis point), m
     axis: tuple,  # (3 floats) grasper axis (unit, pointing from handle to tip)
@@ -143,7 +143,7 @@ def jaw_candidate(
 SIN_120 = math.sqrt(3.0) / 2.0
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def jaw_sector(p1: float, p2: float) -> int:
     """The jaw whose centre azimuth (2 pi k / 3) is nearest to the direction (p1, p2) (components along e1, e2; not
     both zero): the largest projection on the three centre directions, a tie going to the jaw counter-clockwise of
@@ -160,7 +160,7 @@ def jaw_sector(p1: float, p2: float) -> int:
     return 0
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def jaw_reach(x, nodes, tip, axis, e1, jaw_length: float, jaw_half_width: float):
     """(reach_0, reach_1, reach_2): for each jaw k of a grasper at ``tip`` with ``axis`` and azimuth-0 direction
     ``e1`` (3-tuples, m; unit), the largest outward distance (x_i - tip).u_k of the nodes ``nodes`` of ``x`` (N,3)
@@ -200,14 +200,14 @@ def jaw_reach(x, nodes, tip, axis, e1, jaw_length: float, jaw_half_width: float)
 JAW_CLEARANCE_M = 1e-3
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def jaw_start_radius(reach, open_radius: float) -> float:
     """The radius the jaws open to at a start: clear of the jaws' reaches (:func:`jaw_reach`) by JAW_CLEARANCE_M,
     at most the grasper's widest opening ``open_radius`` (m)."""
     return min(open_radius, max(reach[0], max(reach[1], reach[2])) + JAW_CLEARANCE_M)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarray) -> None:
     """Outward direction u[k] of jaw k (azimuth 2 pi k / 3 about the axis from e1) and its lateral tj[k] = a x u."""
     ax, ay, az = axis[0], axis[1], axis[2]
@@ -227,7 +227,7 @@ def jaw_directions(axis: np.ndarray, e1: np.ndarray, u: np.ndarray, tj: np.ndarr
         tj[k, 2] = ax * u[k, 1] - ay * u[k, 0]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def clear_readouts(b: int, out) -> None:
     """Zero tissue b's jaw, plate and anchor readouts (SimReadout ``out``) at the start of a call."""
     for k in range(out.jaw_out.shape[1]):
@@ -240,7 +240,7 @@ def clear_readouts(b: int, out) -> None:
         out.anchor_out[b, c] = 0.0
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def clear_contact_node(b: int, model, out, held, last_sub: bool, q: int) -> None:
     """Before a substep's contacts: surface node q of tissue b is not held (``held`` (N,) int8) and, in the last
     substep, its contact readouts restart from zero. Nodes are independent (the GPU clears them in parallel)."""
@@ -252,14 +252,14 @@ def clear_contact_node(b: int, model, out, held, last_sub: bool, q: int) -> None
             out.contact_force[b, i, c] = 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def clear_contacts(b: int, model, out, held, last_sub: bool) -> None:
     """:func:`clear_contact_node` for every surface node of tissue b."""
     for q in range(model.surface_nodes.shape[0]):
         clear_contact_node(b, model, out, held, last_sub, q)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def plate_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     model, state, out,  # SimModel, SimState (plate points advanced), SimReadout (plate_out, contacts filled)
@@ -298,7 +298,7 @@ def plate_contacts(
                 contact_force[b, i, 2] += res[0] * pnz + res[3]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def advance_jaws(b, state, dt):
     """Advance tissue b's grasper by one substep of ``dt`` s: the jaws' radius (closing stops at its limits)
     and the tip (the pull). Returns the radial speed the jaws moved at, m/s."""
@@ -311,7 +311,7 @@ def advance_jaws(b, state, dt):
     return (r_new - r_old) / dt
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def jaw_frame(b, state):
     """Tissue b's grasper after :func:`advance_jaws`, as scalars: (tip, axis, e1, e2 = axis x e1, radius), the
     vectors as 3-tuples (m; unit). Read once per substep: per-node code takes it, not the state record."""
@@ -322,7 +322,7 @@ def jaw_frame(b, state):
     return tip, (ax, ay, az), (e1x, e1y, e1z), e2, state.g_radius[b]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def jaw_node_geometry(xb, i, frame, jaw, dirs):
     """Where (free) node i lies against the jaws: (k, rx, ry, rz, d, lat), k the jaw whose solid holds the node
     (-1: none; then the rest is meaningless), r = x_i - tip (m), d its outward depth past the jaw's inner face (m),
@@ -345,7 +345,7 @@ def jaw_node_geometry(xb, i, frame, jaw, dirs):
     return (k if inside else -1), rx, ry, rz, d, lat
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def jaw_candidates(b, xb, model, state, dirs, cand, first, stride):
     """``cand[q]`` = the jaw around surface node q (-1: none, anchored nodes included) for q = first, first +
     stride, ... (a GPU block shares the nodes out among its threads), after :func:`advance_jaws`."""
@@ -357,7 +357,7 @@ def jaw_candidates(b, xb, model, state, dirs, cand, first, stride):
         cand[q] = -1 if fixed[i] else jaw_node_geometry(xb, i, frame, jaw, dirs)[0]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def jaw_contacts(
     b, xb, vb, meff,  # tissue index; its (N,3) positions and velocities (modified), (N,) effective masses
     model, state, out,  # SimModel, SimState (grasper advanced, pinch accumulated), SimReadout (filled)
@@ -376,7 +376,7 @@ def jaw_contacts(
     resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, marks, vr)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def resolve_jaw_contacts(b, xb, vb, meff, model, state, out, dirs, sub, res, marks, vr) -> None:
     """Resolve the surface nodes of tissue b inside a jaw, in surface order, after :func:`advance_jaws` (which
     returned ``vr``): those ``marks[1]`` names (from :func:`jaw_candidates`), or, with ``marks[1]`` empty, those

@@ -25,12 +25,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from .jit import kernel
 
 from .records import Springs
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def spring_force(dl: float, k1: float, k2: float, dlc: float) -> float:
     """Tension (N) of one nonlinear spring stretched by ``dl`` metres (Eq. 4-6, corrected B)."""
     adl = abs(dl)
@@ -43,14 +43,14 @@ def spring_force(dl: float, k1: float, k2: float, dlc: float) -> float:
     return f if dl > 0.0 else -f
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def spring_tangent(dl: float, k1: float, k2: float, dlc: float) -> float:
     """dF/d(dl) (N/m): K1 + 3 K2 dl^2 inside dl_c, the constant B beyond."""
     adl = min(abs(dl), dlc)
     return k1 + 3.0 * k2 * adl * adl
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.ndarray:
     out = np.empty_like(dl)
     for i in range(dl.size):
@@ -58,7 +58,7 @@ def spring_force_array(dl: np.ndarray, k1: float, k2: float, dlc: float) -> np.n
     return out
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def spring_body(d, law, ks, dash, maxwell, flags, one=1.0, tiny=1e-15):
     """One spring's force on its first node and its new Maxwell state: the arithmetic every spring loop
     (one tissue, lanes, the GPU kernel) runs per spring, in one order, so their results are bitwise equal.
@@ -95,7 +95,7 @@ def spring_body(d, law, ks, dash, maxwell, flags, one=1.0, tiny=1e-15):
     return fs * ux if ok else zero, fs * uy if ok else zero, fs * uz if ok else zero, fv, dl_prev
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def spring_loop(
     x: np.ndarray,  # (N,3) positions, m
     v: np.ndarray,  # (N,3) velocities, m/s
@@ -183,7 +183,7 @@ def spring_loop(
 # -------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def spring_loop_lanes(
     x: np.ndarray,  # (N,3,L) positions, m
     v: np.ndarray,  # (N,3,L) velocities, m/s
@@ -212,7 +212,7 @@ def spring_loop_lanes(
         _spring_lanes_pass(x, v, springs, kscale, (decay, gain), fv, dl_prev, f, tmp, False, False, (one, tiny))
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _spring_lanes_pass(x, v, springs, kscale, rates, fv, dl_prev, f, tmp, use_dashpot, use_sls, units) -> None:
     """The body of :func:`spring_loop_lanes` with the flags given (constants where it inlines this); rates (decay,
     gain) and units (one, tiny) as its arguments."""
@@ -249,7 +249,7 @@ def _spring_lanes_pass(x, v, springs, kscale, rates, fv, dl_prev, f, tmp, use_da
                 f[j, cc, b] -= tmp[cc, b]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def accumulate_spring_forces(
     x: np.ndarray,
     v: np.ndarray,
@@ -269,7 +269,7 @@ def accumulate_spring_forces(
                 zero, zero, f, np.zeros((9, edges.shape[0])))
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def spring_energy(
     x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray, k1: np.ndarray, k2: np.ndarray, dlc: np.ndarray
 ) -> float:
@@ -294,7 +294,7 @@ def spring_energy(
     return total
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def implicit_spring_dashpots(
     x: np.ndarray,  # (N,3) positions of one tissue after the explicit update, m (modified)
     v: np.ndarray,  # (N,3) velocities, m/s (modified)
@@ -395,13 +395,13 @@ def implicit_spring_dashpots(
 VOLUME_J_MIN = 0.02
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _volume6(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z):
     """e1 . (e2 x e3): six times the signed volume of the tet spanned by three edge vectors."""
     return e1x * (e2y * e3z - e2z * e3y) + e1y * (e2z * e3x - e2x * e3z) + e1z * (e2x * e3y - e2y * e3x)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z):
     """dV/dx_b, dV/dx_c, dV/dx_d (9 floats) of V = e1 . (e2 x e3) / 6 (dV/dx_a is minus their sum)."""
     return (
@@ -411,7 +411,7 @@ def _volume_gradients(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z):
     )
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _tet_edges(x: np.ndarray, tets: np.ndarray, t: int):
     """Edge vectors e1, e2, e3 (9 floats) from node a of tet t, and its signed volume e1 . (e2 x e3) / 6."""
     a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
@@ -422,7 +422,7 @@ def _tet_edges(x: np.ndarray, tets: np.ndarray, t: int):
     return e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, vol
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _tet_edges_lane(x: np.ndarray, a: int, b: int, c: int, d: int, lane: int):
     """:func:`_tet_edges` of one tissue of a lane-layout batch x (N,3,L)."""
     e1x, e1y, e1z = x[b, 0, lane] - x[a, 0, lane], x[b, 1, lane] - x[a, 1, lane], x[b, 2, lane] - x[a, 2, lane]
@@ -434,7 +434,7 @@ def _tet_edges_lane(x: np.ndarray, a: int, b: int, c: int, d: int, lane: int):
 
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def barrier_slopes(jac: float, j_c: float):
     """(psi'(J), psi''(J)) of the volume barrier per unit modulus at volume ratio ``jac`` (threshold ``j_c``);
     (0, 0) at and above the threshold."""
@@ -448,7 +448,7 @@ def barrier_slopes(jac: float, j_c: float):
     return d1 + d2 * (jac - j), d2  # (jac - j is 0 above VOLUME_J_MIN x J_c)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def barrier_psi(jac: float, j_c: float) -> float:
     """psi(J) of the volume barrier per unit modulus (its energy is k V0 psi); continued as a quadratic below
     VOLUME_J_MIN x J_c, with the slopes :func:`barrier_slopes` returns there."""
@@ -464,13 +464,13 @@ def barrier_psi(jac: float, j_c: float) -> float:
     return psi
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def below_barrier(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_c: float, t: int) -> bool:
     """Is tet t of one tissue x (N,3) compressed below the barrier's threshold ``j_c`` x its rest volume?"""
     return _tet_edges(x, tets, t)[9] < j_c * rest_volume[t]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def flag_barrier(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, j_c: float, flagged: np.ndarray) -> int:
     """The barrier's flag pass for one tissue x (N,3): flagged (T,) int8 out (1: below ``j_c``); returns how
     many tets are flagged."""
@@ -506,7 +506,7 @@ WATCH_SAFETY = 1.25
 WATCH_DELTA = 0.02
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _watched(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, slack, delta) -> bool:
     """Could a tet with edge vectors e1-e3 (m) and volume slack ``slack`` (m^3) above the threshold fall below it
     while no node moves more than ``delta`` (m, after a common translation)? The bound above, S (a + b + c), tested
@@ -524,7 +524,7 @@ def _watched(e1x, e1y, e1z, e2x, e2y, e2z, e3x, e3y, e3z, slack, delta) -> bool:
     return not (rest > 0.0 and rest * rest > 1.1 * a2 + 11.0 * b2)  # (a NaN slack is watched)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def displacement_spread(x: np.ndarray, x_ref: np.ndarray, nl: int, lohi: np.ndarray) -> float:
     """How far (m) any node of any lane has moved from x_ref, after the best common translation of its lane:
     half the diagonal of the bounding box of the displacements. x, x_ref (N, 3 L) in lane layout (column
@@ -557,7 +557,7 @@ def displacement_spread(x: np.ndarray, x_ref: np.ndarray, nl: int, lohi: np.ndar
     return spread if bad == 0.0 else math.nan
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _displacement_spread_one(x: np.ndarray, x_ref: np.ndarray) -> float:
     """:func:`displacement_spread` of one tissue (N, 3): the bounds in scalars instead of a loop over 3 columns
     per node (2.4x faster, the same value: the same minima and maxima, summed in the same order)."""
@@ -584,7 +584,7 @@ def _displacement_spread_one(x: np.ndarray, x_ref: np.ndarray) -> float:
     return math.sqrt(s2) if bad == 0.0 else math.nan
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def watch_barrier(x, tets, rest_volume, j_c, delta, flagged, n_flagged, watch) -> int:
     """The barrier's full flag pass over the lanes of x (N,3,L): flagged (T,L) int8 and n_flagged (L,) out, and
     ``watch`` (T,) filled in tet order with the tets any lane could push below ``j_c`` within the displacement
@@ -607,7 +607,7 @@ def watch_barrier(x, tets, rest_volume, j_c, delta, flagged, n_flagged, watch) -
     return nw
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def flag_watched(x, tets, rest_volume, j_c, watch, n_watch, flagged, n_flagged) -> None:
     """The barrier's flag pass between full passes: only the watched tets (the rest stay unflagged, as a full pass
     would leave them while the nodes are within its budget). Arguments as :func:`watch_barrier`'s."""
@@ -636,7 +636,7 @@ def flag_watched(x, tets, rest_volume, j_c, watch, n_watch, flagged, n_flagged) 
 _NO_GRADIENTS = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def barrier_tet(e, v0, k, j_c, dt, w, held):
     """The implicit barrier's law for one tet, in scalars (see above): e (9 floats) the edge vectors b - a, c - a,
     d - a (m); v0 its rest volume (m^3); k its modulus times the tissue's stiffness scale (Pa); j_c the threshold;
@@ -668,7 +668,7 @@ def barrier_tet(e, v0, k, j_c, dt, w, held):
     return True, -dt * p, g
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def node_impulse(w, s, gx, gy, gz, dt):
     """A node's share s g (N s) of an implicit impulse (a tet's barrier, a spring's dashpot), w its inverse mass
     (1/kg): (dvx, dvy, dvz, fx, fy, fz), its velocity change w s g (its position moves dt times that), and for an
@@ -679,7 +679,7 @@ def node_impulse(w, s, gx, gy, gz, dt):
     return w * s * gx, w * s * gy, w * s * gz, 0.0, 0.0, 0.0
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def kick_node(x, v, i, dv, dt) -> None:
     """Node i of x, v (N,3) takes the velocity change dv (3 floats, m/s; :func:`node_impulse`) and moves dt times it.
     Straight-line code, so numba's reference counts of the arrays it inlines with cancel within one block (a body
@@ -692,7 +692,7 @@ def kick_node(x, v, i, dv, dt) -> None:
     x[i, 2] += dt * dv[2]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor) -> None:
     """Tet t's implicit barrier impulse on one tissue x, v (N,3) (:func:`barrier_tet` and :func:`node_impulse`; the
     arguments as :func:`implicit_volume_barrier`'s): the body of its loop, which the GPU step runs on its own list
@@ -720,7 +720,7 @@ def barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, a
             kick_node(x, v, i, (dvx, dvy, dvz), dt)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def implicit_volume_barrier(
     x: np.ndarray,  # (N,3) positions of one tissue after the explicit update, m (modified)
     v: np.ndarray,  # (N,3) velocities, m/s (modified)
@@ -742,7 +742,7 @@ def implicit_volume_barrier(
             barrier_impulse(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, t, anchor)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def implicit_volume_barrier_lanes(x, v, meff, pins, tets, rest_volume, kvol, j_c, ks, dt, visit, anchor) -> None:
     """:func:`implicit_volume_barrier` on the watched tets of every tissue of a lane block x, v (N,3,L), meff
     (N,L), ks (L,) (one tissue: L = 1): pins (fixed (N,) bool, held (L,N) int8), visit (flags (T,L) int8, watch,
@@ -789,7 +789,7 @@ def implicit_volume_barrier_lanes(x, v, meff, pins, tets, rest_volume, kvol, j_c
                     x[i, 2, lane] += dt * dvz
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray,
                   j_threshold: float) -> float:
     """Energy (J) of the volume barrier: sum over tets with J < J_c of k V0 psi(J)."""
@@ -799,7 +799,7 @@ def volume_energy(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol
     return total
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def volume_forces(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol: np.ndarray, j_threshold: float,
                   kscale: float, f: np.ndarray) -> None:
     """The barrier's (explicit) forces -k psi'(J) dV/dx ADDED to f (N,3): what the implicit step integrates; for
@@ -819,7 +819,7 @@ def volume_forces(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, kvol
             f[a, kk] -= s * (gb[kk] + gb[3 + kk] + gb[6 + kk])
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def min_volume_ratios(x: np.ndarray, tets: np.ndarray, rest_volume: np.ndarray, out: np.ndarray) -> None:
     """out[b] = smallest current / rest volume over the tets of tissue b of a batch x (B,N,3); <= 0 means a tet
     has inverted. (A kernel: the env checks it every agent step, where NumPy's gathers cost ~10x more.)"""

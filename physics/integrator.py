@@ -36,7 +36,6 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit
 
 from .contact import (
     G_GAIN,
@@ -61,6 +60,7 @@ from .forces import (
     spring_loop_lanes,
     watch_barrier,
 )
+from .jit import kernel
 from .records import SimModel, SimReadout, SimState, Springs
 
 if TYPE_CHECKING:
@@ -80,7 +80,7 @@ LANE_MIN = 24
 LANE_BLOCK = 64
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def lane_blocks(nb: int) -> np.ndarray:
     """(first tissue, tissues) of each block :func:`simulate` advances a batch of ``nb`` tissues in: blocks of
     LANE_MIN..LANE_BLOCK tissues, a multiple of LANE_WIDTH each and as equal as that allows, then the rest (fewer
@@ -102,41 +102,51 @@ def lane_blocks(nb: int) -> np.ndarray:
     return out
 
 
-@njit(cache=True, error_model="numpy")
-def simulate(model: SimModel, state: SimState, out: SimReadout, n_steps: int) -> None:
+def batch_lanes(nb: int) -> np.ndarray | None:
+    """What :func:`simulate` takes as ``lanes`` for a batch of ``nb`` tissues: its lane blocks
+    (:func:`lane_blocks`) from LANE_MIN tissues on, else None (every tissue alone)."""
+    return lane_blocks(nb) if nb >= LANE_MIN else None
+
+
+@kernel
+def simulate(model: SimModel, state: SimState, out: SimReadout, n_steps: int, lanes: np.ndarray | None) -> None:
     """Advance every tissue of the batch by ``n_steps`` outer steps of ``model.dt_outer`` (``model.n_sub``
     substeps each). ``state`` is advanced in place, ``out`` holds the readouts of the last outer step.
     Tissues are independent.
 
-    Internally the batch runs in blocks of up to LANE_BLOCK tissues stored tissue-innermost (lane
-    layout, x[i, c, lane]; :func:`lane_blocks`): copied in at the start of the call and back at the end, so the
-    per-substep loops over springs, tets and nodes run across tissues with SIMD. A block of one is a view.
+    ``lanes``: :func:`batch_lanes` of the batch. With its blocks, the batch runs in blocks of up to LANE_BLOCK
+    tissues stored tissue-innermost (lane layout, x[i, c, lane]): copied in at the start of the call and back at the
+    end, so the per-substep loops over springs, tets and nodes run across tissues with SIMD; a block of one runs
+    alone. With None every tissue runs alone, and numba compiles no lane code (it prunes the branches on
+    ``lanes is None`` from the types: a first single-env run compiles only what it runs).
     """
     x, v, fv, dl_prev = state.x, state.v, state.fv, state.dl_prev
     nb = x.shape[0]
     n = x.shape[1]
     ne = fv.shape[1]
-    blocks = lane_blocks(nb)
-    for k in range(blocks.shape[0]):
-        lane0 = blocks[k, 0]
-        nl = blocks[k, 1]
-        if nl == 1:  # x[b] (N,3) and (N,3,1) are the same memory
-            xl = x[lane0].reshape((n, 3, 1))
-            vl = v[lane0].reshape((n, 3, 1))
-            fvl = fv[lane0].reshape((ne, 1))
-            dll = dl_prev[lane0].reshape((ne, 1))
-        else:
-            xl = np.empty((n, 3, nl), dtype=x.dtype)
-            vl = np.empty((n, 3, nl), dtype=x.dtype)
-            fvl = np.empty((ne, nl), dtype=fv.dtype)
-            dll = np.empty((ne, nl), dtype=fv.dtype)
-            _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, True)
-        _advance_block(lane0, xl, vl, fvl, dll, model, state, out, n_steps)
-        if nl > 1:
-            _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, False)
+    if lanes is None:
+        for b in range(nb):  # x[b] (N,3) and (N,3,1) are the same memory
+            _advance_block(b, x[b].reshape((n, 3, 1)), v[b].reshape((n, 3, 1)), fv[b].reshape((ne, 1)),
+                           dl_prev[b].reshape((ne, 1)), model, state, out, n_steps, None)
+        return
+    for k in range(lanes.shape[0]):
+        lane0 = lanes[k, 0]
+        nl = lanes[k, 1]
+        if nl == 1:
+            _advance_block(lane0, x[lane0].reshape((n, 3, 1)), v[lane0].reshape((n, 3, 1)),
+                           fv[lane0].reshape((ne, 1)), dl_prev[lane0].reshape((ne, 1)), model, state, out, n_steps,
+                           None)
+            continue
+        xl = np.empty((n, 3, nl), dtype=x.dtype)
+        vl = np.empty((n, 3, nl), dtype=x.dtype)
+        fvl = np.empty((ne, nl), dtype=fv.dtype)
+        dll = np.empty((ne, nl), dtype=fv.dtype)
+        _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, True)
+        _advance_block(lane0, xl, vl, fvl, dll, model, state, out, n_steps, lanes)
+        _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, False)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, forward):
     """Copy tissues lane0.. of the batch state into the lane block (forward) or back. Explicit loops:
     numba's slice assignment would compile its shape-mismatch error formatting (~5 s of first-call compile)."""
@@ -160,23 +170,28 @@ def _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, forward):
                 dl_prev[b, e] = dll[e, lane]
 
 
-@njit(cache=True, error_model="numpy")
-def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
+@kernel
+def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps, lanes):
     """:func:`simulate` for the L tissues of one lane block: x, v (N,3,L) and fv, dl_prev (E,L) are the
     block's state in lanes (lane l is tissue lane0 + l); the rest of the state is read from ``state``.
-    Each substep runs the phases of the module docstring."""
+    ``lanes`` None: a block of one tissue (numba compiles this call without the lane code). Each substep runs
+    the phases of the module docstring."""
     m = model
     n_sub = m.n_sub
     n = x.shape[0]
     nl = x.shape[2]
-    lanes = nl > 1
     dt = m.dt_outer / n_sub
     f = np.empty((n, 3, nl), dtype=x.dtype)
     # one tissue: plain C-contiguous (N,3) views, the layout the one-tissue kernels are fastest on (in a lane
     # block they are unused; the reshape there only gives numba one type for both branches)
-    x_one = x.reshape((n, 3 * nl)) if lanes else x.reshape((n, 3))
-    v_one = v.reshape((n, 3 * nl)) if lanes else v.reshape((n, 3))
-    f_one = f.reshape((n, 3 * nl)) if lanes else f.reshape((n, 3))
+    if lanes is None:
+        x_one = x.reshape((n, 3))
+        v_one = v.reshape((n, 3))
+        f_one = f.reshape((n, 3))
+    else:
+        x_one = x.reshape((n, 3 * nl))
+        v_one = v.reshape((n, 3 * nl))
+        f_one = f.reshape((n, 3 * nl))
     ks = np.ascontiguousarray(state.kscale[lane0 : lane0 + nl])
     ms = np.ascontiguousarray(state.mscale[lane0 : lane0 + nl])
     ne = fv.shape[0]
@@ -216,17 +231,17 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
             # ---- 1. forces (in the loop itself: as a function, even inlined, they cost 1 % of a one-tissue substep)
             for k in range(f_flat.shape[0]):  # a flat loop: numba's f[:] = f0 on 3-D arrays is slow
                 f_flat[k] = f0_flat[k]
-            if lanes:
-                spring_loop_lanes(x, v, springs, ks_springs, units[2], units[3], fv, dl_prev, f, tmp, units[0],
-                                  units[1])
-            else:
+            if lanes is None:
                 spring_loop(x_one, v_one, springs, ks_springs[0], units[2], units[3], fv.reshape(ne),
                             dl_prev.reshape(ne), f_one, spring_scratch, units[0], units[1])
+            else:
+                spring_loop_lanes(x, v, springs, ks_springs, units[2], units[3], fv, dl_prev, f, tmp, units[0],
+                                  units[1])
             # ---- 2-3. symplectic Euler, implicit nodal damping, anchors
-            if lanes:
-                _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, out.anchor_out)
-            else:  # a literal bound: once LLVM inlines the call, the lane loops vanish for one tissue
+            if lanes is None:  # a literal bound: once LLVM inlines the call, the lane loops vanish for one tissue
                 _update_nodes(m, x, v, f, node_work, ms, 1, lane0, last_sub, dt, out.anchor_out)
+            else:
+                _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, out.anchor_out)
             # ---- 3b. the spring dashpots, implicit
             if m.use_dashpot:
                 _dashpot_lanes(x, v, (x_one, v_one), meff, m, ks, dt, anchor_vol, acc)
@@ -249,7 +264,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps):
                     jaw_contacts(b, xb, vb, mb, m, state, out, (u[lane], tj[lane]), sub_info, res, (hb, cand))
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _spring_setup(m, x, ks, dt, ne):
     """The spring loops' work for a block of the model's E = ``ne`` springs: (ks (L,), units (4,), tmp (3,L), scratch
     (9,E) or (9,0)), in the state's type (a float32 state computes its springs in float32; float64: as they are).
@@ -266,7 +281,7 @@ def _spring_setup(m, x, ks, dt, ne):
     return ks_springs, units, tmp, np.zeros((9, 0 if nl > 1 else ne), dtype=x.dtype)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _barrier_work(nt, n, nl):
     """The volume barrier's flags for ``nt`` tets and ``nl`` tissues of ``n`` nodes: (flags (T,L) int8: below the
     threshold; n_flagged (L,): how many per tissue; the watch list (T,) of :func:`.forces.watch_barrier`: the tets a
@@ -277,7 +292,7 @@ def _barrier_work(nt, n, nl):
     return flags, n_flagged, watch, np.empty((n, 3 * nl)), np.empty((3, 3 * nl))
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _start_block(lane0, x, m, state, out, ms, dirs):
     """At the start of a call: the block's readouts cleared, its jaws' directions (u, tj) set, and its constant
     nodal load returned: gravity + external forces f0 (N,3,L), N (they do not change during the call)."""
@@ -296,7 +311,7 @@ def _start_block(lane0, x, m, state, out, ms, dirs):
     return f0
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def dashpot_pass(x: np.ndarray, v: np.ndarray, meff: np.ndarray, fixed: np.ndarray, dashpots: tuple, ks: float,
                  dt: float, anchor: np.ndarray) -> None:
     """Step 3b for one tissue: the spring dashpots, implicit (:func:`.forces.implicit_spring_dashpots`) on x, v
@@ -308,7 +323,7 @@ def dashpot_pass(x: np.ndarray, v: np.ndarray, meff: np.ndarray, fixed: np.ndarr
     implicit_spring_dashpots(x, v, meff, fixed, dashpots[0], dashpots[1], ks, dt, anchor)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _dashpot_lanes(x, v, one, meff, m, ks, dt, anchor_vol, acc):
     """:func:`dashpot_pass` for each tissue of the block (``one``: the (N,3) views of x, v for a block of one); in
     the last substep the anchors' force adds to the readout ``acc`` (anchor_out, lane0, last_sub)."""
@@ -324,7 +339,7 @@ def _dashpot_lanes(x, v, one, meff, m, ks, dt, anchor_vol, acc):
                 anchor_out[lane0 + lane, c] += anchor_vol[c]
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def _volume_barrier(x, v, x_one, nodes, m, ks, dt, watching, anchor_lanes, acc):
     """Step 4: the volume barrier, implicit, on the tets below its threshold, flagged across lanes by a full pass
     where the nodes have left the watch list's budget m.watch_delta (or are not finite), else on the watched tets
@@ -353,7 +368,7 @@ def _volume_barrier(x, v, x_one, nodes, m, ks, dt, watching, anchor_lanes, acc):
     return n_watch
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def maxwell_factors(dt: float, tau: float) -> tuple[float, float]:
     """(e^(-dt/tau), (tau/dt)(1 - e^(-dt/tau))): the Maxwell branches' decay and gain over a substep dt, s, of
     relaxation time tau, s (:func:`.forces.spring_body`)."""
@@ -361,7 +376,7 @@ def maxwell_factors(dt: float, tau: float) -> tuple[float, float]:
     return decay, tau / dt * (1.0 - decay)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def pinch_force_loop(g_force: np.ndarray, g_vradius: np.ndarray, b: int) -> None:
     """The jaw motor's 1 kHz pinch-force loop of tissue b, run once per outer step: closing speed
     proportional to the force error of the last step, limited to the motor's speed (P control of the
@@ -378,7 +393,7 @@ def pinch_force_loop(g_force: np.ndarray, g_vradius: np.ndarray, b: int) -> None
 # xc, vc, fc: the node's position (m), velocity (m/s), force (N) as 3-tuples; m: its mass x mass scale, kg.
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def anchor_spring_force(xc, xr, ms, ka, offset):
     """Force (N, 3-tuple) of a compliant anchor of stiffness ka (N/m) on a node at xc whose rest position is
     xr: a spring to xr + ms offset (its preload scales with the mass scale ms; offset (3,) m)."""
@@ -386,7 +401,7 @@ def anchor_spring_force(xc, xr, ms, ka, offset):
             -ka * (xc[2] - xr[2] - ms * offset[2]))
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def nodal_damping(xc, xr, b0, b1):
     """Eq. 7's damping coefficient b0 + b1 |x - x_rest| (N s/m) of a node at xc with rest position xr."""
     dx = xc[0] - xr[0]
@@ -395,14 +410,14 @@ def nodal_damping(xc, xr, b0, b1):
     return b0 + b1 * math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def damping_factors(m, damp, dt):
     """(1 / (1 + dt b / m), m + dt b): implicit damping's velocity factor and the effective mass (kg) that
     the contacts use (the damper acts on the constrained velocity too)."""
     return 1.0 / (1.0 + dt * damp / m), m + dt * damp
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@kernel(inline="always")
 def advance_node(xc, vc, fc, m, inv, dt):
     """Symplectic Euler with implicit damping (velocity factor ``inv``): the node's new (x, v) 3-tuples."""
     v0 = (vc[0] + dt * fc[0] / m) * inv
@@ -411,7 +426,7 @@ def advance_node(xc, vc, fc, m, inv, dt):
     return (xc[0] + dt * v0, xc[1] + dt * v1, xc[2] + dt * v2), (v0, v1, v2)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv):
     """meff = m + dt b0 and damp_inv = 1 / (1 + dt b0 / m) of the nodes whose damping does not vary (b1 = 0)."""
     for i in range(mass.shape[0]):
@@ -420,7 +435,7 @@ def _constant_damping(mass, b0, b1, ms, dt, meff, damp_inv):
                 damp_inv[i, lane], meff[i, lane] = damping_factors(mass[i] * ms[lane], b0[i], dt)
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def _update_nodes(model, x, v, f, work, ms, nl, lane0, last_sub, dt, anchor_out):
     """Symplectic Euler with implicit nodal damping for lanes 0..nl-1; anchors held or sprung (steps 2-3).
 
@@ -477,7 +492,7 @@ def _update_nodes(model, x, v, f, work, ms, nl, lane0, last_sub, dt, anchor_out)
 # tests them too. w is the kernel's scratch (:func:`.device_layout.make_scratch`).
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def springs_to_scratch(m: SimModel, s: SimState, w: CudaScratch, b: int, ks: float, maxwell: tuple[float, float],
                        first: int, stride: int) -> None:
     """Step 1 without the scatter, for springs first, first + stride, ... of tissue b (stiffness scale ks; maxwell:
@@ -495,7 +510,7 @@ def springs_to_scratch(m: SimModel, s: SimState, w: CudaScratch, b: int, ks: flo
             s.fv[b, e], s.dl_prev[b, e] = fve, dle
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def gather_and_advance_nodes(m: SimModel, s: SimState, w: CudaScratch, b: int, ms: float, dt: float, first: int,
                              stride: int) -> None:
     """Steps 2-3 for nodes first, first + stride, ... of tissue b (mass scale ms): gravity, the external load and
@@ -528,7 +543,7 @@ def gather_and_advance_nodes(m: SimModel, s: SimState, w: CudaScratch, b: int, m
         v[b, i, 0], v[b, i, 1], v[b, i, 2] = vn
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def listed_volume_barrier(m: SimModel, s: SimState, w: CudaScratch, b: int, ks: float, dt: float,
                           flag_list: np.ndarray, k: int) -> None:
     """Step 4's impulses on tissue b's ``k`` flagged tets, listed in ``flag_list`` in any order (sorted into tet order
@@ -554,7 +569,7 @@ def listed_volume_barrier(m: SimModel, s: SimState, w: CudaScratch, b: int, ks: 
                         w.vol_out[b])
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def anchor_readout(m: SimModel, out: SimReadout, w: CudaScratch, b: int, flagged: int) -> None:
     """The anchors' forces of tissue b's substep into its readout out.anchor_out, N, in the CPU's order: against the
     nodes (w.fa), the spring dashpots (w.dash_out) and, where ``flagged`` tets were, the volume barrier (w.vol_out)."""
@@ -570,7 +585,7 @@ def anchor_readout(m: SimModel, out: SimReadout, w: CudaScratch, b: int, flagged
             out.anchor_out[b, c] += w.vol_out[b, c]
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def all_finite(x: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
     """out[b] = False where tissue b has a non-finite position or velocity (blow-up detection)."""
     for b in range(x.shape[0]):

@@ -34,7 +34,7 @@ from .contact import (
     jaw_directions,
 )
 from .grasper import GrasperParams, GrasperPose
-from .integrator import all_finite, simulate
+from .integrator import all_finite, batch_lanes, simulate
 from .forces import WATCH_DELTA, min_volume_ratios
 from .device_layout import PRECISIONS, with_precision
 from .records import SimModel, SimReadout, SimState
@@ -388,14 +388,15 @@ class Simulation:
             self._cuda.step(int(n_steps))
             self._cuda.download(state, out)
             return
-        simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps))
+        simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps),
+                 batch_lanes(self.batch_size))
 
     def _step_subset(self, idx: np.ndarray, n_steps: int) -> None:
         """:meth:`step` of the tissues ``idx`` alone: their state and readouts gathered into a smaller batch,
         advanced, and written back."""
         state = SimState(*(a[idx] for a in self.kernel_state()))
         out = SimReadout(*(a[idx] for a in self.kernel_readout()))
-        simulate(self.kernel_model(), state, out, n_steps)
+        simulate(self.kernel_model(), state, out, n_steps, batch_lanes(idx.size))
         for dst, src in zip(self.kernel_state(), state):
             dst[idx] = src
         for dst, src in zip(self.kernel_readout(), out):

@@ -20,13 +20,13 @@ r the branch carries k_v r tau (1 - e^(-t/tau)) (NOTES.md's standard linear soli
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from .jit import kernel
 
 from .forces import spring_loop
 from .records import Springs
 
 
-@njit(cache=True, error_model="numpy")
+@kernel
 def accumulate_spring_forces_sls(
     x: np.ndarray,  # (N,3) positions, m
     v: np.ndarray,  # (N,3) velocities, m/s

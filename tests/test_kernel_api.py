@@ -111,7 +111,7 @@ def test_the_gpu_loops_run_on_the_cpu_make_the_cpu_kernels_substep_to_the_bit(sp
     assert m.use_sls and not m.use_dashpot and not m.jaw_active and np.any(m.b1 != 0)
     assert np.any(m.fixed & (m.anchor_k == 0)) and np.any(~m.fixed & (m.anchor_k > 0))
     gst, gout, w = _copy(st), _copy(out), make_scratch(m, 1)
-    simulate(m, st, out, 1)
+    simulate(m, st, out, 1, None)
     dt = m.dt_outer
     maxwell = maxwell_factors(dt, m.tau)
     for first in range(3):

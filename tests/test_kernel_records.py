@@ -101,7 +101,7 @@ def test_trajectories_match_the_recording_made_before_the_records():
 
 
 def test_the_kernel_is_called_with_named_records():
-    assert list(inspect.signature(simulate.py_func).parameters) == ["model", "state", "out", "n_steps"]
+    assert list(inspect.signature(simulate.py_func).parameters) == ["model", "state", "out", "n_steps", "lanes"]
     sim = spleen_scene(resolution="coarse").simulation(2)
     model, state, out = sim.kernel_model(), sim.kernel_state(), sim.kernel_readout()
     assert isinstance(model, SimModel) and isinstance(state, SimState) and isinstance(out, SimReadout)
