@@ -207,7 +207,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps, lanes):
     _constant_damping(m.mass, m.b0, m.b1, ms, dt, meff, damp_inv)
     node_work = (meff, damp_inv, np.empty((3, nl)))  # (and the anchor spring force of one node)
     watching = _barrier_work(m.tets.shape[0], n, nl)
-    n_watch = -1  # (no watch list yet: the first substep makes one)
+    n_watch = np.int64(-1)  # (no watch list yet: the first substep makes one; typed, not a literal: one compile)
     anchor_vol = np.zeros(3)  # the anchors' force against the spring dashpots in one tissue's substep, N
     anchor_lanes = np.zeros((nl, 3))  # per tissue: the anchors' force against the volume barrier in a substep, N
     held = state.held[lane0 : lane0 + nl]  # per tissue: the jaw (k + 1) or plate (-(p + 1)) holding a node
@@ -244,7 +244,7 @@ def _advance_block(lane0, x, v, fv, dl_prev, model, state, out, n_steps, lanes):
                 _update_nodes(m, x, v, f, node_work, ms, nl, lane0, last_sub, dt, out.anchor_out)
             # ---- 3b. the spring dashpots, implicit
             if m.use_dashpot:
-                _dashpot_lanes(x, v, (x_one, v_one), meff, m, ks, dt, anchor_vol, acc)
+                _dashpot_lanes(x, v, (x_one, v_one), meff, m, ks, dt, anchor_vol, acc, lanes)
             # ---- 4. the volume barrier, implicit, on the tets below its threshold (flagged across lanes)
             if m.kvol.shape[0] > 0:
                 n_watch = _volume_barrier(x, v, x_one, (meff, held), m, ks, dt, (watching, n_watch), anchor_lanes, acc)
@@ -323,17 +323,19 @@ def dashpot_pass(x: np.ndarray, v: np.ndarray, meff: np.ndarray, fixed: np.ndarr
     implicit_spring_dashpots(x, v, meff, fixed, dashpots[0], dashpots[1], ks, dt, anchor)
 
 
-@kernel(inline="always")
-def _dashpot_lanes(x, v, one, meff, m, ks, dt, anchor_vol, acc):
-    """:func:`dashpot_pass` for each tissue of the block (``one``: the (N,3) views of x, v for a block of one); in
-    the last substep the anchors' force adds to the readout ``acc`` (anchor_out, lane0, last_sub)."""
+@kernel
+def _dashpot_lanes(x, v, one, meff, m, ks, dt, anchor_vol, acc, lanes):
+    """:func:`dashpot_pass` for each tissue of the block (``one``: the (N,3) views of x, v for a block of one,
+    ``lanes`` None; a function of its own, called once per substep, so that numba prunes the other layout's
+    branch from ``lanes``' type); in the last substep the anchors' force adds to the readout ``acc`` (anchor_out,
+    lane0, last_sub)."""
     anchor_out, lane0, last_sub = acc
     for lane in range(x.shape[2]):
-        if x.shape[2] > 1:
+        if lanes is None:
+            dashpot_pass(one[0], one[1], meff[:, 0], m.fixed, (m.edges, m.cdash), ks[0], dt, anchor_vol)
+        else:
             dashpot_pass(x[:, :, lane], v[:, :, lane], meff[:, lane], m.fixed, (m.edges, m.cdash), ks[lane], dt,
                          anchor_vol)
-        else:
-            dashpot_pass(one[0], one[1], meff[:, 0], m.fixed, (m.edges, m.cdash), ks[0], dt, anchor_vol)
         if last_sub:
             for c in range(3):
                 anchor_out[lane0 + lane, c] += anchor_vol[c]

@@ -1,0 +1,52 @@
+"""A first run compiles the task's kernels in a helper process beside the physics (`msdgrasp.envs.first_run`):
+the helper compiles what the core then loads, it simulates nothing, and it starts only where it helps."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from msdgrasp.benchmarks import compile_time
+from msdgrasp.envs import first_run
+from msdgrasp.envs.core import GraspLiftConfig, benchmark_config
+from msdgrasp.physics.config import from_dict, to_dict
+from msdgrasp.physics.jit import NOTICE
+
+FIRST_STEP = ("import gymnasium as gym, numpy as np, msdgrasp\n"
+              "env = gym.make('msdgrasp/GraspLift-v1')\nenv.reset(seed=0)\nenv.step(np.zeros(2, dtype=np.float32))\n")
+
+
+@pytest.mark.timeout(600)
+def test_a_cold_first_step_links_the_physics_itself_and_loads_the_task_kernels_its_helper_compiled():
+    """In a child with an empty numba cache (the benchmark's harness): the core's own process compiles ``simulate``
+    and none of the task's kernels that a reset and a step call from Python (the helper compiled and cached them
+    while the core settled its scene)."""
+    report = compile_time.measure(FIRST_STEP, timeout_s=580)
+    compiled = set(report["functions"])
+    assert "msdgrasp.physics.integrator.simulate.python_call" in compiled
+    task_entries = {f"msdgrasp.envs.task.{name}.python_call" for name in ("start_episode", "update_batch",
+                                                                          "command_batch", "noise_scales")}
+    assert not compiled & task_entries, compiled & task_entries
+
+
+@pytest.mark.parametrize("scene, version", [("spleen", 1), ("spleen", 2), ("sphere", 2)])
+def test_the_helper_gets_the_cores_config_whole(scene, version):
+    config = benchmark_config(scene, version)
+    assert from_dict(GraspLiftConfig, json.loads(json.dumps(to_dict(GraspLiftConfig())))) == GraspLiftConfig()  # v0
+    assert from_dict(GraspLiftConfig, json.loads(json.dumps(to_dict(config)))) == config
+
+
+def test_no_helper_where_the_task_kernels_are_cached_or_it_is_switched_off(monkeypatch):
+    monkeypatch.setattr(first_run, "task_kernels_cached", lambda: True)
+    assert first_run.helper(GraspLiftConfig(), "float64") is None
+    monkeypatch.setattr(first_run, "task_kernels_cached", lambda: False)
+    monkeypatch.setenv(first_run.SWITCH, "0")
+    assert first_run.helper(GraspLiftConfig(), "float64") is None
+    monkeypatch.delenv(first_run.SWITCH)
+    monkeypatch.setattr(first_run.os, "cpu_count", lambda: 1)
+    assert first_run.helper(GraspLiftConfig(), "float64") is None
+
+
+def test_the_notice_names_what_compiles_and_that_it_happens_once():
+    assert NOTICE.startswith("msdgrasp: compiling") and "once" in NOTICE and "\n" not in NOTICE
