@@ -70,11 +70,15 @@ def test_msdgrasp_bench_compile_prints_the_json_and_writes_it_with_its_table(tmp
                                                                      "signatures": 1},
                                                              "m.g": {"inclusive_s": 0.5, "exclusive_s": 0.5,
                                                                      "signatures": 2}}}
-    monkeypatch.setattr(compile_time, "measure", lambda code: seen.append(code) or fake)
+    monkeypatch.setattr(compile_time, "measure", lambda code, env=None: seen.append((code, env)) or fake)
     out = tmp_path / "new" / "compile.json"  # (its folder is made)
     assert main(["bench", "compile", "--out", str(out)]) == 0
-    assert seen == [compile_time.workload("env")]
+    # as a first run is (its compile helper on) for the wall time, then in one process for the table
+    env = compile_time.workload("env")
+    assert seen == [(env, None), (env, {"MSDGRASP_COMPILE_HELPER": "0"})]
     printed = json.loads(capsys.readouterr().out)
-    assert printed == json.loads(out.read_text()) == {"what": "env", "package": "msdgrasp", **fake}
-    assert "| m.f | 1.0 | 1.5 | 1 |" in out.with_suffix(".md").read_text()
+    assert printed == json.loads(out.read_text()) == {"what": "env", "package": "msdgrasp", "first_run_wall_s": 2.0,
+                                                      **fake}
+    table = out.with_suffix(".md").read_text()
+    assert "| m.f | 1.0 | 1.5 | 1 |" in table and table.startswith("Cold first run of `env`: 2.0 s wall")
     assert main(["bench", "compile", "--out", str(tmp_path)]) == 2 and "is a folder" in capsys.readouterr().err
