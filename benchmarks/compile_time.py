@@ -29,7 +29,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from ..envs.first_run import SWITCH
+from ..envs.compile_helper import SWITCH
 
 #: the workloads: code run in the child after the recorder is installed (``msdgrasp``: the package measured)
 WORKLOADS = {

@@ -26,7 +26,7 @@ from ..physics.grasper import GrasperPose
 from ..physics.scenario import GraspScene, sphere_scene, spleen_scene
 from ..physics.device_layout import Precision
 from ..physics.simulation import SUBSTEP_SAFETY, Simulation
-from . import first_run
+from . import compile_helper
 from .perturbations import MAX_LATENCY_STEPS, draw_columns, privileged_names
 from .task import (
     D_AZIMUTH, D_KS, D_MS, D_MU, D_OFFSET_DIR, D_OFFSET_R, D_TILT, D_TILT_AXIS, MAX_LIFT_DELAY_STEPS, N_NOISE, OBS,
@@ -477,7 +477,7 @@ class GraspLiftCore:
 
             cfg = self.config = from_dict(GraspLiftConfig, {**to_dict(cfg),
                                                             "grasper_config": str(builtin_config("grasper/env.yaml"))})
-        compiling = first_run.helper(cfg, precision)  # the task's kernels, beside the physics' (a cold cache)
+        compiling = compile_helper.helper(cfg, precision)  # the task's kernels, beside the physics' (a cold cache)
         if cfg.scene == "spleen":
             self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution,
                                                   insert_depth_m=cfg.grasp_depth_m,
@@ -528,7 +528,7 @@ class GraspLiftCore:
         #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
         self.state = task_state(B, cfg.obs_history, self.frame_dim)
         self.__dict__.update(self.state._asdict())
-        first_run.join(compiling)
+        compile_helper.join(compiling)
 
     def __getstate__(self) -> dict[str, Any]:
         """The core's state without the render cache (matplotlib figures and Agg buffers cannot be pickled);

@@ -1,4 +1,5 @@
-"""A first run compiles the task's kernels in a helper process beside the physics (`msdgrasp.envs.first_run`):
+"""A first run compiles the task's kernels in a helper process beside the physics (`msdgrasp.envs.compile_helper`,
+`first_run` its program):
 the helper compiles what the core then loads, it simulates nothing, and it starts only where it helps."""
 
 from __future__ import annotations
@@ -8,7 +9,7 @@ import json
 import pytest
 
 from msdgrasp.benchmarks import compile_time
-from msdgrasp.envs import first_run
+from msdgrasp.envs import compile_helper as first_run
 from msdgrasp.envs.core import GraspLiftConfig, benchmark_config
 from msdgrasp.physics.config import from_dict, to_dict
 from msdgrasp.physics.jit import NOTICE

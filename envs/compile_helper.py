@@ -1,0 +1,63 @@
+"""A first run compiles on two cores: the task's kernels in a helper process beside the physics.
+
+A fresh install compiles every kernel on its first call, one after the other on one core: the physics'
+``simulate`` (which settling the scene needs first) and then the task's kernels (a reset and a step). The two
+sets share almost nothing, so where the task's kernels are not in numba's cache and the machine has a second
+core, :class:`.core.GraspLiftCore` starts :func:`helper`: a process that compiles them (into the same cache)
+while the core settles its scene, and waits for it before its first reset, which then loads them. The helper
+simulates nothing: its scene is the unsettled tissue (the kernels' types do not depend on the values) and its
+step advances no tissue. Where it fails, the core compiles what it did not, as without it. The environment
+variable ``MSDGRASP_COMPILE_HELPER=0`` switches it off.
+
+This module starts and waits for the helper; :mod:`.first_run` is the helper's program::
+
+    python -m msdgrasp.envs.first_run CONFIG_JSON PRECISION
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from typing import Any
+
+#: the longest a core waits for its helper, s (it compiles in about half a minute on one core)
+HELPER_TIMEOUT_S = 600.0
+#: the environment variable that switches the helper off ("0"); the helper's own process has it, so that its
+#: core starts no helper of its own
+SWITCH = "MSDGRASP_COMPILE_HELPER"
+
+
+def task_kernels_cached() -> bool:
+    """Whether numba's cache has an index for the task's reset kernel for Python callers: then the task's kernels
+    load (or, after an edit of their sources, the core compiles them itself), and a helper would only cost a
+    process. (The index's contents name the task's record types, which exist only once a core has built its
+    records: its file is what can be asked before.)"""
+    from .task import start_episode
+
+    return os.path.exists(start_episode.python_twin()._cache._cache_file._index_path)
+
+
+def helper(config: Any, precision: str) -> subprocess.Popen | None:
+    """Start the helper that compiles the task's kernels for ``config`` (a :class:`.core.GraspLiftConfig`; this module
+    is below the core, which starts it) and ``precision``; None where they are
+    cached or the machine has one core (there it would only compete with the physics' compilation)."""
+    if os.environ.get(SWITCH) == "0" or (os.cpu_count() or 1) < 2 or task_kernels_cached():
+        return None
+    from ..physics.config import to_dict
+
+    return subprocess.Popen([sys.executable, "-m", f"{__package__}.first_run", json.dumps(to_dict(config)),
+                             precision], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env={**os.environ, SWITCH: "0"})
+
+
+def join(process: subprocess.Popen | None) -> None:
+    """Wait for a helper (at most :data:`HELPER_TIMEOUT_S`; one that runs longer is stopped)."""
+    if process is None:
+        return
+    try:
+        process.wait(timeout=HELPER_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
