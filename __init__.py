@@ -8,7 +8,7 @@ Subpackages (data flows one way: configs -> physics -> envs -> agents):
 - :mod:`msdgrasp.agents`   training, baseline controllers, evaluation and the ``msdgrasp`` CLI.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 
 def _register_envs() -> None:
