@@ -39,11 +39,16 @@ def task_kernels_cached() -> bool:
     return os.path.exists(start_episode.python_twin()._cache._cache_file._index_path)
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity where the OS says, e.g. under ``taskset``; else all)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def helper(config: Any, precision: str) -> subprocess.Popen | None:
     """Start the helper that compiles the task's kernels for ``config`` (a :class:`.core.GraspLiftConfig`; this module
     is below the core, which starts it) and ``precision``; None where they are
     cached or the machine has one core (there it would only compete with the physics' compilation)."""
-    if os.environ.get(SWITCH) == "0" or (os.cpu_count() or 1) < 2 or task_kernels_cached():
+    if os.environ.get(SWITCH) == "0" or usable_cores() < 2 or task_kernels_cached():
         return None
     from ..physics.config import to_dict
 

@@ -45,8 +45,9 @@ def test_no_helper_where_the_task_kernels_are_cached_or_it_is_switched_off(monke
     monkeypatch.setenv(first_run.SWITCH, "0")
     assert first_run.helper(GraspLiftConfig(), "float64") is None
     monkeypatch.delenv(first_run.SWITCH)
-    monkeypatch.setattr(first_run.os, "cpu_count", lambda: 1)
+    monkeypatch.setattr(first_run, "usable_cores", lambda: 1)
     assert first_run.helper(GraspLiftConfig(), "float64") is None
+    assert 1 <= first_run.usable_cores() <= (first_run.os.cpu_count() or 1)
 
 
 def test_the_notice_names_what_compiles_and_that_it_happens_once():
