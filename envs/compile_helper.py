@@ -27,6 +27,9 @@ HELPER_TIMEOUT_S = 600.0
 #: the environment variable that switches the helper off ("0"); the helper's own process has it, so that its
 #: core starts no helper of its own
 SWITCH = "MSDGRASP_COMPILE_HELPER"
+#: whether this process has started a helper: at most one, so that where the cache cannot be written (the helper's
+#: work then lost) every later core does not wait for another
+_started = False
 
 
 def task_kernels_cached() -> bool:
@@ -46,10 +49,12 @@ def usable_cores() -> int:
 
 def helper(config: Any, precision: str) -> subprocess.Popen | None:
     """Start the helper that compiles the task's kernels for ``config`` (a :class:`.core.GraspLiftConfig`; this module
-    is below the core, which starts it) and ``precision``; None where they are
-    cached or the machine has one core (there it would only compete with the physics' compilation)."""
-    if os.environ.get(SWITCH) == "0" or usable_cores() < 2 or task_kernels_cached():
+    is below the core, which starts it) and ``precision``; None where they are cached, where the machine has one core
+    (there it would only compete with the physics' compilation) or where this process has started one before."""
+    global _started
+    if _started or os.environ.get(SWITCH) == "0" or usable_cores() < 2 or task_kernels_cached():
         return None
+    _started = True
     from ..physics.config import to_dict
 
     return subprocess.Popen([sys.executable, "-m", f"{__package__}.first_run", json.dumps(to_dict(config)),

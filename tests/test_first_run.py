@@ -38,7 +38,8 @@ def test_the_helper_gets_the_cores_config_whole(scene, version):
     assert from_dict(GraspLiftConfig, json.loads(json.dumps(to_dict(config)))) == config
 
 
-def test_no_helper_where_the_task_kernels_are_cached_or_it_is_switched_off(monkeypatch):
+def test_no_helper_where_the_task_kernels_are_cached_or_it_is_switched_off_or_one_ran(monkeypatch):
+    monkeypatch.setattr(first_run, "_started", False)
     monkeypatch.setattr(first_run, "task_kernels_cached", lambda: True)
     assert first_run.helper(GraspLiftConfig(), "float64") is None
     monkeypatch.setattr(first_run, "task_kernels_cached", lambda: False)
@@ -48,6 +49,9 @@ def test_no_helper_where_the_task_kernels_are_cached_or_it_is_switched_off(monke
     monkeypatch.setattr(first_run, "usable_cores", lambda: 1)
     assert first_run.helper(GraspLiftConfig(), "float64") is None
     assert 1 <= first_run.usable_cores() <= (first_run.os.cpu_count() or 1)
+    monkeypatch.setattr(first_run, "usable_cores", lambda: 2)
+    monkeypatch.setattr(first_run, "_started", True)  # (one helper per process: a cache it cannot write stays cold)
+    assert first_run.helper(GraspLiftConfig(), "float64") is None
 
 
 def test_the_notice_names_what_compiles_and_that_it_happens_once():
