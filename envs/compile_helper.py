@@ -39,7 +39,10 @@ def task_kernels_cached() -> bool:
     records: its file is what can be asked before.)"""
     from .task import start_episode
 
-    return os.path.exists(start_episode.python_twin()._cache._cache_file._index_path)
+    try:  # (numba's private cache API; without it, or without jit, no helper)
+        return os.path.exists(start_episode.python_twin()._cache._cache_file._index_path)
+    except Exception:
+        return True
 
 
 def usable_cores() -> int:
@@ -57,9 +60,14 @@ def helper(config: Any, precision: str) -> subprocess.Popen | None:
     _started = True
     from ..physics.config import to_dict
 
-    return subprocess.Popen([sys.executable, "-m", f"{__package__}.first_run", json.dumps(to_dict(config)),
-                             precision], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, env={**os.environ, SWITCH: "0"})
+    if not sys.executable or "python" not in os.path.basename(sys.executable).lower():
+        return None  # (an embedding host's executable is not Python's)
+    try:
+        return subprocess.Popen([sys.executable, "-m", f"{__package__}.first_run", json.dumps(to_dict(config)),
+                                 precision], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, env={**os.environ, SWITCH: "0"})
+    except OSError:  # the core compiles everything itself, as without a helper
+        return None
 
 
 def join(process: subprocess.Popen | None) -> None:

@@ -523,12 +523,12 @@ class GraspLiftCore:
         #: v2 the physics stream itself (the streams of earlier versions unchanged)
         self.sensor_rngs = self.rngs if not cfg.sensed_task_state else [np.random.default_rng() for _ in range(B)]
         self._noise_scales = np.zeros((B, N_NOISE))
+        compile_helper.join(compiling)  # (before the first task kernel this core calls: it loads what the helper made)
         self._set_params()
         #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
         #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
         self.state = task_state(B, cfg.obs_history, self.frame_dim)
         self.__dict__.update(self.state._asdict())
-        compile_helper.join(compiling)
 
     def __getstate__(self) -> dict[str, Any]:
         """The core's state without the render cache (matplotlib figures and Agg buffers cannot be pickled);

@@ -16,6 +16,7 @@ import sys
 import types
 from typing import Any, Callable
 
+from numba import config as numba_config
 from numba import njit
 from numba.core import event
 from numba.core.registry import CPUDispatcher
@@ -29,7 +30,9 @@ PYTHON_CALL_SUFFIX = ".python_call"
 
 
 class KernelDispatcher(CPUDispatcher):
-    """A numba dispatcher compiled without wrappers for jitted callers; a call from Python runs its twin."""
+    """A numba dispatcher compiled without wrappers for jitted callers; a call from Python runs its twin. (Numba's
+    ``get_overload``, ``overloads`` and ``compile`` hand out the linked versions, which numba itself uses: their entry
+    points are not for calling from Python; the kernel, or ``python_twin().get_overload``, is.)"""
 
     _twin: CPUDispatcher | None = None
 
@@ -52,6 +55,8 @@ def kernel(fn: Callable | None = None, *, inline: str = "never") -> Any:
     """``@kernel`` or ``@kernel(inline="always")``: compile ``fn`` with numba as a package kernel (above)."""
 
     def wrap(f: Callable) -> KernelDispatcher:
+        if numba_config.DISABLE_JIT:  # (numba's switch: the plain Python function, as njit gives)
+            return f
         dispatcher = KernelDispatcher(py_func=f, locals={},
                                       targetoptions={"nopython": True, **OPTIONS, **NO_WRAPPERS, "inline": inline})
         dispatcher.enable_caching()
@@ -78,10 +83,13 @@ class _FirstCompileNotice(event.Listener):
     def on_start(self, ev: event.Event) -> None:
         if self.said:
             return
-        f = getattr(ev.data.get("dispatcher"), "py_func", None)
-        if f is not None and f.__module__.split(".")[0] == __name__.split(".")[0]:
-            self.said = True
-            print(NOTICE, file=sys.stderr, flush=True)
+        try:  # (a listener's error would fail numba's compilation of whatever it was compiling)
+            module = getattr(getattr(ev.data.get("dispatcher"), "py_func", None), "__module__", None)
+            if isinstance(module, str) and module.split(".")[0] == __name__.split(".")[0]:
+                self.said = True
+                print(NOTICE, file=sys.stderr, flush=True)
+        except Exception:
+            pass
 
     def on_end(self, ev: event.Event) -> None:
         pass

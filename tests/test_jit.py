@@ -47,6 +47,7 @@ twin = double.python_twin()
 out["twin_name"] = twin.py_func.__qualname__
 out["twin_same_code"] = twin.py_func.__code__ is double.py_func.__code__
 out["twin_wrapped"] = [wrapped(c) for c in twin.overloads.values()]
+out["get_overload"] = twin.get_overload(twin.signatures[0])(3.0)  # (the twin's: callable from Python)
 out["linked_versions"] = len(double.overloads)
 print(json.dumps(out))
 '''
@@ -66,6 +67,7 @@ def test_a_kernel_linked_by_a_jitted_caller_has_no_wrappers_and_a_python_call_ru
     got = json.loads(proc.stdout.strip().splitlines()[-1])
     assert got == {"kernels": True, "quadruple": 6.0, "linked_wrapped": [False], "double": 4.0,
                    "twin_name": "double.python_call", "twin_same_code": True, "twin_wrapped": [True],
+                   "get_overload": 6.0,
                    "linked_versions": 1}  # (the Python call did not compile the linked version again)
 
 
@@ -82,3 +84,23 @@ def test_the_first_compilation_of_a_package_kernel_says_so_once_on_stderr_and_a_
     assert first.returncode == again.returncode == 0, first.stderr + again.stderr
     assert first.stderr.strip() == NOTICE  # once, for two signatures
     assert NOTICE not in again.stderr
+
+
+@pytest.mark.timeout(300)
+def test_the_notice_leaves_numbas_other_compilations_alone_and_no_jit_gives_the_python_function(tmp_path):
+    """A function numba compiles that is not the package's (here one made by exec, whose ``__module__`` is None, as
+    numba's own jitclass and structref constructors are) compiles as without the package, and prints nothing; with
+    ``NUMBA_DISABLE_JIT=1`` a kernel is its plain Python function, as ``njit`` gives."""
+    code = ("import msdgrasp.physics.jit\n"
+            "from numba import njit\n"
+            "ns = {}\nexec('def f(x):\\n    return x + 1', ns)\n"
+            "assert ns['f'].__module__ is None and njit(ns['f'])(1) == 2\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=280)
+    assert proc.returncode == 0 and NOTICE not in proc.stderr, proc.stderr
+    code = ("from msdgrasp.physics.jit import kernel\n"
+            "def g(x):\n    return x + 1\n"
+            "assert kernel(g) is g and kernel(inline='always')(g) is g\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={**env, "NUMBA_DISABLE_JIT": "1"}, timeout=280)
+    assert proc.returncode == 0, proc.stderr
