@@ -125,17 +125,14 @@ def simulate(model: SimModel, state: SimState, out: SimReadout, n_steps: int, la
     n = x.shape[1]
     ne = fv.shape[1]
     if lanes is None:
-        for b in range(nb):  # x[b] (N,3) and (N,3,1) are the same memory
-            _advance_block(b, x[b].reshape((n, 3, 1)), v[b].reshape((n, 3, 1)), fv[b].reshape((ne, 1)),
-                           dl_prev[b].reshape((ne, 1)), model, state, out, n_steps, None)
+        for b in range(nb):
+            _advance_alone(b, model, state, out, n_steps)
         return
     for k in range(lanes.shape[0]):
         lane0 = lanes[k, 0]
         nl = lanes[k, 1]
         if nl == 1:
-            _advance_block(lane0, x[lane0].reshape((n, 3, 1)), v[lane0].reshape((n, 3, 1)),
-                           fv[lane0].reshape((ne, 1)), dl_prev[lane0].reshape((ne, 1)), model, state, out, n_steps,
-                           None)
+            _advance_alone(lane0, model, state, out, n_steps)
             continue
         xl = np.empty((n, 3, nl), dtype=x.dtype)
         vl = np.empty((n, 3, nl), dtype=x.dtype)
@@ -144,6 +141,14 @@ def simulate(model: SimModel, state: SimState, out: SimReadout, n_steps: int, la
         _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, True)
         _advance_block(lane0, xl, vl, fvl, dll, model, state, out, n_steps, lanes)
         _to_lanes(x, v, fv, dl_prev, lane0, xl, vl, fvl, dll, False)
+
+
+@kernel
+def _advance_alone(b, model, state, out, n_steps):
+    """:func:`_advance_block` for tissue b alone: its (N,3) state as an (N,3,1) block (the same memory)."""
+    n, ne = state.x.shape[1], state.fv.shape[1]
+    _advance_block(b, state.x[b].reshape((n, 3, 1)), state.v[b].reshape((n, 3, 1)), state.fv[b].reshape((ne, 1)),
+                   state.dl_prev[b].reshape((ne, 1)), model, state, out, n_steps, None)
 
 
 @kernel

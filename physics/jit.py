@@ -70,8 +70,8 @@ def kernel(fn: Callable | None = None, *, inline: str = "never") -> Any:
 # ------------------------------------------------------------------------------------------------
 
 #: printed once per process on stderr when numba first compiles one of the package's functions
-NOTICE = ("msdgrasp: compiling the physics and task kernels for this machine (about 25 s on two cores, a minute "
-          "on one); this happens once, later runs load them from numba's cache")
+NOTICE = ("msdgrasp: compiling the physics and task kernels (about 25 s on two cores, a minute on one); this "
+          "happens once, later runs load them from numba's cache")
 
 
 class _FirstCompileNotice(event.Listener):

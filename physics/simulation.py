@@ -142,6 +142,7 @@ class Simulation:
         self._cuda = None  # physics.cuda_step.CudaBatch, made at the first step
         self.model = model
         self.batch_size = B = int(batch_size)
+        self._lanes = batch_lanes(B)  # the batch's lane blocks for simulate (None below LANE_MIN), made once
         self.dt = float(dt)
         self.max_stiffness_scale = float(max_stiffness_scale)
         self.min_mass_scale = float(min_mass_scale)
@@ -388,8 +389,7 @@ class Simulation:
             self._cuda.step(int(n_steps))
             self._cuda.download(state, out)
             return
-        simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps),
-                 batch_lanes(self.batch_size))
+        simulate(self.kernel_model(), self.kernel_state(), self.kernel_readout(), int(n_steps), self._lanes)
 
     def _step_subset(self, idx: np.ndarray, n_steps: int) -> None:
         """:meth:`step` of the tissues ``idx`` alone: their state and readouts gathered into a smaller batch,
