@@ -24,8 +24,8 @@ from typing import Any
 
 #: the longest a core waits for its helper, s (it compiles in about half a minute on one core)
 HELPER_TIMEOUT_S = 600.0
-#: the environment variable that switches the helper off ("0"); the helper's own process has it, so that its
-#: core starts no helper of its own
+#: the environment variable that switches the helper off ("0"); the helper's program sets it, so that its core
+#: starts no helper of its own
 SWITCH = "MSDGRASP_COMPILE_HELPER"
 #: whether this process has started a helper: at most one, so that where the cache cannot be written (the helper's
 #: work then lost) every later core does not wait for another
@@ -65,7 +65,7 @@ def helper(config: Any, precision: str) -> subprocess.Popen | None:
     try:
         return subprocess.Popen([sys.executable, "-m", f"{__package__}.first_run", json.dumps(to_dict(config)),
                                  precision], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, env={**os.environ, SWITCH: "0"})
+                                stderr=subprocess.DEVNULL)
     except OSError:  # the core compiles everything itself, as without a helper
         return None
 
