@@ -180,7 +180,8 @@ def fem_cli(args: argparse.Namespace) -> int:
     require_extra("viz", "msdgrasp experiment fem", "matplotlib")
     params = load_tissue_params(args.config or builtin_config("tissue/spleen.yaml"))
     result = compare(params, ComparisonSettings(cases=cases, resolutions=resolutions, poisson=args.poisson,
-                                                hertz=not args.no_hertz, large=not args.small_strain_only))
+                                                hertz=not args.no_hertz, quadratic=not args.no_quadratic,
+                                                large=not args.small_strain_only))
     out = Path(args.out)
     csv = write_comparison_csv(result["rows"], out / "fem.csv")
     png = plot_comparison(result, out / "fem.png")

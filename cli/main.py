@@ -148,7 +148,10 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("--poisson", type=float, default=0.25,
                     help="the continuum's Poisson ratio in [0, 0.5) (default 0.25: the spring network's own)")
     fe.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/spleen.yaml)")
-    fe.add_argument("--no-hertz", action="store_true", help="skip the FEM's Hertz check (three sphere meshes)")
+    fe.add_argument("--no-hertz", action="store_true",
+                    help="skip the FEM's Hertz checks (a rigid sphere on a half-space, a sphere between plates; ~40 s)")
+    fe.add_argument("--no-quadratic", action="store_true",
+                    help="skip the quadratic (P2) FEM at small strain (the linear reference's own error; minutes)")
     fe.add_argument("--small-strain-only", action="store_true",
                     help="only the small-strain (linear) comparison, not the neo-Hookean FEM and nonlinear MSD at "
                          "10 and 20 %%")

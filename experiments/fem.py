@@ -227,6 +227,33 @@ def fem_linear_forces(case: LoadCase, youngs_modulus_pa: float, poisson: float,
     return np.array([f1 * s * case.height_m for s in strains]), u1
 
 
+def fem_quadratic_force(case: LoadCase, youngs_modulus_pa: float, poisson: float) -> float:
+    """Linear FEM with quadratic (P2) tets on the case's tets: the indenter force per unit travel, N/m. An edge whose
+    two nodes are prescribed alike (both moved or both held) has its midpoint prescribed with them, the constraint
+    P1 implies along that edge; the force is the reaction on every moved dof. What the P1 reference's own
+    discretisation costs on the same mesh."""
+    skfem = _skfem()
+    from skfem.models.elasticity import linear_elasticity
+
+    mesh = case.mesh
+    m = skfem.MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
+    basis = skfem.Basis(m, skfem.ElementVector(skfem.ElementTetP2()))
+    K = skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+    nodal, edge = np.asarray(basis.nodal_dofs), np.asarray(basis.edge_dofs)
+    role = np.zeros(mesh.n_nodes, dtype=np.int64)  # 1 moved, 2 held
+    role[case.moved], role[case.held] = 1, 2
+    a, b = np.asarray(m.edges)
+    alike = (role[a] == role[b]) & (role[a] > 0)
+    comps = (0, 1, 2) if case.bonded else (2,)
+    moved = np.concatenate([nodal[2, case.moved], edge[2, alike & (role[a] == 1)]])
+    presc = [nodal[c, np.concatenate([case.moved, case.held])] for c in comps]
+    presc += [edge[c, alike] for c in comps] + [np.array([nodal[axis, i]]) for i, axis in case.pins]
+    u = np.zeros(K.shape[0])
+    u[moved] = -1.0
+    u = _solve_prescribed(K, np.unique(np.concatenate(presc)), u)
+    return float(-(K @ u)[moved].sum())
+
+
 def _neo_hookean_forms(lam: float, mu: float):
     skfem = _skfem()
     from skfem.helpers import ddot, det, grad, inv, mul, trace, transpose
@@ -654,6 +681,114 @@ def with_springs(model: TissueModel, k1: np.ndarray) -> TissueModel:
 # =================================================================================================
 
 
+def boussinesq_displacement(force_n: float, youngs_modulus_pa: float, poisson: float, points: np.ndarray) -> np.ndarray:
+    """Displacement (3, n), m, at ``points`` (3, n; the solid is z <= 0) of a linear half-space under a normal point
+    force ``force_n`` (N) pressing down at the origin (Boussinesq; Johnson, Contact Mechanics, eq. 3.19)."""
+    g = youngs_modulus_pa / (2.0 * (1.0 + poisson))
+    depth = -points[2]
+    r = np.hypot(points[0], points[1])
+    rho = np.sqrt(r * r + depth * depth)
+    c = force_n / (4.0 * math.pi * g)
+    u_r = c * (r * depth / rho**3 - (1.0 - 2.0 * poisson) * r / (rho * (rho + depth)))
+    u_down = c * (depth**2 / rho**3 + 2.0 * (1.0 - poisson) / rho)
+    safe = np.where(r > 0, r, 1.0)
+    return np.array([u_r * points[0] / safe, u_r * points[1] / safe, -u_down])
+
+
+def _graded_axis(first_m: float, ratio: float, length_m: float) -> np.ndarray:
+    """Grid coordinates 0 .. ``length_m`` whose spacing starts at about ``first_m`` and grows by ``ratio``."""
+    x = [0.0]
+    h = first_m
+    while x[-1] < length_m:
+        x.append(x[-1] + h)
+        h *= ratio
+    return np.asarray(x) * (length_m / x[-1])
+
+
+@dataclass
+class HalfSpaceHertz:
+    """A rigid sphere pressed into an elastic half-space (SI units; lengths relative to Hertz's contact radius a)."""
+
+    #: the sphere's radius, m
+    radius_m: float = 0.025
+    #: Hertz's contact radius a of the load, m (the indentation is a^2 / R)
+    contact_radius_m: float = 0.002
+    #: element order of the check (2: quadratic tets; 1: the comparison's linear tets)
+    order: int = 2
+    #: grid cells across a near the contact
+    cells_per_contact_radius: float = 4.0
+    #: growth of the grid spacing away from the contact
+    grading: float = 1.3
+    #: the modelled quarter block's edge over a (its far faces carry Boussinesq's displacements)
+    extent: float = 10.0
+
+
+def halfspace_hertz_force(youngs_modulus_pa: float, poisson: float, setup: HalfSpaceHertz = HalfSpaceHertz()) -> dict:
+    """The linear FEM of a frictionless rigid sphere (a paraboloid, as Hertz assumes) indenting a half-space by
+    a^2 / R. A quarter block (symmetry planes x = 0 and y = 0) on a tensor grid graded toward the contact; its far
+    faces carry the displacements of a point force equal to the contact force (Boussinesq; the block's truncation
+    error falls as (a / extent)^2 instead of a / extent), iterated to a fixed point. The surface's z dofs within 2 a
+    of the axis are condensed (one factorisation) and solved by an active set: a dof is in contact where it would
+    penetrate, released where its contact force would pull. Returns the FEM's and Hertz's forces, N."""
+    skfem = _skfem()
+    from skfem.models.elasticity import linear_elasticity
+
+    a, R = setup.contact_radius_m, setup.radius_m
+    depth, side = a * a / R, setup.extent * a
+    g = _graded_axis(a / setup.cells_per_contact_radius, setup.grading, side)
+    elem = skfem.ElementTetP1() if setup.order == 1 else skfem.ElementTetP2()
+    basis = skfem.Basis(skfem.MeshTet.init_tensor(g, g, -g[::-1]), skfem.ElementVector(elem))
+    K = skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+    X, tol = basis.doflocs, 1e-9 * side
+    comp = [np.asarray(basis.get_dofs().all(f"u^{i}")) for i in (1, 2, 3)]
+    symmetric = np.concatenate([comp[0][np.abs(X[0, comp[0]]) < tol], comp[1][np.abs(X[1, comp[1]]) < tol]])
+    far = np.setdiff1d(np.concatenate([c[(X[0, c] > side - tol) | (X[1, c] > side - tol) | (X[2, c] < tol - side)]
+                                       for c in comp]), symmetric)
+    axis = np.zeros(K.shape[0], dtype=np.int64)
+    for i, c in enumerate(comp):
+        axis[c] = i
+    surface = comp[2][np.abs(X[2, comp[2]]) < tol]
+    r = np.hypot(X[0, surface], X[1, surface])
+    cand, rc = surface[r < 2.0 * a], r[r < 2.0 * a]
+    free = np.setdiff1d(np.arange(K.shape[0]), np.concatenate([symmetric, cand, far]))
+    lu = spla.splu(K[free][:, free].tocsc())
+    K_fc = K[free][:, cand].toarray()
+    S = K[cand][:, cand].toarray() - K_fc.T @ lu.solve(K_fc)  # the candidates' condensed stiffness, N/m
+    target = -depth + rc**2 / (2.0 * R)  # the sphere's surface over each candidate, m
+    exact = 4.0 / 3.0 * youngs_modulus_pa / (1.0 - poisson**2) * math.sqrt(R) * depth**1.5
+    force, active = exact, rc < 0.7 * a
+    for _ in range(30):
+        u_far = np.zeros(K.shape[0])
+        u_far[far] = boussinesq_displacement(force, youngs_modulus_pa, poisson, X[:, far])[axis[far],
+                                                                                         np.arange(len(far))]
+        load = K[cand][:, far] @ u_far[far] - K[cand][:, free] @ lu.solve(K[free][:, far] @ u_far[far])
+        for _ in range(100):
+            u = np.where(active, target, 0.0)
+            off = ~active
+            if off.any():
+                u[off] = np.linalg.solve(S[np.ix_(off, off)], -S[np.ix_(off, active)] @ u[active] - load[off])
+            f = S @ u + load
+            release, add = active & (f > 0.0), off & (u > target)
+            if not (release.any() or add.any()):
+                break
+            active = (active & ~release) | add
+        else:
+            raise RuntimeError("half-space Hertz: the active set did not converge")
+        new = -4.0 * float(f[active].sum())
+        if abs(new - force) <= 1e-9 * exact:
+            break
+        force = new
+    return {"fem_N": new, "hertz_N": exact, "rel_error": new / exact - 1.0, "dofs": int(K.shape[0]),
+            "contact_radius_rel": float(rc[active].max() / a)}
+
+
+def halfspace_hertz_check(youngs_modulus_pa: float = 12e3, poisson: float = 0.25,
+                          setup: HalfSpaceHertz = HalfSpaceHertz()) -> dict:
+    """Hertz's force of a rigid sphere on a half-space against the FEM of :func:`halfspace_hertz_force`."""
+    out = halfspace_hertz_force(youngs_modulus_pa, poisson, setup)
+    return {"check": f"Hertz, rigid sphere on a half-space (linear FEM, P{setup.order} tets, contact)", **out}
+
+
 @dataclass
 class ComparisonSettings:
     """What :func:`compare` runs (SI units; strains as fractions of the case's height)."""
@@ -664,8 +799,12 @@ class ComparisonSettings:
     poisson: float = 0.25
     small_strain: float = SMALL_STRAIN
     large_strains: tuple[float, ...] = LARGE_STRAINS
-    #: also check the linear FEM against Hertz (three sphere meshes, a few seconds)
+    #: also check the FEM against Hertz (a rigid sphere on a half-space, P2 and P1; the P1 sphere between plates on
+    #: the three sphere meshes: about 40 s)
     hertz: bool = True
+    #: also solve the small strain with quadratic tets on the same mesh (the P1 reference's own error; minutes on the
+    #: fine meshes)
+    quadratic: bool = True
     #: also solve the large strains (neo-Hookean FEM, the nonlinear MSD: minutes on the fine meshes)
     large: bool = True
 
@@ -691,7 +830,13 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
     _check_settings(settings)
     E, nu = params.youngs_modulus_pa, settings.poisson
     checks = [bar_check(E, 0.45), confined_check(E, 0.45), neo_hookean_bar_check(E, 0.45)]
-    hertz = hertz_check(E, nu) if settings.hertz else None
+    hertz = hertz_p1 = None
+    if settings.hertz:
+        checks.append(halfspace_hertz_check(E, nu))
+        # reported, not checked: P1's own error in contact, on the same grid and on the project's spheres
+        hertz_p1 = halfspace_hertz_check(E, nu, HalfSpaceHertz(order=1, cells_per_contact_radius=6.0, grading=1.15,
+                                                               extent=15.0))
+        hertz = hertz_check(E, nu)
     rows: list[dict] = []
     poisson: dict[str, dict[str, float]] = {}
     curves: list[dict] = []
@@ -705,6 +850,7 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
                       "fem-fit": with_springs(base, fem_fit_springs(case.mesh, E, nu))}
             k_fem, u_fem = fem_linear_forces(case, E, nu, [1.0 / case.height_m])
             k_fem = float(k_fem[0])
+            k_p2 = fem_quadratic_force(case, E, nu) if settings.quadratic else None
             k_msd = {}
             for key, m in models.items():
                 k_msd[key], u = msd_linear_force(case, m)
@@ -719,6 +865,8 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
                              "strain": settings.small_strain, "fem": "linear", "msd": "linear springs",
                              "msd_N": k_msd[key] * travel, "fem_N": k_fem * travel,
                              "rel_error": k_msd[key] / k_fem - 1.0,
+                             **({"fem_p2_N": k_p2 * travel, "rel_error_p2": k_msd[key] / k_p2 - 1.0}
+                                if settings.quadratic else {}),
                              **({"factor": factor} if key == "calibrated" else {})})
             if name == "cube-slip" or not settings.large:
                 continue  # (its purpose is the Poisson ratio; the bonded cube carries the large strains)
@@ -743,7 +891,8 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
                                  "msd_N": float(fm), "fem_N": float(fn), "rel_error": float(fm / fn - 1.0),
                                  "msd_plain_N": float(fp), "plain_rel_error": float(fp / fn - 1.0)})
             curves.append(curve)
-    return {"youngs_modulus_pa": E, "poisson": nu, "checks": checks, "hertz": hertz, "rows": rows,
+    return {"youngs_modulus_pa": E, "poisson": nu, "checks": checks, "hertz": hertz, "hertz_halfspace_p1": hertz_p1,
+            "rows": rows,
             "poisson_ratio": poisson, "curves": curves, "verdicts": comparison_verdicts(checks, rows, poisson)}
 
 
@@ -751,8 +900,8 @@ def comparison_verdicts(checks: Sequence[dict], rows: Sequence[dict], poisson: d
     """The acceptance claims, checked on :func:`compare`'s numbers."""
     from .compression import verdict
 
-    out = [verdict("the FEM solver meets its closed forms (prism: E A / L, (lambda + 2 mu) A / L, neo-Hookean "
-                   "uniaxial stress)", all(abs(c["rel_error"]) <= FEM_CHECK_RTOL for c in checks),
+    out = [verdict("the FEM solver meets its closed forms (" + "; ".join(c["check"] for c in checks) + ")",
+                   all(abs(c["rel_error"]) <= FEM_CHECK_RTOL for c in checks),
                    ", ".join(f"{c['rel_error']:+.1e}" for c in checks) + f" (within {FEM_CHECK_RTOL:.0%})")]
     small = [r for r in rows if r["fem"] == "linear"]
     for key in DERIVATIONS:
@@ -764,6 +913,12 @@ def comparison_verdicts(checks: Sequence[dict], rows: Sequence[dict], poisson: d
                            "case and mesh", worst <= SMALL_STRAIN_RTOL,
                            ", ".join(f"{r['case']}/{r['resolution']} {r['rel_error']:+.1%}" for r in sel)
                            + (" (factor fitted on each case and mesh)" if key == "calibrated" else "")))
+    for key in ("van_gelder", "lloyd"):
+        sel = [r for r in small if r["derivation"] == key and "rel_error_p2" in r]
+        if sel:
+            out.append(verdict(f"MSD ({key}) within {SMALL_STRAIN_RTOL:.0%} of the quadratic (P2) FEM at small strain "
+                               "on every case and mesh", max(abs(r["rel_error_p2"]) for r in sel) <= SMALL_STRAIN_RTOL,
+                               ", ".join(f"{r['case']}/{r['resolution']} {r['rel_error_p2']:+.1%}" for r in sel)))
     for res, p in poisson.items():
         out.append(verdict(f"the network's effective Poisson ratio ({res} cube, uniaxial stress) is the continuum's",
                            abs(p["van_gelder"] - p["fem"]) <= 0.05,
@@ -831,7 +986,7 @@ def write_comparison_csv(rows: Sequence[dict], path) -> object:
     from ..physics.config import atomic_write
 
     cols = ["case", "resolution", "nodes", "derivation", "strain", "fem", "msd", "fem_N", "msd_N", "rel_error",
-            "msd_plain_N", "plain_rel_error", "factor"]
+            "fem_p2_N", "rel_error_p2", "msd_plain_N", "plain_rel_error", "factor"]
 
     def cell(v) -> str:
         return f"{v:.6g}" if isinstance(v, float) else ("" if v is None else str(v))

@@ -107,3 +107,33 @@ def test_the_command_writes_its_outputs(tmp_path, capsys):
     assert nu["fem"] == pytest.approx(0.25) and nu["van_gelder"] < 0.2
     rows = [r for r in summary["rows"] if r["derivation"] == "calibrated"]
     assert rows and all(abs(r["rel_error"]) < 1e-9 for r in rows)
+
+
+def test_boussinesq_meets_its_surface_closed_form():
+    # on the surface of a half-space under a point force P: u_z = -(1 - nu^2) P / (pi E r),
+    # u_r = -(1 - 2 nu)(1 + nu) P / (2 pi E r) (Johnson, Contact Mechanics, eq. 3.20)
+    nu, P, r = 0.3, 0.5, 0.01
+    u = fem.boussinesq_displacement(P, E, nu, np.array([[r * 0.6], [r * 0.8], [0.0]]))[:, 0]
+    assert u[2] == pytest.approx(-(1 - nu**2) * P / (math.pi * E * r), rel=1e-12)
+    u_r = -(1 - 2 * nu) * (1 + nu) * P / (2 * math.pi * E * r)
+    assert u[:2] == pytest.approx([0.6 * u_r, 0.8 * u_r], rel=1e-12)
+
+
+def test_the_fem_meets_hertz_for_a_rigid_sphere_on_a_half_space():
+    # quadratic tets on a graded grid, the far faces carrying Boussinesq's field: Hertz's force to 2 % and his
+    # contact radius to a cell of the grid (a quarter of a)
+    check = fem.halfspace_hertz_check(E, 0.25)
+    assert abs(check["rel_error"]) <= fem.FEM_CHECK_RTOL
+    assert abs(check["contact_radius_rel"] - 1.0) <= 0.25
+
+
+def test_the_quadratic_reference_is_never_stiffer_than_the_linear_one_and_equal_under_uniform_strain():
+    # the P2 space on the same tets holds every P1 field that meets the same prescribed nodes (an edge between two
+    # nodes moved alike keeps its midpoint with them), so its energy, and the force per unit travel, is at most P1's
+    for name in ("cube", "sphere", "spleen"):
+        case = fem.load_case(name, "coarse")
+        k1, _ = fem.fem_linear_forces(case, E, 0.3, [1.0 / case.height_m])
+        assert fem.fem_quadratic_force(case, E, 0.3) <= k1[0] * (1 + 1e-9)
+    # uniaxial stress is a uniform strain, which P1 already holds exactly
+    case = fem.load_case("cube-slip", "coarse")
+    assert fem.fem_quadratic_force(case, E, 0.3) == pytest.approx(E * fem.CUBE_SIDE_M, rel=1e-9)
