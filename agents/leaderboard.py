@@ -143,10 +143,31 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
     per mu (default: :func:`reference_forces`, from the table of the result's task); ``against``: a track every run of
     the others is compared with per condition (its successes against that track's pooled success rate, its mean peak
     pinch over that track's: the question "does each seed hold as much as X, with less force?")."""
-    specs = [r["spec"] for r in result["results"]]
     if references is None:
         references = reference_forces(result)
     conditions = [c["name"] for c in result["conditions"]]
+    members = _track_members([r["spec"] for r in result["results"]], tracks, baseline, against)
+    runs = {name: [_episodes(result, s, references) for s in hits] for name, hits in members.items()}
+    rows = []
+    for name, per_run in runs.items():
+        row = _track_row(name, members[name], per_run, conditions)
+        if baseline is not None and name != baseline:
+            p, lo, hi = probability_of_improvement_ci(*(
+                [np.concatenate([_score(r[c]) for r in side]) for c in range(len(conditions))]
+                for side in (per_run, runs[baseline])))
+            row["p_improvement"] = {"over": baseline, "value": float(p), "ci95": [float(lo), float(hi)]}
+        rows.append(row)
+    if against is not None:
+        _compare_runs_against(rows, against, runs[against], len(conditions))
+    return {"suite": result["suite"], "version": result["version"], "protocol": result.get("protocol"),
+            "seeds": result.get("seeds"), "conditions": conditions, "baseline": baseline, "against": against,
+            "reference_force_N": references, "task_from": result.get("task_from"), "tracks": rows}
+
+
+def _track_members(specs: Sequence[str], tracks: Sequence[tuple[str, str]], baseline: str | None,
+                   against: str | None) -> dict[str, list[str]]:
+    """Each track's policies (its pattern's alternatives joined by ``|``, fnmatch); every track matches one at least,
+    and the baseline and the against track are tracks."""
     members: dict[str, list[str]] = {}
     for name, pattern in tracks:
         hits = [s for s in specs if any(fnmatch.fnmatchcase(s, p) for p in pattern.split("|"))]
@@ -157,64 +178,59 @@ def build_leaderboard(result: dict[str, Any], tracks: Sequence[tuple[str, str]],
     for flag, name in (("--baseline", baseline), ("--against", against)):
         if name is not None and name not in members:
             raise ConfigError(f"{flag} {name!r} is no track; tracks: {', '.join(members)}")
-    runs = {name: [_episodes(result, s, references) for s in hits] for name, hits in members.items()}
-    rows = []
-    for name, per_run in runs.items():
-        cells = []
-        for c, cond in enumerate(conditions):
-            success = np.concatenate([r[c]["success"] for r in per_run])
-            ratio = np.concatenate([r[c]["ratio"] for r in per_run])
-            lift = np.concatenate([r[c]["lift"] for r in per_run])
-            k, n = int(success.sum()), int(len(success))
-            per_seed = [float(r[c]["success"].mean()) for r in per_run]
-            cells.append({"condition": cond, "successes": k, "episodes": n, "success_rate": k / n,
-                          "success_lower_bound": wilson_lower_bound(k, n), "worst_run_success_rate": min(per_seed),
-                          "force_ratio": _mean(ratio), "time_to_lift_s": _mean(lift)})
-        # rliable's aggregates: tasks = conditions, runs = the track's seeds, episodes within each run
-        succ = [np.stack([r[c]["success"].astype(float) for r in per_run]) for c in range(len(conditions))]
-        ratio_tasks = [np.stack([np.nan_to_num(r[c]["ratio"], nan=0.0) for r in per_run])
-                       for c in range(len(conditions))]
-        s_point, s_lo, s_hi = stratified_bootstrap_ci(succ, iqm_of_runs)
-        # (the IQM trims the worst quarter of runs x conditions, where a success rate's failures sit: the mean beside)
-        m_point, m_lo, m_hi = stratified_bootstrap_ci(succ, mean_of_runs)
-        f_point, f_lo, f_hi = stratified_bootstrap_ci(ratio_tasks, iqm_of_runs)
-        ratios = np.concatenate([np.where(r[c]["success"], r[c]["ratio"], np.inf) for r in per_run
-                                 for c in range(len(conditions))])
-        ratios = np.where(np.isfinite(ratios), ratios, 1e9)
-        profile = performance_profile_at_most(ratios, PROFILE_TAUS)
-        per_policy = [{"policy": spec, "cells": [{"successes": int(r[c]["success"].sum()),
-                                                   "episodes": int(len(r[c]["success"])),
-                                                   "mean_peak_pinch_N": _mean(r[c]["pinch"]),
-                                                   "force_ratio": _mean(r[c]["ratio"])}
-                                                  for c in range(len(conditions))]}
-                      for spec, r in zip(members[name], per_run)]
-        row = {"track": name, "policies": members[name], "runs": len(per_run), "cells": cells, "per_run": per_policy,
-               "success_iqm": float(s_point), "success_iqm_ci95": [float(s_lo), float(s_hi)],
-               "success_mean": float(m_point), "success_mean_ci95": [float(m_lo), float(m_hi)],
-               "force_ratio_iqm": float(f_point), "force_ratio_iqm_ci95": [float(f_lo), float(f_hi)],
-               "lowest_lower_bound": min(c["success_lower_bound"] for c in cells),
-               "time_to_lift_s": _mean(np.array([c["time_to_lift_s"] for c in cells])),
-               "profile": {f"{t:g}": float(v) for t, v in zip(PROFILE_TAUS, profile)}}
-        if baseline is not None and name != baseline:
-            x = [np.concatenate([_score(r[c]) for r in per_run]) for c in range(len(conditions))]
-            y = [np.concatenate([_score(r[c]) for r in runs[baseline]]) for c in range(len(conditions))]
-            p, lo, hi = probability_of_improvement_ci(x, y)
-            row["p_improvement"] = {"over": baseline, "value": float(p), "ci95": [float(lo), float(hi)]}
-        rows.append(row)
-    if against is not None:
-        ref = runs[against]
-        rate = [float(np.mean(np.concatenate([r[c]["success"] for r in ref]))) for c in range(len(conditions))]
-        pinch = [_mean(np.concatenate([r[c]["pinch"] for r in ref])) for c in range(len(conditions))]
-        for row in rows:
-            if row["track"] == against:
-                continue
-            for run in row["per_run"]:
-                run["against"] = [{"holds_as_many": x["successes"] >= rate[c] * x["episodes"] - 1e-9,
-                                   "pinch_over_against": x["mean_peak_pinch_N"] / pinch[c] if pinch[c] else math.nan}
-                                  for c, x in enumerate(run["cells"])]
-    return {"suite": result["suite"], "version": result["version"], "protocol": result.get("protocol"),
-            "seeds": result.get("seeds"), "conditions": conditions, "baseline": baseline, "against": against,
-            "reference_force_N": references, "task_from": result.get("task_from"), "tracks": rows}
+    return members
+
+
+def _condition_cell(per_run: list, c: int, condition: str) -> dict[str, Any]:
+    """A track's pooled cell of one condition: successes, Wilson bound, worst run, force ratio, time to lift."""
+    success = np.concatenate([r[c]["success"] for r in per_run])
+    k, n = int(success.sum()), int(len(success))
+    return {"condition": condition, "successes": k, "episodes": n, "success_rate": k / n,
+            "success_lower_bound": wilson_lower_bound(k, n),
+            "worst_run_success_rate": min(float(r[c]["success"].mean()) for r in per_run),
+            "force_ratio": _mean(np.concatenate([r[c]["ratio"] for r in per_run])),
+            "time_to_lift_s": _mean(np.concatenate([r[c]["lift"] for r in per_run]))}
+
+
+def _track_row(name: str, policies: list[str], per_run: list, conditions: list[str]) -> dict[str, Any]:
+    """A track's row: its cells, its runs' cells, rliable's aggregates (tasks = conditions, runs = the track's
+    seeds, episodes within each run) and its performance profile."""
+    n = len(conditions)
+    cells = [_condition_cell(per_run, c, cond) for c, cond in enumerate(conditions)]
+    succ = [np.stack([r[c]["success"].astype(float) for r in per_run]) for c in range(n)]
+    ratio_tasks = [np.stack([np.nan_to_num(r[c]["ratio"], nan=0.0) for r in per_run]) for c in range(n)]
+    s_point, s_lo, s_hi = stratified_bootstrap_ci(succ, iqm_of_runs)
+    # (the IQM trims the worst quarter of runs x conditions, where a success rate's failures sit: the mean beside)
+    m_point, m_lo, m_hi = stratified_bootstrap_ci(succ, mean_of_runs)
+    f_point, f_lo, f_hi = stratified_bootstrap_ci(ratio_tasks, iqm_of_runs)
+    ratios = np.concatenate([np.where(r[c]["success"], r[c]["ratio"], np.inf) for r in per_run for c in range(n)])
+    profile = performance_profile_at_most(np.where(np.isfinite(ratios), ratios, 1e9), PROFILE_TAUS)
+    per_policy = [{"policy": spec, "cells": [{"successes": int(r[c]["success"].sum()),
+                                               "episodes": int(len(r[c]["success"])),
+                                               "mean_peak_pinch_N": _mean(r[c]["pinch"]),
+                                               "force_ratio": _mean(r[c]["ratio"])} for c in range(n)]}
+                  for spec, r in zip(policies, per_run)]
+    return {"track": name, "policies": policies, "runs": len(per_run), "cells": cells, "per_run": per_policy,
+            "success_iqm": float(s_point), "success_iqm_ci95": [float(s_lo), float(s_hi)],
+            "success_mean": float(m_point), "success_mean_ci95": [float(m_lo), float(m_hi)],
+            "force_ratio_iqm": float(f_point), "force_ratio_iqm_ci95": [float(f_lo), float(f_hi)],
+            "lowest_lower_bound": min(c["success_lower_bound"] for c in cells),
+            "time_to_lift_s": _mean(np.array([c["time_to_lift_s"] for c in cells])),
+            "profile": {f"{t:g}": float(v) for t, v in zip(PROFILE_TAUS, profile)}}
+
+
+def _compare_runs_against(rows: list[dict], against: str, ref: list, n: int) -> None:
+    """Marks every run of the other tracks per condition: does it hold as many as the ``against`` track's pooled
+    success rate, and its mean peak pinch over that track's."""
+    rate = [float(np.mean(np.concatenate([r[c]["success"] for r in ref]))) for c in range(n)]
+    pinch = [_mean(np.concatenate([r[c]["pinch"] for r in ref])) for c in range(n)]
+    for row in rows:
+        if row["track"] == against:
+            continue
+        for run in row["per_run"]:
+            run["against"] = [{"holds_as_many": x["successes"] >= rate[c] * x["episodes"] - 1e-9,
+                               "pinch_over_against": x["mean_peak_pinch_N"] / pinch[c] if pinch[c] else math.nan}
+                              for c, x in enumerate(run["cells"])]
 
 
 def _n(x: float | None, fmt: str) -> str:

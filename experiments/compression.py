@@ -247,10 +247,17 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float,
     """The paper's compression claims checked on simulated curves (one dict per claim: claim, verdict,
     numbers). Rates: the slowest and the fastest curve; forces: the mean of the two plates. ``relaxation``
     (g, tau s) of the sample's Maxwell branch gives the rate effect's prediction (:func:`sls_hertz_rate_ratio`)."""
-    out = []
     slow = min(curves, key=lambda c: c.rate_mm_per_min)
     fast = max(curves, key=lambda c: c.rate_mm_per_min)
     reach = min(c.deformation_mm[-1] for c in curves)
+    out = _rate_verdicts(slow, fast, reach, height_mm, relaxation) if fast is not slow else []
+    return out + _plate_verdicts(curves) + _shape_verdicts(slow, reach, height_mm)
+
+
+def _rate_verdicts(slow: CompressionCurve, fast: CompressionCurve, reach: float, height_mm: float,
+                   relaxation: tuple[float, float] | None) -> list[dict]:
+    """The rate effect: the fast curve stiffer from small strain, and as the standard linear solid predicts."""
+    out = []
     marks = [f for f in RATE_SLS_MARKS if f * height_mm <= reach + 1e-9]
     small = [d for d in RATE_SMALL_MM if d <= reach + 1e-9]
 
@@ -258,14 +265,14 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float,
         return float(np.interp(d_mm, fast.deformation_mm, fast.force_N)
                      / np.interp(d_mm, slow.deformation_mm, slow.force_N))
 
-    if fast is not slow and small:
+    if small:
         ratios = [rate_ratio(d) for d in small]
         out.append(verdict(
             f"rate dependence (Fig. 5): {fast.rate_mm_per_min:g} mm/min stiffer than {slow.rate_mm_per_min:g} from "
             f"small strain", min(ratios) >= RATE_SMALL_MIN,
             "force ratio " + ", ".join(f"{r:.2f} at {d:g} mm" for d, r in zip(small, ratios))
             + f" (>= {RATE_SMALL_MIN})"))
-    if fast is not slow and marks and relaxation is not None and relaxation[0] > 0:
+    if marks and relaxation is not None and relaxation[0] > 0:
         g, tau = relaxation
         ratios = [rate_ratio(f * height_mm) for f in marks]
         pred = [sls_hertz_rate_ratio(f * height_mm * 1e-3, slow.rate_mm_per_min * 1e-3 / 60.0,
@@ -275,6 +282,12 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float,
             all(abs(r / p - 1.0) <= RATE_SLS_RTOL for r, p in zip(ratios, pred)),
             ", ".join(f"{r:.2f} vs {p:.2f} at {f:.0%}" for f, r, p in zip(marks, ratios, pred))
             + f" (within {RATE_SLS_RTOL:.0%})"))
+    return out
+
+
+def _plate_verdicts(curves: Sequence[CompressionCurve]) -> list[dict]:
+    """What the plates see: the sample upright, both plates carrying one force, no tet inverted."""
+    out = []
     if all(c.tilt_deg is not None for c in curves):
         tilt = max(float(np.max(c.tilt_deg)) for c in curves)
         out.append(verdict("the sample stays upright between the plates", tilt < 2.0,
@@ -292,6 +305,12 @@ def compression_verdicts(curves: Sequence[CompressionCurve], height_mm: float,
                             f"largest |top - bottom| / mean {worst:.1%} (forces above 5% of the largest)"))
         vmin = min(float(np.min(c.min_volume_ratio)) for c in curves)
         out.append(verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
+    return out
+
+
+def _shape_verdicts(slow: CompressionCurve, reach: float, height_mm: float) -> list[dict]:
+    """The slow curve's shape: stiffening with deformation, Hertz's exponent at small strain."""
+    out = []
     d, f = slow.deformation_mm, slow.force_N
     if reach >= 0.15 * height_mm:
         secant = [float(np.interp(x * height_mm, d, f) / (x * height_mm)) for x in (0.05, 0.10, 0.15)]

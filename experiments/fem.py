@@ -896,6 +896,16 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
             "poisson_ratio": poisson, "curves": curves, "verdicts": comparison_verdicts(checks, rows, poisson)}
 
 
+def _band_verdict(claim: str, rows: Sequence[dict], error: str, tol: float, note: str = "") -> dict:
+    """One verdict: every row's relative error ``rows[i][error]`` within ``tol`` (a non-finite one fails)."""
+    from .compression import verdict
+
+    worst = max(abs(r[error]) if math.isfinite(r[error]) else math.inf for r in rows)
+    strain = (lambda r: f" {r['strain']:.0%}") if any(r["fem"] == "neo-Hookean" for r in rows) else (lambda r: "")
+    return verdict(claim, worst <= tol, ", ".join(f"{r['case']}/{r['resolution']}{strain(r)} {r[error]:+.1%}"
+                                                  for r in rows) + note)
+
+
 def comparison_verdicts(checks: Sequence[dict], rows: Sequence[dict], poisson: dict) -> list[dict]:
     """The acceptance claims, checked on :func:`compare`'s numbers."""
     from .compression import verdict
@@ -904,34 +914,23 @@ def comparison_verdicts(checks: Sequence[dict], rows: Sequence[dict], poisson: d
                    all(abs(c["rel_error"]) <= FEM_CHECK_RTOL for c in checks),
                    ", ".join(f"{c['rel_error']:+.1e}" for c in checks) + f" (within {FEM_CHECK_RTOL:.0%})")]
     small = [r for r in rows if r["fem"] == "linear"]
-    for key in DERIVATIONS:
-        sel = [r for r in small if r["derivation"] == key]
-        if not sel:
-            continue
-        worst = max(abs(r["rel_error"]) for r in sel)
-        out.append(verdict(f"MSD ({key}) within {SMALL_STRAIN_RTOL:.0%} of the linear FEM at small strain on every "
-                           "case and mesh", worst <= SMALL_STRAIN_RTOL,
-                           ", ".join(f"{r['case']}/{r['resolution']} {r['rel_error']:+.1%}" for r in sel)
-                           + (" (factor fitted on each case and mesh)" if key == "calibrated" else "")))
-    for key in ("van_gelder", "lloyd"):
-        sel = [r for r in small if r["derivation"] == key and "rel_error_p2" in r]
+    large = [r for r in rows if r["fem"] == "neo-Hookean" and r["strain"] > SMALL_STRAIN + 1e-12]
+    band = f"within {SMALL_STRAIN_RTOL:.0%} of the"
+    claims = [(key, small, "rel_error", f"{band} linear FEM at small strain", SMALL_STRAIN_RTOL) for key in DERIVATIONS]
+    claims += [(key, [r for r in small if "rel_error_p2" in r], "rel_error_p2",
+                f"{band} quadratic (P2) FEM at small strain", SMALL_STRAIN_RTOL) for key in ("van_gelder", "lloyd")]
+    claims += [(key, large, "rel_error", f"within {2 * SMALL_STRAIN_RTOL:.0%} of the neo-Hookean FEM at large strain",
+                2 * SMALL_STRAIN_RTOL) for key in ("van_gelder", "calibrated")]
+    for key, pool, error, what, tol in claims:
+        sel = [r for r in pool if r["derivation"] == key]
         if sel:
-            out.append(verdict(f"MSD ({key}) within {SMALL_STRAIN_RTOL:.0%} of the quadratic (P2) FEM at small strain "
-                               "on every case and mesh", max(abs(r["rel_error_p2"]) for r in sel) <= SMALL_STRAIN_RTOL,
-                               ", ".join(f"{r['case']}/{r['resolution']} {r['rel_error_p2']:+.1%}" for r in sel)))
+            note = " (factor fitted on each case and mesh)" if key == "calibrated" and pool is small else ""
+            out.append(_band_verdict(f"MSD ({key}) {what}" + (" on every case and mesh" if pool is not large else ""),
+                                     sel, error, tol, note))
     for res, p in poisson.items():
         out.append(verdict(f"the network's effective Poisson ratio ({res} cube, uniaxial stress) is the continuum's",
                            abs(p["van_gelder"] - p["fem"]) <= 0.05,
                            ", ".join(f"{k} {v:.3f}" for k, v in p.items())))
-    large = [r for r in rows if r["fem"] == "neo-Hookean" and r["strain"] > SMALL_STRAIN + 1e-12]
-    for key in ("van_gelder", "calibrated"):
-        sel = [r for r in large if r["derivation"] == key]
-        if sel:
-            worst = max(abs(r["rel_error"]) if math.isfinite(r["rel_error"]) else math.inf for r in sel)
-            out.append(verdict(f"MSD ({key}) within {2 * SMALL_STRAIN_RTOL:.0%} of the neo-Hookean FEM at large strain",
-                               worst <= 2 * SMALL_STRAIN_RTOL,
-                               ", ".join(f"{r['case']}/{r['resolution']} {r['strain']:.0%} {r['rel_error']:+.1%}"
-                                         for r in sel)))
     return out
 
 

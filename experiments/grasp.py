@@ -63,10 +63,8 @@ class GraspRun:
     summary: dict = field(default_factory=dict)
 
 
-def run_grasp(
-    scene: GraspScene, mus, protocol: GraspProtocol = GraspProtocol(), *, progress: bool = False
-) -> list[GraspRun]:
-    """Run the close/hold/pull protocol for each friction coefficient (one batch); 1 ms physics steps."""
+def _checked_mus(scene: GraspScene, mus) -> list[float]:
+    """The friction coefficients, each >= 0, at least one; the grasper's axis must reach the tissue."""
     mus = [float(m) for m in mus]
     if not mus:
         raise ConfigError("mu: give at least one friction coefficient")
@@ -77,15 +75,51 @@ def run_grasp(
             "no contact: the grasper axis misses the tissue (jaw reach "
             f"{np.round(scene.reach * 1e3, 2).tolist()} mm vs minimum radius {scene.grasper.min_radius_m * 1e3:.2f} mm)"
         )
+    return mus
+
+
+def _frame(sim, scene: GraspScene) -> dict[str, np.ndarray]:
+    """What one recorded step reads off the simulation, per run of the batch."""
+    jo = sim.jaw_out
+    ft = jo[:, :, J_TX : J_TZ + 1]
+    face_n, face_t, wall = sim.jaw_face_forces()
+    return {"jo": jo, "ft_mag": np.linalg.norm(ft, axis=2), "pull_force": ft.sum(axis=1) @ scene.pull_direction,
+            "contact": jo[:, :, J_CONTACT].sum(axis=1), "pulled": (sim.g_tip - scene.pose.tip) @ scene.pull_direction,
+            "anchor": np.linalg.norm(sim.anchor_out, axis=1), "finite": sim.finite(),
+            "vratio": sim.min_volume_ratio(), "face_n": face_n.sum(axis=1),
+            "face_t": np.linalg.norm(face_t, axis=2).sum(axis=1), "wall": np.linalg.norm(wall, axis=2).sum(axis=1)}
+
+
+def _row(sim, f: dict[str, np.ndarray], b: int, phase: int, slip_mm: float) -> list:
+    """Run ``b``'s row of :data:`COLUMNS` from a frame."""
+    jo, normal = f["jo"][b], float(f["jo"][b, :, J_NORMAL].sum())
+    return [float(sim.t[b]), PHASES[phase], normal, normal, float(f["ft_mag"][b].sum()), float(f["pull_force"][b]),
+            int(f["contact"][b]), int(jo[:, J_STICK].sum()), int(jo[:, J_SLIP].sum()), slip_mm,
+            float(f["pulled"][b] * 1e3), float(sim.g_radius[b] * 1e3), float(f["anchor"][b]),
+            float(jo[:, 8].max() * 1e-3), *[float(v) for v in jo[:, J_NORMAL]], *[float(v) for v in f["ft_mag"][b]],
+            float(f["vratio"][b]), float(f["face_n"][b]), float(f["face_t"][b]), float(f["wall"][b])]
+
+
+def _ended(f: dict[str, np.ndarray], b: int, phase: int, had_contact: bool, protocol: GraspProtocol) -> str | None:
+    """The outcome that ends run ``b`` at this frame, or None."""
+    if phase == 2 and had_contact and f["contact"][b] == 0:
+        return "grasp lost"
+    if f["anchor"][b] > protocol.tear_force_N:
+        return "torn from anchors"
+    return None
+
+
+def run_grasp(
+    scene: GraspScene, mus, protocol: GraspProtocol = GraspProtocol(), *, progress: bool = False
+) -> list[GraspRun]:
+    """Run the close/hold/pull protocol for each friction coefficient (one batch); 1 ms physics steps."""
+    mus = _checked_mus(scene, mus)
     B = len(mus)
     sim = scene.simulation(B)
     sim.set_friction(mus)
-    pull_dir = scene.pull_direction
     n_close = int(round(protocol.close_time_s * 1e3))
     n_hold = int(round(protocol.hold_time_s * 1e3))
-    n_pull = int(round(protocol.pull_time_s * 1e3))
-    total = n_close + n_hold + n_pull
-    rec = protocol.record_every
+    total = n_close + n_hold + int(round(protocol.pull_time_s * 1e3))
     rows: list[list[list]] = [[] for _ in range(B)]
     active = np.ones(B, dtype=bool)
     outcome = ["time limit"] * B
@@ -100,52 +134,26 @@ def run_grasp(
     step = 0
     while step < total and np.any(active):
         phase = 0 if step < n_close else (1 if step < n_close + n_hold else 2)
-        boundary = n_close if phase == 0 else (n_close + n_hold if phase == 1 else total)
-        todo = min(rec, boundary - step)
+        boundary = (n_close, n_close + n_hold, total)[phase]
+        todo = min(protocol.record_every, boundary - step)
         sim.command(
             closing_speed=protocol.closing_speed_m_s if phase == 0 else 0.0,
-            pull_velocity=pull_dir * (protocol.pull_speed_m_s if phase == 2 else 0.0),
+            pull_velocity=scene.pull_direction * (protocol.pull_speed_m_s if phase == 2 else 0.0),
         )
         sim.step(todo, indices=np.flatnonzero(active))  # (a run that has ended stands still: nothing reads it again)
         step += todo
         if bar is not None:
             bar.update(todo)
-        jo = sim.jaw_out
         slip_cum += sim.jaw_slip_distance
-        ft = jo[:, :, J_TX : J_TZ + 1]
-        ft_mag = np.linalg.norm(ft, axis=2)
-        pull_force = ft.sum(axis=1) @ pull_dir
-        contact = jo[:, :, J_CONTACT].sum(axis=1)
-        pulled = (sim.g_tip - scene.pose.tip) @ pull_dir
-        anchor = np.linalg.norm(sim.anchor_out, axis=1)
-        finite = sim.finite()
-        vratio = sim.min_volume_ratio()
-        face_n, face_t, wall = sim.jaw_face_forces()
-        face_t_mag = np.linalg.norm(face_t, axis=2).sum(axis=1)
-        wall_mag = np.linalg.norm(wall, axis=2).sum(axis=1)
+        f = _frame(sim, scene)
         for b in np.flatnonzero(active):
-            if not finite[b]:
-                active[b] = False
-                outcome[b] = "numerical failure"
-                end_time[b] = float(sim.t[b])
-                continue
-            had_contact[b] |= contact[b] > 0
-            rows[b].append([
-                float(sim.t[b]), PHASES[phase], float(jo[b, :, J_NORMAL].sum()), float(jo[b, :, J_NORMAL].sum()),
-                float(ft_mag[b].sum()), float(pull_force[b]), int(contact[b]), int(jo[b, :, J_STICK].sum()),
-                int(jo[b, :, J_SLIP].sum()), float(slip_cum[b].mean() * 1e3), float(pulled[b] * 1e3),
-                float(sim.g_radius[b] * 1e3), float(anchor[b]), float(sim.jaw_out[b, :, 8].max() * 1e-3),
-                *[float(v) for v in jo[b, :, J_NORMAL]], *[float(v) for v in ft_mag[b]], float(vratio[b]),
-                float(face_n[b].sum()), float(face_t_mag[b]), float(wall_mag[b]),
-            ])
-            if phase == 2 and had_contact[b] and contact[b] == 0:
-                active[b] = False
-                outcome[b] = "grasp lost"
-                end_time[b] = float(sim.t[b])
-            elif anchor[b] > protocol.tear_force_N:
-                active[b] = False
-                outcome[b] = "torn from anchors"
-                end_time[b] = float(sim.t[b])
+            end = "numerical failure" if not f["finite"][b] else None
+            if end is None:
+                had_contact[b] |= f["contact"][b] > 0
+                rows[b].append(_row(sim, f, b, phase, float(slip_cum[b].mean() * 1e3)))
+                end = _ended(f, b, phase, bool(had_contact[b]), protocol)
+            if end is not None:
+                active[b], outcome[b], end_time[b] = False, end, float(sim.t[b])
     if bar is not None:
         bar.close()
     runs = []
@@ -196,25 +204,41 @@ def grasp_verdicts(runs: list[GraspRun], relaxation_time_s: float | None = None)
     (claim, verdict "holds" / "FAILS", numbers). ``relaxation_time_s``: the tissue's Maxwell time constant,
     compared with the one read off the hold."""
     runs = sorted(runs, key=lambda r: r.mu)
+    out = _closing_verdicts(runs, relaxation_time_s)
+    if len(runs) >= 2:
+        out += _friction_order_verdicts(runs)
+    out += _coulomb_verdicts(runs)
+    vmin = min(r.summary["min_volume_ratio"] for r in runs)
+    return out + [verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}")]
+
+
+def _closing_and_hold(run: GraspRun) -> tuple[float | None, float | None, float | None]:
+    """A run's R^2 of a line through the closing's normal force, and the hold's relative drop and its time constant
+    (to 63.2 % of the drop, an exponential's), None where the run has too few samples."""
+    d = run.data
+    close, hold = d["phase"] == "close", d["phase"] == "hold"
+    t_c, n_c = d["time_s"][close], d["normal_force_N"][close]
+    touch = n_c > 0.05 * max(float(n_c.max()), 1e-9) if n_c.size else n_c
+    r2 = drop = tau = None
+    if np.count_nonzero(touch) >= 3:
+        resid = n_c[touch] - np.polyval(np.polyfit(t_c[touch], n_c[touch], 1), t_c[touch])
+        r2 = 1.0 - float(resid @ resid) / max(float(np.sum((n_c[touch] - n_c[touch].mean()) ** 2)), 1e-30)
+    n_h, t_h = d["normal_force_N"][hold], d["time_s"][hold]
+    if n_h.size >= 3 and n_c.size:
+        f0, f_end = float(n_c[-1]), float(n_h[-1])
+        drop = (f0 - f_end) / f0 if f0 > 0 else 0.0
+        k = np.flatnonzero(n_h <= f0 - 0.632 * (f0 - f_end))
+        tau = float(t_h[k[0]] - t_c[-1]) if k.size and f0 > f_end else float("nan")
+    return r2, drop, tau
+
+
+def _closing_verdicts(runs: list[GraspRun], relaxation_time_s: float | None) -> list[dict]:
+    """The closing's linear rise and the hold's stress relaxation."""
     out = []
-    taus, drops, lin = [], [], []
-    for r in runs:
-        d = r.data
-        close, hold = d["phase"] == "close", d["phase"] == "hold"
-        t_c, n_c = d["time_s"][close], d["normal_force_N"][close]
-        touch = n_c > 0.05 * max(float(n_c.max()), 1e-9) if n_c.size else n_c
-        if np.count_nonzero(touch) >= 3:
-            fit = np.polyfit(t_c[touch], n_c[touch], 1)
-            resid = n_c[touch] - np.polyval(fit, t_c[touch])
-            lin.append(1.0 - float(resid @ resid) / max(float(np.sum((n_c[touch] - n_c[touch].mean()) ** 2)), 1e-30))
-        n_h, t_h = d["normal_force_N"][hold], d["time_s"][hold]
-        if n_h.size >= 3 and n_c.size:
-            f0, f_end = float(n_c[-1]), float(n_h[-1])
-            drops.append((f0 - f_end) / f0 if f0 > 0 else 0.0)
-            # time to 63.2 % of the hold's drop (an exponential's time constant)
-            target = f0 - 0.632 * (f0 - f_end)
-            k = np.flatnonzero(n_h <= target)
-            taus.append(float(t_h[k[0]] - t_c[-1]) if k.size and f0 > f_end else float("nan"))
+    per_run = [_closing_and_hold(r) for r in runs]
+    lin = [r2 for r2, _, _ in per_run if r2 is not None]
+    drops = [drop for _, drop, _ in per_run if drop is not None]
+    taus = [tau for _, drop, tau in per_run if drop is not None]
     if lin:
         out.append(verdict("normal force rises nearly linearly while the jaws close", min(lin) > 0.95,
                            "R^2 of a line " + ", ".join(f"{v:.3f}" for v in lin)))
@@ -226,35 +250,40 @@ def grasp_verdicts(runs: list[GraspRun], relaxation_time_s: float | None = None)
             tau_txt += f" s (Maxwell tau {relaxation_time_s:g} s)"
         out.append(verdict("stress relaxation: the normal force drops once the jaws stop", ok,
                            "drop over the hold " + ", ".join(f"{v:.0%}" for v in drops) + "; time constant " + tau_txt))
-    if len(runs) >= 2:
-        mus = [r.mu for r in runs]
-        normal = np.array([r.summary["normal_end_hold_N"] for r in runs])
-        spread = float(np.ptp(normal) / np.mean(normal))
-        out.append(verdict("higher mu does not change the normal force", spread < 0.05,
-                           f"normal force at the end of the hold {np.round(normal, 3).tolist()} N at mu {mus} "
-                           f"(spread {spread:.1%})"))
-        onset = np.array([r.summary["slip_onset_time_s"] for r in runs])
-        out.append(verdict("higher mu delays slip", bool(np.all(np.isfinite(onset)) and np.all(np.diff(onset) > 0)),
-                           f"slip onset {np.round(onset, 2).tolist()} s"))
-        peak = np.array([r.summary["tangential_peak_N"] for r in runs])
-        out.append(verdict("higher mu: a larger peak tangential force", bool(np.all(np.diff(peak) > 0)),
-                           f"peak pull force {np.round(peak, 3).tolist()} N"))
+    return out
+
+
+def _friction_order_verdicts(runs: list[GraspRun]) -> list[dict]:
+    """Across the runs' mu (ascending): the same normal force, later slip, a larger peak pull."""
+    mus = [r.mu for r in runs]
+    normal = np.array([r.summary["normal_end_hold_N"] for r in runs])
+    spread = float(np.ptp(normal) / np.mean(normal))
+    onset = np.array([r.summary["slip_onset_time_s"] for r in runs])
+    peak = np.array([r.summary["tangential_peak_N"] for r in runs])
+    return [verdict("higher mu does not change the normal force", spread < 0.05,
+                    f"normal force at the end of the hold {np.round(normal, 3).tolist()} N at mu {mus} "
+                    f"(spread {spread:.1%})"),
+            verdict("higher mu delays slip", bool(np.all(np.isfinite(onset)) and np.all(np.diff(onset) > 0)),
+                    f"slip onset {np.round(onset, 2).tolist()} s"),
+            verdict("higher mu: a larger peak tangential force", bool(np.all(np.diff(peak) > 0)),
+                    f"peak pull force {np.round(peak, 3).tolist()} N")]
+
+
+def _coulomb_verdicts(runs: list[GraspRun]) -> list[dict]:
+    """T / N = mu on the jaw faces at the pull's peak (a side or end wall's push is no friction: reported apart)."""
     ratio, walls = [], []
     for r in runs:
         d = r.data
         pull = np.flatnonzero(d["phase"] == "pull")
         if pull.size:
-            # judged on the jaw faces (friction); a side or end wall's push is no friction and is reported apart
             i = pull[int(np.argmax(d["face_tangential_force_N"][pull]))]
             ratio.append(float(d["face_tangential_force_N"][i] / max(d["face_normal_force_N"][i], 1e-12)) / r.mu)
             walls.append(float(d["wall_force_N"][i]))
-    if ratio:
-        out.append(verdict("Coulomb: T / N = mu at gross slip (jaw faces)", all(0.8 <= v <= 1.1 for v in ratio),
-                           "peak face T / N / mu " + ", ".join(f"{v:.2f}" for v in ratio) + " (0.8-1.1); jaw walls' "
-                           "push at that instant " + ", ".join(f"{v:.3f}" for v in walls) + " N"))
-    vmin = min(r.summary["min_volume_ratio"] for r in runs)
-    out.append(verdict("no tet inverts", vmin > 0.0, f"smallest tet volume ratio {vmin:.3f}"))
-    return out
+    if not ratio:
+        return []
+    return [verdict("Coulomb: T / N = mu at gross slip (jaw faces)", all(0.8 <= v <= 1.1 for v in ratio),
+                    "peak face T / N / mu " + ", ".join(f"{v:.2f}" for v in ratio) + " (0.8-1.1); jaw walls' "
+                    "push at that instant " + ", ".join(f"{v:.3f}" for v in walls) + " N")]
 
 
 def write_columns_csv(data: dict, columns: list[str] | tuple[str, ...], path: str | Path) -> Path:
