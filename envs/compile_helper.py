@@ -16,10 +16,12 @@ This module starts and waits for the helper; :mod:`.first_run` is the helper's p
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from typing import Any
 
 #: the longest a core waits for its helper, s (it compiles in about half a minute on one core)
@@ -79,3 +81,18 @@ def join(process: subprocess.Popen | None) -> None:
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait()
+
+
+@contextlib.contextmanager
+def beside(config: Any, precision: str) -> Iterator[subprocess.Popen | None]:
+    """A helper (:func:`helper`) for the block's duration: joined when the block ends, stopped when it raises (a core
+    whose construction fails leaves no process compiling behind it)."""
+    process = helper(config, precision)
+    try:
+        yield process
+    except BaseException:
+        if process is not None:
+            process.kill()
+            process.wait()
+        raise
+    join(process)

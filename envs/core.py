@@ -477,7 +477,18 @@ class GraspLiftCore:
 
             cfg = self.config = from_dict(GraspLiftConfig, {**to_dict(cfg),
                                                             "grasper_config": str(builtin_config("grasper/env.yaml"))})
-        compiling = compile_helper.helper(cfg, precision)  # the task's kernels, beside the physics' (a cold cache)
+        # the task's kernels compile in a helper process beside the physics' where the cache is cold; it is joined
+        # before the first task kernel this core calls (which then loads what it made), stopped if this raises
+        with compile_helper.beside(cfg, precision):
+            self._build(cfg, B, precision)
+        self._set_params()
+        #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
+        #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
+        self.state = task_state(B, cfg.obs_history, self.frame_dim)
+        self.__dict__.update(self.state._asdict())
+
+    def _build(self, cfg: GraspLiftConfig, B: int, precision: Precision) -> None:
+        """The scene, its simulation, the grasp region, the observation's size and the random streams."""
         if cfg.scene == "spleen":
             self.scene: GraspScene = spleen_scene(cfg.tissue_config, cfg.grasper_config, cfg.resolution,
                                                   insert_depth_m=cfg.grasp_depth_m,
@@ -523,12 +534,6 @@ class GraspLiftCore:
         #: v2 the physics stream itself (the streams of earlier versions unchanged)
         self.sensor_rngs = self.rngs if not cfg.sensed_task_state else [np.random.default_rng() for _ in range(B)]
         self._noise_scales = np.zeros((B, N_NOISE))
-        compile_helper.join(compiling)  # (before the first task kernel this core calls: it loads what the helper made)
-        self._set_params()
-        #: per-env episode state (:class:`.task.TaskState`); each field is also an attribute of the core
-        #: (``core.mu``, ``core.lift``, ``core.obs`` ...): the same arrays, which the kernels update in place
-        self.state = task_state(B, cfg.obs_history, self.frame_dim)
-        self.__dict__.update(self.state._asdict())
 
     def __getstate__(self) -> dict[str, Any]:
         """The core's state without the render cache (matplotlib figures and Agg buffers cannot be pickled);

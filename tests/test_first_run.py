@@ -58,3 +58,26 @@ def test_no_helper_where_the_task_kernels_are_cached_or_it_is_switched_off_or_on
 
 def test_the_notice_names_what_compiles_and_that_it_happens_once():
     assert NOTICE.startswith("msdgrasp: compiling") and "once" in NOTICE and "\n" not in NOTICE
+
+
+def test_a_core_whose_construction_fails_stops_its_helper(monkeypatch):
+    import subprocess
+    import sys
+
+    from msdgrasp.envs import core
+    from msdgrasp.physics.config import ConfigError
+
+    started = []
+
+    def fake_helper(config, precision):  # a helper that would compile for a minute
+        started.append(subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]))
+        return started[-1]
+
+    def broken_scene(*args, **kwargs):
+        raise ConfigError("tissue: a broken scene")
+
+    monkeypatch.setattr(first_run, "helper", fake_helper)
+    monkeypatch.setattr(core, "spleen_scene", broken_scene)
+    with pytest.raises(ConfigError, match="broken scene"):
+        core.GraspLiftCore(benchmark_config("spleen", 2))
+    assert started and started[0].poll() is not None  # stopped and reaped, not left compiling
