@@ -137,3 +137,17 @@ def test_the_quadratic_reference_is_never_stiffer_than_the_linear_one_and_equal_
     # uniaxial stress is a uniform strain, which P1 already holds exactly
     case = fem.load_case("cube-slip", "coarse")
     assert fem.fem_quadratic_force(case, E, 0.3) == pytest.approx(E * fem.CUBE_SIDE_M, rel=1e-9)
+
+
+def test_refinement_solves_one_problem_and_converges_from_above():
+    # the split mesh's P1 space holds the coarse one's fields with the same prescribed surface, so the force per unit
+    # travel can only fall; a uniform strain stays exact
+    case = fem.load_case("cube-slip", "coarse")
+    split = fem.refined_case(case)
+    assert split.mesh.n_tets == 8 * case.mesh.n_tets
+    k, _ = fem.fem_linear_forces(split, E, 0.3, [1.0 / split.height_m])
+    assert k[0] == pytest.approx(E * fem.CUBE_SIDE_M, rel=1e-9)
+    study = fem.converged_linear_force(fem.load_case("spleen", "coarse"), E, 0.25)
+    f = study["p1_N_per_m"]
+    assert f[0] > f[1] > f[2] > study["limit_N_per_m"] > 0
+    assert 0.5 < study["rate"] < 2.0  # a singular rim: below P1's smooth-solution rate of 2
