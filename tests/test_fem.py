@@ -151,3 +151,14 @@ def test_refinement_solves_one_problem_and_converges_from_above():
     f = study["p1_N_per_m"]
     assert f[0] > f[1] > f[2] > study["limit_N_per_m"] > 0
     assert 0.5 < study["rate"] < 2.0  # a singular rim: below P1's smooth-solution rate of 2
+
+
+def test_an_extrapolation_without_three_levels_needs_its_rate():
+    case = fem.load_case("cube", "coarse")
+    with pytest.raises(fem.ConfigError, match="splits"):
+        fem.converged_linear_force(case, E, 0.25, splits=1)
+    with pytest.raises(fem.ConfigError, match="splits"):
+        fem.converged_linear_force(case, E, 0.25, splits=0, rate=1.0)
+    one = fem.converged_linear_force(case, E, 0.25, splits=1, rate=1.0)
+    f0, f1 = one["p1_N_per_m"]
+    assert one["limit_N_per_m"] == pytest.approx(f1 - (f0 - f1))  # error ~ h: the limit lies as far below again
