@@ -190,10 +190,23 @@ def lame(youngs_modulus_pa: float, poisson: float) -> tuple[float, float]:
     return lam, youngs_modulus_pa / (2.0 * (1.0 + poisson))
 
 
+def _skfem_mesh(mesh: TetMesh):
+    """The project's mesh as scikit-fem's (the same nodes and tets, in order)."""
+    return _skfem().MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
+
+
+def _elastic_system(m, order: int, youngs_modulus_pa: float, poisson: float):
+    """(basis, stiffness matrix N/m in scikit-fem's dof order) of linear elasticity with P1 or P2 tets on mesh ``m``."""
+    skfem = _skfem()
+    from skfem.models.elasticity import linear_elasticity
+
+    basis = skfem.Basis(m, skfem.ElementVector(skfem.ElementTetP1() if order == 1 else skfem.ElementTetP2()))
+    return basis, skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+
+
 def _basis(mesh: TetMesh):
     skfem = _skfem()
-    m = skfem.MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
-    basis = skfem.Basis(m, skfem.ElementVector(skfem.ElementTetP1()))
+    basis = skfem.Basis(_skfem_mesh(mesh), skfem.ElementVector(skfem.ElementTetP1()))
     # the project numbers dof 3 i + axis; scikit-fem's own numbering is read from nodal_dofs (3, N)
     perm = np.asarray(basis.nodal_dofs).T.ravel()
     return basis, perm
@@ -233,13 +246,9 @@ def fem_quadratic_force(case: LoadCase, youngs_modulus_pa: float, poisson: float
     two nodes are prescribed alike (both moved or both held) has its midpoint prescribed with them, the constraint
     P1 implies along that edge; the force is the reaction on every moved dof. What the P1 reference's own
     discretisation costs on the same mesh."""
-    skfem = _skfem()
-    from skfem.models.elasticity import linear_elasticity
-
     mesh = case.mesh
-    m = skfem.MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
-    basis = skfem.Basis(m, skfem.ElementVector(skfem.ElementTetP2()))
-    K = skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+    m = _skfem_mesh(mesh)
+    basis, K = _elastic_system(m, 2, youngs_modulus_pa, poisson)
     nodal, edge = np.asarray(basis.nodal_dofs), np.asarray(basis.edge_dofs)
     role = np.zeros(mesh.n_nodes, dtype=np.int64)  # 1 moved, 2 held
     role[case.moved], role[case.held] = 1, 2
@@ -259,9 +268,8 @@ def refined_case(case: LoadCase) -> LoadCase:
     """The case on its mesh split once (each tet into eight at its edges' midpoints, scikit-fem's refinement), with the
     same prescribed surface: a midpoint is moved or held where both ends of its edge are (the constraint P1 implies
     along that edge), so that the refinements solve one problem and their forces converge to its continuum value."""
-    skfem = _skfem()
     mesh = case.mesh
-    m = skfem.MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
+    m = _skfem_mesh(mesh)
     a, b = np.asarray(m.edges)
     fine = m.refined()
     nodes, tets = np.asarray(fine.p).T.copy(), np.asarray(fine.t).T.copy()
@@ -619,13 +627,7 @@ def _plate_contact_force(K: sp.csr_matrix, zdofs: np.ndarray, z: np.ndarray, pin
 def sphere_plate_force(mesh: TetMesh, youngs_modulus_pa: float, poisson: float, depth_m: float,
                        order: int = 1) -> float:
     """Linear FEM (P1 or P2 tets on the mesh's tets) of the body between frictionless plates: the plate force, N."""
-    skfem = _skfem()
-    from skfem.models.elasticity import linear_elasticity
-
-    m = skfem.MeshTet(np.ascontiguousarray(mesh.nodes.T), np.ascontiguousarray(mesh.tets.T))
-    elem = skfem.ElementTetP1() if order == 1 else skfem.ElementTetP2()
-    basis = skfem.Basis(m, skfem.ElementVector(elem))
-    K = skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+    basis, K = _elastic_system(_skfem_mesh(mesh), order, youngs_modulus_pa, poisson)
     zdofs = np.asarray(basis.get_dofs().all("u^3"))
     z = basis.doflocs[2, zdofs]
     centre = mesh.nodes.mean(axis=0)
@@ -776,15 +778,10 @@ def halfspace_hertz_force(youngs_modulus_pa: float, poisson: float, setup: HalfS
     error falls as (a / extent)^2 instead of a / extent), iterated to a fixed point. The surface's z dofs within 2 a
     of the axis are condensed (one factorisation) and solved by an active set: a dof is in contact where it would
     penetrate, released where its contact force would pull. Returns the FEM's and Hertz's forces, N."""
-    skfem = _skfem()
-    from skfem.models.elasticity import linear_elasticity
-
     a, R = setup.contact_radius_m, setup.radius_m
     depth, side = a * a / R, setup.extent * a
     g = _graded_axis(a / setup.cells_per_contact_radius, setup.grading, side)
-    elem = skfem.ElementTetP1() if setup.order == 1 else skfem.ElementTetP2()
-    basis = skfem.Basis(skfem.MeshTet.init_tensor(g, g, -g[::-1]), skfem.ElementVector(elem))
-    K = skfem.asm(linear_elasticity(*lame(youngs_modulus_pa, poisson)), basis).tocsr()
+    basis, K = _elastic_system(_skfem().MeshTet.init_tensor(g, g, -g[::-1]), setup.order, youngs_modulus_pa, poisson)
     X, tol = basis.doflocs, 1e-9 * side
     comp = [np.asarray(basis.get_dofs().all(f"u^{i}")) for i in (1, 2, 3)]
     symmetric = np.concatenate([comp[0][np.abs(X[0, comp[0]]) < tol], comp[1][np.abs(X[1, comp[1]]) < tol]])
