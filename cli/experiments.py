@@ -181,6 +181,7 @@ def fem_cli(args: argparse.Namespace) -> int:
     params = load_tissue_params(args.config or builtin_config("tissue/spleen.yaml"))
     result = compare(params, ComparisonSettings(cases=cases, resolutions=resolutions, poisson=args.poisson,
                                                 hertz=not args.no_hertz, quadratic=not args.no_quadratic,
+                                                converge=not args.no_converge,
                                                 large=not args.small_strain_only))
     out = Path(args.out)
     csv = write_comparison_csv(result["rows"], out / "fem.csv")

@@ -152,6 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="skip the FEM's Hertz checks (a rigid sphere on a half-space, a sphere between plates; ~40 s)")
     fe.add_argument("--no-quadratic", action="store_true",
                     help="skip the quadratic (P2) FEM at small strain (the linear reference's own error; minutes)")
+    fe.add_argument("--no-converge", action="store_true",
+                    help="skip the refined, extrapolated FEM at small strain (the continuum's limit; minutes)")
     fe.add_argument("--small-strain-only", action="store_true",
                     help="only the small-strain (linear) comparison, not the neo-Hookean FEM and nonlinear MSD at "
                          "10 and 20 %%")
