@@ -79,6 +79,12 @@ def join(process: subprocess.Popen | None) -> None:
     try:
         process.wait(timeout=HELPER_TIMEOUT_S)
     except subprocess.TimeoutExpired:
+        stop(process)
+
+
+def stop(process: subprocess.Popen | None) -> None:
+    """Stop a helper and reap it (None: nothing to stop)."""
+    if process is not None:
         process.kill()
         process.wait()
 
@@ -91,8 +97,6 @@ def beside(config: Any, precision: str) -> Iterator[subprocess.Popen | None]:
     try:
         yield process
     except BaseException:
-        if process is not None:
-            process.kill()
-            process.wait()
+        stop(process)
         raise
     join(process)

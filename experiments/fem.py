@@ -241,6 +241,15 @@ def fem_linear_forces(case: LoadCase, youngs_modulus_pa: float, poisson: float,
     return np.array([f1 * s * case.height_m for s in strains]), u1
 
 
+def _edge_roles(case: LoadCase, m) -> tuple[np.ndarray, np.ndarray]:
+    """scikit-fem mesh ``m``'s edges (2, E) of the case's mesh and each edge's role: 1 where both its nodes are moved,
+    2 where both are held, else 0 (an edge prescribed alike keeps its midpoint with its nodes, as P1 implies)."""
+    role = np.zeros(case.mesh.n_nodes, dtype=np.int64)
+    role[case.moved], role[case.held] = 1, 2
+    a, b = np.asarray(m.edges)
+    return np.stack([a, b]), np.where(role[a] == role[b], role[a], 0)
+
+
 def fem_quadratic_force(case: LoadCase, youngs_modulus_pa: float, poisson: float) -> float:
     """Linear FEM with quadratic (P2) tets on the case's tets: the indenter force per unit travel, N/m. An edge whose
     two nodes are prescribed alike (both moved or both held) has its midpoint prescribed with them, the constraint
@@ -250,12 +259,10 @@ def fem_quadratic_force(case: LoadCase, youngs_modulus_pa: float, poisson: float
     m = _skfem_mesh(mesh)
     basis, K = _elastic_system(m, 2, youngs_modulus_pa, poisson)
     nodal, edge = np.asarray(basis.nodal_dofs), np.asarray(basis.edge_dofs)
-    role = np.zeros(mesh.n_nodes, dtype=np.int64)  # 1 moved, 2 held
-    role[case.moved], role[case.held] = 1, 2
-    a, b = np.asarray(m.edges)
-    alike = (role[a] == role[b]) & (role[a] > 0)
+    _, role = _edge_roles(case, m)
+    alike = role > 0
     comps = (0, 1, 2) if case.bonded else (2,)
-    moved = np.concatenate([nodal[2, case.moved], edge[2, alike & (role[a] == 1)]])
+    moved = np.concatenate([nodal[2, case.moved], edge[2, role == 1]])
     presc = [nodal[c, np.concatenate([case.moved, case.held])] for c in comps]
     presc += [edge[c, alike] for c in comps] + [np.array([nodal[axis, i]]) for i, axis in case.pins]
     u = np.zeros(K.shape[0])
@@ -270,20 +277,17 @@ def refined_case(case: LoadCase) -> LoadCase:
     along that edge), so that the refinements solve one problem and their forces converge to its continuum value."""
     mesh = case.mesh
     m = _skfem_mesh(mesh)
-    a, b = np.asarray(m.edges)
+    (a, b), role = _edge_roles(case, m)
     fine = m.refined()
     nodes, tets = np.asarray(fine.p).T.copy(), np.asarray(fine.t).T.copy()
     if not np.allclose(nodes[mesh.n_nodes:mesh.n_nodes + len(a)], 0.5 * (mesh.nodes[a] + mesh.nodes[b])):
         raise RuntimeError("scikit-fem's refinement no longer numbers the new nodes by edge")
     flip = tet_signed_volumes(nodes, tets) < 0  # (the refinement does not keep the tets' orientation)
     tets[flip, 1], tets[flip, 2] = tets[flip, 2], tets[flip, 1].copy()
-    role = np.zeros(mesh.n_nodes, dtype=np.int64)  # 1 moved, 2 held
-    role[case.moved], role[case.held] = 1, 2
-    mid = mesh.n_nodes + np.flatnonzero((role[a] == role[b]) & (role[a] > 0))
-    side = role[a[mid - mesh.n_nodes]]
+    mid = mesh.n_nodes + np.arange(len(a))  # (edge e's midpoint is node n_nodes + e)
     return dataclasses.replace(case, mesh=TetMesh(nodes, tets, name=f"{mesh.name}-split"),
-                               moved=np.concatenate([case.moved, mid[side == 1]]),
-                               held=np.concatenate([case.held, mid[side == 2]]), sides=None)
+                               moved=np.concatenate([case.moved, mid[role == 1]]),
+                               held=np.concatenate([case.held, mid[role == 2]]), sides=None)
 
 
 def converged_linear_force(case: LoadCase, youngs_modulus_pa: float, poisson: float, splits: int = 2,
@@ -795,8 +799,10 @@ def halfspace_hertz_force(youngs_modulus_pa: float, poisson: float, setup: HalfS
     cand, rc = surface[r < 2.0 * a], r[r < 2.0 * a]
     free = np.setdiff1d(np.arange(K.shape[0]), np.concatenate([symmetric, cand, far]))
     lu = spla.splu(K[free][:, free].tocsc())
-    K_fc = K[free][:, cand].toarray()
-    S = K[cand][:, cand].toarray() - K_fc.T @ lu.solve(K_fc)  # the candidates' condensed stiffness, N/m
+    K_c, K_f = K[cand], K[free]
+    K_fc = K_f[:, cand].toarray()
+    S = K_c[:, cand].toarray() - K_fc.T @ lu.solve(K_fc)  # the candidates' condensed stiffness, N/m
+    K_c_far, K_c_free, K_f_far = K_c[:, far], K_c[:, free], K_f[:, far]
     target = -depth + rc**2 / (2.0 * R)  # the sphere's surface over each candidate, m
     exact = 4.0 / 3.0 * youngs_modulus_pa / (1.0 - poisson**2) * math.sqrt(R) * depth**1.5
     force, active = exact, rc < 0.7 * a
@@ -804,7 +810,7 @@ def halfspace_hertz_force(youngs_modulus_pa: float, poisson: float, setup: HalfS
         u_far = np.zeros(K.shape[0])
         u_far[far] = boussinesq_displacement(force, youngs_modulus_pa, poisson, X[:, far])[axis[far],
                                                                                          np.arange(len(far))]
-        load = K[cand][:, far] @ u_far[far] - K[cand][:, free] @ lu.solve(K[free][:, far] @ u_far[far])
+        load = K_c_far @ u_far[far] - K_c_free @ lu.solve(K_f_far @ u_far[far])
         for _ in range(100):
             u = np.where(active, target, 0.0)
             off = ~active
@@ -888,6 +894,7 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
     rows: list[dict] = []
     poisson: dict[str, dict[str, float]] = {}
     converged: dict[str, dict] = {}
+    rates: dict[str, float] = {}  # per case, fitted on its coarse mesh (split twice)
     curves: list[dict] = []
     strains = [settings.small_strain, *settings.large_strains]
     for name in settings.cases:
@@ -905,9 +912,11 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
                 # the coarse mesh split twice fits the rate; a finer one is split once and extrapolated at that rate
                 if res == "coarse":
                     limit = converged[f"{name}/{res}"] = converged_linear_force(case, E, nu, 2)
+                    rates[name] = limit["rate"]
                 else:
-                    rate = converged.get(f"{name}/coarse") or converged_linear_force(load_case(name, "coarse"), E, nu)
-                    limit = converged[f"{name}/{res}"] = converged_linear_force(case, E, nu, 1, rate["rate"])
+                    if name not in rates:
+                        rates[name] = converged_linear_force(load_case(name, "coarse"), E, nu)["rate"]
+                    limit = converged[f"{name}/{res}"] = converged_linear_force(case, E, nu, 1, rates[name])
             k_msd = {}
             for key, m in models.items():
                 k_msd[key], u = msd_linear_force(case, m)
