@@ -6,12 +6,14 @@
 #   with a registry:  bash benchmarks/gpu_offline.sh wheels     # -> .gpu_wheels/ (~21 MB, ignored by git)
 #   on the GPU:       bash benchmarks/gpu_offline.sh tests      # tests/test_cuda*.py on the GPU itself
 #                     bash benchmarks/gpu_offline.sh bench gpu  # or precision, learners
-#                     bash benchmarks/gpu_offline.sh train 0-1  # seeds
+#                     bash benchmarks/gpu_offline.sh train 0-1  # seeds, each evaluated
+#                     bash benchmarks/gpu_offline.sh train 0 configs/train/experiments/rsl-gpu-timed.yaml  # shorter
 #
 # Each part stays inside 10 minutes (timeout PART_S seconds, default 560). bench PART: `msdgrasp bench gpu`
 # (physics batches 1..16,384 and the whole task step, float64 and float32, against 200k agent steps/s),
-# `precision` (float32 error, coarse spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS: `msdgrasp train --backend cuda` on
-# rsl_ppo.yaml, timed, each seed evaluated; the runs come back as one archive. tests: the kernels and the task
+# `precision` (float32 error, coarse spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS [CONFIG]:
+# `msdgrasp train --backend cuda` on rsl_ppo.yaml (or CONFIG), timed, each seed evaluated; the runs come back as one
+# archive. tests: the kernels and the task
 # against the CPU on real hardware (NUMBA_ENABLE_CUDASIM=0). Everything lands in $OUT (default logs/gpu), each
 # part's log included, so a part killed at its limit still reports.
 set -euo pipefail
@@ -42,7 +44,8 @@ case "${1:-}" in
     train)
         setup
         seeds="${2:?train SEEDS, e.g. 0-1}"
-        ( time timeout "${PART_S:-560}" msdgrasp train --backend cuda --seeds "$seeds" --out logs/train_torch_gpu --quiet ) \
+        ( time timeout "${PART_S:-560}" msdgrasp train --backend cuda --config "${3:-configs/train/rsl_ppo.yaml}" \
+            --seeds "$seeds" --out logs/train_torch_gpu --quiet ) \
             2>&1 | tee "$OUT/train_$seeds.log" || true
         tar czf "$OUT/train_$seeds.tgz" logs/train_torch_gpu ;;
     tests)
@@ -50,6 +53,6 @@ case "${1:-}" in
         NUMBA_ENABLE_CUDASIM=0 timeout "${PART_S:-560}" python3 -m pytest tests/test_cuda_physics.py tests/test_cuda_task.py \
             -rs -q 2>&1 | tee "$OUT/tests.log" || true ;;
     *)
-        echo "usage: bash benchmarks/gpu_offline.sh wheels | bench gpu|precision|learners | train SEEDS | tests" >&2
+        echo "usage: bash benchmarks/gpu_offline.sh wheels | bench gpu|precision|learners | train SEEDS [CONFIG] | tests" >&2
         exit 2 ;;
 esac
