@@ -43,7 +43,7 @@ from .controller_registry import (  # noqa: F401 (the registry's interface: impo
 from .controller_settings import (
     GATE_WAIT_STEPS, PATH_KEYS, SLIPFEEDBACK_KEYS, FixedForceSettings, SlipFeedbackSettings,
 )
-from .friction import FrictionEstimator, closing_features, with_estimator
+from .friction import N_FEATURES, FrictionEstimator, closing_features, with_estimator
 from .result_cache import cached_float
 
 # observation entries read (envs.task.OBS_NAMES); a stacked history ends with the current frame
@@ -203,6 +203,7 @@ class SlipFeedbackPolicy:
         self._held = np.zeros(n, dtype=np.int64)  # steps since the jaws first held
         self._pulling = np.zeros(n, dtype=bool)
         self.mu_estimate = np.full(n, np.nan)  # with a friction estimator: each episode's estimate
+        self.closing_features = np.full((n, N_FEATURES), np.nan)  # and the closing features it was made from
         self._told = np.full(n, np.nan)  # with told_mu: each episode's mu, from its reset info
         self._frames: list[list[np.ndarray]] = [[] for _ in range(n)]  # the frames seen while closing
         self._regrip = np.full(n, -1, dtype=np.int64)  # steps since the estimate raised the grip (-1: not yet)
@@ -248,6 +249,7 @@ class SlipFeedbackPolicy:
         self._held[index] = 0
         self._pulling[index] = False
         self.mu_estimate[index] = np.nan
+        self.closing_features[index] = np.nan
         self._frames[index] = []
         self._regrip[index] = -1
         self._told[index] = self._told_mu(info)
@@ -276,7 +278,8 @@ class SlipFeedbackPolicy:
         for b in np.flatnonzero(closing):  # (the task's entries; privileged ones follow them)
             self._frames[b].append(np.array(frame[b, :N_OBS], dtype=np.float64))
         for b in np.flatnonzero(closing & gate_open):
-            mu = self._told[b] if self.told_mu else self.estimator.mu(closing_features(np.array(self._frames[b])))
+            self.closing_features[b] = closing_features(np.array(self._frames[b]))
+            mu = self._told[b] if self.told_mu else self.estimator.mu(self.closing_features[b])
             self.mu_estimate[b] = mu
             self.start[b] = max(self.start[b], min(self.estimate_margin * self.estimator.grip_N(mu), self.max_force))
             self.force[b] = max(self.force[b], self.start[b])

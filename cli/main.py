@@ -7,6 +7,7 @@
                                                           compile: a cold first run's compilation
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
     msdgrasp reference --out FILE                          the reference forces of the force ratios (JSON)
+    msdgrasp headroom --out FILE                           how light a grip could be, by what it knows (JSON)
 
 Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
 field on invalid input (no traceback); outputs are written atomically.
@@ -182,9 +183,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=_cmd_bench)
 
     _add_rl_commands(sub)
+    from .headroom import add_headroom_command
     from .reference import add_reference_command
 
     add_reference_command(sub)
+    add_headroom_command(sub)
     return parser
 
 

@@ -1,0 +1,74 @@
+"""``msdgrasp headroom``: how light a grip could be, by what it knows (agents/headroom.py), written as JSON.
+
+    msdgrasp headroom --out logs/headroom.json                          the default training's task, 40 episodes per mu
+    msdgrasp headroom --config TRAIN.yaml --episodes 60 --out FILE      another training's task
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+from .rl import add_runner_args, runner_from_args, usage_error
+
+
+def _cmd_headroom(args: argparse.Namespace) -> int:
+    from ..agents.evaluation import parse_mu_grid
+    from ..agents.headroom import (
+        HEADROOM_SEEDS, estimating_controller, format_headroom, headroom_verdict, measure_headroom,
+    )
+    from ..agents.models import TrainConfig, default_training
+    from ..physics.config import ConfigError, atomic_write_text
+
+    if args.out.suffix != ".json" or args.out.is_dir():
+        raise usage_error(f"--out must be a .json file, got {args.out}")
+    if args.episodes < 3:
+        raise usage_error(f"--episodes must be >= 3 (per mu; the regressions leave one out), got {args.episodes}")
+    mus = [float(m) for m in parse_mu_grid(args.mu_grid)]
+    if mus[0] <= 0.0:
+        raise usage_error(f"--mu-grid: mu must be > 0, got {mus[0]:g}")
+    last = HEADROOM_SEEDS.stop - args.episodes * len(mus)
+    if not HEADROOM_SEEDS.start <= args.seed <= last:
+        raise usage_error(f"--seed must keep the episodes in the headroom seeds [{HEADROOM_SEEDS.start}, "
+                          f"{HEADROOM_SEEDS.stop}); allowed {HEADROOM_SEEDS.start}..{last}, got {args.seed}")
+    if args.config is not None and not args.config.is_file():
+        raise usage_error(f"--config: no such file: {args.config}")
+    config = (TrainConfig.load(args.config) if args.config else default_training()).training_task()
+    try:
+        estimating_controller(args.controller, config)
+    except ConfigError as exc:
+        raise usage_error(f"--controller: {exc}") from None
+    with runner_from_args(args, os.cpu_count() or 1) as runner:
+        record = measure_headroom(config, mus, args.episodes, args.seed, args.controller, runner=runner)
+    record["verdict"] = headroom_verdict(record)
+    atomic_write_text(args.out, json.dumps(record, indent=2) + "\n")
+    print(format_headroom(record))
+    print(record["verdict"])
+    print(json.dumps({"out": str(args.out), "seconds": record["seconds"]}))
+    return 0
+
+
+def add_headroom_command(sub) -> None:
+    """Add ``headroom`` to the ``msdgrasp`` subparsers ``sub``."""
+    from ..agents.headroom import DEFAULT_CONTROLLER, DEFAULT_EPISODES, DEFAULT_MUS, HEADROOM_SEED
+
+    p = sub.add_parser("headroom", help="how light a grip could be, by what it knows: each episode's holding grip "
+                                        "against the true mu, the privileged draws, the controller's estimate and "
+                                        "its closing features, and a fixed grip sized from each run on the episodes")
+    p.add_argument("--out", type=Path, required=True, help="the record to write (.json)")
+    p.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
+                   help="the task of this training config (its env: with its train_randomization:); default the "
+                        "default training's (configs/train/ppo.yaml)")
+    p.add_argument("--mu-grid", default=",".join(f"{m:g}" for m in DEFAULT_MUS),
+                   help="friction coefficients: a comma list or start:stop:step (default "
+                        + ",".join(f"{m:g}" for m in DEFAULT_MUS) + ")")
+    p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES,
+                   help=f"episodes per mu (default {DEFAULT_EPISODES})")
+    p.add_argument("--seed", type=int, default=HEADROOM_SEED,
+                   help=f"episode k is reset with seed + k (default {HEADROOM_SEED})")
+    p.add_argument("--controller", default=DEFAULT_CONTROLLER,
+                   help=f"the estimating controller compared (default {DEFAULT_CONTROLLER})")
+    add_runner_args(p, "every chunk of episodes and every fixed-grip run as its own job")
+    p.set_defaults(func=_cmd_headroom)
