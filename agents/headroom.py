@@ -82,14 +82,26 @@ def _fixed_grip_job(config_dict: dict[str, Any], mu: float, seeds: list[int], fo
     return {"success": run["success"].tolist(), "peak_pinch_N": run["peak_pinch_N"].tolist()}
 
 
+def _design(x: np.ndarray, mean: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    return np.c_[(x - mean) / scale, np.ones(len(x))]
+
+
 def loo_ridge_residuals(x: np.ndarray, y: np.ndarray, ridge: float) -> np.ndarray:
     """Leave-one-out residuals of a ridge regression of ``y`` on the standardised columns of ``x`` with an
     unpenalised intercept (the hat matrix's closed form r_i / (1 - H_ii))."""
     x = np.asarray(x, dtype=np.float64).reshape(len(y), -1)
-    a = np.c_[(x - x.mean(axis=0)) / (x.std(axis=0) + 1e-12), np.ones(len(y))]
+    a = _design(x, x.mean(axis=0), x.std(axis=0) + 1e-12)
     penalty = np.diag([float(ridge)] * x.shape[1] + [0.0])
     hat = a @ np.linalg.solve(a.T @ a + penalty, a.T)
     return (y - hat @ y) / (1.0 - np.diag(hat))
+
+
+def _ridge_predict(x: np.ndarray, y: np.ndarray, ridge: float, new: np.ndarray) -> np.ndarray:
+    """The same ridge regression fitted on every row of ``x``, predicting at the rows ``new``."""
+    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-12
+    a = _design(x, mean, scale)
+    w = np.linalg.solve(a.T @ a + np.diag([float(ridge)] * x.shape[1] + [0.0]), a.T @ y)
+    return _design(new, mean, scale) @ w
 
 
 def _regressors(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -102,21 +114,21 @@ def source_grips(data: dict[str, np.ndarray], share: float = HOLD_SHARE) -> dict
     """Per source: its leave-one-out residual spread of log h and the fixed grip per episode (N) sized to hold
     ``share`` of the episodes with a holding grip. The regressions fit on those episodes; every episode gets a grip."""
     hold = data["hold_N"]
-    fit = np.isfinite(hold)
     out = {}
     for name, x in _regressors(data).items():
         x = np.asarray(x, dtype=np.float64).reshape(len(hold), -1)
+        known = np.all(np.isfinite(x), axis=1)  # (an episode the controller made no estimate in: the mean grip)
+        fit = np.isfinite(hold) & known
+        x = np.where(known[:, None], x, np.nanmean(np.where(fit[:, None], x, np.nan), axis=0))
         y = np.log(hold[fit])
         resid = loo_ridge_residuals(x[fit], y, RIDGE[name])
         pred = np.empty(len(hold))
         pred[fit] = y - resid
-        if (~fit).any():  # (no hold to fit: the regression on every fitted episode predicts them)
-            a = np.c_[x[fit], np.ones(fit.sum())]
-            w = np.linalg.lstsq(a, y, rcond=None)[0]
-            pred[~fit] = np.c_[x[~fit], np.ones((~fit).sum())] @ w
+        if (~fit).any():  # (episodes not fitted: the regression on every fitted one predicts them)
+            pred[~fit] = _ridge_predict(x[fit], y, RIDGE[name], x[~fit])
         margin = float(np.quantile(np.exp(resid), share))
         out[name] = {"what": SOURCES[name], "residual_sd": float(resid.std()), "r2": float(1 - resid.var() / y.var()),
-                     "margin": margin, "grip_N": np.exp(pred) * margin}
+                     "margin": margin, "grip_N": np.exp(pred) * margin, "fitted": int(fit.sum())}
     return out
 
 

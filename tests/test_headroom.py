@@ -35,8 +35,9 @@ def _synthetic(n_per_mu: int = 60, seed: int = 1) -> dict[str, np.ndarray]:
     draws = rng.normal(size=(len(mu), 16))
     hold = 0.35 / mu * np.exp(0.2 * draws[:, 3])
     hold[0] = np.nan  # an episode no grip holds: it gets a grip, it is not fitted
-    return {"mu": mu, "hold_N": hold, "draws": draws, "mu_estimate": mu * np.exp(0.3 * rng.normal(size=len(mu))),
-            "features": rng.normal(size=(len(mu), 55))}
+    estimate, features = mu * np.exp(0.3 * rng.normal(size=len(mu))), rng.normal(size=(len(mu), 55))
+    estimate[5], features[5] = np.nan, np.nan  # one the controller made no estimate in: the mean grip
+    return {"mu": mu, "hold_N": hold, "draws": draws, "mu_estimate": estimate, "features": features}
 
 
 def test_a_source_that_knows_what_scatters_the_grip_needs_no_margin_and_one_that_guesses_needs_more():
