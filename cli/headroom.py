@@ -11,11 +11,10 @@ import json
 import os
 from pathlib import Path
 
-from .rl import add_runner_args, runner_from_args, usage_error
+from .rl import add_mu_grid_arg, add_runner_args, positive_mu_grid, runner_from_args, usage_error
 
 
 def _cmd_headroom(args: argparse.Namespace) -> int:
-    from ..agents.evaluation import parse_mu_grid
     from ..agents.headroom import (
         HEADROOM_SEEDS, estimating_controller, format_headroom, headroom_verdict, measure_headroom,
     )
@@ -26,9 +25,7 @@ def _cmd_headroom(args: argparse.Namespace) -> int:
         raise usage_error(f"--out must be a .json file, got {args.out}")
     if args.episodes < 3:
         raise usage_error(f"--episodes must be >= 3 (per mu; the regressions leave one out), got {args.episodes}")
-    mus = [float(m) for m in parse_mu_grid(args.mu_grid)]
-    if mus[0] <= 0.0:
-        raise usage_error(f"--mu-grid: mu must be > 0, got {mus[0]:g}")
+    mus = positive_mu_grid(args.mu_grid)
     last = HEADROOM_SEEDS.stop - args.episodes * len(mus)
     if not HEADROOM_SEEDS.start <= args.seed <= last:
         raise usage_error(f"--seed must keep the episodes in the headroom seeds [{HEADROOM_SEEDS.start}, "
@@ -61,9 +58,7 @@ def add_headroom_command(sub) -> None:
     p.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
                    help="the task of this training config (its env: with its train_randomization:); default the "
                         "default training's (configs/train/ppo.yaml)")
-    p.add_argument("--mu-grid", default=",".join(f"{m:g}" for m in DEFAULT_MUS),
-                   help="friction coefficients: a comma list or start:stop:step (default "
-                        + ",".join(f"{m:g}" for m in DEFAULT_MUS) + ")")
+    add_mu_grid_arg(p, DEFAULT_MUS)
     p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES,
                    help=f"episodes per mu (default {DEFAULT_EPISODES})")
     p.add_argument("--seed", type=int, default=HEADROOM_SEED,

@@ -11,7 +11,7 @@ import json
 import os
 from pathlib import Path
 
-from .rl import add_runner_args, runner_from_args, usage_error
+from .rl import add_mu_grid_arg, add_runner_args, positive_mu_grid, runner_from_args, usage_error
 
 
 def _pulls(text: str) -> list[float]:
@@ -29,7 +29,6 @@ def _pulls(text: str) -> list[float]:
 
 
 def _cmd_reference(args: argparse.Namespace) -> int:
-    from ..agents.evaluation import parse_mu_grid
     from ..agents.reference import (
         REFERENCE_SEEDS, compute_reference, format_reference, task_fingerprint, write_reference,
     )
@@ -56,9 +55,7 @@ def _cmd_reference(args: argparse.Namespace) -> int:
         config = GraspLiftConfig.from_yaml(args.config)
     else:
         config = benchmark_config(args.scene or "spleen")
-    mus = [float(m) for m in parse_mu_grid(args.mu_grid)]
-    if mus[0] <= 0.0:
-        raise usage_error(f"--mu-grid: mu must be > 0, got {mus[0]:g}")
+    mus = positive_mu_grid(args.mu_grid)
     pulls = _pulls(args.pulls)
     # (processes, one per core, unless --workers / --ray / --address)
     runner = runner_from_args(args, os.cpu_count() or 1)
@@ -88,9 +85,7 @@ def add_reference_command(sub) -> None:
                    help="the benchmark task of this scene (default spleen)")
     p.add_argument("--config", type=Path, default=None, metavar="TRAIN.yaml",
                    help="instead, the task of this config's env: section")
-    p.add_argument("--mu-grid", default=",".join(f"{m:g}" for m in DEFAULT_MUS),
-                   help="friction coefficients: a comma list or start:stop:step (default "
-                        + ",".join(f"{m:g}" for m in DEFAULT_MUS) + ")")
+    add_mu_grid_arg(p, DEFAULT_MUS)
     p.add_argument("--pulls", default=",".join(f"{v:g}" for v in DEFAULT_PULLS),
                    help="pull speeds searched, fractions of the arm's top speed (default "
                         + ",".join(f"{v:g}" for v in DEFAULT_PULLS) + ")")

@@ -12,7 +12,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 
 def _default_models() -> list[str]:
@@ -45,6 +45,23 @@ def _require_plots(command: str) -> None:
     from ..physics.config import require_extra
 
     require_extra("train", f"msdgrasp {command} (its plots)", "matplotlib")
+
+
+def add_mu_grid_arg(p: argparse.ArgumentParser, default: Sequence[float]) -> None:
+    """--mu-grid with the grid ``default`` (read back by :func:`positive_mu_grid`)."""
+    text = ",".join(f"{m:g}" for m in default)
+    p.add_argument("--mu-grid", default=text,
+                   help=f"friction coefficients: a comma list or start:stop:step (default {text})")
+
+
+def positive_mu_grid(text: str) -> list[float]:
+    """The frictions of a --mu-grid value, each > 0 (ConfigError naming --mu-grid, as parse_mu_grid's own)."""
+    from ..agents.evaluation import parse_mu_grid
+
+    mus = [float(m) for m in parse_mu_grid(text)]
+    if mus[0] <= 0.0:
+        raise usage_error(f"--mu-grid: mu must be > 0, got {mus[0]:g}")
+    return mus
 
 
 def add_runner_args(p: argparse.ArgumentParser, what: str) -> None:
