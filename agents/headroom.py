@@ -12,12 +12,15 @@ training's, in-range perturbations and all):
    the true mu; the true mu and every privileged draw (stiffness and mass scales, pose error, force biases, latency,
    force-loop gain error); the estimating controller's friction estimate; the closing features it estimates from.
 3. **What it is worth**: for each source, the fixed grip exp(prediction) x M, M the :data:`HOLD_SHARE` quantile of
-   exp(residual) (so that it would hold that share of the episodes with a holding grip), run on every episode by the
-   fixed-force controller at the same pull: its success and mean peak pinch per mu beside the controller's.
+   exp(residual) over the other episodes (so that it would hold about that share of the episodes with a holding grip,
+   no episode sizing its own margin), run on every episode by the fixed-force controller at the same pull: its success
+   and mean peak pinch per mu beside the controller's. One margin for all mu: a grip that knows mu could size one per
+   mu, so the per-mu shares are not held to the target.
 
-The residual spread is the information limit of a source: a grip that knows no more than it needs the margin M to hold
-the share, whatever learns it. The episodes are reset with seeds from :data:`HEADROOM_SEED` (inside
-:data:`HEADROOM_SEEDS`, apart from trainings, validations, the reference and the sealed evaluation seeds).
+The residual spread bounds what a source is worth to a fixed grip under this model (a ridge regression of log h):
+whatever learns from it, a grip that knows no more needs about the margin M to hold the share. The episodes are reset
+with seeds from :data:`HEADROOM_SEED` (inside :data:`HEADROOM_SEEDS`, apart from trainings, validations, the reference
+and the sealed evaluation seeds).
 """
 
 from __future__ import annotations
@@ -54,6 +57,14 @@ SOURCES = {
 }
 
 
+def privileged_draws(obs: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+    """Each episode's privileged draws at reset: log stiffness and mass scales (from the reset ``info``), then the
+    perturbation block (:func:`.perturbations.privileged_names`), the last entries of an observation of a task with
+    ``privileged_perturbations`` (its current frame's, frames being oldest first)."""
+    n_pert = len(privileged_names())
+    return np.column_stack([np.log(info["stiffness_scale"]), np.log(info["mass_scale"]), obs[:, -n_pert:]])
+
+
 def _episodes_job(config_dict: dict[str, Any], mus: list[float], seeds: list[int], controller: str) -> dict[str, Any]:
     """One chunk of episodes, in a worker: each one's holding grip, privileged draws and the controller's run."""
     from ..envs.grasp_lift import GraspLiftVectorEnv
@@ -65,8 +76,7 @@ def _episodes_job(config_dict: dict[str, Any], mus: list[float], seeds: list[int
     policy = build_policy(controller, config)
     env = GraspLiftVectorEnv(len(seeds), config)
     obs, info = env.reset(seed=seeds, options={"mu": mus})
-    n_pert = len(privileged_names())
-    draws = np.column_stack([np.log(info["stiffness_scale"]), np.log(info["mass_scale"]), obs[:, -n_pert:]])
+    draws = privileged_draws(obs, info)
     run = run_batch(GraspLiftVectorEnv(len(seeds), config), policy, mus, seeds)
     return {"hold_N": episode_minimal_forces(config, mus, seeds, pull=policy.pull).tolist(),
             "draws": draws.tolist(), "success": run["success"].tolist(), "peak_pinch_N": run["peak_pinch_N"].tolist(),
@@ -104,6 +114,12 @@ def _ridge_predict(x: np.ndarray, y: np.ndarray, ridge: float, new: np.ndarray) 
     return _design(new, mean, scale) @ w
 
 
+def leave_one_out_quantiles(values: np.ndarray, q: float) -> np.ndarray:
+    """For each entry, the ``q`` quantile of the other entries (numpy's linear interpolation)."""
+    values = np.asarray(values, dtype=np.float64)
+    return np.array([np.quantile(np.delete(values, i), q) for i in range(len(values))])
+
+
 def _regressors(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     log_mu, log_est = np.log(data["mu"]), np.log(data["mu_estimate"])
     return {"mu": np.c_[log_mu, log_mu ** 2], "mu_draws": np.c_[log_mu, log_mu ** 2, data["draws"]],
@@ -120,15 +136,18 @@ def source_grips(data: dict[str, np.ndarray], share: float = HOLD_SHARE) -> dict
         known = np.all(np.isfinite(x), axis=1)  # (an episode the controller made no estimate in: the mean grip)
         fit = np.isfinite(hold) & known
         x = np.where(known[:, None], x, np.nanmean(np.where(fit[:, None], x, np.nan), axis=0))
+        if fit.sum() < 3:
+            raise ConfigError(f"headroom: {int(fit.sum())} episodes with a holding grip and a {name} regressor; the "
+                              "regression needs at least 3 (more episodes, or frictions a grip can hold)")
         y = np.log(hold[fit])
         resid = loo_ridge_residuals(x[fit], y, RIDGE[name])
-        pred = np.empty(len(hold))
-        pred[fit] = y - resid
-        if (~fit).any():  # (episodes not fitted: the regression on every fitted one predicts them)
-            pred[~fit] = _ridge_predict(x[fit], y, RIDGE[name], x[~fit])
         margin = float(np.quantile(np.exp(resid), share))
+        grip = np.empty(len(hold))
+        grip[fit] = np.exp(y - resid) * leave_one_out_quantiles(np.exp(resid), share)
+        if (~fit).any():  # (episodes not fitted: the regression on every fitted one predicts them)
+            grip[~fit] = np.exp(_ridge_predict(x[fit], y, RIDGE[name], x[~fit])) * margin
         out[name] = {"what": SOURCES[name], "residual_sd": float(resid.std()), "r2": float(1 - resid.var() / y.var()),
-                     "margin": margin, "grip_N": np.exp(pred) * margin, "fitted": int(fit.sum())}
+                     "margin": margin, "grip_N": grip, "fitted": int(fit.sum())}
     return out
 
 
@@ -234,4 +253,4 @@ def headroom_verdict(record: dict[str, Any], target: float = 0.95) -> str:
 
 __all__ = ["DEFAULT_CONTROLLER", "DEFAULT_EPISODES", "DEFAULT_MUS", "HEADROOM_SEED", "HEADROOM_SEEDS",
            "HOLD_SHARE", "SOURCES", "estimating_controller", "format_headroom", "headroom_verdict",
-           "loo_ridge_residuals", "measure_headroom", "source_grips"]
+           "leave_one_out_quantiles", "loo_ridge_residuals", "measure_headroom", "privileged_draws", "source_grips"]

@@ -43,11 +43,11 @@ case "${1:-}" in
         timeout "${PART_S:-560}" msdgrasp bench "$part" --out "$OUT/bench_$part.json" 2>&1 | tee "$OUT/bench_$part.log" || true ;;
     train)
         setup
-        seeds="${2:?train SEEDS, e.g. 0-1}"
-        ( time timeout "${PART_S:-560}" msdgrasp train --backend cuda --config "${3:-configs/train/rsl_ppo.yaml}" \
-            --seeds "$seeds" --out logs/train_torch_gpu --quiet ) \
-            2>&1 | tee "$OUT/train_$seeds.log" || true
-        tar czf "$OUT/train_$seeds.tgz" logs/train_torch_gpu ;;
+        seeds="${2:?train SEEDS, e.g. 0-1}" config="${3:-configs/train/rsl_ppo.yaml}"  # (CONFIG from the repo root)
+        name="train_$(basename "$config" .yaml)_$seeds"
+        ( time timeout "${PART_S:-560}" msdgrasp train --backend cuda --config "$config" \
+            --seeds "$seeds" --out "logs/$name" --quiet ) 2>&1 | tee "$OUT/$name.log" || true
+        tar czf "$OUT/$name.tgz" "logs/$name" ;;
     tests)
         setup
         NUMBA_ENABLE_CUDASIM=0 timeout "${PART_S:-560}" python3 -m pytest tests/test_cuda_physics.py tests/test_cuda_task.py \

@@ -27,6 +27,10 @@ def _cmd_headroom(args: argparse.Namespace) -> int:
         raise usage_error(f"--episodes must be >= 3 (per mu; the regressions leave one out), got {args.episodes}")
     mus = positive_mu_grid(args.mu_grid)
     last = HEADROOM_SEEDS.stop - args.episodes * len(mus)
+    if last < HEADROOM_SEEDS.start:
+        raise usage_error(f"--episodes: {args.episodes} per mu x {len(mus)} mu do not fit in the headroom seeds "
+                          f"[{HEADROOM_SEEDS.start}, {HEADROOM_SEEDS.stop}); allowed 3.."
+                          f"{len(HEADROOM_SEEDS) // len(mus)}")
     if not HEADROOM_SEEDS.start <= args.seed <= last:
         raise usage_error(f"--seed must keep the episodes in the headroom seeds [{HEADROOM_SEEDS.start}, "
                           f"{HEADROOM_SEEDS.stop}); allowed {HEADROOM_SEEDS.start}..{last}, got {args.seed}")
@@ -37,7 +41,12 @@ def _cmd_headroom(args: argparse.Namespace) -> int:
         estimating_controller(args.controller, config)
     except ConfigError as exc:
         raise usage_error(f"--controller: {exc}") from None
-    with runner_from_args(args, os.cpu_count() or 1) as runner:
+    runner = runner_from_args(args, os.cpu_count() or 1)
+    try:  # (the folder now, not after a run of minutes)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise usage_error(f"--out: cannot make the folder {args.out.parent}: {exc.strerror}") from None
+    with runner:
         record = measure_headroom(config, mus, args.episodes, args.seed, args.controller, runner=runner)
     record["verdict"] = headroom_verdict(record)
     atomic_write_text(args.out, json.dumps(record, indent=2) + "\n")

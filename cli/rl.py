@@ -55,10 +55,14 @@ def add_mu_grid_arg(p: argparse.ArgumentParser, default: Sequence[float]) -> Non
 
 
 def positive_mu_grid(text: str) -> list[float]:
-    """The frictions of a --mu-grid value, each > 0 (ConfigError naming --mu-grid, as parse_mu_grid's own)."""
+    """The frictions of a --mu-grid value, each > 0 (a usage error naming --mu-grid otherwise)."""
     from ..agents.evaluation import parse_mu_grid
+    from ..physics.config import ConfigError
 
-    mus = [float(m) for m in parse_mu_grid(text)]
+    try:
+        mus = [float(m) for m in parse_mu_grid(text)]
+    except ConfigError as exc:
+        raise usage_error(f"--mu-grid: {exc}") from None
     if mus[0] <= 0.0:
         raise usage_error(f"--mu-grid: mu must be > 0, got {mus[0]:g}")
     return mus

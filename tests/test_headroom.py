@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 
 from msdgrasp.agents.headroom import (
-    HOLD_SHARE, SOURCES, format_headroom, headroom_verdict, loo_ridge_residuals, measure_headroom, source_grips,
+    HOLD_SHARE, SOURCES, format_headroom, headroom_verdict, leave_one_out_quantiles, loo_ridge_residuals,
+    measure_headroom, privileged_draws, source_grips,
 )
 from msdgrasp.cli.main import main
 from msdgrasp.envs.core import benchmark_config
+from msdgrasp.envs.grasp_lift import GraspLiftVectorEnv
+from msdgrasp.envs.perturbations import privileged_names
 
 
 def test_the_closed_form_residuals_are_those_of_refitting_without_each_episode():
@@ -25,6 +28,29 @@ def test_the_closed_form_residuals_are_those_of_refitting_without_each_episode()
         keep = np.arange(30) != i
         w = np.linalg.solve(a[keep].T @ a[keep] + penalty, a[keep].T @ y[keep])
         assert fast[i] == pytest.approx(y[i] - a[i] @ w, abs=1e-10)
+
+
+def test_no_episode_sizes_its_own_margin():
+    values = np.array([1.0, 2.0, 3.0, 4.0, 100.0])
+    assert leave_one_out_quantiles(values, 1.0).tolist() == [100.0, 100.0, 100.0, 100.0, 4.0]
+
+
+def test_the_draws_are_the_current_frames_perturbation_block_and_the_scales():
+    import dataclasses
+
+    from msdgrasp.agents.models import default_training
+
+    task = dataclasses.replace(default_training().training_task(), privileged_obs=True, privileged_perturbations=True)
+    seen = []
+    for history in (1, 3):
+        env = GraspLiftVectorEnv(2, dataclasses.replace(task, obs_history=history))
+        obs, info = env.reset(seed=[11, 12], options={"mu": [0.3, 0.5]})
+        draws = privileged_draws(obs, info)
+        assert draws.shape == (2, 2 + len(privileged_names()))
+        assert draws[:, 0] == pytest.approx(np.log(info["stiffness_scale"]))
+        seen.append(draws)
+    assert seen[0] == pytest.approx(seen[1])  # (the current frame's block, however many frames are stacked)
+    assert not np.allclose(seen[0][0, 2:], seen[0][1, 2:])  # two seeds, two poses, biases, ...
 
 
 def _synthetic(n_per_mu: int = 60, seed: int = 1) -> dict[str, np.ndarray]:
@@ -78,8 +104,9 @@ def test_a_tiny_run_measures_every_source_on_the_task(tmp_path):
     for s in record["sources"].values():
         assert [r["mu"] for r in s["per_mu"]] == [0.3, 0.8] and all(r["episodes"] == 3 for r in s["per_mu"])
         assert all(0 <= r["success_rate"] <= 1 and r["mean_peak_pinch_N"] > 0 for r in s["per_mu"])
-    # the controller's estimates exist (so it recorded its closing features) and the holding grips are forces
-    assert all(0 <= h["held_share"] <= 1 for h in record["hindsight"])
+    # every held episode got the controller's estimate and closing features: each source fits as many episodes
+    held = round(sum(h["held_share"] for h in record["hindsight"]) * 3)
+    assert held >= 3 and {s["fitted"] for s in record["sources"].values()} == {held}
     assert "| the controller" in format_headroom(record)
     json.dumps(record)  # (plain JSON)
 
@@ -89,6 +116,8 @@ def test_a_tiny_run_measures_every_source_on_the_task(tmp_path):
     (["--out", "x.json", "--seed", "0"], "--seed"),
     (["--out", "x.json", "--episodes", "2"], "--episodes"),
     (["--out", "x.json", "--mu-grid", "0,0.5"], "--mu-grid"),
+    (["--out", "x.json", "--mu-grid", "abc"], "--mu-grid"),
+    (["--out", "x.json", "--episodes", "300000"], "--episodes"),
     (["--out", "x.json", "--config", "missing.yaml"], "--config"),
     (["--out", "x.json", "--controller", "fixed:force=1"], "--controller"),
     (["--out", "x.json", "--controller", "fixed:1"], "--controller"),
