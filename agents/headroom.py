@@ -14,8 +14,8 @@ training's, in-range perturbations and all):
 3. **What it is worth**: for each source, the fixed grip exp(prediction) x M, M the :data:`HOLD_SHARE` quantile of
    exp(residual) over the other episodes (so that it would hold about that share of the episodes with a holding grip,
    no episode sizing its own margin), run on every episode by the fixed-force controller at the same pull: its success
-   and mean peak pinch per mu beside the controller's. One margin for all mu: a grip that knows mu could size one per
-   mu, so the per-mu shares are not held to the target.
+   and mean peak pinch per mu beside the controller's. A source that knows mu sizes its margin per mu, so that it
+   holds about that share at every mu; the others one margin for all mu.
 
 The residual spread bounds what a source is worth to a fixed grip under this model (a ridge regression of log h):
 whatever learns from it, a grip that knows no more needs about the margin M to hold the share. The episodes are reset
@@ -48,6 +48,8 @@ DEFAULT_CONTROLLER = "slipfeedback:estimator=builtin,gate=0.9,gain=0.5,pull=0.3"
 HOLD_SHARE = 0.95
 #: ridge weights of the standardised regressors: near zero for the few of mu, more for the 55 closing features
 RIDGE = {"mu": 1e-6, "mu_draws": 1.0, "estimate": 1e-6, "closing": 10.0}
+#: the sources that know mu, and so size their margin per mu (the others one margin for all)
+KNOWS_MU = ("mu", "mu_draws")
 #: what each source knows
 SOURCES = {
     "mu": "the episode's true friction (log mu, log^2 mu)",
@@ -126,9 +128,29 @@ def _regressors(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
             "estimate": np.c_[log_est, log_est ** 2], "closing": data["features"]}
 
 
+def _margined(pred: np.ndarray, resid: np.ndarray, fit: np.ndarray, groups: np.ndarray, share: float
+              ) -> tuple[np.ndarray, dict[float, float]]:
+    """Grips exp(pred) x the ``share`` quantile of exp(residual) within each group, for a fitted episode over the
+    group's other fitted episodes; a group with fewer than 2 fitted episodes takes the pooled quantile."""
+    e = np.exp(resid)
+    pooled = float(np.quantile(e, share))
+    grip, margins = np.exp(pred), {}
+    rows = np.flatnonzero(fit)
+    for g in np.unique(groups):
+        mine = groups[fit] == g  # (over the fitted episodes)
+        margins[float(g)] = float(np.quantile(e[mine], share)) if mine.sum() >= 2 else pooled
+        if mine.sum() >= 2:
+            grip[rows[mine]] *= leave_one_out_quantiles(e[mine], share)
+        else:
+            grip[rows[mine]] *= pooled
+        grip[~fit & (groups == g)] *= margins[float(g)]
+    return grip, margins
+
+
 def source_grips(data: dict[str, np.ndarray], share: float = HOLD_SHARE) -> dict[str, dict[str, Any]]:
     """Per source: its leave-one-out residual spread of log h and the fixed grip per episode (N) sized to hold
-    ``share`` of the episodes with a holding grip. The regressions fit on those episodes; every episode gets a grip."""
+    ``share`` of the episodes with a holding grip, per mu for a source that knows mu (:data:`KNOWS_MU`), over all
+    for the others. The regressions fit on those episodes; every episode gets a grip."""
     hold = data["hold_N"]
     out = {}
     for name, x in _regressors(data).items():
@@ -141,13 +163,14 @@ def source_grips(data: dict[str, np.ndarray], share: float = HOLD_SHARE) -> dict
                               "regression needs at least 3 (more episodes, or frictions a grip can hold)")
         y = np.log(hold[fit])
         resid = loo_ridge_residuals(x[fit], y, RIDGE[name])
-        margin = float(np.quantile(np.exp(resid), share))
-        grip = np.empty(len(hold))
-        grip[fit] = np.exp(y - resid) * leave_one_out_quantiles(np.exp(resid), share)
+        pred = np.empty(len(hold))
+        pred[fit] = y - resid
         if (~fit).any():  # (episodes not fitted: the regression on every fitted one predicts them)
-            grip[~fit] = np.exp(_ridge_predict(x[fit], y, RIDGE[name], x[~fit])) * margin
+            pred[~fit] = _ridge_predict(x[fit], y, RIDGE[name], x[~fit])
+        groups = data["mu"] if name in KNOWS_MU else np.zeros(len(hold))
+        grip, margins = _margined(pred, resid, fit, groups, share)
         out[name] = {"what": SOURCES[name], "residual_sd": float(resid.std()), "r2": float(1 - resid.var() / y.var()),
-                     "margin": margin, "grip_N": grip, "fitted": int(fit.sum())}
+                     "margins": list(margins.values()), "grip_N": grip, "fitted": int(fit.sum())}
     return out
 
 
@@ -230,7 +253,8 @@ def format_headroom(record: dict[str, Any]) -> str:
     lines.append(f"| the controller ({record['controller']}) | - | - | {cells(ctl, 'success_rate')} | "
                  f"{cells(ctl, 'mean_peak_pinch_N')} N |")
     for name, s in record["sources"].items():
-        lines.append(f"| {name}: {s['what']} | {s['residual_sd']:.3f} | {s['margin']:.2f} | "
+        margin = "-".join(f"{m:.2f}" for m in sorted({min(s["margins"]), max(s["margins"])}))
+        lines.append(f"| {name}: {s['what']} | {s['residual_sd']:.3f} | {margin} | "
                      f"{cells(s['per_mu'], 'success_rate')} | {cells(s['per_mu'], 'force_vs_controller')} |")
     held = " / ".join(f"{h['held_share']:.2f}" for h in record["hindsight"])
     lines += ["", f"Episodes some fixed grip up to 5 N holds, per mu: {held}."]
@@ -252,5 +276,5 @@ def headroom_verdict(record: dict[str, Any], target: float = 0.95) -> str:
 
 
 __all__ = ["DEFAULT_CONTROLLER", "DEFAULT_EPISODES", "DEFAULT_MUS", "HEADROOM_SEED", "HEADROOM_SEEDS",
-           "HOLD_SHARE", "SOURCES", "estimating_controller", "format_headroom", "headroom_verdict",
+           "HOLD_SHARE", "KNOWS_MU", "SOURCES", "estimating_controller", "format_headroom", "headroom_verdict",
            "leave_one_out_quantiles", "loo_ridge_residuals", "measure_headroom", "privileged_draws", "source_grips"]

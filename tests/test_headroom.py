@@ -69,7 +69,7 @@ def _synthetic(n_per_mu: int = 60, seed: int = 1) -> dict[str, np.ndarray]:
 def test_a_source_that_knows_what_scatters_the_grip_needs_no_margin_and_one_that_guesses_needs_more():
     grips = source_grips(_synthetic())
     assert set(grips) == set(SOURCES)
-    assert grips["mu_draws"]["residual_sd"] < 0.02 and grips["mu_draws"]["margin"] == pytest.approx(1.0, abs=0.05)
+    assert grips["mu_draws"]["residual_sd"] < 0.02 and max(grips["mu_draws"]["margins"]) == pytest.approx(1.0, abs=0.05)
     assert grips["mu"]["residual_sd"] == pytest.approx(0.2, rel=0.2)  # the draw's scatter, which mu does not know
     assert grips["estimate"]["residual_sd"] > grips["mu"]["residual_sd"]  # the estimate's own error adds to it
     for g in grips.values():
@@ -82,6 +82,19 @@ def test_the_margin_holds_the_share_of_the_holdable_episodes_it_is_sized_for():
     for g in source_grips(data).values():
         held = np.mean(g["grip_N"][holdable] >= data["hold_N"][holdable] * (1 - 1e-9))
         assert held >= HOLD_SHARE - 0.02  # (the LOO predictions are not those of the full fit: a hair either way)
+
+
+def test_a_source_that_knows_mu_holds_the_share_at_every_mu_and_one_margin_for_all_does_not():
+    data = _synthetic(n_per_mu=100)
+    scatter = np.repeat([0.4, 0.2, 0.1, 0.05], 100)  # (the grip scatters more where the tissue is slipperier)
+    data["hold_N"] = 0.35 / data["mu"] * np.exp(scatter * data["draws"][:, 3])
+    data["mu_estimate"] = data["mu"].copy()  # (an estimate as good as the truth, but not told it is: one margin)
+    grips = source_grips(data)
+    assert len(grips["mu"]["margins"]) == 4 and len(grips["estimate"]["margins"]) == 1
+    for name, low, high in (("mu", 0.9, 1.0), ("estimate", 0.0, 0.85)):
+        held = grips[name]["grip_N"] >= data["hold_N"]
+        assert low <= held[:100].mean() <= high, name  # at mu 0.2
+    assert held[300:].mean() == 1.0  # one margin sized by the slippery tissue over-grips the rough one
 
 
 def _record(successes: dict[str, list[float]], forces: dict[str, list[float]]) -> dict:
