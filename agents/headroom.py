@@ -229,13 +229,26 @@ def measure_headroom(config: GraspLiftConfig, mus: Sequence[float] = DEFAULT_MUS
         peak = np.concatenate([r["peak_pinch_N"] for r in res])
         sources[name] = {k: v for k, v in g.items() if k != "grip_N"} | {
             "per_mu": _per_mu(data["mu"], mus, success.astype(bool), peak, ctl_peak)}
-    hold = data["hold_N"]
-    hindsight = [{"mu": float(m), "held_share": float(np.isfinite(hold[data["mu"] == m]).mean()),
-                  "mean_hold_N": float(np.nanmean(hold[data["mu"] == m]))} for m in mus]
+    held = [data["hold_N"][(data["mu"] == m) & np.isfinite(data["hold_N"])] for m in mus]
+    hindsight = [{"mu": float(m), "held_share": len(h) / episodes, "mean_hold_N": float(h.mean()) if len(h) else None}
+                 for m, h in zip(mus, held)]
     return {"controller": controller, "pull": policy.pull, "mus": [float(m) for m in mus], "episodes": episodes,
             "seeds": f"{seed} + k, k < {len(seeds)} (episode k at mu grid[k // episodes])", "hold_share": HOLD_SHARE,
             "controller_per_mu": _per_mu(data["mu"], mus, data["success"].astype(bool), ctl_peak, ctl_peak),
-            "hindsight": hindsight, "sources": sources, "seconds": round(time.time() - t0, 1)}
+            "hindsight": hindsight, "sources": sources, "per_episode": _per_episode(seeds, data),
+            "seconds": round(time.time() - t0, 1)}
+
+
+def _per_episode(seeds: np.ndarray, data: dict[str, np.ndarray]) -> dict[str, list]:
+    """Each episode's seed, mu, holding grip (None: no grip up to 5 N holds it) and the controller's run, so that
+    another policy can be run on the same episodes against their holding grips."""
+    def plain(values: np.ndarray) -> list:
+        return [float(v) if np.isfinite(v) else None for v in values]
+
+    return {"seed": seeds.tolist(), "mu": data["mu"].tolist(), "hold_N": plain(data["hold_N"]),
+            "controller_success": data["success"].astype(bool).tolist(),
+            "controller_peak_pinch_N": plain(data["peak_pinch_N"]),
+            "controller_mu_estimate": plain(data["mu_estimate"])}
 
 
 def format_headroom(record: dict[str, Any]) -> str:

@@ -121,7 +121,10 @@ def test_a_tiny_run_measures_every_source_on_the_task(tmp_path):
     held = round(sum(h["held_share"] for h in record["hindsight"]) * 3)
     assert held >= 3 and {s["fitted"] for s in record["sources"].values()} == {held}
     assert "| the controller" in format_headroom(record)
-    json.dumps(record)  # (plain JSON)
+    episodes = record["per_episode"]  # (each episode, to run another policy on the same ones)
+    assert episodes["mu"] == [0.3] * 3 + [0.8] * 3 and len(set(episodes["seed"])) == 6
+    assert all(h is None or h > 0 for h in episodes["hold_N"])
+    json.dumps(record, allow_nan=False)  # (strict JSON: no NaN)
 
 
 @pytest.mark.parametrize("argv, field", [
