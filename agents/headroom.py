@@ -77,9 +77,8 @@ def _episodes_job(config_dict: dict[str, Any], mus: list[float], seeds: list[int
     config = from_dict(GraspLiftConfig, config_dict, where="env")
     policy = build_policy(controller, config)
     env = GraspLiftVectorEnv(len(seeds), config)
-    obs, info = env.reset(seed=seeds, options={"mu": mus})
-    draws = privileged_draws(obs, info)
-    run = run_batch(GraspLiftVectorEnv(len(seeds), config), policy, mus, seeds)
+    draws = privileged_draws(*env.reset(seed=seeds, options={"mu": mus}))
+    run = run_batch(env, policy, mus, seeds)  # (reset again with the same seeds: the same episodes)
     return {"hold_N": episode_minimal_forces(config, mus, seeds, pull=policy.pull).tolist(),
             "draws": draws.tolist(), "success": run["success"].tolist(), "peak_pinch_N": run["peak_pinch_N"].tolist(),
             "mu_estimate": policy.mu_estimate.tolist(), "features": policy.closing_features.tolist()}
@@ -94,26 +93,26 @@ def _fixed_grip_job(config_dict: dict[str, Any], mu: float, seeds: list[int], fo
     return {"success": run["success"].tolist(), "peak_pinch_N": run["peak_pinch_N"].tolist()}
 
 
-def _design(x: np.ndarray, mean: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    return np.c_[(x - mean) / scale, np.ones(len(x))]
+def _ridge_system(x: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The design (standardised columns of ``x``, then the intercept), its column mean and scale, and the ridge's
+    normal matrix (the intercept unpenalised)."""
+    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-12
+    a = np.c_[(x - mean) / scale, np.ones(len(x))]
+    return a, mean, scale, a.T @ a + np.diag([float(ridge)] * x.shape[1] + [0.0])
 
 
 def loo_ridge_residuals(x: np.ndarray, y: np.ndarray, ridge: float) -> np.ndarray:
     """Leave-one-out residuals of a ridge regression of ``y`` on the standardised columns of ``x`` with an
     unpenalised intercept (the hat matrix's closed form r_i / (1 - H_ii))."""
-    x = np.asarray(x, dtype=np.float64).reshape(len(y), -1)
-    a = _design(x, x.mean(axis=0), x.std(axis=0) + 1e-12)
-    penalty = np.diag([float(ridge)] * x.shape[1] + [0.0])
-    hat = a @ np.linalg.solve(a.T @ a + penalty, a.T)
+    a, _, _, normal = _ridge_system(np.asarray(x, dtype=np.float64).reshape(len(y), -1), ridge)
+    hat = a @ np.linalg.solve(normal, a.T)
     return (y - hat @ y) / (1.0 - np.diag(hat))
 
 
 def _ridge_predict(x: np.ndarray, y: np.ndarray, ridge: float, new: np.ndarray) -> np.ndarray:
     """The same ridge regression fitted on every row of ``x``, predicting at the rows ``new``."""
-    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-12
-    a = _design(x, mean, scale)
-    w = np.linalg.solve(a.T @ a + np.diag([float(ridge)] * x.shape[1] + [0.0]), a.T @ y)
-    return _design(new, mean, scale) @ w
+    a, mean, scale, normal = _ridge_system(x, ridge)
+    return np.c_[(new - mean) / scale, np.ones(len(new))] @ np.linalg.solve(normal, a.T @ y)
 
 
 def leave_one_out_quantiles(values: np.ndarray, q: float) -> np.ndarray:
@@ -138,10 +137,11 @@ def _margined(pred: np.ndarray, resid: np.ndarray, fit: np.ndarray, groups: np.n
     rows = np.flatnonzero(fit)
     for g in np.unique(groups):
         mine = groups[fit] == g  # (over the fitted episodes)
-        margins[float(g)] = float(np.quantile(e[mine], share)) if mine.sum() >= 2 else pooled
         if mine.sum() >= 2:
+            margins[float(g)] = float(np.quantile(e[mine], share))
             grip[rows[mine]] *= leave_one_out_quantiles(e[mine], share)
         else:
+            margins[float(g)] = pooled
             grip[rows[mine]] *= pooled
         grip[~fit & (groups == g)] *= margins[float(g)]
     return grip, margins

@@ -13,9 +13,8 @@
 # (physics batches 1..16,384 and the whole task step, float64 and float32, against 200k agent steps/s),
 # `precision` (float32 error, coarse spleen, full episode) or `learners` (does SB3 keep up?). train SEEDS [CONFIG]:
 # `msdgrasp train --backend cuda` on rsl_ppo.yaml (or CONFIG), timed, each seed evaluated; the runs come back as one
-# archive. tests: the kernels and the task
-# against the CPU on real hardware (NUMBA_ENABLE_CUDASIM=0). Everything lands in $OUT (default logs/gpu), each
-# part's log included, so a part killed at its limit still reports.
+# archive. tests: the kernels and the task against the CPU on real hardware (NUMBA_ENABLE_CUDASIM=0). Everything
+# lands in $OUT (default logs/gpu), each part's log included, so a part killed at its limit still reports.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PACKAGES=("numpy>=2.0,<2.5" "gymnasium==1.4.0" farama-notifications "stable-baselines3==2.9.2" "pydantic==2.14.4"
