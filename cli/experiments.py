@@ -167,7 +167,7 @@ def fem_cli(args: argparse.Namespace) -> int:
     from ..experiments.fem import CASES, CUBE_CELLS, ComparisonSettings, compare, plot_comparison, write_comparison_csv
     from ..physics.config import check_range
 
-    cases = tuple(args.case or ("cube", "cube-slip", "sphere", "spleen"))
+    cases = tuple(args.case or ComparisonSettings().cases)
     for c in cases:
         if c not in CASES:
             raise ConfigError(f"--case {c!r} is not allowed; choose from {', '.join(CASES)}")

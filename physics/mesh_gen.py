@@ -55,16 +55,29 @@ def _grid_shape(target: int, extents) -> tuple[int, int, int]:
     return best
 
 
-def kuhn_box(shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Box grid on [-1,1]^3 split into reflected-Kuhn tets: (nodes (N,3), tets (T,4) positive)."""
+#: how :func:`kuhn_box` orients each cell's six Kuhn tets
+GRID_PATTERNS = ("octant", "alternating")
+
+
+def kuhn_box(shape: tuple[int, int, int], pattern: str = "octant") -> tuple[np.ndarray, np.ndarray]:
+    """Box grid on [-1,1]^3 split into reflected-Kuhn tets: (nodes (N,3), tets (T,4) positive).
+
+    ``pattern``: ``"octant"``, each cell's diagonal runs away from the box centre (one Kuhn lattice per octant,
+    mirrored at the centre planes: the built-in meshes' grid); ``"alternating"``, each cell is mirrored by the
+    parity of its index along each axis (Todd's J1 triangulation), so that every node is a centre of symmetry. A
+    spring network on the octant grid is anisotropic within each octant (every diagonal leans the same way) and
+    relaxes non-affinely where the octants meet; on the alternating grid it is a cubic crystal under any uniform
+    strain, which :data:`~msdgrasp.physics.tissue.TissueParams` ``stiffness_rule: grid`` makes isotropic."""
+    if pattern not in GRID_PATTERNS:
+        raise MeshError(f"grid = {pattern!r} is not allowed; choose one of {list(GRID_PATTERNS)}")
     nx, ny, nz = shape
     axes = [np.linspace(-1.0, 1.0, k + 1) for k in shape]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     idx = np.arange(len(grid)).reshape(nx + 1, ny + 1, nz + 1)
     cells = np.stack(np.meshgrid(*(np.arange(k) for k in shape), indexing="ij"), -1).reshape(-1, 3)
     n = np.asarray(shape)
-    # per axis, the cube diagonal runs away from the box centre (cells straddling it: +)
-    d = np.where(2 * cells + 1 >= n, 1, -1)
+    # per axis, the cube diagonal runs away from the box centre (cells straddling it: +), or alternates cell by cell
+    d = np.where(2 * cells + 1 >= n, 1, -1) if pattern == "octant" else np.where(cells % 2 == 0, 1, -1)
     start = np.where(d > 0, cells, cells + 1)
     tets = []
     for perm in itertools.permutations(range(3)):

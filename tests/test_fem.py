@@ -3,6 +3,7 @@ against closed forms, the MSD's static solver against the linear network, and th
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -162,3 +163,81 @@ def test_an_extrapolation_without_three_levels_needs_its_rate():
     one = fem.converged_linear_force(case, E, 0.25, splits=1, rate=1.0)
     f0, f1 = one["p1_N_per_m"]
     assert one["limit_N_per_m"] == pytest.approx(f1 - (f0 - f1))  # error ~ h: the limit lies as far below again
+
+
+def test_the_pads_are_in_balance_and_load_a_split_mesh_alike():
+    # 1 N on each pad, in force and moment balance (so the pins carry nothing); a split mesh's pad is the same area
+    # under the same traction, so its nodal forces have the same resultant and the same line of action
+    for name in ("sphere-pad", "spleen-pad"):
+        case = fem.load_case(name, "coarse")
+        assert case.padded and case.prescribed().size == 6
+        pins = {i for i, _ in case.pins}
+        assert not pins & set(case.moved) and not pins & set(case.held)
+        for c in (case, fem.refined_case(case)):
+            fz, x = c.unit_load()[2::3], c.mesh.nodes
+            assert fz[c.moved].sum() == pytest.approx(-1.0) and fz[c.held].sum() == pytest.approx(1.0)
+            assert abs(fz @ x[:, 0]) < 1e-14 and abs(fz @ x[:, 1]) < 1e-14
+            centre = (fz[c.moved] @ x[c.moved, :2]) / fz[c.moved].sum()
+            if c is case:
+                first = centre
+        assert centre == pytest.approx(first, abs=1e-12)
+
+
+def test_the_pads_consistent_load_is_scikit_fems():
+    # the closed-form P1 load of a linear traction against scikit-fem's facet quadrature on the same faces
+    skfem = pytest.importorskip("skfem")
+    case = fem.load_case("spleen-pad", "coarse")
+    faces = fem.pad_faces(case.mesh, case.held)
+    coef = case.pad_weights[1]
+    m = fem._skfem_mesh(case.mesh)
+    wanted = {tuple(sorted(f)) for f in faces.tolist()}
+    facets = [i for i, f in enumerate(np.asarray(m.facets).T.tolist()) if tuple(sorted(f)) in wanted]
+    assert len(facets) == len(faces)
+    basis = skfem.FacetBasis(m, skfem.ElementTetP1(), facets=np.array(facets))
+    form = skfem.LinearForm(lambda v, w: (coef[0] + coef[1] * w.x[0] + coef[2] * w.x[1]) * v)
+    expected = skfem.asm(form, basis)
+    assert fem.traction_nodal_forces(case.mesh, faces, coef) == pytest.approx(expected, rel=1e-10, abs=1e-12)
+
+
+def test_pads_over_whole_faces_meet_the_bars_closed_form():
+    # a uniform traction over the cube's top and bottom faces is uniaxial stress, which P1 holds exactly: E A / L
+    mesh = fem.cube_mesh(fem.CUBE_SIDE_M, 4)
+    z = mesh.nodes[:, 2]
+    top, bottom = np.flatnonzero(z > z.max() - 1e-12), np.flatnonzero(z < z.min() + 1e-12)
+    case = fem.LoadCase("cube-pads", mesh, top, bottom, False, fem.CUBE_SIDE_M,
+                        fem._rigid_pins(mesh, np.concatenate([top, bottom])),
+                        pad_weights=fem._balanced_pads(mesh, top, bottom))
+    k, u = fem.fem_linear_forces(case, E, 0.3, [1.0 / case.height_m])
+    assert k[0] == pytest.approx(E * fem.CUBE_SIDE_M, rel=1e-9)
+    x = mesh.nodes[:, 0]
+    sides = (np.flatnonzero(x < x.min() + 1e-12), np.flatnonzero(x > x.max() - 1e-12))
+    assert fem.poisson_ratio(dataclasses.replace(case, sides=sides), u) == pytest.approx(0.3, abs=1e-9)
+
+
+def test_the_grid_rule_makes_the_alternating_grid_the_isotropic_solid():
+    # under a uniform strain every node of the alternating (J1) grid is a centre of symmetry, so its springs balance
+    # there; the octant grid's nodes where the octants meet do not
+    eps = np.array([[1.0, 0.3, -0.2], [0.3, -0.5, 0.4], [-0.2, 0.4, 0.7]]) * 1e-3
+    for pattern, balanced in (("alternating", True), ("octant", False)):
+        mesh = fem.cube_mesh(fem.CUBE_SIDE_M, 4, pattern)
+        k1 = fem.grid_springs(mesh, E)
+        f = (stiffness_matrix(mesh.nodes, mesh.edges, k1) @ (mesh.nodes @ eps.T).ravel()).reshape(-1, 3)
+        interior = np.setdiff1d(np.arange(mesh.n_nodes), mesh.node_sets["surface"])
+        scale = E * fem.CUBE_SIDE_M**2 * 1e-3
+        assert (np.abs(f[interior]).max() < 1e-12 * scale) == balanced
+        if balanced:
+            # and the energy of that strain is the isotropic solid's with the input E and nu = 1/4 (lambda = mu = 0.4 E)
+            energy = 0.5 * (mesh.nodes @ eps.T).ravel() @ (f.ravel())
+            lam = mu = 0.4 * E
+            iso = 0.5 * fem.CUBE_SIDE_M**3 * (lam * np.trace(eps) ** 2 + 2 * mu * np.sum(eps * eps))
+            assert energy == pytest.approx(iso, rel=1e-9)
+    # relaxed between frictionless plates: E and nu = 1/4 up to the free faces' layer (it shrinks as cells are added)
+    errors = []
+    for res in ("coarse", "fine"):
+        case = fem.load_case("cube-slip-j1", res)
+        model = fem.with_springs(fem.msd_model(case.mesh, TissueParams(youngs_modulus_pa=E)),
+                                 fem.grid_springs(case.mesh, E))
+        k, u = fem.msd_linear_force(case, model)
+        errors.append(abs(k / (E * fem.CUBE_SIDE_M) - 1.0))
+        assert abs(fem.poisson_ratio(case, u) - 0.25) < 0.025
+    assert errors[1] < errors[0] < 0.08
