@@ -22,7 +22,11 @@ Load cases (all loaded along z):
 * ``sphere``: the shipped gmsh sphere indented at its top pole by a bonded flat punch (the surface nodes within
   :data:`INDENTER_RADIUS_FRACTION` R of the pole axis), the same patch at the bottom held;
 * ``spleen``: the built-in spleen indented through its thickness at the middle of its long axis (surface nodes
-  within :data:`SPLEEN_INDENTER_RADIUS_M` of the top point) with the opposite patch held.
+  within :data:`SPLEEN_INDENTER_RADIUS_M` of the top point) with the opposite patch held; ``spleen-even``: the same
+  surface filled with unstructured tets (:func:`~msdgrasp.physics.mesh_io.spleen_even_mesh`), the same patches;
+* ``<body>-pad``: the sphere's or a spleen's two patches squeezed together by forces, not displacements (a traction
+  on each patch's faces, :meth:`LoadCase.unit_load`), so that both models carry the same load;
+* ``cube-j1``, ``cube-slip-j1``: the cubes on the alternating (J1) grid, where :func:`grid_springs` applies.
 
 Strain is the indenter's travel over the case's height along z. The continuum Poisson ratio is a parameter:
 0.25 is the isotropic network's own (Cauchy relations; :data:`~msdgrasp.physics.tissue.NETWORK_POISSON_RATIO`), the
@@ -44,13 +48,14 @@ import scipy.sparse.linalg as spla
 from ..physics.config import ConfigError, from_dict, needs_extra, to_dict
 from ..physics.forces import volume_forces
 from ..physics.mesh import TetMesh, boundary_faces, tet_signed_volumes
-from ..physics.mesh_io import sphere_even_mesh
+from ..physics.mesh_io import sphere_even_mesh, spleen_even_mesh
 from ..physics.mesh_gen import kuhn_box, spleen_mesh
 from ..physics.reference import numpy_barrier_slopes, numpy_spring_law
 from ..physics.tissue import TissueModel, TissueParams, assemble_edge_blocks, hertz_sphere_force
 
 #: the load cases :func:`load_case` builds
-CASES = ("cube", "cube-slip", "sphere", "spleen", "sphere-pad", "spleen-pad", "cube-j1", "cube-slip-j1")
+CASES = ("cube", "cube-slip", "sphere", "spleen", "sphere-pad", "spleen-pad", "spleen-even", "spleen-even-pad",
+         "cube-j1", "cube-slip-j1")
 #: cells per cube edge for the named resolutions (about the node counts of the built-in meshes')
 CUBE_CELLS = {"coarse": 5, "medium": 8, "fine": 12}
 #: the cube's edge, m (a grasped slab of spleen: its thickness is ~40 mm)
@@ -59,6 +64,9 @@ CUBE_SIDE_M = 0.03
 INDENTER_RADIUS_FRACTION = 0.4
 #: radius of the bonded punch (and of the held patch) on the spleen, m
 SPLEEN_INDENTER_RADIUS_M = 0.012
+#: the cases also solved at the large strains (cube-slip measures the Poisson ratio; no force-loaded large-strain path
+#: is built for the pads; the J1 grid and spleen-even are calibrations compared at small strain)
+LARGE_STRAIN_CASES = ("cube", "sphere", "spleen")
 #: strains of the comparison: small (linear) and large (neo-Hookean)
 SMALL_STRAIN = 0.02
 LARGE_STRAINS = (0.10, 0.20)
@@ -234,10 +242,12 @@ def load_case(name: str, resolution: str = "coarse") -> LoadCase:
         # the poles: the surface nodes within the punch radius of the z axis, on both faces
         moved, held = _patches(mesh, np.zeros(3), INDENTER_RADIUS_FRACTION * radius + 1e-12)
         height = 2.0 * radius
-    elif body == "spleen":
-        mesh = spleen_mesh(res)
-        # the middle of the long axis: the surface nodes nearest the x-y location of the centroid, on both faces
-        moved, held = _patches(mesh, mesh.nodes.mean(axis=0), SPLEEN_INDENTER_RADIUS_M)
+    elif body in ("spleen", "spleen-even"):
+        grid = spleen_mesh(res)
+        mesh = grid if body == "spleen" else spleen_even_mesh(res)
+        # the middle of the long axis: the surface nodes nearest the x-y location of the grid's node centroid, on both
+        # faces (spleen-even has the grid's surface: the same patches)
+        moved, held = _patches(mesh, grid.nodes.mean(axis=0), SPLEEN_INDENTER_RADIUS_M)
         height = float(mesh.nodes[moved, 2].mean() - mesh.nodes[held, 2].mean())
     else:
         raise ConfigError(f"case = {name!r} is not allowed; choose one of {list(CASES)}")
@@ -1062,10 +1072,8 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
                              **({"fem_limit_N": limit["limit_N_per_m"] * travel,
                                  "rel_error_limit": k_msd[key] / limit["limit_N_per_m"] - 1.0} if limit else {}),
                              **({"factor": factor} if key == "calibrated" else {})})
-            if name.startswith("cube-slip") or name.endswith("-j1") or case.padded or not settings.large:
-                continue  # (its purpose is the Poisson ratio; the bonded cube carries the large strains; the pads
-                # and the J1 grid are small-strain comparisons: no force-loaded large-strain path is built, and the
-                # J1 grid is a calibration of the linear network)
+            if name not in LARGE_STRAIN_CASES or not settings.large:
+                continue
             try:
                 f_nh = fem_neo_hookean_forces(case, E, nu, strains)
             except RuntimeError:  # (reported as NaN: no converged reference at these strains)

@@ -1,10 +1,15 @@
-"""Regenerate the shipped sphere meshes with gmsh: ``python -m msdgrasp.meshes.generate [--check]``.
+"""Regenerate the shipped gmsh meshes: ``python -m msdgrasp.meshes.generate [--check]``.
 
+The sphere:
 The mapped-box generator of :func:`msdgrasp.physics.mesh_gen.sphere_mesh` puts a flat 4-node facet at each
 pole of the coarse sphere, so plates meet a flat punch (force ~ travel) instead of a curved surface
 (Hertz: force ~ travel^1.5), and node-based contact converges slowly with refinement. gmsh's
 Frontal-Delaunay surface mesher samples the sphere evenly (a node at each pole, rings around it) and its
 Delaunay volume mesher, followed by Netgen's optimiser, fills it with well-shaped tets.
+
+The spleen (``spleen-even``): the built-in spleen's surface at each resolution, kept triangle for triangle, filled by
+gmsh's Delaunay volume mesher and Netgen's optimiser instead of the mapped Kuhn grid, whose spring network is
+anisotropic (docs/validation.md): the same organ, the same surface and jaws' footprints, an unstructured interior.
 
 Deterministic for a given gmsh version (single thread, fixed seed): :data:`SIZES` and :data:`GMSH_VERSION`
 are the record of how the files were made. ``--check`` regenerates in memory and compares with the shipped
@@ -67,6 +72,55 @@ def sphere_points_and_tets(size_m: float, radius_m: float = RADIUS_M) -> tuple[n
     return nodes[used], remap[tets]
 
 
+#: the built-in spleen's resolutions whose surfaces are filled (``spleen-even``)
+SPLEEN_RESOLUTIONS = ("coarse", "medium", "fine")
+
+
+def spleen_points_and_tets(resolution: str) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes (N, 3) m, tets (T, 4)) of the built-in spleen's surface at ``resolution`` (its nodes and triangles, kept)
+    filled with gmsh's Delaunay tets; the surface nodes come first, in the order of their ids in the built-in mesh."""
+    from ..physics.mesh import boundary_faces
+    from ..physics.mesh_gen import spleen_mesh
+
+    gmsh = _gmsh()
+    grid = spleen_mesh(resolution)
+    tris = boundary_faces(grid.tets, "spleen")
+    surf = np.unique(tris)
+    gmsh.initialize(readConfigFiles=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.option.setNumber("Mesh.RandomSeed", 1)
+        gmsh.model.add("spleen")
+        face = gmsh.model.addDiscreteEntity(2)
+        gmsh.model.mesh.addNodes(2, face, (surf + 1).tolist(), grid.nodes[surf].ravel().tolist())
+        gmsh.model.mesh.addElementsByType(face, 2, [], (tris + 1).ravel().tolist())
+        gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([face])])
+        gmsh.model.geo.synchronize()
+        gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay volume
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.optimize("Netgen")
+        tags, xyz, _ = gmsh.model.mesh.getNodes()
+        _, _, enodes = gmsh.model.mesh.getElements(3)
+    finally:
+        gmsh.finalize()
+    from scipy.spatial import cKDTree
+
+    tags = np.asarray(tags, dtype=np.int64)
+    nodes = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    # the surface nodes first, in the built-in mesh's order (found by position: gmsh renumbers), then the interior ones
+    dist, first = cKDTree(nodes).query(grid.nodes[surf])
+    if dist.max() > 1e-12 or len(np.unique(first)) != len(surf):
+        raise RuntimeError(f"gmsh moved the spleen's surface nodes (by up to {dist.max():.1e} m)")
+    order = np.concatenate([first, np.setdiff1d(np.arange(len(nodes)), first)])
+    index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
+    index[tags[order]] = np.arange(len(order))
+    tets = index[np.asarray(enodes[0], dtype=np.int64)].reshape(-1, 4)
+    if len(np.unique(tets)) != len(order):
+        raise RuntimeError("gmsh left nodes outside every tet")
+    return nodes[order], tets
+
+
 def _orient(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Tets with positive signed volume (swap two vertices of the others)."""
     p0 = nodes[tets[:, 0]]
@@ -86,10 +140,12 @@ def main(argv: list[str] | None = None) -> int:
     if gmsh.__version__ != GMSH_VERSION:
         print(f"warning: gmsh {gmsh.__version__}, the shipped files were made with {GMSH_VERSION}", file=sys.stderr)
     bad = 0
-    for name, size in SIZES.items():
-        nodes, tets = sphere_points_and_tets(size)
+    jobs = [(f"sphere_{name}.vtu", lambda size=size: sphere_points_and_tets(size)) for name, size in SIZES.items()]
+    jobs += [(f"spleen_{res}.vtu", lambda res=res: spleen_points_and_tets(res)) for res in SPLEEN_RESOLUTIONS]
+    for filename, make in jobs:
+        nodes, tets = make()
         tets = _orient(nodes, tets)
-        path = MESH_DIR / f"sphere_{name}.vtu"
+        path = MESH_DIR / filename
         if args.check:
             ref = meshio.read(path)
             ref_tets = np.concatenate([c.data for c in ref.cells if c.type == "tetra"])

@@ -129,8 +129,41 @@ def sphere_even_mesh(diameter_m: float = 0.05, resolution: str = "coarse", cente
     return TetMesh(nodes, base.tets, name=f"{SPHERE_EVEN}-{resolution.strip().lower()}")
 
 
+#: the built-in spleen's surface filled with unstructured tets (shipped gmsh meshes, msdgrasp/meshes)
+SPLEEN_EVEN = "spleen-even"
+
+
+def spleen_even_mesh(resolution: str = "coarse") -> TetMesh:
+    """The built-in spleen (:func:`.mesh_gen.spleen_mesh` at its default shape) with the same surface nodes and
+    triangles, its interior filled by gmsh's Delaunay tets (:mod:`msdgrasp.meshes.generate`) instead of the mapped Kuhn
+    grid, whose spring network is anisotropic (docs/validation.md). Node sets and landmarks are the built-in mesh's:
+    its surface nodes are this mesh's first ones, in the same order; ``inferior_pole`` by the same rule. Shipped at
+    ``coarse`` (190 nodes), ``medium`` (610) and ``fine`` (2019)."""
+    from ..meshes import MESH_DIR
+    from ..meshes.generate import SPLEEN_RESOLUTIONS
+
+    key = resolution.strip().lower() if isinstance(resolution, str) else None
+    if key not in SPLEEN_RESOLUTIONS:
+        raise MeshError(f"resolution={resolution!r} is not available for '{SPLEEN_EVEN}'; allowed: "
+                        f"{list(SPLEEN_RESOLUTIONS)} (shipped meshes, made by msdgrasp/meshes/generate.py with gmsh)")
+    base = load_mesh(MESH_DIR / f"spleen_{key}.vtu")
+    grid = spleen_mesh(key)
+    surf = grid.node_sets["surface"]
+    if not np.allclose(base.nodes[: len(surf)], grid.nodes[surf], rtol=0.0, atol=1e-12):
+        raise MeshError(f"{MESH_DIR / f'spleen_{key}.vtu'}: its first nodes are not the built-in spleen's surface; "
+                        "regenerate it with python -m msdgrasp.meshes.generate")
+    renumber = np.full(grid.n_nodes, -1, dtype=np.int64)
+    renumber[surf] = np.arange(len(surf))
+    tip, axis = grid.landmarks["inferior_pole_tip"], grid.landmarks["inferior_pole_axis"]
+    pole_length = inspect.signature(spleen_mesh).parameters["pole_length_m"].default  # (the built-in mesh's rule)
+    sets = {"surface": np.arange(len(surf)), "hilum": renumber[grid.node_sets["hilum"]],
+            "inferior_pole": np.flatnonzero((tip - base.nodes) @ axis <= pole_length)}
+    return TetMesh(base.nodes, base.tets, node_sets=sets, landmarks=dict(grid.landmarks), name=f"{SPLEEN_EVEN}-{key}")
+
+
 #: the built-in mesh generators by ``shape`` name (any other shape is a mesh file)
-GENERATORS = {"sphere": sphere_mesh, SPHERE_EVEN: sphere_even_mesh, "spleen": spleen_mesh}
+GENERATORS = {"sphere": sphere_mesh, SPHERE_EVEN: sphere_even_mesh, "spleen": spleen_mesh,
+              SPLEEN_EVEN: spleen_even_mesh}
 
 
 def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwargs) -> TetMesh:
@@ -145,7 +178,7 @@ def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwar
         return GENERATORS[key](resolution=resolution, **kwargs)
     if kwargs:
         raise MeshError(
-            f"options {sorted(kwargs)} only apply to the built-in meshes 'sphere', '{SPHERE_EVEN}' and 'spleen', "
+            f"options {sorted(kwargs)} only apply to the built-in meshes {', '.join(map(repr, GENERATORS))}, "
             f"not to the mesh file {spec!s}"
         )
     return load_mesh(spec)
