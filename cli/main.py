@@ -8,6 +8,7 @@
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
     msdgrasp reference --out FILE                          the reference forces of the force ratios (JSON)
     msdgrasp headroom --out FILE                           how light a grip could be, by what it knows (JSON)
+    msdgrasp meshes [--check]                              regenerate (or check) the shipped gmsh meshes
 
 Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
 field on invalid input (no traceback); outputs are written atomically.
@@ -189,7 +190,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_reference_command(sub)
     add_headroom_command(sub)
+    m = sub.add_parser("meshes", help="regenerate the shipped gmsh meshes (sphere-even, spleen-even; needs the extra "
+                       "meshing), or --check them against a fresh generation")
+    m.add_argument("--check", action="store_true", help="compare with the shipped files instead of writing (exit 1 "
+                   "where one differs)")
+    m.set_defaults(func=_cmd_meshes)
     return parser
+
+
+def _cmd_meshes(args: argparse.Namespace) -> int:
+    from .meshes import meshes_cli
+
+    return meshes_cli(args)
 
 
 def _add_rl_commands(sub) -> None:

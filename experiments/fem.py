@@ -28,10 +28,10 @@ Load cases (all loaded along z):
   on each patch's faces, :meth:`LoadCase.unit_load`), so that both models carry the same load;
 * ``cube-j1``, ``cube-slip-j1``: the cubes on the alternating (J1) grid, where :func:`grid_springs` applies.
 
-Strain is the indenter's travel over the case's height along z. The continuum Poisson ratio is a parameter:
-0.25 is the isotropic network's own (Cauchy relations; :data:`~msdgrasp.physics.tissue.NETWORK_POISSON_RATIO`), the
-fair test of the discretisation; a near-incompressible tissue (0.45-0.49) shows what the network's fixed ratio
-costs.
+Strain is the indenter's travel (for the pads: their approach, f . u) over the case's height along z. The continuum
+Poisson ratio is a parameter: 0.25 is the isotropic network's own (Cauchy relations;
+:data:`~msdgrasp.physics.tissue.NETWORK_POISSON_RATIO`), the fair test of the discretisation; a near-incompressible
+tissue (0.45-0.49) shows what the network's fixed ratio costs.
 """
 
 from __future__ import annotations
@@ -149,14 +149,23 @@ class LoadCase:
             f[2::3] += sign * traction_nodal_forces(self.mesh, pad_faces(self.mesh, nodes), coef)
         return f
 
+    def displacement_loaded(self) -> LoadCase:
+        """The case itself; a pad-loaded one is refused (one line), where a caller prescribes the indenter's travel."""
+        if self.padded:
+            raise ConfigError(f"case {self.name!r} is loaded by its pads' forces, not by a travel: only the linear "
+                              "comparison (unit_response) takes it")
+        return self
+
     def targets(self, travel_m: float) -> np.ndarray:
         """Displacement (3N,) with the prescribed values at the prescribed dofs, m."""
+        self.displacement_loaded()
         u = np.zeros(3 * self.mesh.n_nodes)
         u[3 * self.moved + 2] = -travel_m
         return u
 
     def force(self, f_ext: np.ndarray) -> float:
         """The indenter's push (N, > 0 in compression) from the external nodal forces (3N,) it exerts."""
+        self.displacement_loaded()
         return float(-f_ext[3 * self.moved + 2].sum())
 
 
@@ -191,7 +200,13 @@ def _balanced_pads(mesh: TetMesh, top: np.ndarray, bottom: np.ndarray) -> tuple[
 
     m_top = moments(top, (1.0, 0.0, 0.0))
     basis = np.stack([moments(bottom, e) for e in np.eye(3)], axis=1)
-    return np.array([1.0 / m_top[0], 0.0, 0.0]), np.linalg.solve(basis, m_top / m_top[0])
+    if not m_top[0] > 0 or np.linalg.cond(basis) > 1e12:
+        raise ConfigError(f"pads of {mesh.name!r}: each needs surface faces with all three nodes in it, not in a line")
+    lower = np.linalg.solve(basis, m_top / m_top[0])
+    w = lower[0] + mesh.nodes[bottom, :2] @ lower[1:]
+    if not (w > 0).all():  # (a traction that pulls somewhere is no pad)
+        raise ConfigError(f"pads of {mesh.name!r}: the upper pad's line of action falls outside the lower pad")
+    return np.array([1.0 / m_top[0], 0.0, 0.0]), lower
 
 
 def _rigid_pins(mesh: TetMesh, exclude: np.ndarray) -> list[tuple[int, int]]:
@@ -205,6 +220,9 @@ def _rigid_pins(mesh: TetMesh, exclude: np.ndarray) -> list[tuple[int, int]]:
     b = int(np.argmax(np.abs(p[:, 0] - p[a, 0])))
     ab, ap = p[b, :2] - p[a, :2], p[:, :2] - p[a, :2]
     c = int(np.argmax(np.abs(ab[0] * ap[:, 1] - ab[1] * ap[:, 0])))
+    size = float(np.ptp(mesh.nodes, axis=0).max())
+    if abs(ab[0]) <= 1e-9 * size or abs(ab[0] * ap[c, 1] - ab[1] * ap[c, 0]) <= 1e-9 * size**2:
+        raise ConfigError(f"mesh {mesh.name!r}: no three nodes off the pads span x and y for the rigid-motion pins")
     a, b, c = (int(keep[i]) for i in (a, b, c))
     return [(a, 0), (a, 1), (a, 2), (b, 1), (b, 2), (c, 2)]
 
@@ -220,7 +238,10 @@ def load_case(name: str, resolution: str = "coarse") -> LoadCase:
     """One of :data:`CASES` at a resolution (coarse, medium, fine)."""
     res = _resolution_name(resolution)
     if name.removesuffix("-j1") in ("cube", "cube-slip"):
-        mesh = cube_mesh(CUBE_SIDE_M, CUBE_CELLS[res], "alternating" if name.endswith("-j1") else "octant")
+        if name.endswith("-j1"):  # (an even number of cells per edge, so that the mirrored cells balance: 6 / 8 / 12)
+            mesh = cube_mesh(CUBE_SIDE_M, CUBE_CELLS[res] + CUBE_CELLS[res] % 2, "alternating")
+        else:
+            mesh = cube_mesh(CUBE_SIDE_M, CUBE_CELLS[res])
         z = mesh.nodes[:, 2]
         tol = 1e-9 * CUBE_SIDE_M
         top = np.flatnonzero(z > z.max() - tol)
@@ -324,7 +345,8 @@ def _solve_prescribed(K: sp.spmatrix, presc: np.ndarray, u: np.ndarray, rhs: np.
 def unit_response(K: sp.spmatrix, case: LoadCase) -> tuple[float, np.ndarray]:
     """A linear model's (stiffness matrix ``K``, N/m) response to the case: (force per unit travel N/m, displacement
     (3N,) at unit travel m). Displacement-loaded: the indenter's reaction to a unit travel. Pad-loaded: the pads'
-    forces f (:meth:`LoadCase.unit_load`) give u; the travel is the approach f . u / |f|, per newton of squeeze."""
+    forces f (:meth:`LoadCase.unit_load`, 1 N on each pad) give u; the travel is the pads' approach f . u, per newton
+    of squeeze."""
     if not case.padded:
         u1 = _solve_prescribed(K, case.prescribed(), case.targets(1.0))
         return case.force(K @ u1), u1
@@ -359,7 +381,7 @@ def fem_quadratic_force(case: LoadCase, youngs_modulus_pa: float, poisson: float
     two nodes are prescribed alike (both moved or both held) has its midpoint prescribed with them, the constraint
     P1 implies along that edge; the force is the reaction on every moved dof. What the P1 reference's own
     discretisation costs on the same mesh."""
-    mesh = case.mesh
+    mesh = case.displacement_loaded().mesh
     m = _skfem_mesh(mesh)
     basis, K = _elastic_system(m, 2, youngs_modulus_pa, poisson)
     nodal, edge = np.asarray(basis.nodal_dofs), np.asarray(basis.edge_dofs)
@@ -778,10 +800,10 @@ def hertz_check(youngs_modulus_pa: float = 12e3, poisson: float = 0.25, deformat
 DERIVATIONS = ("van_gelder", "lloyd", "calibrated", "fem-fit", "grid")
 
 #: :func:`grid_springs`' weights on van Gelder's per-tet share E V / L^2: a Kuhn tet's three grid-axis edges, its
-#: two face diagonals and its body diagonal. Under a uniform strain the Kuhn grid's network is a cubic crystal with
-#: C11 = E (a + 4 d / 9), C12 = C44 = 5 E d / 18 (axis edges of stiffness a E h, diagonals d E h / 3 per cell of
-#: edge h); isotropy with the input E (nu = 1/4: C11 = 1.2 E, C44 = 0.4 E) needs d = 1.44, a = 0.56. Van Gelder
-#: is a = d = 1: C11 = 1.444 E, C44 = 0.278 E, stiff along the grid's axes and soft in shear.
+#: two face diagonals and its body diagonal. Under a uniform strain the Kuhn grid's network, mirrored cells in equal
+#: numbers, is a cubic crystal with C11 = E (a + 4 d / 9), C12 = C44 = 5 E d / 18 (axis edges of stiffness a E h,
+#: diagonals d E h / 3 per cell of edge h); isotropy with the input E (nu = 1/4: C11 = 1.2 E, C44 = 0.4 E) needs
+#: d = 1.44, a = 0.56. Van Gelder is a = d = 1: C11 = 1.444 E, C44 = 0.278 E, stiff along the axes, soft in shear.
 GRID_AXIS_WEIGHT = 0.56
 GRID_DIAGONAL_WEIGHT = 1.44
 
@@ -989,7 +1011,8 @@ class ComparisonSettings:
     #: fine meshes)
     quadratic: bool = True
     #: also refine the meshes (the coarse twice, to fit the rate, also when only finer ones are asked for; the others
-    #: once) and extrapolate the punches' and the bonded cube's force to the continuum's (a minute; four with the fine)
+    #: once) and extrapolate the punches', the pads' and the bonded cubes' force to the continuum's (minutes; about 25
+    #: for the three resolutions on two cores)
     converge: bool = True
     #: also solve the large strains (neo-Hookean FEM, the nonlinear MSD: minutes on the fine meshes)
     large: bool = True
@@ -1005,6 +1028,30 @@ def _check_settings(settings: ComparisonSettings) -> None:
     for s in (settings.small_strain, *settings.large_strains):
         if not 0.0 < s <= 0.3:
             raise ConfigError(f"strain = {s!r} must be in (0, 0.3]")
+
+
+def _derivation_models(case: LoadCase, params: TissueParams, poisson: float) -> dict[str, TissueModel]:
+    """The linear networks of :data:`DERIVATIONS` on the case's mesh but the calibrated one (fitted later)."""
+    mesh, E = case.mesh, params.youngs_modulus_pa
+    base = msd_model(mesh, params, stiffness_rule="van_gelder", contact_calibration="none")
+    models = {"van_gelder": base, "lloyd": msd_model(mesh, params, stiffness_rule="lloyd", contact_calibration="none"),
+              "fem-fit": with_springs(base, fem_fit_springs(mesh, E, poisson))}
+    if case.name.endswith("-j1"):  # (the grid rule is made for the alternating grid: grid_springs)
+        models["grid"] = with_springs(base, grid_springs(mesh, E))
+    return models
+
+
+def _continuum_limit(case: LoadCase, resolution: str, youngs_modulus_pa: float, poisson: float,
+                     rates: dict[str, float]) -> dict:
+    """:func:`converged_linear_force` of the case: the coarse mesh split twice fits the rate (kept in ``rates`` per
+    case name); a finer one is split once and extrapolated at that rate."""
+    if resolution == "coarse":
+        limit = converged_linear_force(case, youngs_modulus_pa, poisson, 2)
+        rates[case.name] = limit["rate"]
+        return limit
+    if case.name not in rates:
+        rates[case.name] = converged_linear_force(load_case(case.name, "coarse"), youngs_modulus_pa, poisson)["rate"]
+    return converged_linear_force(case, youngs_modulus_pa, poisson, 1, rates[case.name])
 
 
 def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSettings()) -> dict:
@@ -1032,26 +1079,15 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
     for name in settings.cases:
         for res in settings.resolutions:
             case = load_case(name, res)
-            base = msd_model(case.mesh, params, stiffness_rule="van_gelder", contact_calibration="none")
-            models = {"van_gelder": base, "lloyd": msd_model(case.mesh, params, stiffness_rule="lloyd",
-                                                            contact_calibration="none"),
-                      "fem-fit": with_springs(base, fem_fit_springs(case.mesh, E, nu))}
-            if name.endswith("-j1"):  # (the grid rule is made for the alternating grid: grid_springs)
-                models["grid"] = with_springs(base, grid_springs(case.mesh, E))
+            models = _derivation_models(case, params, nu)
+            base = models["van_gelder"]
             k_fem, u_fem = fem_linear_forces(case, E, nu, [1.0 / case.height_m])
             k_fem = float(k_fem[0])
             # (P2 of a pad's traction is not built: the pads are compared with P1 and its refinements)
             k_p2 = fem_quadratic_force(case, E, nu) if settings.quadratic and not case.padded else None
             limit = None
             if settings.converge and not name.startswith("cube-slip"):  # (uniform strain: P1 is exact)
-                # the coarse mesh split twice fits the rate; a finer one is split once and extrapolated at that rate
-                if res == "coarse":
-                    limit = converged[f"{name}/{res}"] = converged_linear_force(case, E, nu, 2)
-                    rates[name] = limit["rate"]
-                else:
-                    if name not in rates:
-                        rates[name] = converged_linear_force(load_case(name, "coarse"), E, nu)["rate"]
-                    limit = converged[f"{name}/{res}"] = converged_linear_force(case, E, nu, 1, rates[name])
+                limit = converged[f"{name}/{res}"] = _continuum_limit(case, res, E, nu, rates)
             k_msd = {}
             for key, m in models.items():
                 k_msd[key], u = msd_linear_force(case, m)

@@ -1,4 +1,4 @@
-"""Regenerate the shipped gmsh meshes: ``python -m msdgrasp.meshes.generate [--check]``.
+"""How the shipped gmsh meshes are made; ``msdgrasp meshes [--check]`` regenerates them (or compares).
 
 The sphere:
 The mapped-box generator of :func:`msdgrasp.physics.mesh_gen.sphere_mesh` puts a flat 4-node facet at each
@@ -12,18 +12,13 @@ gmsh's Delaunay volume mesher and Netgen's optimiser instead of the mapped Kuhn 
 anisotropic (docs/validation.md): the same organ, the same surface and jaws' footprints, an unstructured interior.
 
 Deterministic for a given gmsh version (single thread, fixed seed): :data:`SIZES` and :data:`GMSH_VERSION`
-are the record of how the files were made. ``--check`` regenerates in memory and compares with the shipped
-files (same tets, coordinates within 1e-12 m).
+are the record of how the files were made. ``msdgrasp meshes --check`` regenerates in memory and compares with the
+shipped files (same tets, coordinates within 1e-12 m).
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
-
 import numpy as np
-
-from . import MESH_DIR
 
 #: gmsh version the shipped files were made with
 GMSH_VERSION = "4.15.2"
@@ -76,25 +71,22 @@ def sphere_points_and_tets(size_m: float, radius_m: float = RADIUS_M) -> tuple[n
 SPLEEN_RESOLUTIONS = ("coarse", "medium", "fine")
 
 
-def spleen_points_and_tets(resolution: str) -> tuple[np.ndarray, np.ndarray]:
-    """(nodes (N, 3) m, tets (T, 4)) of the built-in spleen's surface at ``resolution`` (its nodes and triangles, kept)
-    filled with gmsh's Delaunay tets; the surface nodes come first, in the order of their ids in the built-in mesh."""
-    from ..physics.mesh import boundary_faces
-    from ..physics.mesh_gen import spleen_mesh
+def fill_surface(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes (N, 3) m, tets (T, 4)) filling the closed surface ``points`` (S, 3) m / ``triangles`` (F, 3), kept node
+    for node and triangle for triangle, with gmsh's Delaunay tets and Netgen's optimiser; the surface's points are the
+    first S nodes, in their order (found by position: gmsh renumbers)."""
+    from scipy.spatial import cKDTree
 
     gmsh = _gmsh()
-    grid = spleen_mesh(resolution)
-    tris = boundary_faces(grid.tets, "spleen")
-    surf = np.unique(tris)
     gmsh.initialize(readConfigFiles=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", 1)
         gmsh.option.setNumber("Mesh.RandomSeed", 1)
-        gmsh.model.add("spleen")
+        gmsh.model.add("fill")
         face = gmsh.model.addDiscreteEntity(2)
-        gmsh.model.mesh.addNodes(2, face, (surf + 1).tolist(), grid.nodes[surf].ravel().tolist())
-        gmsh.model.mesh.addElementsByType(face, 2, [], (tris + 1).ravel().tolist())
+        gmsh.model.mesh.addNodes(2, face, list(range(1, len(points) + 1)), np.asarray(points).ravel().tolist())
+        gmsh.model.mesh.addElementsByType(face, 2, [], (np.asarray(triangles) + 1).ravel().tolist())
         gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([face])])
         gmsh.model.geo.synchronize()
         gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay volume
@@ -104,62 +96,24 @@ def spleen_points_and_tets(resolution: str) -> tuple[np.ndarray, np.ndarray]:
         _, _, enodes = gmsh.model.mesh.getElements(3)
     finally:
         gmsh.finalize()
-    from scipy.spatial import cKDTree
-
     tags = np.asarray(tags, dtype=np.int64)
     nodes = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    # the surface nodes first, in the built-in mesh's order (found by position: gmsh renumbers), then the interior ones
-    dist, first = cKDTree(nodes).query(grid.nodes[surf])
-    if dist.max() > 1e-12 or len(np.unique(first)) != len(surf):
-        raise RuntimeError(f"gmsh moved the spleen's surface nodes (by up to {dist.max():.1e} m)")
+    dist, first = cKDTree(nodes).query(points)
+    if dist.max() > 1e-12 or len(np.unique(first)) != len(points):
+        raise RuntimeError(f"gmsh moved the surface's points (by up to {dist.max():.1e} m)")
     order = np.concatenate([first, np.setdiff1d(np.arange(len(nodes)), first)])
     index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
     index[tags[order]] = np.arange(len(order))
     tets = index[np.asarray(enodes[0], dtype=np.int64)].reshape(-1, 4)
     if len(np.unique(tets)) != len(order):
         raise RuntimeError("gmsh left nodes outside every tet")
-    return nodes[order], tets
+    return nodes[order], orient(nodes[order], tets)
 
 
-def _orient(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+def orient(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Tets with positive signed volume (swap two vertices of the others)."""
     p0 = nodes[tets[:, 0]]
     vol = np.einsum("ij,ij->i", nodes[tets[:, 1]] - p0, np.cross(nodes[tets[:, 2]] - p0, nodes[tets[:, 3]] - p0))
     out = tets.copy()
     out[vol < 0] = out[vol < 0][:, [0, 2, 1, 3]]
     return out
-
-
-def main(argv: list[str] | None = None) -> int:
-    import meshio
-
-    gmsh = _gmsh()
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--check", action="store_true", help="compare with the shipped files instead of writing")
-    args = ap.parse_args(argv)
-    if gmsh.__version__ != GMSH_VERSION:
-        print(f"warning: gmsh {gmsh.__version__}, the shipped files were made with {GMSH_VERSION}", file=sys.stderr)
-    bad = 0
-    jobs = [(f"sphere_{name}.vtu", lambda size=size: sphere_points_and_tets(size)) for name, size in SIZES.items()]
-    jobs += [(f"spleen_{res}.vtu", lambda res=res: spleen_points_and_tets(res)) for res in SPLEEN_RESOLUTIONS]
-    for filename, make in jobs:
-        nodes, tets = make()
-        tets = _orient(nodes, tets)
-        path = MESH_DIR / filename
-        if args.check:
-            ref = meshio.read(path)
-            ref_tets = np.concatenate([c.data for c in ref.cells if c.type == "tetra"])
-            same = ref.points.shape == nodes.shape and np.array_equal(ref_tets, tets) \
-                and np.allclose(ref.points, nodes, rtol=0.0, atol=1e-12)
-            bad += not same
-            print(f"{path.name}: {'same' if same else 'DIFFERS'} ({len(nodes)} nodes, {len(tets)} tets)")
-        else:
-            tmp = path.with_name(f".{path.name}.tmp")
-            meshio.write(tmp, meshio.Mesh(nodes, [("tetra", tets)]), file_format="vtu")
-            tmp.replace(path)  # atomic
-            print(f"wrote {path} ({len(nodes)} nodes, {len(tets)} tets)")
-    return 1 if bad else 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -64,12 +64,13 @@ def kuhn_box(shape: tuple[int, int, int], pattern: str = "octant") -> tuple[np.n
 
     ``pattern``: ``"octant"``, each cell's diagonal runs away from the box centre (one Kuhn lattice per octant,
     mirrored at the centre planes: the built-in meshes' grid); ``"alternating"``, each cell is mirrored by the
-    parity of its index along each axis (Todd's J1 triangulation), so that every node is a centre of symmetry. A
-    spring network on the octant grid is anisotropic within each octant (every diagonal leans the same way) and
-    relaxes non-affinely where the octants meet; on the alternating grid it is a cubic crystal under any uniform
-    strain, which :data:`~msdgrasp.physics.tissue.TissueParams` ``stiffness_rule: grid`` makes isotropic."""
+    parity of its index along each axis (Todd's J1 triangulation), so that every interior node is a centre of
+    symmetry. A spring network on the octant grid is anisotropic within each octant (every diagonal leans the same
+    way) and relaxes non-affinely where the octants meet; on the alternating grid with an even number of cells per
+    axis (whose mirrored cells balance) it is a cubic crystal under any uniform strain, which
+    :func:`msdgrasp.experiments.fem.grid_springs` makes isotropic."""
     if pattern not in GRID_PATTERNS:
-        raise MeshError(f"grid = {pattern!r} is not allowed; choose one of {list(GRID_PATTERNS)}")
+        raise MeshError(f"pattern = {pattern!r} is not allowed; choose one of {list(GRID_PATTERNS)}")
     nx, ny, nz = shape
     axes = [np.linspace(-1.0, 1.0, k + 1) for k in shape]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)

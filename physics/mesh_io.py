@@ -121,7 +121,7 @@ def sphere_even_mesh(diameter_m: float = 0.05, resolution: str = "coarse", cente
 
     if not isinstance(resolution, str) or resolution.strip().lower() not in SIZES:
         raise MeshError(f"resolution={resolution!r} is not available for '{SPHERE_EVEN}'; allowed: {list(SIZES)} "
-                        "(shipped meshes; add a size to msdgrasp/meshes/generate.py and run it with gmsh for more)")
+                        "(shipped meshes; add a size to msdgrasp/meshes/generate.py and run msdgrasp meshes for more)")
     if not (isinstance(diameter_m, (int, float)) and np.isfinite(diameter_m) and diameter_m > 0):
         raise MeshError(f"diameter_m must be a number > 0, got {diameter_m!r}")
     base = load_mesh(MESH_DIR / f"sphere_{resolution.strip().lower()}.vtu")
@@ -145,13 +145,13 @@ def spleen_even_mesh(resolution: str = "coarse") -> TetMesh:
     key = resolution.strip().lower() if isinstance(resolution, str) else None
     if key not in SPLEEN_RESOLUTIONS:
         raise MeshError(f"resolution={resolution!r} is not available for '{SPLEEN_EVEN}'; allowed: "
-                        f"{list(SPLEEN_RESOLUTIONS)} (shipped meshes, made by msdgrasp/meshes/generate.py with gmsh)")
-    base = load_mesh(MESH_DIR / f"spleen_{key}.vtu")
+                        f"{list(SPLEEN_RESOLUTIONS)} (shipped meshes, made by msdgrasp meshes with gmsh)")
+    base = load_mesh(MESH_DIR / f"spleen_even_{key}.vtu")
     grid = spleen_mesh(key)
     surf = grid.node_sets["surface"]
     if not np.allclose(base.nodes[: len(surf)], grid.nodes[surf], rtol=0.0, atol=1e-12):
-        raise MeshError(f"{MESH_DIR / f'spleen_{key}.vtu'}: its first nodes are not the built-in spleen's surface; "
-                        "regenerate it with python -m msdgrasp.meshes.generate")
+        raise MeshError(f"{MESH_DIR / f'spleen_even_{key}.vtu'}: its first nodes are not the built-in spleen's "
+                        "surface; regenerate it with msdgrasp meshes")
     renumber = np.full(grid.n_nodes, -1, dtype=np.int64)
     renumber[surf] = np.arange(len(surf))
     tip, axis = grid.landmarks["inferior_pole_tip"], grid.landmarks["inferior_pole_axis"]

@@ -21,12 +21,13 @@ What the modulus rule does and does not make resolution independent
 -------------------------------------------------------------------
 *Bulk.* Under an affine strain every tet's six springs store E V_tet sum_e (n_e . eps . n_e)^2 / 2
 (van Gelder), so the energy density does not depend on the element size. On a Kuhn-split grid that
-energy is a cubic crystal's, C11 = 1.444 E, C12 = C44 = 0.278 E, whose Voigt average is isotropic with
-the input E and nu = 1/4 (bulk modulus 2E/3 and shear modulus 0.4 E both match). But the built-in
+energy, averaged over mirrored cells in equal numbers, is a cubic crystal's, C11 = 1.444 E, C12 = C44 =
+0.278 E, whose Voigt average is isotropic with the input E and nu = 1/4 (bulk modulus 2E/3 and shear
+modulus 0.4 E both match); one unmirrored Kuhn lattice also couples shear to normal strain. The built-in
 grids are mirrored per octant (:func:`.mesh_gen.kuhn_box`): within an octant every diagonal leans the
 same way, so the network relaxes away from the affine strain, and relaxed it is neither that crystal
 nor isotropic: a cube of it between frictionless plates is 18-21 % stiffer than E along a grid axis
-with an effective Poisson ratio of 0.10-0.12 (``msdgrasp experiment fem``, docs/validation.md). A
+with an effective Poisson ratio of 0.095-0.124 (``msdgrasp experiment fem``, docs/validation.md). A
 central-force network cannot have a Poisson ratio other than 1/4 where it is isotropic.
 
 *Contact.* A linear static solve of the sphere squeezed between frictionless plates (active-set contact,
