@@ -36,21 +36,17 @@ def _gmsh():
     return gmsh
 
 
-def sphere_points_and_tets(size_m: float, radius_m: float = RADIUS_M) -> tuple[np.ndarray, np.ndarray]:
-    """(nodes (N, 3) m, tets (T, 4)) of a gmsh-meshed solid sphere centred at the origin."""
+def _tetrahedralize(name: str, build) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """gmsh's Delaunay tets (then Netgen's optimiser) of the model ``build(gmsh)`` adds: (node tags, node positions
+    (N, 3) m, the tets' node tags), single-threaded with a fixed seed."""
     gmsh = _gmsh()
-
     gmsh.initialize(readConfigFiles=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", 1)
         gmsh.option.setNumber("Mesh.RandomSeed", 1)
-        gmsh.model.add("sphere")
-        gmsh.model.occ.addSphere(0.0, 0.0, 0.0, radius_m)
-        gmsh.model.occ.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMin", size_m)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", size_m)
-        gmsh.option.setNumber("Mesh.Algorithm", 6)  # Frontal-Delaunay surfaces
+        gmsh.model.add(name)
+        build(gmsh)
         gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay volume
         gmsh.model.mesh.generate(3)
         gmsh.model.mesh.optimize("Netgen")
@@ -58,9 +54,22 @@ def sphere_points_and_tets(size_m: float, radius_m: float = RADIUS_M) -> tuple[n
         _, _, enodes = gmsh.model.mesh.getElements(3)
     finally:
         gmsh.finalize()
+    return np.asarray(tags, dtype=np.int64), np.asarray(xyz, dtype=np.float64).reshape(-1, 3), \
+        np.asarray(enodes[0], dtype=np.int64)
+
+
+def sphere_points_and_tets(size_m: float, radius_m: float = RADIUS_M) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes (N, 3) m, tets (T, 4)) of a gmsh-meshed solid sphere centred at the origin."""
+    def build(gmsh) -> None:
+        gmsh.model.occ.addSphere(0.0, 0.0, 0.0, radius_m)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", size_m)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size_m)
+        gmsh.option.setNumber("Mesh.Algorithm", 6)  # Frontal-Delaunay surfaces
+
+    tags, nodes, tet_tags = _tetrahedralize("sphere", build)
     index = {int(t): i for i, t in enumerate(tags)}
-    nodes = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    tets = np.array([index[int(t)] for t in enodes[0]], dtype=np.int64).reshape(-1, 4)
+    tets = np.array([index[int(t)] for t in tet_tags], dtype=np.int64).reshape(-1, 4)
     used = np.unique(tets)  # drop geometry-only nodes (none expected) and renumber densely
     remap = np.full(len(nodes), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
@@ -77,34 +86,21 @@ def fill_surface(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray,
     first S nodes, in their order (found by position: gmsh renumbers)."""
     from scipy.spatial import cKDTree
 
-    gmsh = _gmsh()
-    gmsh.initialize(readConfigFiles=False)
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        gmsh.option.setNumber("Mesh.RandomSeed", 1)
-        gmsh.model.add("fill")
+    def build(gmsh) -> None:
         face = gmsh.model.addDiscreteEntity(2)
         gmsh.model.mesh.addNodes(2, face, list(range(1, len(points) + 1)), np.asarray(points).ravel().tolist())
         gmsh.model.mesh.addElementsByType(face, 2, [], (np.asarray(triangles) + 1).ravel().tolist())
         gmsh.model.geo.addVolume([gmsh.model.geo.addSurfaceLoop([face])])
         gmsh.model.geo.synchronize()
-        gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay volume
-        gmsh.model.mesh.generate(3)
-        gmsh.model.mesh.optimize("Netgen")
-        tags, xyz, _ = gmsh.model.mesh.getNodes()
-        _, _, enodes = gmsh.model.mesh.getElements(3)
-    finally:
-        gmsh.finalize()
-    tags = np.asarray(tags, dtype=np.int64)
-    nodes = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+
+    tags, nodes, tet_tags = _tetrahedralize("fill", build)
     dist, first = cKDTree(nodes).query(points)
     if dist.max() > 1e-12 or len(np.unique(first)) != len(points):
         raise RuntimeError(f"gmsh moved the surface's points (by up to {dist.max():.1e} m)")
     order = np.concatenate([first, np.setdiff1d(np.arange(len(nodes)), first)])
     index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
     index[tags[order]] = np.arange(len(order))
-    tets = index[np.asarray(enodes[0], dtype=np.int64)].reshape(-1, 4)
+    tets = index[tet_tags].reshape(-1, 4)
     if len(np.unique(tets)) != len(order):
         raise RuntimeError("gmsh left nodes outside every tet")
     return nodes[order], orient(nodes[order], tets)

@@ -552,3 +552,16 @@ def test_even_spleen_is_the_built_in_spleens_surface_filled_anew(resolution):
 def test_even_spleen_resolutions_are_the_shipped_ones():
     with pytest.raises(MeshError, match="not available for 'spleen-even'.*coarse"):
         build_mesh("spleen-even", "xfine")
+
+
+def test_the_shipped_gmsh_meshes_are_what_msdgrasp_meshes_makes(capsys):
+    """`msdgrasp meshes --check` regenerates every shipped gmsh mesh in memory: the same tets, nodes within 1e-12 m
+    (deterministic for the recorded gmsh version)."""
+    gmsh = pytest.importorskip("gmsh")
+    from msdgrasp.cli.main import main
+    from msdgrasp.meshes.generate import GMSH_VERSION
+
+    if gmsh.__version__ != GMSH_VERSION:
+        pytest.skip(f"the shipped meshes were made with gmsh {GMSH_VERSION}")
+    assert main(["meshes", "--check"]) == 0
+    assert "DIFFERS" not in capsys.readouterr().out
