@@ -332,13 +332,39 @@ def fem_stiffness(mesh: TetMesh, youngs_modulus_pa: float, poisson: float) -> sp
     return K[perm][:, perm].tocsr()
 
 
-def _solve_prescribed(K: sp.spmatrix, presc: np.ndarray, u: np.ndarray, rhs: np.ndarray | None = None) -> np.ndarray:
-    """u with its free dofs solving K u = rhs (0 by default) for the prescribed values it holds."""
+#: free dofs above which a nodal (3 i + axis) system is solved by conjugate gradients with smoothed-aggregation
+#: multigrid (pyamg, in the extra ``fem``) instead of a sparse direct solve, whose fill-in outgrows memory on the fine
+#: meshes split twice (~700k dofs); to a relative residual of :data:`AMG_TOLERANCE`
+AMG_MIN_DOFS = 100_000
+AMG_TOLERANCE = 1e-11
+
+
+def _solve_prescribed(K: sp.spmatrix, presc: np.ndarray, u: np.ndarray, rhs: np.ndarray | None = None,
+                      nodes: np.ndarray | None = None) -> np.ndarray:
+    """u with its free dofs solving K u = rhs (0 by default) for the prescribed values it holds. ``nodes`` (N, 3):
+    the system is nodal in the project's dof order, so a large one may go to multigrid with its rigid-body modes."""
     free = np.setdiff1d(np.arange(K.shape[0]), presc)
     K = K.tocsr()
     b = -(K[free][:, presc] @ u[presc]) + (0.0 if rhs is None else rhs[free])
     u = u.copy()
-    u[free] = spla.spsolve(K[free][:, free].tocsc(), b)
+    A = K[free][:, free]
+    if nodes is None or len(free) < AMG_MIN_DOFS:
+        u[free] = spla.spsolve(A.tocsc(), b)
+        return u
+    with needs_extra("fem", "the finite-element reference on a large mesh (multigrid)"):
+        import pyamg
+    x, y, z = (np.asarray(nodes)[:, k] for k in range(3))
+    modes = np.zeros((K.shape[0], 6))  # translations and rotations about x, y, z
+    for k in range(3):
+        modes[k::3, k] = 1.0
+    modes[1::3, 3], modes[2::3, 3] = -z, y
+    modes[0::3, 4], modes[2::3, 4] = z, -x
+    modes[0::3, 5], modes[1::3, 5] = -y, x
+    solver = pyamg.smoothed_aggregation_solver(A.tocsr(), B=modes[free], symmetry="symmetric", max_coarse=2000)
+    residuals: list[float] = []
+    u[free] = solver.solve(b, tol=AMG_TOLERANCE, accel="cg", maxiter=1000, residuals=residuals)
+    if not residuals[-1] <= 10 * AMG_TOLERANCE * residuals[0]:
+        raise RuntimeError(f"multigrid did not converge: relative residual {residuals[-1] / residuals[0]:.1e}")
     return u
 
 
@@ -348,11 +374,11 @@ def unit_response(K: sp.spmatrix, case: LoadCase) -> tuple[float, np.ndarray]:
     forces f (:meth:`LoadCase.unit_load`, 1 N on each pad) give u; the travel is the pads' approach f . u, per newton
     of squeeze."""
     if not case.padded:
-        u1 = _solve_prescribed(K, case.prescribed(), case.targets(1.0))
+        u1 = _solve_prescribed(K, case.prescribed(), case.targets(1.0), nodes=case.mesh.nodes)
         return case.force(K @ u1), u1
     f = case.unit_load()
     presc = case.prescribed()
-    u = _solve_prescribed(K, presc, np.zeros(K.shape[0]), f)
+    u = _solve_prescribed(K, presc, np.zeros(K.shape[0]), f, nodes=case.mesh.nodes)
     reaction = float(np.abs((K @ u)[presc]).max())
     if reaction > 1e-8:  # (1 N on each pad: a pin that carries load holds more than a rigid motion)
         raise RuntimeError(f"case {case.name!r}: a pin carries {reaction:.2e} N; the pads are not in balance")
@@ -1010,9 +1036,9 @@ class ComparisonSettings:
     #: also solve the small strain with quadratic tets on the same mesh (the P1 reference's own error; minutes on the
     #: fine meshes)
     quadratic: bool = True
-    #: also refine the meshes (the coarse twice, to fit the rate, also when only finer ones are asked for; the others
-    #: once) and extrapolate the punches', the pads' and the bonded cubes' force to the continuum's (minutes; about 25
-    #: for the three resolutions on two cores)
+    #: also refine every mesh twice (64 times the tets; the fine ones by multigrid) and extrapolate the punches', the
+    #: pads' and the bonded cubes' force to the continuum's at the rate their three levels fit (most of an hour for
+    #: the three resolutions on two cores)
     converge: bool = True
     #: also solve the large strains (neo-Hookean FEM, the nonlinear MSD: minutes on the fine meshes)
     large: bool = True
@@ -1041,19 +1067,6 @@ def _derivation_models(case: LoadCase, params: TissueParams, poisson: float) -> 
     return models
 
 
-def _continuum_limit(case: LoadCase, resolution: str, youngs_modulus_pa: float, poisson: float,
-                     rates: dict[str, float]) -> dict:
-    """:func:`converged_linear_force` of the case: the coarse mesh split twice fits the rate (kept in ``rates`` per
-    case name); a finer one is split once and extrapolated at that rate."""
-    if resolution == "coarse":
-        limit = converged_linear_force(case, youngs_modulus_pa, poisson, 2)
-        rates[case.name] = limit["rate"]
-        return limit
-    if case.name not in rates:
-        rates[case.name] = converged_linear_force(load_case(case.name, "coarse"), youngs_modulus_pa, poisson)["rate"]
-    return converged_linear_force(case, youngs_modulus_pa, poisson, 1, rates[case.name])
-
-
 def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSettings()) -> dict:
     """MSD against FEM per load case, mesh and strain; the effective Poisson ratio; the FEM's closed-form checks;
     verdicts. The MSD is ``params`` (its Young's modulus is the FEM's) with the spring derivations of
@@ -1073,7 +1086,6 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
     rows: list[dict] = []
     poisson: dict[str, dict[str, float]] = {}
     converged: dict[str, dict] = {}
-    rates: dict[str, float] = {}  # per case, fitted on its coarse mesh (split twice)
     curves: list[dict] = []
     strains = [settings.small_strain, *settings.large_strains]
     for name in settings.cases:
@@ -1087,7 +1099,8 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
             k_p2 = fem_quadratic_force(case, E, nu) if settings.quadratic and not case.padded else None
             limit = None
             if settings.converge and not name.startswith("cube-slip"):  # (uniform strain: P1 is exact)
-                limit = converged[f"{name}/{res}"] = _continuum_limit(case, res, E, nu, rates)
+                # (every mesh split twice: its own rate, fitted on its three levels)
+                limit = converged[f"{name}/{res}"] = converged_linear_force(case, E, nu, 2)
             k_msd = {}
             for key, m in models.items():
                 k_msd[key], u = msd_linear_force(case, m)

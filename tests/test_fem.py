@@ -264,3 +264,16 @@ def test_the_grid_rule_makes_the_alternating_grid_the_isotropic_solid():
         errors.append(abs(k / (E * fem.CUBE_SIDE_M) - 1.0))
         assert abs(fem.poisson_ratio(case, u) - 0.25) < 0.01  # (measured 0.245 on both)
     assert errors[1] < errors[0] < 0.08
+
+
+def test_multigrid_solves_what_the_direct_solver_solves(monkeypatch):
+    # the large systems (fine meshes split twice) go to conjugate gradients with smoothed aggregation: on a system
+    # both can solve, the same stiffness to the solver's tolerance, for a punch and for pads
+    pytest.importorskip("pyamg")
+    for name in ("spleen", "spleen-pad"):
+        case = fem.load_case(name, "medium")
+        direct, _ = fem.fem_linear_forces(case, E, 0.3, [1.0])
+        monkeypatch.setattr(fem, "AMG_MIN_DOFS", 1)
+        multigrid, _ = fem.fem_linear_forces(case, E, 0.3, [1.0])
+        monkeypatch.setattr(fem, "AMG_MIN_DOFS", 100_000)
+        assert multigrid[0] == pytest.approx(direct[0], rel=1e-8)
