@@ -14,15 +14,14 @@ from ..meshes import generate as gen
 from ..physics.config import require_extra
 from ..physics.mesh import boundary_faces
 from ..physics.mesh_gen import spleen_mesh
+from ..physics.mesh_io import surface_first
 
 
 def _spleen_fill(resolution: str) -> tuple[np.ndarray, np.ndarray]:
     """The built-in spleen's surface at ``resolution`` (its surface nodes in id order) filled by gmsh."""
     grid = spleen_mesh(resolution)
-    surf = grid.node_sets["surface"]
-    renumber = np.full(grid.n_nodes, -1, dtype=np.int64)
-    renumber[surf] = np.arange(len(surf))
-    return gen.fill_surface(grid.nodes[surf], renumber[boundary_faces(grid.tets, "spleen")])
+    return gen.fill_surface(grid.nodes[grid.node_sets["surface"]],
+                            surface_first(grid)[boundary_faces(grid.tets, "spleen")])
 
 
 def jobs() -> list[tuple[str, Callable[[], tuple[np.ndarray, np.ndarray]]]]:

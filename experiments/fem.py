@@ -51,7 +51,8 @@ from ..physics.mesh import TetMesh, boundary_faces, tet_signed_volumes
 from ..physics.mesh_io import sphere_even_mesh, spleen_even_mesh
 from ..physics.mesh_gen import kuhn_box, spleen_mesh
 from ..physics.reference import numpy_barrier_slopes, numpy_spring_law
-from ..physics.tissue import TissueModel, TissueParams, assemble_edge_blocks, hertz_sphere_force
+from ..physics.tissue import (TET_EDGES, TissueModel, TissueParams, assemble_edge_blocks, edge_index,
+                              hertz_sphere_force)
 
 #: the load cases :func:`load_case` builds
 CASES = ("cube", "cube-slip", "sphere", "spleen", "sphere-pad", "spleen-pad", "spleen-even", "spleen-even-pad",
@@ -836,23 +837,28 @@ GRID_DIAGONAL_WEIGHT = 1.44
 
 def grid_springs(mesh: TetMesh, youngs_modulus_pa: float) -> np.ndarray:
     """Spring stiffnesses K1 (N/m, one per mesh edge) for a Kuhn grid: van Gelder's E V / L^2 per tet, times
-    :data:`GRID_AXIS_WEIGHT` on each tet's three shortest edges (the grid's axes) and :data:`GRID_DIAGONAL_WEIGHT` on
-    the other three. The family is read from the edge lengths, which is exact on an unmapped grid (a cube): on the
-    mapped built-in meshes the ranks mislabel about a third of the tets, and on an unstructured mesh there is no
-    family. On the alternating (J1) grid every node is a centre of symmetry, so a uniform strain is the network's
-    equilibrium and the weights make it the isotropic solid; on the octant grid each octant's diagonals all lean one
-    way (a coupling of shear and normal strain no positive spring removes), and it relaxes non-affinely."""
-    from ..physics.tissue import TET_EDGES, edge_index
-
+    :data:`GRID_AXIS_WEIGHT` on each tet's three shortest edges (the grid's axes) and :data:`GRID_DIAGONAL_WEIGHT`
+    on the other three. The family is read from the edge lengths, which is exact on an unmapped grid (a cube): on
+    the mapped built-in meshes the lengths no longer tell the families apart, and on an unstructured mesh there is no
+    family. On the alternating (J1) grid with an even number of cells per axis every interior node is a centre of
+    symmetry, so a uniform strain is the network's equilibrium and the weights make it the isotropic solid; on the
+    octant grid each octant's diagonals all lean one way (a coupling of shear and normal strain no positive spring
+    removes), and it relaxes non-affinely."""
     x = mesh.nodes[mesh.tets]
     d2 = np.stack([((x[:, b] - x[:, a]) ** 2).sum(axis=1) for a, b in TET_EDGES], axis=1)
     rank = np.argsort(np.argsort(d2, axis=1, kind="stable"), axis=1)
     vol = np.abs(tet_signed_volumes(mesh.nodes, mesh.tets))
-    share = youngs_modulus_pa * vol[:, None] / d2 * np.where(rank < 3, GRID_AXIS_WEIGHT, GRID_DIAGONAL_WEIGHT)
+    return _edge_sums(mesh, youngs_modulus_pa * vol[:, None] / d2
+                      * np.where(rank < 3, GRID_AXIS_WEIGHT, GRID_DIAGONAL_WEIGHT))
+
+
+def _edge_sums(mesh: TetMesh, shares: np.ndarray) -> np.ndarray:
+    """Per mesh edge, the sum of the tets' shares (T, 6) in :data:`~msdgrasp.physics.tissue.TET_EDGES` order over the
+    tets that hold it, as van Gelder's rule sums them."""
     idx = edge_index(mesh.edges, mesh.n_nodes, mesh.tets[:, TET_EDGES[:, 0]].ravel(),
                      mesh.tets[:, TET_EDGES[:, 1]].ravel())
     k1 = np.zeros(len(mesh.edges))
-    np.add.at(k1, idx, share.ravel())
+    np.add.at(k1, idx, shares.ravel())
     return k1
 
 
@@ -861,8 +867,6 @@ def fem_fit_springs(mesh: TetMesh, youngs_modulus_pa: float, poisson: float = 0.
     k n n^T blocks are nearest (least squares over the 12 x 12 entries) the linear P1 element matrix
     V B^T D B; negative fits (a spring cannot push when stretched) are clipped to zero; summed over the tets that
     share an edge, as van Gelder's rule is."""
-    from ..physics.tissue import TET_EDGES, edge_index
-
     x = mesh.nodes[mesh.tets]  # (T, 4, 3)
     lam, mu = lame(youngs_modulus_pa, poisson)
     J = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=1)  # rows: edge vectors
@@ -889,13 +893,7 @@ def fem_fit_springs(mesh: TetMesh, youngs_modulus_pa: float, poisson: float = 0.
     B = B.reshape(len(x), 6, 144)
     G = np.einsum("tam,tbm->tab", B, B)
     h = np.einsum("tam,tm->ta", B, Ke.reshape(len(x), 144))
-    k = np.clip(np.linalg.solve(G, h[..., None])[..., 0], 0.0, None)
-    edges = mesh.edges
-    idx = edge_index(edges, mesh.n_nodes, mesh.tets[:, TET_EDGES[:, 0]].ravel(),
-                      mesh.tets[:, TET_EDGES[:, 1]].ravel())
-    k1 = np.zeros(len(edges))
-    np.add.at(k1, idx, k.ravel())
-    return k1
+    return _edge_sums(mesh, np.clip(np.linalg.solve(G, h[..., None])[..., 0], 0.0, None))
 
 
 def with_springs(model: TissueModel, k1: np.ndarray) -> TissueModel:

@@ -103,7 +103,7 @@ def fill_surface(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray,
     tets = index[tet_tags].reshape(-1, 4)
     if len(np.unique(tets)) != len(order):
         raise RuntimeError("gmsh left nodes outside every tet")
-    return nodes[order], orient(nodes[order], tets)
+    return nodes[order], tets
 
 
 def orient(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:

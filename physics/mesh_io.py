@@ -133,6 +133,15 @@ def sphere_even_mesh(diameter_m: float = 0.05, resolution: str = "coarse", cente
 SPLEEN_EVEN = "spleen-even"
 
 
+def surface_first(mesh: TetMesh) -> np.ndarray:
+    """Per node of ``mesh``, its index when its surface nodes come first in id order (-1 for the interior): how a
+    surface is handed to gmsh and how ``spleen-even`` numbers the built-in spleen's surface."""
+    surf = mesh.node_sets["surface"]
+    index = np.full(mesh.n_nodes, -1, dtype=np.int64)
+    index[surf] = np.arange(len(surf))
+    return index
+
+
 def spleen_even_mesh(resolution: str = "coarse") -> TetMesh:
     """The built-in spleen (:func:`.mesh_gen.spleen_mesh` at its default shape) with the same surface nodes and
     triangles, its interior filled by gmsh's Delaunay tets (:mod:`msdgrasp.meshes.generate`) instead of the mapped Kuhn
@@ -152,8 +161,7 @@ def spleen_even_mesh(resolution: str = "coarse") -> TetMesh:
     if not np.allclose(base.nodes[: len(surf)], grid.nodes[surf], rtol=0.0, atol=1e-12):
         raise MeshError(f"{MESH_DIR / f'spleen_even_{key}.vtu'}: its first nodes are not the built-in spleen's "
                         "surface; regenerate it with msdgrasp meshes")
-    renumber = np.full(grid.n_nodes, -1, dtype=np.int64)
-    renumber[surf] = np.arange(len(surf))
+    renumber = surface_first(grid)
     tip, axis = grid.landmarks["inferior_pole_tip"], grid.landmarks["inferior_pole_axis"]
     pole_length = inspect.signature(spleen_mesh).parameters["pole_length_m"].default  # (the built-in mesh's rule)
     sets = {"surface": np.arange(len(surf)), "hilum": renumber[grid.node_sets["hilum"]],
