@@ -117,6 +117,8 @@ class RecurrentConfig:
     #: how a checkpoint is picked: "grasps" (the lowest Wilson bound of success over mu, then force) or "success"
     #: (the mean success, then force: the SB3 training's rule)
     selection: Literal["grasps", "success"] = "grasps"
+    #: torch threads of the run (the networks are small: more threads contend with the physics and with parallel seeds)
+    torch_threads: Annotated[Int, Ge(1)] = 1
     #: the task the student acts on (the default training's: the benchmark task with a privileged block for teachers)
     env: GraspLiftConfig = field(default_factory=_default_env)
     #: the perturbations the episodes are drawn from (the default training's ranges)
@@ -239,6 +241,7 @@ def train_recurrent(config: RecurrentConfig, out_dir: str | Path, progress: bool
         raise ConfigError(f"output folder {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / LAYOUT.config, json.dumps({"learner": NAME, "config": to_dict(config)}, indent=1) + "\n")
+    torch.set_num_threads(config.torch_threads)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     env = GraspLiftVectorEnv(config.n_envs, config.training_task())
