@@ -23,6 +23,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import sys
 import tarfile
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
@@ -41,6 +42,14 @@ _ARCHIVE_KEY = "__folder_archive__"
 
 def _call(fn: Callable[..., Any], *args: Any) -> Any:
     return fn(*args)
+
+
+def _one_thread() -> None:
+    """A pool worker's initializer: torch on one intra-op thread, the workers being the parallelism (two recurrent
+    seeds, each with torch's default of one thread per core, ran five times slower on two cores than with one)."""
+    os.environ["OMP_NUM_THREADS"] = "1"  # (read when torch is imported, which a spawned worker has not yet done)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
 
 
 def _check_workers(workers: int | None) -> None:
@@ -151,7 +160,8 @@ class Runner:
             return
         if self._pool is None:
             # spawn: fork would copy torch/numba thread pools into the workers
-            self._pool = ProcessPoolExecutor(max_workers=self.capacity(), mp_context=get_context("spawn"))
+            self._pool = ProcessPoolExecutor(max_workers=self.capacity(), mp_context=get_context("spawn"),
+                                             initializer=_one_thread)
         futures = {self._pool.submit(fn, *args): k for k, (fn, args) in enumerate(jobs)}
         pending = set(futures)
         try:
