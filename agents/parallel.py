@@ -46,7 +46,8 @@ def _call(fn: Callable[..., Any], *args: Any) -> Any:
 
 def _one_thread() -> None:
     """A pool worker's initializer: torch on one intra-op thread, the workers being the parallelism (two recurrent
-    seeds, each with torch's default of one thread per core, ran five times slower on two cores than with one)."""
+    seeds, each with torch's default of one thread per core, ran five times slower on two cores than with one). It
+    overrides an ``OMP_NUM_THREADS`` of the caller's: more threads per worker only contend with the other workers."""
     os.environ["OMP_NUM_THREADS"] = "1"  # (read when torch is imported, which a spawned worker has not yet done)
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)

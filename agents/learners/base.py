@@ -84,7 +84,12 @@ class Learner(ABC):
         """Whether ``config`` is a training config of this learner."""
 
     def one_core(self, config: Any) -> Any:
-        """``config`` for a job that gets one CPU core (parallel seeds: the jobs are the parallelism)."""
+        """``config`` for a job that gets one CPU core (parallel seeds: the jobs are the parallelism): a config with a
+        ``torch_threads`` field runs torch on one thread, which a larger setting would otherwise override."""
+        import dataclasses
+
+        if dataclasses.is_dataclass(config) and "torch_threads" in {f.name for f in dataclasses.fields(config)}:
+            return dataclasses.replace(config, torch_threads=1)
         return config
 
     def resume_config(self, run: Path, overrides: TrainOverrides) -> Any:

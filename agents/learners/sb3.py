@@ -46,11 +46,6 @@ class SB3Learner(Learner):
 
         return isinstance(config, TrainConfig) and config.algo == self.name
 
-    def one_core(self, config: Any) -> Any:
-        from dataclasses import replace
-
-        return replace(config, torch_threads=1)
-
     def config_from_dict(self, data: Mapping[str, Any], where: str) -> "TrainConfig":
         from ...physics.config import from_dict
         from ..models import TrainConfig
