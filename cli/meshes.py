@@ -40,10 +40,11 @@ def meshes_cli(args: argparse.Namespace) -> int:
     if gmsh.__version__ != gen.GMSH_VERSION:
         print(f"warning: gmsh {gmsh.__version__}, the shipped files were made with {gen.GMSH_VERSION}", file=sys.stderr)
     bad = 0
-    for filename, make in jobs():
+    made = []
+    for filename, make in jobs():  # (every mesh made before any file is written: a failure leaves the set whole)
         nodes, tets = make()
-        tets = gen.orient(nodes, tets)
-        path = MESH_DIR / filename
+        made.append((MESH_DIR / filename, nodes, gen.orient(nodes, tets)))
+    for path, nodes, tets in made:
         if args.check:
             ref = meshio.read(path)
             ref_tets = np.concatenate([c.data for c in ref.cells if c.type == "tetra"])
