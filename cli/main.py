@@ -146,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe = exp_sub.add_parser("fem", help="the MSD against a finite-element reference on the same meshes (linear and "
                             "neo-Hookean; needs the extra fem)")
     fe.add_argument("--case", action="append", help="cube|cube-slip|sphere|spleen|sphere-pad|spleen-pad|spleen-even|"
-                    "spleen-even-pad|cube-j1|cube-slip-j1 (repeatable; default all)")
+                    "spleen-even-pad|cube-j1|cube-slip-j1|spleen-j1|spleen-j1-pad (repeatable; default all)")
     fe.add_argument("--resolution", action="append", help="coarse|medium|fine (repeatable; default coarse and fine)")
     fe.add_argument("--poisson", type=float, default=0.25,
                     help="the continuum's Poisson ratio in [0, 0.5) (default 0.25: the spring network's own)")

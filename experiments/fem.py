@@ -26,7 +26,9 @@ Load cases (all loaded along z):
   surface filled with unstructured tets (:func:`~msdgrasp.physics.mesh_io.spleen_even_mesh`), the same patches;
 * ``<body>-pad``: the sphere's or a spleen's two patches squeezed together by forces, not displacements (a traction
   on each patch's faces, :meth:`LoadCase.unit_load`), so that both models carry the same load;
-* ``cube-j1``, ``cube-slip-j1``: the cubes on the alternating (J1) grid, where :func:`grid_springs` applies.
+* ``cube-j1``, ``cube-slip-j1``: the cubes on the alternating (J1) grid, where :func:`grid_springs` applies;
+  ``spleen-j1``, ``spleen-j1-pad``: the built-in spleen's nodes on that grid, its outer cell layer split as the octant
+  grid (:func:`~msdgrasp.physics.mesh_gen.kuhn_box`'s ``alternating-shell``; the same patches).
 
 Strain is the indenter's travel (for the pads: their approach, f . u) over the case's height along z. The continuum
 Poisson ratio is a parameter: 0.25 is the isotropic network's own (Cauchy relations;
@@ -49,14 +51,14 @@ from ..physics.config import ConfigError, from_dict, needs_extra, to_dict
 from ..physics.forces import volume_forces
 from ..physics.mesh import TetMesh, boundary_faces, tet_signed_volumes
 from ..physics.mesh_io import sphere_even_mesh, spleen_even_mesh
-from ..physics.mesh_gen import kuhn_box, spleen_mesh
+from ..physics.mesh_gen import kuhn_box, kuhn_lattice, spleen_lattice, spleen_mesh, spleen_on_grid
 from ..physics.reference import numpy_barrier_slopes, numpy_spring_law
 from ..physics.tissue import (TET_EDGES, TissueModel, TissueParams, assemble_edge_blocks, edge_index,
                               hertz_sphere_force)
 
 #: the load cases :func:`load_case` builds
 CASES = ("cube", "cube-slip", "sphere", "spleen", "sphere-pad", "spleen-pad", "spleen-even", "spleen-even-pad",
-         "cube-j1", "cube-slip-j1")
+         "cube-j1", "cube-slip-j1", "spleen-j1", "spleen-j1-pad")
 #: cells per cube edge for the named resolutions (about the node counts of the built-in meshes')
 CUBE_CELLS = {"coarse": 5, "medium": 8, "fine": 12}
 #: the cube's edge, m (a grasped slab of spleen: its thickness is ~40 mm)
@@ -128,6 +130,8 @@ class LoadCase:
     sides: tuple[np.ndarray, np.ndarray] | None = None
     #: per pad (moved, held), the traction's coefficients (c0 N/m^2, cx N/m^3, cy N/m^3); None: displacements
     pad_weights: tuple[np.ndarray, np.ndarray] | None = None
+    #: a grid mesh's integer grid coordinates per node (:func:`~msdgrasp.physics.mesh_gen.kuhn_lattice`); None: none
+    lattice: np.ndarray | None = None
 
     @property
     def padded(self) -> bool:
@@ -256,7 +260,8 @@ def load_case(name: str, resolution: str = "coarse") -> LoadCase:
             c = int(bottom[np.argmin(np.hypot(b[:, 0], b[:, 1]))])
             f = int(bottom[np.argmax(b[:, 0] - np.abs(b[:, 1]))])
             pins = [(c, 0), (c, 1), (f, 1)]
-        return LoadCase(name, mesh, top, bottom, not name.startswith("cube-slip"), CUBE_SIDE_M, pins, sides)
+        return LoadCase(name, mesh, top, bottom, not name.startswith("cube-slip"), CUBE_SIDE_M, pins, sides,
+                        lattice=kuhn_lattice((len(np.unique(x)) - 1,) * 3))
     body = name.removesuffix("-pad")
     if body == "sphere":
         mesh = sphere_even_mesh(0.05, res)
@@ -264,20 +269,21 @@ def load_case(name: str, resolution: str = "coarse") -> LoadCase:
         # the poles: the surface nodes within the punch radius of the z axis, on both faces
         moved, held = _patches(mesh, np.zeros(3), INDENTER_RADIUS_FRACTION * radius + 1e-12)
         height = 2.0 * radius
-    elif body in ("spleen", "spleen-even"):
+    elif body in ("spleen", "spleen-even", "spleen-j1"):
         grid = spleen_mesh(res)
-        mesh = grid if body == "spleen" else spleen_even_mesh(res)
+        mesh = {"spleen": grid, "spleen-j1": spleen_on_grid(res)}.get(body) or spleen_even_mesh(res)
         # the middle of the long axis: the surface nodes nearest the x-y location of the grid's node centroid, on both
         # faces (spleen-even has the grid's surface: the same patches)
         moved, held = _patches(mesh, grid.nodes.mean(axis=0), SPLEEN_INDENTER_RADIUS_M)
         height = float(mesh.nodes[moved, 2].mean() - mesh.nodes[held, 2].mean())
     else:
         raise ConfigError(f"case = {name!r} is not allowed; choose one of {list(CASES)}")
+    lattice = spleen_lattice(res) if body == "spleen-j1" else None
     if name == body:
-        return LoadCase(name, mesh, moved, held, True, height)
+        return LoadCase(name, mesh, moved, held, True, height, lattice=lattice)
     both = np.concatenate([moved, held])
     return LoadCase(name, mesh, moved, held, False, height, _rigid_pins(mesh, both),
-                    pad_weights=_balanced_pads(mesh, moved, held))
+                    pad_weights=_balanced_pads(mesh, moved, held), lattice=lattice)
 
 
 def _patches(mesh: TetMesh, centre: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -835,21 +841,26 @@ GRID_AXIS_WEIGHT = 0.56
 GRID_DIAGONAL_WEIGHT = 1.44
 
 
-def grid_springs(mesh: TetMesh, youngs_modulus_pa: float) -> np.ndarray:
+def grid_springs(mesh: TetMesh, youngs_modulus_pa: float, lattice: np.ndarray | None = None) -> np.ndarray:
     """Spring stiffnesses K1 (N/m, one per mesh edge) for a Kuhn grid: van Gelder's E V / L^2 per tet, times
-    :data:`GRID_AXIS_WEIGHT` on each tet's three shortest edges (the grid's axes) and :data:`GRID_DIAGONAL_WEIGHT`
-    on the other three. The family is read from the edge lengths, which is exact on an unmapped grid (a cube): on
-    the mapped built-in meshes the lengths no longer tell the families apart, and on an unstructured mesh there is no
+    :data:`GRID_AXIS_WEIGHT` on each tet's three grid-axis edges and :data:`GRID_DIAGONAL_WEIGHT` on the other three.
+    The family is read from the nodes' integer grid coordinates ``lattice`` (N, 3; an axis edge differs in one), or
+    without them from the edge lengths (the three shortest), which is exact on an unmapped grid (a cube) only: on the
+    mapped built-in meshes the lengths no longer tell the families apart, and on an unstructured mesh there is no
     family. On the alternating (J1) grid with an even number of cells per axis every interior node is a centre of
     symmetry, so a uniform strain is the network's equilibrium and the weights make it the isotropic solid; on the
     octant grid each octant's diagonals all lean one way (a coupling of shear and normal strain no positive spring
     removes), and it relaxes non-affinely."""
     x = mesh.nodes[mesh.tets]
     d2 = np.stack([((x[:, b] - x[:, a]) ** 2).sum(axis=1) for a, b in TET_EDGES], axis=1)
-    rank = np.argsort(np.argsort(d2, axis=1, kind="stable"), axis=1)
+    if lattice is None:
+        axis = np.argsort(np.argsort(d2, axis=1, kind="stable"), axis=1) < 3
+    else:
+        g = np.asarray(lattice)[mesh.tets]
+        axis = np.stack([(g[:, b] != g[:, a]).sum(axis=1) == 1 for a, b in TET_EDGES], axis=1)
     vol = np.abs(tet_signed_volumes(mesh.nodes, mesh.tets))
-    return _edge_sums(mesh, youngs_modulus_pa * vol[:, None] / d2
-                      * np.where(rank < 3, GRID_AXIS_WEIGHT, GRID_DIAGONAL_WEIGHT))
+    return _edge_sums(mesh, youngs_modulus_pa * vol[:, None] / d2 * np.where(axis, GRID_AXIS_WEIGHT,
+                                                                              GRID_DIAGONAL_WEIGHT))
 
 
 def _edge_sums(mesh: TetMesh, shares: np.ndarray) -> np.ndarray:
@@ -1060,8 +1071,8 @@ def _derivation_models(case: LoadCase, params: TissueParams, poisson: float) -> 
     base = msd_model(mesh, params, stiffness_rule="van_gelder", contact_calibration="none")
     models = {"van_gelder": base, "lloyd": msd_model(mesh, params, stiffness_rule="lloyd", contact_calibration="none"),
               "fem-fit": with_springs(base, fem_fit_springs(mesh, E, poisson))}
-    if case.name.endswith("-j1"):  # (the grid rule is made for the alternating grid: grid_springs)
-        models["grid"] = with_springs(base, grid_springs(mesh, E))
+    if "-j1" in case.name:  # (the grid rule is made for the alternating grid: grid_springs)
+        models["grid"] = with_springs(base, grid_springs(mesh, E, case.lattice))
     return models
 
 

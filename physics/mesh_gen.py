@@ -5,6 +5,7 @@ of a human-spleen-like organ (:func:`spleen_mesh`) at the resolutions of
 
 from __future__ import annotations
 
+import inspect
 import itertools
 
 import numpy as np
@@ -56,7 +57,7 @@ def _grid_shape(target: int, extents) -> tuple[int, int, int]:
 
 
 #: how :func:`kuhn_box` orients each cell's six Kuhn tets
-GRID_PATTERNS = ("octant", "alternating")
+GRID_PATTERNS = ("octant", "alternating", "alternating-shell")
 
 
 def kuhn_box(shape: tuple[int, int, int], pattern: str = "octant") -> tuple[np.ndarray, np.ndarray]:
@@ -65,10 +66,14 @@ def kuhn_box(shape: tuple[int, int, int], pattern: str = "octant") -> tuple[np.n
     ``pattern``: ``"octant"``, each cell's diagonal runs away from the box centre (one Kuhn lattice per octant,
     mirrored at the centre planes: the built-in meshes' grid); ``"alternating"``, each cell is mirrored by the
     parity of its index along each axis (Todd's J1 triangulation), so that every interior node is a centre of
-    symmetry. A spring network on the octant grid is anisotropic within each octant (every diagonal leans the same
-    way) and relaxes non-affinely where the octants meet; on the alternating grid with an even number of cells per
-    axis (whose mirrored cells balance) it is a cubic crystal under any uniform strain, which
-    :func:`msdgrasp.experiments.fem.grid_springs` makes isotropic."""
+    symmetry; ``"alternating-shell"``, alternating but the first and last cell along each axis as the octant grid
+    (their diagonals run outward, so that a map onto a curved body flattens no cell across its diagonal: the
+    alternating grid mapped onto the spleen has degenerate tets at 960 nodes and more). A spring network on the
+    octant grid is anisotropic within each octant (every diagonal leans the same way) and relaxes non-affinely where
+    the octants meet; on the alternating grid with an even number of cells per axis (whose mirrored cells balance) it
+    is a cubic crystal under any uniform strain, which :func:`msdgrasp.experiments.fem.grid_springs` makes isotropic.
+    The direction is a function of a cell's index along each axis alone, so neighbouring cells split their shared face
+    alike (a conforming mesh) for every pattern."""
     if pattern not in GRID_PATTERNS:
         raise MeshError(f"pattern = {pattern!r} is not allowed; choose one of {list(GRID_PATTERNS)}")
     nx, ny, nz = shape
@@ -78,7 +83,9 @@ def kuhn_box(shape: tuple[int, int, int], pattern: str = "octant") -> tuple[np.n
     cells = np.stack(np.meshgrid(*(np.arange(k) for k in shape), indexing="ij"), -1).reshape(-1, 3)
     n = np.asarray(shape)
     # per axis, the cube diagonal runs away from the box centre (cells straddling it: +), or alternates cell by cell
-    d = np.where(2 * cells + 1 >= n, 1, -1) if pattern == "octant" else np.where(cells % 2 == 0, 1, -1)
+    outward, alternate = np.where(2 * cells + 1 >= n, 1, -1), np.where(cells % 2 == 0, 1, -1)
+    d = {"octant": outward, "alternating": alternate,
+         "alternating-shell": np.where((cells == 0) | (cells == n - 1), outward, alternate)}[pattern]
     start = np.where(d > 0, cells, cells + 1)
     tets = []
     for perm in itertools.permutations(range(3)):
@@ -270,3 +277,28 @@ def spleen_mesh(
         },
         name="spleen",
     )
+
+
+def kuhn_lattice(shape: tuple[int, int, int]) -> np.ndarray:
+    """The integer grid coordinates (N, 3) of :func:`kuhn_box`'s nodes, in its node order: an edge of its tets runs
+    along a grid axis where they differ in one coordinate, along a diagonal where in two or three."""
+    return np.stack(np.unravel_index(np.arange(int(np.prod(np.asarray(shape) + 1))),
+                                     tuple(k + 1 for k in shape)), axis=1).astype(np.int64)
+
+
+def spleen_lattice(resolution: str | int = "coarse") -> np.ndarray:
+    """:func:`kuhn_lattice` of the box grid that the default :func:`spleen_mesh` maps (its nodes keep the grid's
+    order)."""
+    length, width, thickness = (inspect.signature(spleen_mesh).parameters[k].default
+                                for k in ("length_m", "width_m", "thickness_m"))
+    return kuhn_lattice(_grid_shape(_target_nodes(resolution), (length, width, thickness)))
+
+
+def spleen_on_grid(resolution: str | int = "coarse", pattern: str = "alternating-shell") -> TetMesh:
+    """The default built-in spleen's nodes, node sets and landmarks (:func:`spleen_mesh`) with its box grid split by
+    ``pattern`` (:func:`kuhn_box`) instead of the octant grid: the same body with other tets (its surface's quads
+    split along other diagonals). MeshError where a tet degenerates (the alternating grid at 960 nodes and more)."""
+    spleen = spleen_mesh(resolution)
+    _, tets = kuhn_box(tuple(int(k) for k in spleen_lattice(resolution).max(axis=0)), pattern)
+    return TetMesh(spleen.nodes, tets, node_sets=dict(spleen.node_sets), landmarks=dict(spleen.landmarks),
+                   name=f"spleen-{pattern}")

@@ -266,6 +266,21 @@ def test_the_grid_rule_makes_the_alternating_grid_the_isotropic_solid():
     assert errors[1] < errors[0] < 0.08
 
 
+def test_the_grid_rule_reads_each_edge_s_family_from_the_grid_not_from_its_length():
+    # on the unmapped cube the three shortest edges of a tet are its grid axes: both readings agree
+    cube = fem.load_case("cube-j1", "coarse")
+    assert np.allclose(fem.grid_springs(cube.mesh, E), fem.grid_springs(cube.mesh, E, cube.lattice), rtol=1e-12)
+    # mapped onto the spleen they do not: the grid's coordinates tell every tet's three axes from its three diagonals
+    spleen = fem.load_case("spleen-j1", "medium")
+    g = spleen.lattice[spleen.mesh.tets]
+    steps = np.stack([(g[:, b] != g[:, a]).sum(axis=1) for a, b in fem.TET_EDGES], axis=1)
+    assert np.all(np.sort(steps, axis=1) == [1, 1, 1, 2, 2, 3])
+    by_length = fem.grid_springs(spleen.mesh, E)
+    by_grid = fem.grid_springs(spleen.mesh, E, spleen.lattice)
+    assert not np.allclose(by_length, by_grid, rtol=1e-3)
+    assert by_grid.sum() == pytest.approx(by_length.sum(), rel=0.1)  # (the same shares, weighted otherwise)
+
+
 def test_multigrid_solves_what_the_direct_solver_solves(monkeypatch):
     # the large systems (fine meshes split twice) go to conjugate gradients with smoothed aggregation: on a system
     # both can solve, the same stiffness to the solver's tolerance, for a punch and for pads

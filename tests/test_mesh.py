@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from msdgrasp.physics.mesh import RESOLUTIONS, MeshError, TetMesh, tet_quality, validate_tets
-from msdgrasp.physics.mesh_gen import sphere_mesh, spleen_mesh
+from msdgrasp.physics.mesh_gen import (GRID_PATTERNS, kuhn_box, kuhn_lattice, sphere_mesh, spleen_lattice, spleen_mesh,
+                                       spleen_on_grid)
 from msdgrasp.physics.mesh_io import build_mesh, load_mesh, save_mesh
 
 import meshio  # noqa: E402  (a dependency: a missing meshio fails, never skips)
@@ -221,6 +222,34 @@ def test_spleen_options_and_errors():
         spleen_mesh(length_m=-1.0)
     with pytest.raises(MeshError, match="hilum_depth"):
         spleen_mesh(hilum_depth=1.5)
+
+
+@pytest.mark.parametrize("pattern", GRID_PATTERNS)
+def test_every_grid_pattern_is_a_conforming_split_of_the_box(pattern):
+    shape = (5, 4, 3)
+    box, tets = kuhn_box(shape, pattern)
+    vol = np.abs(np.linalg.det(box[tets[:, 1:]] - box[tets[:, :1]])) / 6.0
+    assert vol.sum() == pytest.approx(8.0, rel=1e-12) and vol.min() > 0  # ([-1, 1]^3, nothing inverted)
+    # conforming: every triangle is shared by two tets or lies on the box's surface
+    faces = np.sort(np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]]),
+                    axis=1)
+    uniq, count = np.unique(faces, axis=0, return_counts=True)
+    on_box = np.any(np.all(np.isclose(np.abs(box[uniq]), 1.0), axis=1) & (np.ptp(box[uniq], axis=1) == 0), axis=1)
+    assert set(count[~on_box]) == {2} and set(count[on_box]) == {1}
+    # the lattice is the grid's own coordinates, node for node
+    assert np.allclose(box, 2.0 * kuhn_lattice(shape) / np.asarray(shape) - 1.0)
+
+
+def test_the_shell_pattern_splits_the_spleen_s_grid_without_a_sliver_where_the_alternating_grid_fails():
+    with pytest.raises(MeshError, match="degenerate tet"):
+        spleen_on_grid("medium", "alternating")
+    octant, shell = spleen_mesh("medium"), spleen_on_grid("medium")
+    assert np.array_equal(shell.nodes, octant.nodes) and len(spleen_lattice("medium")) == octant.n_nodes
+    # the same body: its volume moves only by the surface quads' other split
+    assert shell.volume == pytest.approx(octant.volume, rel=1e-3)
+    assert np.array_equal(shell.surface_nodes, octant.surface_nodes)
+    with pytest.raises(MeshError, match="pattern"):
+        spleen_on_grid("coarse", "diagonal")
 
 
 @pytest.mark.parametrize("kind", ["sphere", "spleen"])
