@@ -13,7 +13,7 @@ import numpy as np
 
 from .config import TISSUE_FILE, ConfigError, atomic_write, read_config_file
 from .mesh import MeshError, TetMesh
-from .mesh_gen import sphere_mesh, spleen_mesh
+from .mesh_gen import sphere_mesh, spleen_mesh, spleen_on_grid
 
 __all__ = ["MeshSpec", "load_mesh", "save_mesh", "build_mesh", "mesh_from_config", "mesh_spec"]
 
@@ -131,6 +131,8 @@ def sphere_even_mesh(diameter_m: float = 0.05, resolution: str = "coarse", cente
 
 #: the built-in spleen's surface filled with unstructured tets (shipped gmsh meshes, msdgrasp/meshes)
 SPLEEN_EVEN = "spleen-even"
+#: the built-in spleen's nodes on the J1 split with an octant shell (:func:`.mesh_gen.spleen_on_grid`)
+SPLEEN_J1 = "spleen-j1"
 
 
 def surface_first(mesh: TetMesh) -> np.ndarray:
@@ -171,7 +173,7 @@ def spleen_even_mesh(resolution: str = "coarse") -> TetMesh:
 
 #: the built-in mesh generators by ``shape`` name (any other shape is a mesh file)
 GENERATORS = {"sphere": sphere_mesh, SPHERE_EVEN: sphere_even_mesh, "spleen": spleen_mesh,
-              SPLEEN_EVEN: spleen_even_mesh}
+              SPLEEN_EVEN: spleen_even_mesh, SPLEEN_J1: spleen_on_grid}
 
 
 def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwargs) -> TetMesh:

@@ -1,4 +1,4 @@
-"""``extends:`` in a training config: a file built on another one (physics/config.py: read_extending_yaml).
+"""``extends:`` in a training or tissue config: a file built on another one (physics/config.py: read_extending_yaml).
 
 The file is its parent's mapping deep-merged with its own: nested mappings merge key by key, lists and scalars
 replace, the file's own value wins; a parent may extend another; the path is relative to the file's folder. A
@@ -312,3 +312,37 @@ def test_every_shipped_config_extends_at_most_one_shipped_default():
             if "experiments" in parent.relative_to(CONFIG_DIR).parts:
                 on_experiments.append(f"{path.relative_to(CONFIG_DIR)} -> {parent.relative_to(CONFIG_DIR)}")
     assert not on_experiments, f"configs that extend an experiment instead of a default: {on_experiments}"
+
+
+# =================================================================================================
+# tissue configs extend too
+# =================================================================================================
+
+def test_a_tissue_config_builds_on_another_and_its_mesh_file_stays_beside_the_parent(tmp_path):
+    from msdgrasp.experiments.compression import load_tissue_params
+    from msdgrasp.physics.mesh_gen import sphere_mesh
+    from msdgrasp.physics.mesh_io import mesh_spec, save_mesh
+
+    import yaml
+
+    (tmp_path / "a").mkdir()
+    save_mesh(sphere_mesh(resolution="coarse"), tmp_path / "a" / "ball.vtu")
+    parent = read_yaml(builtin_config("tissue/sphere.yaml"))
+    parent["mesh"] = {"shape": "ball.vtu"}
+    (tmp_path / "a" / "parent.yaml").write_text(yaml.safe_dump(parent))
+    child = _file(tmp_path / "b" / "child.yaml", "extends: ../a/parent.yaml\ntissue: {youngs_modulus_pa: 9000.0}\n")
+    assert mesh_spec(child).shape == str((tmp_path / "a" / "ball.vtu").resolve())
+    mine, theirs = load_tissue_params(child), load_tissue_params(tmp_path / "a" / "parent.yaml")
+    assert mine.youngs_modulus_pa == 9000.0 != theirs.youngs_modulus_pa
+    assert mine.mass_kg == theirs.mass_kg and mine.stiffening == theirs.stiffening
+
+
+def test_the_shipped_j1_spleen_is_the_spleen_s_material_and_nodes_on_other_tets():
+    from msdgrasp.experiments.compression import load_tissue_params
+    from msdgrasp.physics.mesh_io import mesh_from_config
+
+    assert load_tissue_params(builtin_config("tissue/spleen-j1.yaml")) == load_tissue_params(
+        builtin_config("tissue/spleen.yaml"))
+    j1, octant = (mesh_from_config(builtin_config(f"tissue/{n}.yaml")) for n in ("spleen-j1", "spleen"))
+    assert (j1.nodes == octant.nodes).all() and len(j1.tets) == len(octant.tets)
+    assert not (j1.tets == octant.tets).all()
