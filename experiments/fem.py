@@ -27,8 +27,8 @@ Load cases (all loaded along z):
 * ``<body>-pad``: the sphere's or a spleen's two patches squeezed together by forces, not displacements (a traction
   on each patch's faces, :meth:`LoadCase.unit_load`), so that both models carry the same load;
 * ``cube-j1``, ``cube-slip-j1``: the cubes on the alternating (J1) grid, where :func:`grid_springs` applies;
-  ``spleen-j1``, ``spleen-j1-pad``: the built-in spleen's nodes on that grid, its outer cell layer split as the octant
-  grid (:func:`~msdgrasp.physics.mesh_gen.kuhn_box`'s ``alternating-shell``; the same patches).
+  ``spleen-j1``, ``spleen-j1-pad``: the built-in spleen's nodes on that grid, each axis's first and last cells pointing
+  outward along it (:func:`~msdgrasp.physics.mesh_gen.kuhn_box`'s ``alternating-shell``; the same patches).
 
 Strain is the indenter's travel (for the pads: their approach, f . u) over the case's height along z. The continuum
 Poisson ratio is a parameter: 0.25 is the isotropic network's own (Cauchy relations;
@@ -50,8 +50,8 @@ import scipy.sparse.linalg as spla
 from ..physics.config import ConfigError, from_dict, needs_extra, to_dict
 from ..physics.forces import volume_forces
 from ..physics.mesh import TetMesh, boundary_faces, tet_signed_volumes
-from ..physics.mesh_io import sphere_even_mesh, spleen_even_mesh
-from ..physics.mesh_gen import kuhn_box, kuhn_lattice, spleen_lattice, spleen_mesh, spleen_on_grid
+from ..physics.mesh_io import sphere_even_mesh, spleen_even_mesh, spleen_j1_mesh
+from ..physics.mesh_gen import kuhn_box, kuhn_lattice, spleen_lattice, spleen_mesh
 from ..physics.reference import numpy_barrier_slopes, numpy_spring_law
 from ..physics.tissue import (TET_EDGES, TissueModel, TissueParams, assemble_edge_blocks, edge_index,
                               hertz_sphere_force)
@@ -271,7 +271,12 @@ def load_case(name: str, resolution: str = "coarse") -> LoadCase:
         height = 2.0 * radius
     elif body in ("spleen", "spleen-even", "spleen-j1"):
         grid = spleen_mesh(res)
-        mesh = {"spleen": grid, "spleen-j1": spleen_on_grid(res)}.get(body) or spleen_even_mesh(res)
+        if body == "spleen":
+            mesh = grid
+        elif body == "spleen-j1":
+            mesh = spleen_j1_mesh(res)
+        else:
+            mesh = spleen_even_mesh(res)
         # the middle of the long axis: the surface nodes nearest the x-y location of the grid's node centroid, on both
         # faces (spleen-even has the grid's surface: the same patches)
         moved, held = _patches(mesh, grid.nodes.mean(axis=0), SPLEEN_INDENTER_RADIUS_M)
@@ -446,7 +451,7 @@ def refined_case(case: LoadCase) -> LoadCase:
     mid = mesh.n_nodes + np.arange(len(a))  # (edge e's midpoint is node n_nodes + e)
     return dataclasses.replace(case, mesh=TetMesh(nodes, tets, name=f"{mesh.name}-split"),
                                moved=np.concatenate([case.moved, mid[role == 1]]),
-                               held=np.concatenate([case.held, mid[role == 2]]), sides=None)
+                               held=np.concatenate([case.held, mid[role == 2]]), sides=None, lattice=None)
 
 
 def converged_linear_force(case: LoadCase, youngs_modulus_pa: float, poisson: float, splits: int = 2,
@@ -856,6 +861,8 @@ def grid_springs(mesh: TetMesh, youngs_modulus_pa: float, lattice: np.ndarray | 
     if lattice is None:
         axis = np.argsort(np.argsort(d2, axis=1, kind="stable"), axis=1) < 3
     else:
+        if len(lattice) != mesh.n_nodes:
+            raise ValueError(f"lattice has {len(lattice)} rows, the mesh {mesh.n_nodes} nodes: one per node")
         g = np.asarray(lattice)[mesh.tets]
         axis = np.stack([(g[:, b] != g[:, a]).sum(axis=1) == 1 for a, b in TET_EDGES], axis=1)
     vol = np.abs(tet_signed_volumes(mesh.nodes, mesh.tets))

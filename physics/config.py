@@ -403,7 +403,8 @@ class ConfigFile:
 #: a tissue config (configs/tissue/*.yaml): the mesh, the material, and the record of a calibration that wrote it
 TISSUE_FILE = ConfigFile(
     "tissue config", ("mesh", "tissue", "calibration"), ("mesh", "tissue"),
-    (("mesh", "mesh: {shape: sphere-even | sphere | spleen | <mesh file, relative to this YAML>, resolution: coarse}"),
+    (("mesh", "mesh: {shape: sphere-even | sphere | spleen | spleen-even | spleen-j1 | <mesh file, relative to this "
+              "YAML>, resolution: coarse}"),
      ("tissue", "tissue: {youngs_modulus_pa: 12000.0, mass_kg: 0.15, ...} (see configs/tissue/spleen.yaml)")),
 )
 #: a grasper config (configs/grasper/*.yaml)
@@ -414,23 +415,13 @@ GRASPER_FILE = ConfigFile(
 )
 
 
-def _mesh_file_from_its_yaml(data: dict[str, Any], file: Path) -> dict[str, Any]:
-    """A config's own ``mesh.shape``, where it names a mesh file relative to the YAML, made absolute: read through
-    ``extends``, a parent's mesh file stays the one beside the parent."""
-    mesh = data.get("mesh")
-    shape = mesh.get("shape") if isinstance(mesh, dict) else None
-    if isinstance(shape, str) and shape.strip() and not Path(shape).expanduser().is_absolute() and (
-            file.parent / shape).is_file():
-        data = {**data, "mesh": {**mesh, "shape": str((file.parent / shape).resolve())}}
-    return data
-
-
-def read_config_file(path: str | os.PathLike, spec: ConfigFile) -> dict[str, Any]:
+def read_config_file(path: str | os.PathLike, spec: ConfigFile,
+                     prepare: Callable[[dict[str, Any], Path], dict[str, Any]] | None = None) -> dict[str, Any]:
     """The top-level sections of a config file of kind ``spec``, checked: an unknown section (a misspelt
     one included), a missing required one or a section that is not a mapping raises :class:`ConfigError`
     naming the file and the section. A top-level ``extends: <file>`` builds on another config of the kind
-    (:func:`read_extending_yaml`; a mesh file a config names is read from its own folder)."""
-    data = read_extending_yaml(path, _mesh_file_from_its_yaml)
+    (:func:`read_extending_yaml`, with ``prepare`` applied to each file's own mapping)."""
+    data = read_extending_yaml(path, prepare)
     allowed = ", ".join(spec.sections)
     for name in data:
         if name not in spec.sections:

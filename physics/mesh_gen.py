@@ -66,14 +66,15 @@ def kuhn_box(shape: tuple[int, int, int], pattern: str = "octant") -> tuple[np.n
     ``pattern``: ``"octant"``, each cell's diagonal runs away from the box centre (one Kuhn lattice per octant,
     mirrored at the centre planes: the built-in meshes' grid); ``"alternating"``, each cell is mirrored by the
     parity of its index along each axis (Todd's J1 triangulation), so that every interior node is a centre of
-    symmetry; ``"alternating-shell"``, alternating but the first and last cell along each axis as the octant grid
-    (their diagonals run outward, so that a map onto a curved body flattens no cell across its diagonal: the
-    alternating grid mapped onto the spleen has degenerate tets at 960 nodes and more). A spring network on the
-    octant grid is anisotropic within each octant (every diagonal leans the same way) and relaxes non-affinely where
-    the octants meet; on the alternating grid with an even number of cells per axis (whose mirrored cells balance) it
-    is a cubic crystal under any uniform strain, which :func:`msdgrasp.experiments.fem.grid_springs` makes isotropic.
-    The direction is a function of a cell's index along each axis alone, so neighbouring cells split their shared face
-    alike (a conforming mesh) for every pattern."""
+    symmetry; ``"alternating-shell"``, alternating, but along each axis the first and last cells point outward (as
+    on the octant grid) along that axis, so that a map onto a curved body flattens fewer cells across a diagonal
+    (the alternating grid mapped onto the spleen has degenerate tets at the medium and fine resolutions). A spring
+    network on the octant grid is anisotropic within each octant (every diagonal leans the same way) and relaxes
+    non-affinely where the octants meet; on the alternating grid with an even number of cells per axis (whose
+    mirrored cells balance) it is a cubic crystal under any uniform strain, which
+    :func:`msdgrasp.experiments.fem.grid_springs` makes isotropic. The direction is a function of a cell's index
+    along each axis alone, so neighbouring cells split their shared face alike (a conforming mesh) for every
+    pattern."""
     if pattern not in GRID_PATTERNS:
         raise MeshError(f"pattern = {pattern!r} is not allowed; choose one of {list(GRID_PATTERNS)}")
     nx, ny, nz = shape
@@ -233,12 +234,11 @@ def spleen_mesh(
             f"hilum_width={hilum_width!r}, "
             f"hilum_height={hilum_height!r}, pole_length_m={pole_length_m!r}"
         )
-    target = _target_nodes(resolution)
     a, b, c = 0.5 * length_m, 0.5 * width_m, 0.5 * thickness_m
     semi = np.array([a, b, c])
     depth, wx, wz = hilum_depth * b, hilum_width * a, hilum_height * c
 
-    box, tets = kuhn_box(_grid_shape(target, (length_m, width_m, thickness_m)))
+    box, tets = kuhn_box(_spleen_grid_shape(resolution, (length_m, width_m, thickness_m)))
     ell = _box_to_ellipsoid(box, semi, np.array([core * a, 0.0, 0.0]))
     # blunt poles: widen the cross-sections by sqrt(1 + k (x/a)^2) (det = 1 + k (x/a)^2 > 0, no inversion);
     # k = 1 turns the ellipsoid's x-profile 1 - (x/a)^2 into 1 - (x/a)^4, a less tapered pole (real
@@ -286,19 +286,27 @@ def kuhn_lattice(shape: tuple[int, int, int]) -> np.ndarray:
                                      tuple(k + 1 for k in shape)), axis=1).astype(np.int64)
 
 
+def _spleen_grid_shape(resolution: str | int,
+                       extents: tuple[float, float, float] | None = None) -> tuple[int, int, int]:
+    """The cells per axis of the box grid :func:`spleen_mesh` maps (``extents``: its length, width and thickness, m;
+    None: its defaults)."""
+    if extents is None:
+        extents = tuple(inspect.signature(spleen_mesh).parameters[k].default
+                        for k in ("length_m", "width_m", "thickness_m"))
+    return _grid_shape(_target_nodes(resolution), extents)
+
+
 def spleen_lattice(resolution: str | int = "coarse") -> np.ndarray:
     """:func:`kuhn_lattice` of the box grid that the default :func:`spleen_mesh` maps (its nodes keep the grid's
     order)."""
-    length, width, thickness = (inspect.signature(spleen_mesh).parameters[k].default
-                                for k in ("length_m", "width_m", "thickness_m"))
-    return kuhn_lattice(_grid_shape(_target_nodes(resolution), (length, width, thickness)))
+    return kuhn_lattice(_spleen_grid_shape(resolution))
 
 
 def spleen_on_grid(resolution: str | int = "coarse", pattern: str = "alternating-shell") -> TetMesh:
     """The default built-in spleen's nodes, node sets and landmarks (:func:`spleen_mesh`) with its box grid split by
     ``pattern`` (:func:`kuhn_box`) instead of the octant grid: the same body with other tets (its surface's quads
-    split along other diagonals). MeshError where a tet degenerates (the alternating grid at 960 nodes and more)."""
+    split along other diagonals). MeshError where a tet degenerates (the alternating grid at medium and fine)."""
     spleen = spleen_mesh(resolution)
-    _, tets = kuhn_box(tuple(int(k) for k in spleen_lattice(resolution).max(axis=0)), pattern)
+    _, tets = kuhn_box(_spleen_grid_shape(resolution), pattern)
     return TetMesh(spleen.nodes, tets, node_sets=dict(spleen.node_sets), landmarks=dict(spleen.landmarks),
                    name=f"spleen-{pattern}")

@@ -131,7 +131,7 @@ def sphere_even_mesh(diameter_m: float = 0.05, resolution: str = "coarse", cente
 
 #: the built-in spleen's surface filled with unstructured tets (shipped gmsh meshes, msdgrasp/meshes)
 SPLEEN_EVEN = "spleen-even"
-#: the built-in spleen's nodes on the J1 split with an octant shell (:func:`.mesh_gen.spleen_on_grid`)
+#: the built-in spleen's nodes on the J1 split with outward boundary cells (:func:`spleen_j1_mesh`)
 SPLEEN_J1 = "spleen-j1"
 
 
@@ -171,14 +171,21 @@ def spleen_even_mesh(resolution: str = "coarse") -> TetMesh:
     return TetMesh(base.nodes, base.tets, node_sets=sets, landmarks=dict(grid.landmarks), name=f"{SPLEEN_EVEN}-{key}")
 
 
+def spleen_j1_mesh(resolution: str | int = "coarse") -> TetMesh:
+    """The built-in spleen's nodes, node sets and landmarks on the J1 split whose boundary cells point outward
+    (:func:`.mesh_gen.spleen_on_grid` with ``"alternating-shell"``): a spring network that converges to the continuum
+    (docs/validation.md)."""
+    return spleen_on_grid(resolution, "alternating-shell")
+
+
 #: the built-in mesh generators by ``shape`` name (any other shape is a mesh file)
 GENERATORS = {"sphere": sphere_mesh, SPHERE_EVEN: sphere_even_mesh, "spleen": spleen_mesh,
-              SPLEEN_EVEN: spleen_even_mesh, SPLEEN_J1: spleen_on_grid}
+              SPLEEN_EVEN: spleen_even_mesh, SPLEEN_J1: spleen_j1_mesh}
 
 
 def build_mesh(spec: str | os.PathLike, resolution: str | int = "coarse", **kwargs) -> TetMesh:
-    """Build a mesh from a spec: ``"sphere"`` (mapped box), ``"sphere-even"`` (gmsh, evenly sampled
-    surface), ``"spleen"`` or a mesh file path.
+    """Build a mesh from a spec: a built-in shape (:data:`GENERATORS`: ``"sphere"``, a mapped box; ``"sphere-even"``,
+    gmsh, evenly sampled surface; ``"spleen"``, ``"spleen-even"``, ``"spleen-j1"``) or a mesh file path.
 
     ``resolution`` and ``kwargs`` go to the built-in generator; for a file path the resolution
     is ignored and keyword options are an error.
@@ -198,7 +205,7 @@ class MeshSpec(NamedTuple):
     """A tissue config's ``mesh:`` section, checked: a built-in shape (its generator's options) or a mesh
     file (an absolute path: a relative one is read from the folder of the YAML that names it)."""
 
-    #: ``sphere``, ``sphere-even``, ``spleen`` or the absolute path of a mesh file
+    #: a built-in shape (:data:`GENERATORS`) or the absolute path of a mesh file
     shape: str
     #: the generator's resolution (None: the generator's default; unused for a file)
     resolution: str | int | None
@@ -221,12 +228,22 @@ class MeshSpec(NamedTuple):
         return GENERATORS[self.shape](**({"resolution": res} if res is not None else {}), **kwargs)
 
 
+def _own_mesh_file(data: dict[str, Any], file: Path) -> dict[str, Any]:
+    """A tissue config's own ``mesh.shape``, where it names a mesh file (not a built-in shape), as an absolute path
+    read from that config's folder: through ``extends`` a parent's mesh file stays the one beside the parent."""
+    mesh = data.get("mesh")
+    shape = mesh.get("shape") if isinstance(mesh, dict) else None
+    if not isinstance(shape, str) or not shape.strip() or shape.strip().lower() in GENERATORS:
+        return data
+    return {**data, "mesh": {**mesh, "shape": str((file.resolve().parent / Path(shape).expanduser()))}}
+
+
 def mesh_spec(path: str | os.PathLike) -> MeshSpec:
     """The checked ``mesh:`` section of tissue config ``path``: the file must have it (no shape is assumed),
     ``shape`` is required, every other key must be an option of that shape's generator, and a mesh file
     must exist (a relative path is taken from the YAML's folder, so a config and its mesh move together).
     Every error is one :class:`ConfigError` line naming the YAML and the key or the path."""
-    section = dict(read_config_file(path, TISSUE_FILE)["mesh"])
+    section = dict(read_config_file(path, TISSUE_FILE, _own_mesh_file)["mesh"])
     where = f"{path}:mesh"
     gens = GENERATORS
     if "shape" not in section:
@@ -248,9 +265,7 @@ def mesh_spec(path: str | os.PathLike) -> MeshSpec:
     if section:
         raise ConfigError(f"{where}: unknown key {next(iter(section))!r} for a mesh file (shape {shape!r}); a mesh "
                           f"file takes no options; allowed keys: shape")
-    file = Path(shape).expanduser()
-    if not file.is_absolute():
-        file = Path(path).resolve().parent / file
+    file = Path(shape)  # (absolute: _own_mesh_file)
     if not file.is_file():
         raise ConfigError(f"{where}.shape: mesh file not found: {file} (not a built-in shape: {', '.join(gens)}; "
                           "a relative path is read from the YAML's folder)")

@@ -346,3 +346,30 @@ def test_the_shipped_j1_spleen_is_the_spleen_s_material_and_nodes_on_other_tets(
     j1, octant = (mesh_from_config(builtin_config(f"tissue/{n}.yaml")) for n in ("spleen-j1", "spleen"))
     assert (j1.nodes == octant.nodes).all() and len(j1.tets) == len(octant.tets)
     assert not (j1.tets == octant.tets).all()
+
+
+def test_a_parent_s_missing_mesh_file_is_named_beside_the_parent_not_found_beside_the_child(tmp_path):
+    import yaml
+
+    from msdgrasp.physics.mesh_io import mesh_spec
+
+    parent = read_yaml(builtin_config("tissue/sphere.yaml"))
+    parent["mesh"] = {"shape": "ball.vtu"}
+    _file(tmp_path / "a" / "parent.yaml", yaml.safe_dump(parent))
+    child = _file(tmp_path / "b" / "child.yaml", "extends: ../a/parent.yaml\n")
+    (tmp_path / "b" / "ball.vtu").write_text("not the parent's mesh")  # (a file of that name beside the child)
+    with pytest.raises(ConfigError, match=r"mesh file not found: .*/a/ball\.vtu"):
+        mesh_spec(child)
+
+
+def test_the_j1_spleen_takes_no_generator_option_and_a_grasper_config_extends_too(tmp_path):
+    from msdgrasp.physics.config import GRASPER_FILE, read_config_file
+    from msdgrasp.physics.mesh_io import mesh_spec
+
+    parent = builtin_config("tissue/spleen-j1.yaml")
+    child = _file(tmp_path / "t.yaml", f"extends: {parent}\nmesh: {{pattern: octant}}\n")
+    with pytest.raises(ConfigError, match=r"unknown key 'pattern' for shape 'spleen-j1'; allowed keys: resolution, "):
+        mesh_spec(child)
+    grasper = _file(tmp_path / "g.yaml", f"extends: {builtin_config('grasper/default.yaml')}\ngrasper: {{mu: 0.45}}\n")
+    merged, base = read_config_file(grasper, GRASPER_FILE), read_yaml(builtin_config("grasper/default.yaml"))
+    assert merged["grasper"] == {**base["grasper"], "mu": 0.45}

@@ -279,6 +279,9 @@ def test_the_grid_rule_reads_each_edge_s_family_from_the_grid_not_from_its_lengt
     by_grid = fem.grid_springs(spleen.mesh, E, spleen.lattice)
     assert not np.allclose(by_length, by_grid, rtol=1e-3)
     assert by_grid.sum() == pytest.approx(by_length.sum(), rel=0.1)  # (the same shares, weighted otherwise)
+    with pytest.raises(ValueError, match="one per node"):
+        fem.grid_springs(spleen.mesh, E, spleen.lattice[:-1])
+    assert fem.refined_case(spleen).lattice is None  # (a split mesh has nodes the grid does not)
 
 
 @pytest.mark.parametrize("load", ["", "-pad"])
