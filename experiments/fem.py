@@ -68,8 +68,8 @@ INDENTER_RADIUS_FRACTION = 0.4
 #: radius of the bonded punch (and of the held patch) on the spleen, m
 SPLEEN_INDENTER_RADIUS_M = 0.012
 #: the cases also solved at the large strains (cube-slip measures the Poisson ratio; no force-loaded large-strain path
-#: is built for the pads; the J1 grid and spleen-even are calibrations compared at small strain)
-LARGE_STRAIN_CASES = ("cube", "sphere", "spleen")
+#: is built for the pads; the J1 cube and spleen-even are calibrations compared at small strain)
+LARGE_STRAIN_CASES = ("cube", "sphere", "spleen", "spleen-j1")
 #: strains of the comparison: small (linear) and large (neo-Hookean)
 SMALL_STRAIN = 0.02
 LARGE_STRAINS = (0.10, 0.20)
