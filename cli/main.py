@@ -57,12 +57,14 @@ def _cmd_pinch_hold(args: argparse.Namespace) -> int:
     import json
 
     from ..experiments.pinch_hold import result_dict, run_pinch_hold
-    from ..physics.config import check_range
+    from ..physics.config import ConfigError, check_range
     from .experiments import resolution_arg
 
     check_range("--mu", args.mu, 0.0, None, lo_inclusive=False)
     check_range("--pinch", args.pinch, 0.0, None, lo_inclusive=False)
-    result = run_pinch_hold(resolution_arg(args.resolution), mu=args.mu, pinch_N=args.pinch)
+    if args.config is not None and not args.config.is_file():
+        raise ConfigError(f"--config {args.config}: tissue config not found")
+    result = run_pinch_hold(resolution_arg(args.resolution), mu=args.mu, pinch_N=args.pinch, tissue_config=args.config)
     print(json.dumps(result_dict(result), indent=2))
     return 0
 
@@ -141,6 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--resolution", default="coarse", help="coarse|medium|fine")
     ph.add_argument("--mu", type=float, default=0.3, help="jaw friction coefficient (default 0.3)")
     ph.add_argument("--pinch", type=float, default=5.0, help="pinch-force set-point, N (default 5)")
+    ph.add_argument("--config", type=Path, default=None, help="tissue config (default configs/tissue/spleen.yaml)")
     ph.set_defaults(func=_cmd_pinch_hold)
 
     fe = exp_sub.add_parser("fem", help="the MSD against a finite-element reference on the same meshes (linear and "

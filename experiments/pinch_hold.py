@@ -11,6 +11,7 @@ node's contact force split on its jaw face (normal Fn, tangential Ft), the small
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -46,11 +47,12 @@ class PinchHoldResult:
 
 def run_pinch_hold(resolution: str = "coarse", mu: float = 0.3, stiffness_scale: float = 0.8, pinch_N: float = 5.0,
                    pull_speed_m_s: float = 0.015, close_s: float = 3.0, pull_s: float = 2.0,
-                   hold_s: float = 2.0) -> PinchHoldResult:
+                   hold_s: float = 2.0, tissue_config: str | Path | None = None) -> PinchHoldResult:
     """Run the protocol (module docstring) on the spleen at ``resolution`` as the GraspLift env sets it up: its
     grasper, compliant hilum anchors (8 N/m), 35 mm grasp depth, force loop (gain 0.02 m/s/N, the grasper's
-    closing-speed limit) and substep count (stiffness scales up to 1.2, mass scales down to 0.9)."""
-    scene = spleen_scene(grasper_config=builtin_config("grasper/env.yaml"), resolution=resolution,
+    closing-speed limit) and substep count (stiffness scales up to 1.2, mass scales down to 0.9). ``tissue_config``:
+    the spleen's (default ``configs/tissue/spleen.yaml``; ``spleen-j1.yaml`` is its nodes on the J1 split)."""
+    scene = spleen_scene(tissue_config, builtin_config("grasper/env.yaml"), resolution=resolution,
                          insert_depth_m=0.035, anchor_stiffness_n_per_m=8.0)
     sim = scene.simulation(1, max_stiffness_scale=max(1.2, stiffness_scale), min_mass_scale=0.9)
     sim.set_scales(stiffness=stiffness_scale)

@@ -434,15 +434,18 @@ def test_the_volume_barrier_keeps_every_tet_upright_under_a_5N_pinch(tmp_path):
     assert lowest["barrier"] > 0.1, lowest
 
 
-def test_a_held_pinch_is_steady_and_every_face_held_node_stays_in_its_friction_cone():
+@pytest.mark.parametrize("tissue", ["spleen", "spleen-j1"])
+def test_a_held_pinch_is_steady_and_every_face_held_node_stays_in_its_friction_cone(tissue):
     """``msdgrasp experiment pinch-hold`` on the coarse spleen (5 N force-loop pinch at mu 0.3, stiffness 0.8,
     a 15 mm/s pull, a hold), shortened: read at every 1 ms step, the pinch changes by at most 0.01 N from step
     to step (standard deviation; the volume floor this barrier replaced chattered at 0.15 N), every node a jaw
     face holds keeps |Ft| <= mu_s |Fn| within 1 % (the contact law's own cone: the barrier's force on a held
-    node passes through it), and no tet inverts."""
+    node passes through it), and no tet inverts; on the shipped spleen and on its nodes split as J1."""
     from msdgrasp.experiments.pinch_hold import run_pinch_hold
+    from msdgrasp.physics.config import builtin_config
 
-    r = run_pinch_hold("coarse", close_s=2.5, pull_s=1.0, hold_s=0.5)
+    r = run_pinch_hold("coarse", close_s=2.5, pull_s=1.0, hold_s=0.5,
+                       tissue_config=builtin_config(f"tissue/{tissue}.yaml"))
     assert r.hold_pinch_N == pytest.approx(5.0, abs=0.1)  # still gripped after the pull
     assert r.pinch_step_std_pull_N <= 0.01 and r.pinch_step_std_hold_N <= 0.01, r
     assert r.held_node_samples > 1000 and r.max_friction_cone_ratio <= 1.01, r

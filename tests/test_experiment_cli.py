@@ -46,3 +46,9 @@ def test_grasp_protocol_writes_one_curve_per_mu_and_more_friction_holds_longer(t
         assert data["time_s"][-1] > 12.0  # 5 s close + 7 s hold, then the pull
         peak[mu] = np.max(np.abs(data["pull_force_N"]))
     assert peak["0.8"] > peak["0.3"] > 0.0
+
+
+def test_pinch_hold_refuses_a_missing_tissue_config_in_one_line(tmp_path, capsys):
+    assert main(["experiment", "pinch-hold", "--config", str(tmp_path / "nope.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--config" in err[0] and "nope.yaml" in err[0]
