@@ -287,8 +287,8 @@ def test_the_grid_rule_reads_each_edge_s_family_from_the_grid_not_from_its_lengt
 @pytest.mark.parametrize("load", ["", "-pad"])
 def test_on_the_j1_split_the_spleen_s_network_is_the_p1_solid_on_its_tets(load):
     # the octant grid's network is ~40 % softer than P1 on the same tets (its diagonals lean one way per octant);
-    # split as J1 (the outer cells as the octant grid), van Gelder's springs come within about 10 % of it (measured
-    # -9 %): what remains to the continuum is the mesh's own, P1's (docs/validation.md)
+    # split as J1 (each axis's first and last cells pointing outward along it), van Gelder's springs come within about
+    # 10 % of it (measured -9 %): what remains to the continuum is the mesh's own, P1's (docs/validation.md)
     errors = {}
     for body in ("spleen", "spleen-j1"):
         case = fem.load_case(body + load, "medium")
