@@ -311,3 +311,21 @@ def test_multigrid_solves_what_the_direct_solver_solves(monkeypatch):
         multigrid, _ = fem.fem_linear_forces(case, E, 0.3, [1.0])
         monkeypatch.setattr(fem, "AMG_MIN_DOFS", 100_000)
         assert multigrid[0] == pytest.approx(direct[0], rel=1e-8)
+
+
+def test_the_continuum_fit_is_checked_on_the_load_it_was_not_fitted_on():
+    # network / continuum: 2.0 under the punch, 2.1 under the pads (one mesh); 1.3 and 0.8 on another
+    def row(case, res, ratio):
+        return {"case": case, "resolution": res, "fem": "linear", "derivation": "van_gelder",
+                "rel_error_limit": ratio - 1.0}
+    rows = [row("spleen-j1", "coarse", 2.0), row("spleen-j1-pad", "coarse", 2.1), row("spleen", "fine", 1.3),
+            row("spleen-pad", "fine", 0.8), row("sphere", "coarse", 1.1),  # (no pads for the sphere: left out)
+            {**row("spleen-j1", "fine", 5.0), "derivation": "lloyd"}]  # (another derivation: not this fit)
+    fits = {(f["mesh"], f["resolution"]): f for f in fem.continuum_fit(rows)}
+    assert set(fits) == {("spleen-j1", "coarse"), ("spleen", "fine")}
+    j1 = fits["spleen-j1", "coarse"]
+    assert j1["factor_from_punch"] == pytest.approx(0.5)  # the springs halved make the punch the continuum's
+    assert j1["pads_rel_error_fitted"] == pytest.approx(0.05)  # and the pads, not fitted, 5 % stiff
+    assert j1["punch_rel_error_fitted"] == pytest.approx(2.0 / 2.1 - 1.0)
+    verdicts = {v["claim"].rsplit("(", 1)[1]: v["verdict"] for v in fem.continuum_fit_verdicts(list(fits.values()))}
+    assert verdicts == {"spleen-j1: punch, pads)": "holds", "spleen: punch, pads)": "FAILS"}
