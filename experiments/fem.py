@@ -863,9 +863,10 @@ def grid_springs(mesh: TetMesh, youngs_modulus_pa: float, lattice: np.ndarray | 
     if lattice is None:
         axis = np.argsort(np.argsort(d2, axis=1, kind="stable"), axis=1) < 3
     else:
-        if len(lattice) != mesh.n_nodes:
-            raise ValueError(f"lattice has {len(lattice)} rows, the mesh {mesh.n_nodes} nodes: one per node")
-        g = np.asarray(lattice)[mesh.tets]
+        g = np.asarray(lattice)
+        if g.shape != (mesh.n_nodes, 3):
+            raise ValueError(f"lattice has shape {g.shape}, must be ({mesh.n_nodes}, 3): a node's three grid indices")
+        g = g[mesh.tets]
         axis = np.stack([(g[:, b] != g[:, a]).sum(axis=1) == 1 for a, b in TET_EDGES], axis=1)
     vol = np.abs(tet_signed_volumes(mesh.nodes, mesh.tets))
     return _edge_sums(mesh, youngs_modulus_pa * vol[:, None] / d2 * np.where(axis, GRID_AXIS_WEIGHT,
@@ -1107,7 +1108,7 @@ def compare(params: TissueParams, settings: ComparisonSettings = ComparisonSetti
     curves: list[dict] = []
     strains = [settings.small_strain, *settings.large_strains]
     for name in settings.cases:
-        for res in settings.resolutions:
+        for res in map(_resolution_name, settings.resolutions):  # (rows name it as the fit and the verdicts look it up)
             case = load_case(name, res)
             models = _derivation_models(case, params, nu)
             base = models["van_gelder"]
@@ -1195,7 +1196,8 @@ def continuum_fit_verdicts(fits: Sequence[dict]) -> list[dict]:
     out = []
     for mesh in dict.fromkeys(f["mesh"] for f in fits):
         sel = [f for f in fits if f["mesh"] == mesh]
-        worst = max(max(abs(f["pads_rel_error_fitted"]), abs(f["punch_rel_error_fitted"])) for f in sel)
+        worst = max(abs(e) if math.isfinite(e) else math.inf  # (a non-finite limit fails, as in _band_verdict)
+                    for f in sel for e in (f["pads_rel_error_fitted"], f["punch_rel_error_fitted"]))
         out.append(verdict(f"MSD (van_gelder x one factor per mesh, fitted to the continuum under one load) within "
                            f"{SMALL_STRAIN_RTOL:.0%} of the continuum under the other ({mesh}: punch, pads)",
                            worst <= SMALL_STRAIN_RTOL,
@@ -1224,14 +1226,23 @@ def comparison_verdicts(checks: Sequence[dict], rows: Sequence[dict], poisson: d
                    ", ".join(f"{c['rel_error']:+.1e}" for c in checks) + f" (within {FEM_CHECK_RTOL:.0%})")]
     small = [r for r in rows if r["fem"] == "linear"]
     large = [r for r in rows if r["fem"] == "neo-Hookean" and r["strain"] > SMALL_STRAIN + 1e-12]
-    band, every = f"within {SMALL_STRAIN_RTOL:.0%} of the", " on every case and mesh"
-    claims = [(key, small, "rel_error", f"{band} linear FEM at small strain{every}", SMALL_STRAIN_RTOL)
-              for key in DERIVATIONS]
-    claims += [(key, [r for r in small if "rel_error_p2" in r], "rel_error_p2",
-                f"{band} quadratic (P2) FEM at small strain{every}", SMALL_STRAIN_RTOL)
+    band = f"within {SMALL_STRAIN_RTOL:.0%} of the"
+
+    def pool(key: str, rows: list[dict]) -> list[dict]:
+        # the grid rule is made for the J1 cube (every interior node a centre of symmetry): on the spleen's mapped
+        # split its rows are reported, not claimed
+        return [r for r in rows if key != "grid" or r["case"].startswith("cube")]
+
+    def every(key: str) -> str:
+        return " on every J1 cube and mesh" if key == "grid" else " on every case and mesh"
+
+    claims = [(key, pool(key, small), "rel_error", f"{band} linear FEM at small strain{every(key)}",
+               SMALL_STRAIN_RTOL) for key in DERIVATIONS]
+    claims += [(key, pool(key, [r for r in small if "rel_error_p2" in r]), "rel_error_p2",
+                f"{band} quadratic (P2) FEM at small strain{every(key)}", SMALL_STRAIN_RTOL)
                for key in ("van_gelder", "lloyd", "grid")]
-    claims += [(key, [r for r in small if "rel_error_limit" in r], "rel_error_limit",
-                f"{band} converged linear FEM (refined, extrapolated) at small strain{every}",
+    claims += [(key, pool(key, [r for r in small if "rel_error_limit" in r]), "rel_error_limit",
+                f"{band} converged linear FEM (refined, extrapolated) at small strain{every(key)}",
                 SMALL_STRAIN_RTOL) for key in ("van_gelder", "lloyd", "grid")]
     large_claims = [(key, large, "rel_error", f"within {2 * SMALL_STRAIN_RTOL:.0%} of the neo-Hookean FEM at large "
                      "strain", 2 * SMALL_STRAIN_RTOL) for key in ("van_gelder", "calibrated")]

@@ -25,6 +25,8 @@ PHASES = ("close", "pull", "hold")
 
 @dataclass(frozen=True)
 class PinchHoldResult:
+    #: the spleen's tissue config that was run
+    tissue_config: str
     resolution: str
     substeps: int
     mu: float
@@ -82,7 +84,8 @@ def run_pinch_hold(resolution: str = "coarse", mu: float = 0.3, stiffness_scale:
         energy.append(float(volume_energy(sim.x[0], mdl.tets, mdl.rest_volume, mdl.kvol * sim.kscale[0],
                                           mdl.volume_threshold)) if mdl.kvol.size else 0.0)
     return PinchHoldResult(
-        resolution=str(resolution), substeps=int(sim.n_sub), mu=float(mu), stiffness_scale=float(stiffness_scale),
+        tissue_config=str(tissue_config or builtin_config("tissue/spleen.yaml")), resolution=str(resolution),
+        substeps=int(sim.n_sub), mu=float(mu), stiffness_scale=float(stiffness_scale),
         pinch_setpoint_N=float(pinch_N), hold_pinch_N=float(np.mean(pinch[2])),
         pinch_step_std_pull_N=float(np.std(np.diff(pinch[1]))), pinch_step_std_hold_N=float(np.std(np.diff(pinch[2]))),
         max_friction_cone_ratio=cone, held_node_samples=samples, min_volume_ratio=jmin,

@@ -344,23 +344,27 @@ def _nested_extends(data: Any, where: str) -> str | None:
 
 
 def read_extending_yaml(path: str | os.PathLike,
-                        prepare: Callable[[dict[str, Any], Path], dict[str, Any]] | None = None) -> dict[str, Any]:
-    """The top-level mapping of a config file that may build on another one (a training config).
+                        prepare: Callable[[dict[str, Any], Path], dict[str, Any]] | None = None,
+                        merge: Callable[[dict[str, Any], dict[str, Any]], dict[str, Any]] = merge_mappings
+                        ) -> dict[str, Any]:
+    """The top-level mapping of a config file that may build on another one (a training, tissue or grasper config).
 
     A top-level ``extends: <file>`` names the parent, relative to this file's folder; the result is the parent's
     mapping (itself read this way, so a parent may extend another) deep-merged with this file's
     (:func:`merge_mappings`: this file's values win, mappings merge key by key, lists and scalars replace), without
     the ``extends`` key. The merged mapping is then checked by the record's loader as any other file's, so an
     unknown key is refused wherever in the chain it was written. ``prepare(data, file)``, where given, is applied to
-    each file's own mapping before it is merged (e.g. to resolve the paths a file names against its own folder).
+    each file's own mapping before it is merged (e.g. to resolve the paths a file names against its own folder);
+    ``merge(parent, child)`` merges the two (a kind of file may replace a section whole: :attr:`ConfigFile.merge`).
 
     Besides :func:`read_yaml`'s errors (naming the file read), a parent that does not exist, a cycle, an ``extends``
     that is not a non-empty string and an ``extends`` below the top level each raise a one-line
     :class:`ConfigError` naming the file and the field; nothing falls back to defaults."""
-    return _read_extending(Path(path), prepare, ())
+    return _read_extending(Path(path), prepare, merge, ())
 
 
 def _read_extending(path: Path, prepare: Callable[[dict[str, Any], Path], dict[str, Any]] | None,
+                    merge: Callable[[dict[str, Any], dict[str, Any]], dict[str, Any]],
                     chain: tuple[Path, ...]) -> dict[str, Any]:
     data = read_yaml(path)
     nested = _nested_extends(data, "")
@@ -382,7 +386,7 @@ def _read_extending(path: Path, prepare: Callable[[dict[str, Any], Path], dict[s
         raise ConfigError(f"{path}: {EXTENDS}: {parent_name!r} makes a cycle: {names}")
     if not parent.is_file():
         raise ConfigError(f"{path}: {EXTENDS}: config file not found: {parent}")
-    return merge_mappings(_read_extending(parent, prepare, chain), data)
+    return merge(_read_extending(parent, prepare, merge, chain), data)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -398,6 +402,20 @@ class ConfigFile:
     required: tuple[str, ...]
     #: per required section, a one-line example of it
     examples: tuple[tuple[str, str], ...] = ()
+    #: how a file that ``extends`` another merges onto it (:func:`read_extending_yaml`)
+    merge: Callable[[dict[str, Any], dict[str, Any]], dict[str, Any]] = merge_mappings
+
+
+def merge_tissue_configs(parent: dict[str, Any], child: dict[str, Any]) -> dict[str, Any]:
+    """:func:`merge_mappings`, except that a child's ``mesh`` naming another ``shape`` than its parent's replaces the
+    parent's mesh section whole: a mesh's options (``resolution``, a generator's own) belong to its shape, so none
+    is inherited by a mesh they may not fit."""
+    merged = merge_mappings(parent, child)
+    mine, theirs = child.get("mesh"), parent.get("mesh")
+    if isinstance(mine, dict) and isinstance(theirs, dict) and "shape" in mine:
+        if str(mine["shape"]).strip().lower() != str(theirs.get("shape", "")).strip().lower():
+            merged["mesh"] = dict(mine)
+    return merged
 
 
 #: a tissue config (configs/tissue/*.yaml): the mesh, the material, and the record of a calibration that wrote it
@@ -406,6 +424,7 @@ TISSUE_FILE = ConfigFile(
     (("mesh", "mesh: {shape: sphere-even | sphere | spleen | spleen-even | spleen-j1 | <mesh file, relative to this "
               "YAML>, resolution: coarse}"),
      ("tissue", "tissue: {youngs_modulus_pa: 12000.0, mass_kg: 0.15, ...} (see configs/tissue/spleen.yaml)")),
+    merge_tissue_configs,
 )
 #: a grasper config (configs/grasper/*.yaml)
 GRASPER_FILE = ConfigFile(
@@ -420,8 +439,8 @@ def read_config_file(path: str | os.PathLike, spec: ConfigFile,
     """The top-level sections of a config file of kind ``spec``, checked: an unknown section (a misspelt
     one included), a missing required one or a section that is not a mapping raises :class:`ConfigError`
     naming the file and the section. A top-level ``extends: <file>`` builds on another config of the kind
-    (:func:`read_extending_yaml`, with ``prepare`` applied to each file's own mapping)."""
-    data = read_extending_yaml(path, prepare)
+    (:func:`read_extending_yaml`, with ``prepare`` applied to each file's own mapping, merged by ``spec.merge``)."""
+    data = read_extending_yaml(path, prepare, spec.merge)
     allowed = ", ".join(spec.sections)
     for name in data:
         if name not in spec.sections:

@@ -373,3 +373,16 @@ def test_the_j1_spleen_takes_no_generator_option_and_a_grasper_config_extends_to
     grasper = _file(tmp_path / "g.yaml", f"extends: {builtin_config('grasper/default.yaml')}\ngrasper: {{mu: 0.45}}\n")
     merged, base = read_config_file(grasper, GRASPER_FILE), read_yaml(builtin_config("grasper/default.yaml"))
     assert merged["grasper"] == {**base["grasper"], "mu": 0.45}
+
+
+def test_a_tissue_config_that_names_another_mesh_shape_inherits_none_of_the_parent_s_mesh_options(tmp_path):
+    from msdgrasp.physics.mesh_gen import sphere_mesh
+    from msdgrasp.physics.mesh_io import mesh_spec, save_mesh
+
+    spleen = builtin_config("tissue/spleen.yaml")  # (its mesh: shape spleen, resolution coarse)
+    save_mesh(sphere_mesh(resolution="coarse"), tmp_path / "ball.vtu")
+    to_file = _file(tmp_path / "file.yaml", f"extends: {spleen}\nmesh: {{shape: ball.vtu}}\n")
+    assert mesh_spec(to_file).shape == str((tmp_path / "ball.vtu").resolve())  # (a file takes no resolution)
+    # the same shape merges key by key: the child's resolution, the parent's shape
+    finer = _file(tmp_path / "fine.yaml", f"extends: {spleen}\nmesh: {{resolution: fine}}\n")
+    assert mesh_spec(finer)[:2] == ("spleen", "fine")

@@ -279,8 +279,9 @@ def test_the_grid_rule_reads_each_edge_s_family_from_the_grid_not_from_its_lengt
     by_grid = fem.grid_springs(spleen.mesh, E, spleen.lattice)
     assert not np.allclose(by_length, by_grid, rtol=1e-3)
     assert by_grid.sum() == pytest.approx(by_length.sum(), rel=0.1)  # (the same shares, weighted otherwise)
-    with pytest.raises(ValueError, match="one per node"):
-        fem.grid_springs(spleen.mesh, E, spleen.lattice[:-1])
+    for bad in (spleen.lattice[:-1], spleen.lattice[:, :2]):  # (a row short; a column short)
+        with pytest.raises(ValueError, match="a node's three grid indices"):
+            fem.grid_springs(spleen.mesh, E, bad)
     assert fem.refined_case(spleen).lattice is None  # (a split mesh has nodes the grid does not)
 
 
@@ -329,3 +330,16 @@ def test_the_continuum_fit_is_checked_on_the_load_it_was_not_fitted_on():
     assert j1["punch_rel_error_fitted"] == pytest.approx(2.0 / 2.1 - 1.0)
     verdicts = {v["claim"].rsplit("(", 1)[1]: v["verdict"] for v in fem.continuum_fit_verdicts(list(fits.values()))}
     assert verdicts == {"spleen-j1: punch, pads)": "holds", "spleen: punch, pads)": "FAILS"}
+    # a limit that could not be extrapolated (NaN) fails its mesh, wherever it sits among the resolutions
+    nan = fem.continuum_fit([row("spleen-j1", "coarse", 1.0), row("spleen-j1-pad", "coarse", 1.01),
+                             row("spleen-j1", "fine", math.nan), row("spleen-j1-pad", "fine", 1.0)])
+    assert [v["verdict"] for v in fem.continuum_fit_verdicts(nan)] == ["FAILS"]
+
+
+def test_the_grid_rule_is_claimed_on_the_j1_cubes_it_is_made_for_and_only_reported_on_the_spleen():
+    def row(case, error):
+        return {"case": case, "resolution": "coarse", "fem": "linear", "derivation": "grid", "strain": 0.02,
+                "rel_error": error}
+    claims = {v["claim"]: v for v in fem.comparison_verdicts([], [row("cube-j1", 0.01), row("spleen-j1", -0.3)], {})}
+    grid = claims["MSD (grid) within 10% of the linear FEM at small strain on every J1 cube and mesh"]
+    assert grid["verdict"] == "holds" and "spleen" not in grid["numbers"]
