@@ -301,7 +301,7 @@ def _per_run_markdown(board: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _read_result(path: Path) -> dict[str, Any]:
+def read_result(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"suite result {path} is not a file (msdgrasp evaluate --suite in_range writes one)")
     try:
@@ -319,7 +319,7 @@ def write_leaderboard(suite_json: str | Path | Sequence[str | Path], tracks: Seq
     """Read suite results (one, or several on the same episodes: :func:`merge_results`), build their leaderboard for
     the ``NAME=PATTERN`` tracks, write leaderboard.json/.md."""
     paths = [suite_json] if isinstance(suite_json, (str, Path)) else list(suite_json)
-    result = merge_results([_read_result(Path(p)) for p in paths])
+    result = merge_results([read_result(Path(p)) for p in paths])
     board = build_leaderboard(result, [parse_track(t) for t in tracks], baseline, references, against)
     out = Path(out_dir)
     atomic_write_text(out / "leaderboard.json", json.dumps(nan_to_none(board), indent=2) + "\n")

@@ -2,6 +2,10 @@
 
     msdgrasp headroom --out logs/headroom.json                          the default training's task, 40 episodes per mu
     msdgrasp headroom --config TRAIN.yaml --episodes 60 --out FILE      another training's task
+
+``msdgrasp frontier``: what choosing a policy per mu could do on a suite's development episodes (agents/frontier.py).
+
+    msdgrasp frontier DEV/suite_in_range.json --family 'slipfeedback:*told=1*' --out DIR
 """
 
 from __future__ import annotations
@@ -56,6 +60,20 @@ def _cmd_headroom(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_frontier(args: argparse.Namespace) -> int:
+    from ..agents.frontier import family_specs, frontier_markdown, mu_frontier
+    from ..agents.leaderboard import merge_results, read_result
+    from ..physics.config import atomic_write_text, nan_to_none
+
+    result = merge_results([read_result(p) for p in args.suite_json])
+    record = mu_frontier(result, args.against, family_specs(result, args.family or [], args.against), args.cap)
+    text = frontier_markdown(record)
+    atomic_write_text(args.out / "frontier.json", json.dumps(nan_to_none(record), indent=2) + "\n")
+    atomic_write_text(args.out / "frontier.md", text)
+    print(text)
+    return 0
+
+
 def add_headroom_command(sub) -> None:
     """Add ``headroom`` to the ``msdgrasp`` subparsers ``sub``."""
     from ..agents.headroom import DEFAULT_CONTROLLER, DEFAULT_EPISODES, DEFAULT_MUS, HEADROOM_SEED
@@ -76,3 +94,21 @@ def add_headroom_command(sub) -> None:
                    help=f"the estimating controller compared (default {DEFAULT_CONTROLLER})")
     add_runner_args(p, "every chunk of episodes and every fixed-grip run as its own job")
     p.set_defaults(func=_cmd_headroom)
+
+    from ..agents.frontier import DEFAULT_CAP
+
+    f = sub.add_parser("frontier", help="what choosing one policy per mu could do on a suite's development episodes: "
+                                        "each policy of a family against a reference per condition, the best "
+                                        "schedule (one policy per mu) within a force cap, per-episode hindsight "
+                                        "(agents/frontier.py)")
+    f.add_argument("suite_json", type=Path, nargs="+", metavar="SUITE.json",
+                   help="suite results on the same development episodes (msdgrasp evaluate --suite in_range "
+                        "--no-baselines --seed S --policy ... --out DIR writes DIR/suite_in_range.json)")
+    f.add_argument("--against", default=DEFAULT_CONTROLLER, metavar="SPEC",
+                   help=f"the reference policy's spec in the result (default {DEFAULT_CONTROLLER})")
+    f.add_argument("--family", action="append", metavar="PATTERN",
+                   help="a glob of the specs picked from (repeat; default every policy but the reference)")
+    f.add_argument("--cap", type=float, default=DEFAULT_CAP,
+                   help=f"the most mean peak pinch over the reference's in any condition (default {DEFAULT_CAP})")
+    f.add_argument("--out", type=Path, required=True, help="folder for frontier.json and frontier.md")
+    f.set_defaults(func=_cmd_frontier)

@@ -8,6 +8,7 @@
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
     msdgrasp reference --out FILE                          the reference forces of the force ratios (JSON)
     msdgrasp headroom --out FILE                           how light a grip could be, by what it knows (JSON)
+    msdgrasp frontier SUITE.json --out DIR                 what choosing one policy per mu could do on development episodes
     msdgrasp meshes [--check]                              regenerate (or check) the shipped gmsh meshes
 
 Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
