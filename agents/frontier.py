@@ -30,30 +30,46 @@ from .stats import wilson_lower_bound
 
 #: the acceptance's force cap: mean peak pinch at most this multiple of the reference policy's in every condition
 DEFAULT_CAP = 0.95
-#: schedules tried at most (members ** mu values): an exhaustive search, so the family is kept small
-MAX_SCHEDULES = 2_000_000
+#: relative slack of the cap test, so that a schedule at the cap is not dropped by rounding
+CAP_RTOL = 1e-9
+#: schedules tried at most (members ** mu values): an exhaustive search held in memory, so the family is kept small
+MAX_SCHEDULES = 500_000
 
 
 def _table(result: dict[str, Any], spec: str) -> tuple[list[float], np.ndarray, np.ndarray]:
     """A policy's episodes: its mu grid, and success and peak pinch (N) shaped (condition, mu, episode)."""
-    entry = next(r for r in result["results"] if r["spec"] == spec)
-    mus = [float(row["mu"]) for row in entry["cells"][0]["rows"]]
-    success, pinch = [], []
-    for cell in entry["cells"]:
-        if [float(row["mu"]) for row in cell["rows"]] != mus:
-            raise ConfigError(f"{spec}: its conditions differ in their mu grid; a suite result has one")
-        success.append([row["per_episode"]["success"] for row in cell["rows"]])
-        pinch.append([row["per_episode"]["peak_pinch_N"] for row in cell["rows"]])
     try:
-        return mus, np.array(success, dtype=bool), np.array(pinch, dtype=float)
-    except ValueError:
+        entry = next(r for r in result["results"] if r["spec"] == spec)
+        mus = [float(row["mu"]) for row in entry["cells"][0]["rows"]]
+        success, pinch = [], []
+        for cell in entry["cells"]:
+            if [float(row["mu"]) for row in cell["rows"]] != mus:
+                raise ConfigError(f"{spec}: its conditions differ in their mu grid; the frontier needs one (an "
+                                  "in_range suite's)")
+            success.append([row["per_episode"]["success"] for row in cell["rows"]])
+            pinch.append([row["per_episode"]["peak_pinch_N"] for row in cell["rows"]])
+            if any(len(a) != len(b) for a, b in zip(success[-1], pinch[-1])):
+                raise ConfigError(f"{spec}: its success and peak pinch lists differ in length; a suite result has "
+                                  "one entry per episode in each")
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise ConfigError(f"{spec}: not a suite result's policy (cells of rows with mu and per_episode success and "
+                          f"peak_pinch_N: {type(exc).__name__} {exc})") from None
+    try:
+        ok, force = np.array(success, dtype=bool), np.array(pinch, dtype=float)
+    except (ValueError, TypeError):
         raise ConfigError(f"{spec}: its mu values ran different numbers of episodes; the frontier needs the same "
                           "episodes per mu") from None
+    if ok.ndim != 3 or force.shape != ok.shape:
+        raise ConfigError(f"{spec}: not a suite result's policy (its episodes are not one list per condition and mu)")
+    if not np.isfinite(force).all():
+        raise ConfigError(f"{spec}: a peak pinch that is not a number (null or NaN); the frontier needs every "
+                          "episode's")
+    return mus, ok, force
 
 
 def family_specs(result: dict[str, Any], patterns: Sequence[str], against: str) -> list[str]:
-    """The specs of ``result`` that match any glob of ``patterns`` (all but ``against`` where none is given), in the
-    result's order; ConfigError where none does."""
+    """The specs of ``result`` other than ``against`` that match any glob of ``patterns`` (all of them where none is
+    given), in the result's order; ConfigError where none does."""
     specs = [r["spec"] for r in result["results"] if r["spec"] != against]
     family = [s for s in specs if not patterns or any(fnmatch.fnmatchcase(s, p) for p in patterns)]
     if not family:
@@ -83,9 +99,10 @@ def mu_frontier(result: dict[str, Any], against: str, family: Sequence[str], cap
     specs = [r["spec"] for r in result["results"]]
     if against not in specs:
         raise ConfigError(f"--against {against!r} is not a policy of the suite result; it has: {specs}")
-    missing = [s for s in family if s not in specs]
+    missing = [s for s in family if s not in specs or s == against]
     if missing or not family:
-        raise ConfigError(f"the family must be policies of the suite result, got {list(family)!r}; it has {specs}")
+        raise ConfigError(f"the family must be policies of the suite result other than the reference, got "
+                          f"{list(family)!r}; it has {specs}")
     check_development(result)
     if not (math.isfinite(cap) and cap > 0):
         raise ConfigError(f"--cap must be a finite multiple > 0 of the reference's mean peak pinch, got {cap!r}")
@@ -106,7 +123,9 @@ def mu_frontier(result: dict[str, Any], against: str, family: Sequence[str], cap
     pinch_sum = pinch.sum(axis=3)
     episodes = ref_ok.shape[1] * ref_ok.shape[2]  # per condition
     ref_held = ref_ok.sum(axis=(1, 2))  # (condition,)
-    ref_force = ref_pinch.mean(axis=(1, 2))
+    ref_force = ref_pinch.sum(axis=2).sum(axis=1) / episodes  # (summed as the members are: a copy is 1.0x)
+    if not (ref_force > 0).all():
+        raise ConfigError(f"{against}: a condition with no pinch at all; the force ratio needs a reference that grips")
 
     members = []
     for f, spec in enumerate(family):
@@ -122,6 +141,7 @@ def mu_frontier(result: dict[str, Any], against: str, family: Sequence[str], cap
     s_force = pinch_sum[combos, :, cols].sum(axis=1) / episodes / ref_force
     worst_gap = (s_held - ref_held).min(axis=1)
     worst_force = s_force.max(axis=1)
+    within = worst_force <= cap * (1 + CAP_RTOL)
     total = s_held.sum(axis=1)
 
     def best(mask: np.ndarray) -> dict[str, Any] | None:
@@ -142,7 +162,7 @@ def mu_frontier(result: dict[str, Any], against: str, family: Sequence[str], cap
         "reference": {"held": ref_held.tolist(), "mean_peak_pinch_N": ref_force.tolist(),
                       "lower_bound": [wilson_lower_bound(int(h), episodes) for h in ref_held]},
         "members": members,
-        "best_within_cap": best(worst_force <= cap),
+        "best_within_cap": best(within),
         "best_uncapped": best(np.ones(len(combos), dtype=bool)),
         "hindsight": {"held": any_held.tolist(),
                       "lower_bound": [wilson_lower_bound(int(h), episodes) for h in any_held]},

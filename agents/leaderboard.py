@@ -310,6 +310,11 @@ def read_result(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: not a suite result (not JSON: {exc})") from None
     if not isinstance(result, dict) or "results" not in result or "conditions" not in result:
         raise ConfigError(f"{path}: not a suite result (no results / conditions)")
+    conditions, results = result["conditions"], result["results"]
+    if not (isinstance(conditions, list) and isinstance(results, list) and all(
+            isinstance(r, dict) and "spec" in r and isinstance(r.get("cells"), list)
+            and len(r["cells"]) == len(conditions) for r in results)):
+        raise ConfigError(f"{path}: not a suite result (each of its results needs a spec and one cell per condition)")
     return result
 
 

@@ -65,11 +65,17 @@ def _cmd_frontier(args: argparse.Namespace) -> int:
     from ..agents.leaderboard import merge_results, read_result
     from ..physics.config import atomic_write_text, nan_to_none
 
+    if args.out.exists() and not args.out.is_dir():
+        raise usage_error(f"--out must be a folder, got the file {args.out}")
     result = merge_results([read_result(p) for p in args.suite_json])
     record = mu_frontier(result, args.against, family_specs(result, args.family or [], args.against), args.cap)
-    text = frontier_markdown(record)
-    atomic_write_text(args.out / "frontier.json", json.dumps(nan_to_none(record), indent=2) + "\n")
+    text, data = frontier_markdown(record), json.dumps(nan_to_none(record), indent=2) + "\n"
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise usage_error(f"--out: cannot make the folder {args.out}: {exc.strerror}") from None
     atomic_write_text(args.out / "frontier.md", text)
+    atomic_write_text(args.out / "frontier.json", data)
     print(text)
     return 0
 
