@@ -169,12 +169,28 @@ def mu_frontier(result: dict[str, Any], against: str, family: Sequence[str], cap
     }
 
 
+def frontier_verdict(record: dict[str, Any]) -> str:
+    """One line: whether some schedule within the cap holds the reference's grasps in every condition."""
+    best, cap = record["best_within_cap"], record["cap"]
+    if best is None:
+        return f"No schedule of the family stays within {cap:g}x the reference's mean peak pinch in every condition."
+    gaps = best["held_less_reference"]
+    force = f"{min(best['force_ratio']):.2f}-{max(best['force_ratio']):.2f}x"
+    short = [(c, g) for c, g in zip(record["conditions"], gaps) if g < 0]
+    if not short:
+        return (f"Within {cap:g}x, one member per mu holds at least the reference's grasps in every condition, at "
+                f"{force} its mean peak pinch.")
+    worst = min(short, key=lambda cg: cg[1])
+    return (f"Within {cap:g}x, the best schedule holds fewer grasps than the reference in {len(short)} of "
+            f"{len(gaps)} conditions ({-worst[1]} fewer {worst[0]}), at {force} its mean peak pinch.")
+
+
 def frontier_markdown(record: dict[str, Any]) -> str:
     """The frontier as markdown: per condition the reference, each member, the best schedules and hindsight."""
     conds, n = record["conditions"], record["episodes_per_condition"]
     ref = record["reference"]
     lines = [f"Told-mu frontier against `{record['against']}` ({n} episodes per condition; every pick made on the "
-             "episodes it is scored on: an upper bound)", "",
+             "episodes it is scored on: an upper bound)", "", frontier_verdict(record), "",
              "| policy | " + " | ".join(conds) + " |", "|---|" + "---|" * len(conds),
              "| reference: held (Wilson lower bound), mean peak pinch | " + " | ".join(
                  f"{h} ({lb:.2f}), {f:.2f} N" for h, lb, f in zip(ref["held"], ref["lower_bound"],

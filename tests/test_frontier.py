@@ -72,6 +72,10 @@ def test_the_best_schedule_keeps_the_grasps_within_the_force_cap():
     assert mixed["members"] == {"0.2": "heavy", "0.8": "light"}
     assert mixed["held_less_reference"] == [0, 0, 2] and mixed["worst_force_ratio"] == pytest.approx(1.0)
     assert record["best_uncapped"]["members"] == mixed["members"]
+    assert "fewer grasps than the reference in 1 of 3 conditions (2 fewer grasp up to 5 mm off)" in frontier_markdown(
+        record)
+    assert "at least the reference's grasps in every condition" in frontier_markdown(
+        mu_frontier(_result(), "controller", ["light", "heavy"], cap=1.0))
     assert mu_frontier(_result(), "controller", ["heavy"], cap=0.5)["best_within_cap"] is None
     assert "best schedule at <= 0.5x | none" in frontier_markdown(
         mu_frontier(_result(), "controller", ["heavy"], cap=0.5))
