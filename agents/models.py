@@ -20,8 +20,8 @@ from ..envs.core import (
 )
 from ..physics.device_layout import Precision
 from ..physics.config import (
-    RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass, from_dict,
-    builtin_config, read_extending_yaml, replace,
+    MAX_ENVS, RECORD_CONFIG, Bool, ConfigError, Int, NonNegative, Positive, Real, Str, check_range, config_dataclass,
+    from_dict, builtin_config, read_extending_yaml, replace,
 )
 from .controllers import Controller, check_controller_spec, controller_of, residual_bases, spec_forms
 from .protocol import DEMONSTRATION_SEED_OFFSET, VALIDATION_SEED_OFFSET, check_not_sealed
@@ -93,7 +93,7 @@ class TrainConfig:
     algo: Literal["ppo", "sac"] = "ppo"
     total_timesteps: PositiveInt = 900_000
     #: 32 batched envs: the physics runs 1.6x more agent steps/s per core than at 16 (SIMD across tissues)
-    n_envs: PositiveInt = 32
+    n_envs: Annotated[Int, Ge(1), Le(MAX_ENVS)] = 32
     #: the training env's tissue arrays (``Simulation(precision=...)``): "float64" or "float32", an option for the
     #: speed of the rollouts (docs/performance.md, "float32 on the CPU"). Validation, model selection and every
     #: evaluation run float64, the physics the results are about, whatever this says

@@ -56,12 +56,16 @@ def parse_seeds(text: str) -> list[int]:
         if "-" in raw[1:]:
             lo_s, hi_s = raw.split("-", 1) if not raw.startswith("-") else (None, None)
             lo, hi = int(lo_s), int(hi_s)
-            seeds = list(range(lo, hi + 1))
+            seeds = None
         else:
             seeds = [int(p) for p in raw.split(",")]
     except (TypeError, ValueError):
         raise ConfigError(f"--seeds {text!r}: expected a range such as '0-4' or a comma list such as '0,3,7' "
                           "of integers >= 0") from None
+    if seeds is None:
+        if hi - lo >= MAX_SEEDS:  # (before a list of them is built)
+            raise ConfigError(f"--seeds {text!r}: between 1 and {MAX_SEEDS} seeds, got {hi - lo + 1}")
+        seeds = list(range(lo, hi + 1))
     if "-" in raw[1:] and not seeds:
         raise ConfigError(f"--seeds {text!r}: the range end is below its start")
     if any(s < 0 for s in seeds):

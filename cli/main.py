@@ -8,7 +8,7 @@
     msdgrasp train / evaluate / record / replay / soak     RL (see --help of each)
     msdgrasp reference --out FILE                          the reference forces of the force ratios (JSON)
     msdgrasp headroom --out FILE                           how light a grip could be, by what it knows (JSON)
-    msdgrasp frontier SUITE.json --out DIR                 what choosing one policy per mu could do on development episodes
+    msdgrasp frontier SUITE.json --out DIR                 what one policy per mu could do on development episodes
     msdgrasp meshes [--check]                              regenerate (or check) the shipped gmsh meshes
 
 Every subcommand validates its inputs and exits with status 2 and a one-line message naming the bad
@@ -25,6 +25,44 @@ from pathlib import Path
 from .errors import UsageError
 
 DEFAULT_LOGS = Path("logs")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (``msdgrasp train: error: ...``, exit 2), without the usage block;
+    ``--help`` shows the usage. Its subparsers are of the same class."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+#: argument names that are output paths, checked before a command runs (:func:`check_output_path`)
+OUTPUT_ARGS = ("out", "video", "still")
+#: suffixes that make an output path a file; any other output path is a folder
+FILE_SUFFIXES = (".json", ".yaml", ".yml", ".rrd", ".mp4", ".gif", ".png", ".csv", ".md", ".jsonl")
+
+
+def check_output_path(path: Path, field: str) -> None:
+    """UsageError (one line, naming ``field``) unless ``path`` can be written: a file (by its suffix) where no folder
+    is, or a folder where no file is, under a folder this process can create files in. Probed with an unnamed
+    temporary file, so nothing stays behind."""
+    import tempfile
+
+    is_file = path.suffix.lower() in FILE_SUFFIXES
+    if path.exists():
+        if is_file and path.is_dir():
+            raise UsageError(f"{field} must be a file ({path.suffix}), got the folder {path}")
+        if not is_file and not path.is_dir():
+            raise UsageError(f"{field} must be a folder, got the file {path}")
+    folder = path if (path.is_dir() or not is_file) else path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise UsageError(f"{field}: {path} lies under the file {folder}, not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise UsageError(f"{field}: cannot write under {folder}: {exc.strerror or exc}") from None
 
 
 def _add_out(p: argparse.ArgumentParser, default: str) -> None:
@@ -102,7 +140,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="msdgrasp", description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog="msdgrasp", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     exp = sub.add_parser("experiment", help="the paper's experiments")
@@ -217,15 +255,21 @@ def _add_rl_commands(sub) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # (--help, or an argument's one-line error: the parser has printed it)
+        return int(exc.code or 0)
     from ..physics.config import ConfigError, MissingExtraError
     from ..physics.mesh import MeshError
     from ..envs.recording import RecordingError
 
     try:
+        for name in OUTPUT_ARGS:  # (before anything runs or is written)
+            value = getattr(args, name, None)
+            if isinstance(value, Path):
+                check_output_path(value, f"--{name}")
         return int(args.func(args) or 0)
-    except (UsageError, ConfigError, MissingExtraError, MeshError, RecordingError, FileNotFoundError, PermissionError,
-            IsADirectoryError) as exc:
+    except (UsageError, ConfigError, MissingExtraError, MeshError, RecordingError, OSError, UnicodeDecodeError) as exc:
         print(f"msdgrasp {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -29,6 +29,30 @@ def _default_models() -> list[str]:
             if (d / learner.layout.model).is_file()]
 
 
+def seed_int(text: str) -> int:
+    """An argparse type: a seed, an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
+    return value
+
+
+def env_count(text: str) -> int:
+    """An argparse type: a number of parallel envs, 1..MAX_ENVS."""
+    from ..physics.config import MAX_ENVS
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer in 1..{MAX_ENVS}, got {text!r}") from None
+    if not 1 <= value <= MAX_ENVS:
+        raise argparse.ArgumentTypeError(f"allowed 1..{MAX_ENVS}, got {value}")
+    return value
+
+
 def usage_error(message: str) -> Exception:
     """A one-line input error (exit status 2)."""
     from .errors import UsageError
@@ -553,8 +577,8 @@ def _add_train(sub, h: _HelpTexts) -> None:
                         "--backend cpu configs/train/rsl_ppo_cpu.yaml); recurrent trains an actor with memory, "
                         "taught by a privileged teacher, then fine-tuned by PPO (configs/train/recurrent.yaml)")
     t.add_argument("--total-timesteps", type=int, default=None, help="environment steps to train for")
-    t.add_argument("--n-envs", type=int, default=None, help="parallel environments")
-    t.add_argument("--seed", type=int, default=None,
+    t.add_argument("--n-envs", type=env_count, default=None, help="parallel environments")
+    t.add_argument("--seed", type=seed_int, default=None,
                    help="random seed (one run): its training envs are reset with seed + i, its validation episodes "
                         f"with seed + 100000 + i; {h.refused}")
     t.add_argument("--seeds", default=None, metavar="RANGE",
@@ -628,8 +652,9 @@ def _add_evaluate(sub, h: _HelpTexts) -> None:
     e.add_argument("--episodes", type=int, default=None,
                    help="episodes per policy and mu (default 10; with --suite the protocol's 19 per mu of the "
                         "grid, 76 per condition: fewer run, marked not the protocol)")
-    e.add_argument("--n-envs", type=int, default=None, help="batch size (default: all episodes of one mu at once)")
-    e.add_argument("--seed", type=int, default=h.evaluation_seed,
+    e.add_argument("--n-envs", type=env_count, default=None,
+                   help="batch size (default: all episodes of one mu at once)")
+    e.add_argument("--seed", type=seed_int, default=h.evaluation_seed,
                    help=f"episode i is reset with seed + i (default {h.evaluation_seed}, the first of the sealed "
                         f"evaluation seeds {h.sealed}, which no training, validation, fit or sweep may use; the result "
                         "records its seeds and whether they are sealed: another seed makes a development result)")
@@ -651,7 +676,7 @@ def _add_collect(sub, h: _HelpTexts) -> None:
                     help="a controller's episodes are drawn from this training's randomised task (default: the "
                          "benchmark task's own randomisation)")
     co.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
-    co.add_argument("--seed", type=int, default=0,
+    co.add_argument("--seed", type=seed_int, default=0,
                     help=f"episode i is reset with seed + i (default 0); a dataset is for training: {h.refused}")
     co.add_argument("--dataset-id", default=None,
                     help="Minari id, (namespace/)name-v<version> (default msdgrasp/grasplift/<policy>-v0)")
@@ -669,7 +694,7 @@ def _add_fit_friction(sub, h: _HelpTexts) -> None:
                     help="its training task gives the episodes (their sensing and placement errors); its env the "
                          "minimal-force table")
     ff.add_argument("--episodes", type=int, default=768, help="episodes to fit on (default 768)")
-    ff.add_argument("--seed", type=int, default=20000,
+    ff.add_argument("--seed", type=seed_int, default=20000,
                     help=f"episode i is reset with seed + i (default 20000); {h.refused}")
     ff.add_argument("--probe", type=float, default=0.7, help="the grip the jaws close to, N (default 0.7)")
     ff.add_argument("--pull", type=float, default=0.3,
@@ -688,7 +713,7 @@ def _add_clone(sub, h: _HelpTexts) -> None:
                     help="output folder: best_model.zip + .yaml (evaluate it as --policy OUT/best_model.zip)")
     cl.add_argument("--epochs", type=int, default=None,
                     help="passes over the dataset (default: agents.offline.CLONE_EPOCHS, 40)")
-    cl.add_argument("--seed", type=int, default=0,
+    cl.add_argument("--seed", type=seed_int, default=0,
                     help="network initialisation and minibatch order (default 0); the clone's config seeds envs "
                          f"and validation from it as a training does: {h.refused}")
     cl.set_defaults(func=_cmd_clone)
@@ -701,7 +726,7 @@ def _add_report(sub, h: _HelpTexts) -> None:
                     help="a folder of train --seeds runs (seed_<k>/ of any one learner), "
                          "or of msdgrasp select's picks; the report is written there")
     rp.add_argument("--episodes", type=int, default=10, help="episodes per seed and mu (default 10)")
-    rp.add_argument("--seed", type=int, default=h.evaluation_seed,
+    rp.add_argument("--seed", type=seed_int, default=h.evaluation_seed,
                     help=f"evaluation episode i is reset with seed + i (default {h.evaluation_seed}, the first of the "
                          f"sealed evaluation seeds {h.sealed}; seeds.json records whether they are sealed)")
     add_runner_args(rp, "every seed's evaluation")
@@ -758,7 +783,7 @@ def _add_record(sub, h: _HelpTexts) -> None:
     r.add_argument("--policy", required=True, metavar="SPEC",
                    help=f"PATH (a saved model: it runs on the task it was trained on) | {h.policy_usage}")
     r.add_argument("--mu", type=float, default=0.5, help="friction coefficient (default 0.5)")
-    r.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
+    r.add_argument("--seed", type=seed_int, default=0, help="episode seed (default 0)")
     r.add_argument("--out", type=Path, default=Path("logs") / "record" / "episode.rrd",
                    help="recording to write (default logs/record/episode.rrd)")
     r.add_argument("--video", type=Path, default=None, metavar="PATH",
@@ -781,8 +806,8 @@ def _add_soak(sub) -> None:
     """soak: a long random-action run of the vector env."""
     s = sub.add_parser("soak", help="long random-action run of the vector env (stability soak test)")
     s.add_argument("--steps", type=int, default=1_000_000, help="total environment steps (default 1000000)")
-    s.add_argument("--n-envs", type=int, default=16, help="parallel environments (default 16)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    s.add_argument("--n-envs", type=env_count, default=16, help="parallel environments (default 16)")
+    s.add_argument("--seed", type=seed_int, default=0, help="random seed (default 0)")
     s.add_argument("--out", type=Path, default=Path("logs") / "soak", help="output folder (default logs/soak)")
     s.add_argument("--quiet", action="store_true", help="no progress output")
     s.set_defaults(func=_cmd_soak)

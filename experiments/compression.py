@@ -175,7 +175,10 @@ def read_compression_csv(path: str | Path) -> list[CompressionCurve]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"data file not found: {path}")
-    header = path.read_text().splitlines()[:1]
+    try:
+        header = path.read_text(encoding="utf-8").splitlines()[:1]
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); the data is a CSV file") from None
     need = ["rate_mm_per_min", "deformation_mm", "force_N"]
     cols = [h.strip() for h in header[0].split(",")] if header else []
     missing = [c for c in need if c not in cols]

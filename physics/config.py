@@ -295,17 +295,35 @@ def replace(obj: T, **changes: Any) -> T:
     return dataclasses.replace(obj, **changes)
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A safe YAML loader that refuses a key given twice in one mapping (YAML keeps the last silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the key {key!r} is given twice (line {key_node.start_mark.line + 1})",
+                    key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
-    """The top-level mapping of a YAML config file. A missing file, invalid YAML, an empty file (every
+    """The top-level mapping of a YAML config file. A missing file, a file not UTF-8, invalid YAML or a key given
+    twice in one mapping, an empty file (every
     config needs at least one key: an empty one would silently be all defaults) or a top level that is
     not a mapping raises :class:`ConfigError` naming the file."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config file {path} is not UTF-8 text (byte {exc.start}); a config is YAML") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+        raise ConfigError(f"config file {path} is not valid YAML: {' '.join(str(exc).split())}") from None
     if data is None:
         raise ConfigError(f"config file {path} is empty; a config needs at least one key (an empty file is not "
                           "taken as all defaults)")
@@ -313,6 +331,10 @@ def read_yaml(path: str | os.PathLike) -> dict[str, Any]:
         raise ConfigError(f"config file {path} must contain a mapping at the top level")
     return data
 
+
+#: the most envs one batched env may hold (a training's n_envs, --n-envs): the GPU task's trainings run 4,096; far
+#: more is a typo, not a batch
+MAX_ENVS = 65_536
 
 #: the top-level key by which a config file builds on another (:func:`read_extending_yaml`)
 EXTENDS = "extends"

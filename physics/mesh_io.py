@@ -4,7 +4,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import inspect
+import io
 import os
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -38,12 +40,15 @@ def load_mesh(path: str | os.PathLike) -> TetMesh:
         raise MeshError(f"mesh file not found: {p}")
     if not p.is_file():
         raise MeshError(f"mesh path is not a file: {p}")
+    said = io.StringIO()  # (meshio prints some of its errors before it exits: they go into ours, one line)
     try:
-        m = meshio.read(p)
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            m = meshio.read(p)
     except meshio.ReadError as exc:
         raise MeshError(f"cannot read mesh file {p} (unknown or unsupported format?): {exc}") from exc
-    except Exception as exc:  # meshio raises assorted errors on malformed files
-        raise MeshError(f"cannot read mesh file {p}: {type(exc).__name__}: {exc}") from exc
+    except (Exception, SystemExit) as exc:  # meshio raises assorted errors on malformed files, some sys.exit(1)
+        why = " ".join((said.getvalue() or f"{type(exc).__name__}: {exc}").split())
+        raise MeshError(f"cannot read mesh file {p}: {why}") from None
 
     blocks = [blk.data for blk in m.cells if blk.type == "tetra"]
     if not blocks:

@@ -1,0 +1,102 @@
+"""Bad command-line input is one line naming the field, exit status 2, before anything runs or is written.
+
+Each case is a mistake a user makes (a typo in a number, an output path that cannot be written, a config that is not
+text or gives a key twice, a mesh file that is not a mesh); the test checks the status, that stderr is one line naming
+what is wrong, and that the working folder is left as it was.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from msdgrasp.cli.main import main
+from msdgrasp.physics.config import MAX_ENVS, ConfigError, read_yaml
+from msdgrasp.physics.mesh import MeshError
+from msdgrasp.physics.mesh_io import load_mesh
+
+
+def _run(argv: list[str], capsys) -> tuple[int, str]:
+    status = main(argv)  # (argparse's own errors too: main returns their status)
+    return status, capsys.readouterr().err.strip()
+
+
+def _assert_refused(argv: list[str], capsys, tmp_path, *needles: str) -> None:
+    before = sorted(p.name for p in tmp_path.iterdir())
+    status, err = _run(argv, capsys)
+    assert status == 2, err
+    assert len(err.splitlines()) == 1, err
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
+
+
+@pytest.mark.parametrize("argv, needles", [
+    (["train", "--n-envs", "abc"], ["--n-envs", "expected an integer"]),
+    (["train", "--total-timesteps", "1e5x"], ["--total-timesteps", "invalid"]),
+    (["train", "--n-envs", str(MAX_ENVS + 1)], ["--n-envs", f"1..{MAX_ENVS}"]),
+    (["record", "--policy", "zero", "--seed", "-1"], ["--seed: must be an integer >= 0"]),
+    (["soak", "--seed", "-3"], ["--seed", ">= 0"]),
+    (["train", "--seeds", "0-999999999999"], ["--seeds", "between 1 and"]),
+    (["evaluate", "--suite", "in_range", "--task-version", "3"], ["--task-version", "invalid choice"]),
+])
+def test_a_bad_option_is_one_line_naming_it(argv, needles, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _assert_refused(argv, capsys, tmp_path, *needles)
+
+
+def test_an_output_path_that_cannot_be_written_is_refused_before_the_command_runs(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "folder.json").mkdir()
+    _assert_refused(["train", "--out", "afile"], capsys, tmp_path, "--out must be a folder", "afile")
+    _assert_refused(["leaderboard", "s.json", "--track", "a=b", "--out", "afile/sub"], capsys, tmp_path,
+                    "under the file afile")
+    _assert_refused(["headroom", "--out", "folder.json"], capsys, tmp_path, "--out must be a file", "folder.json")
+    _assert_refused(["record", "--policy", "zero", "--video", "afile/v.mp4"], capsys, tmp_path, "--video")
+
+
+def test_a_config_that_is_not_utf8_yaml_or_gives_a_key_twice_is_refused_naming_the_file(tmp_path):
+    dup = tmp_path / "dup.yaml"
+    dup.write_text("n_envs: 4\nseed: 1\nn_envs: 8\n")
+    with pytest.raises(ConfigError, match="'n_envs' is given twice"):
+        read_yaml(dup)
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("env:\n  mu: 0.3\n  mu: 0.5\n")
+    with pytest.raises(ConfigError, match="'mu' is given twice"):
+        read_yaml(nested)
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\x00\xff\xfe")
+    with pytest.raises(ConfigError, match="binary.yaml is not UTF-8"):
+        read_yaml(binary)
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("a: [1, 2\n")
+    with pytest.raises(ConfigError, match="broken.yaml is not valid YAML") as info:
+        read_yaml(broken)
+    assert "\n" not in str(info.value)
+    same_key_in_two_mappings = tmp_path / "ok.yaml"
+    same_key_in_two_mappings.write_text("a: {x: 1}\nb: {x: 2}\n")
+    assert read_yaml(same_key_in_two_mappings) == {"a": {"x": 1}, "b": {"x": 2}}
+
+
+def test_a_config_with_too_many_envs_is_refused_before_the_run_writes(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "big.yaml").write_text(f"n_envs: {MAX_ENVS + 1}\n")
+    _assert_refused(["train", "--config", "big.yaml", "--out", "run"], capsys, tmp_path, "n_envs",
+                    f"[1, {MAX_ENVS}]")
+
+
+def test_a_file_that_is_not_a_mesh_is_one_line_naming_it(tmp_path, capsys):
+    garbage = tmp_path / "garbage.vtu"
+    garbage.write_text("not a mesh")
+    with pytest.raises(MeshError, match="garbage.vtu") as info:
+        load_mesh(garbage)
+    assert "\n" not in str(info.value)
+    assert capsys.readouterr().out == ""  # what the mesh reader printed is in the error, not on the console
+
+
+def test_data_that_is_not_utf8_is_refused_naming_the_file(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "curves.csv").write_bytes(b"\x00\xff\xfe")
+    _assert_refused(["calibrate", "--data", "curves.csv", "--out", "cal.yaml"], capsys, tmp_path,
+                    "curves.csv: not UTF-8")
