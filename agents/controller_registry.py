@@ -167,6 +167,8 @@ def _keyed(spec: str, entry: Controller, body: str) -> dict[str, Any]:
         if not sep or key not in opts.keys:
             raise ConfigError(f"policy {spec!r}: '{entry.name}:key=value,...' takes keys {', '.join(opts.keys)}; "
                               f"got {part!r}")
+        if opts.keys[key] in options:
+            raise ConfigError(f"policy {spec!r}: {key} is given twice; give each key once")
         if key in opts.path_keys:
             if not value.strip():
                 raise ConfigError(f"policy {spec!r}: {key} expects a file path, got {value!r}")
@@ -223,6 +225,10 @@ def make_controller(spec: str, config: GraspLiftConfig) -> Any:
     if not entry.runs_on(config):
         raise ConfigError(f"policy {spec!r}: {entry.name} needs jaw_action: force and pull_action: forward_speed, "
                           f"got {config.jaw_action!r} / {config.pull_action!r}")
+    for field, value in options.items():  # (a field named *_N is a force in newtons: the jaw cannot exceed its max)
+        if field.endswith("_N") and isinstance(value, float) and value > config.max_pinch_force_N:
+            raise ConfigError(f"policy {spec!r}: {field} = {value:g} N is beyond the task's max_pinch_force_N; "
+                              f"allowed (0, {config.max_pinch_force_N:g}] N")
     policy = entry.factory(config, **options)
     if entry.options is not None and entry.options.keys and ":" in spec:
         policy.name = spec

@@ -36,6 +36,10 @@ class FixedForceSettings:
             raise ValueError(f"pull must be in (0, 1], got {self.pull!r}")
 
 
+#: the steepest slip feedback: 100 N per mm of slip reaches any grip the jaw has within 0.05 mm
+MAX_GAIN_N_PER_MM = 100.0
+
+
 @dataclasses.dataclass(frozen=True)
 class SlipFeedbackSettings:
     """The slip-feedback controller's settings (``agents.controllers.SlipFeedbackPolicy``); ValueError naming the
@@ -64,8 +68,8 @@ class SlipFeedbackSettings:
         if not 0 < self.initial_force_N <= self.max_force_N:
             raise ValueError(f"initial_force_N must be in (0, max_force_N={self.max_force_N}], "
                              f"got {self.initial_force_N!r}")
-        if not self.gain_N_per_mm >= 0:
-            raise ValueError(f"gain_N_per_mm must be >= 0, got {self.gain_N_per_mm!r}")
+        if not 0 <= self.gain_N_per_mm <= MAX_GAIN_N_PER_MM:
+            raise ValueError(f"gain_N_per_mm must be in [0, {MAX_GAIN_N_PER_MM:g}], got {self.gain_N_per_mm!r}")
         if not 0 < self.pull <= 1:
             raise ValueError(f"pull must be in (0, 1], got {self.pull!r}")
         if self.contact_jaws not in (1, 2, 3):

@@ -135,6 +135,8 @@ def parse_mu_grid(text: str) -> np.ndarray:
         values = np.array([_grid_number(text, p, "value") for p in parts])
         for v in values:
             _check_mu(text, float(v), "mu")
+        if len(np.unique(np.round(values, 10))) != len(values):
+            raise ConfigError(f"mu grid {text!r}: a value is given twice; give each mu once")
     return np.unique(np.round(values, 10))
 
 

@@ -325,7 +325,12 @@ def write_leaderboard(suite_json: str | Path | Sequence[str | Path], tracks: Seq
     the ``NAME=PATTERN`` tracks, write leaderboard.json/.md."""
     paths = [suite_json] if isinstance(suite_json, (str, Path)) else list(suite_json)
     result = merge_results([read_result(Path(p)) for p in paths])
-    board = build_leaderboard(result, [parse_track(t) for t in tracks], baseline, references, against)
+    parsed = [parse_track(t) for t in tracks]
+    names = [name for name, _ in parsed]
+    if len(set(names)) != len(names):
+        twice = next(n for n in names if names.count(n) > 1)
+        raise ConfigError(f"--track {twice!r} is given twice; name each track once (join patterns with |)")
+    board = build_leaderboard(result, parsed, baseline, references, against)
     out = Path(out_dir)
     atomic_write_text(out / "leaderboard.json", json.dumps(nan_to_none(board), indent=2) + "\n")
     atomic_write_text(out / "leaderboard.md", leaderboard_markdown(board))

@@ -77,9 +77,15 @@ def check_not_sealed(first: int, count: int, field: str, *, value: int | None = 
 
 
 def check_evaluation_seeds(first: int, count: int, field: str = "seed") -> None:
-    """ConfigError where an evaluation's first seed is not an integer >= 0 (any such seed is allowed; only those
-    inside :data:`SEALED_SEEDS` make a sealed result)."""
+    """ConfigError where an evaluation's first seed is not an integer >= 0, or where its seeds ``first .. first +
+    count - 1`` straddle an end of :data:`SEALED_SEEDS` (a result is sealed, all of them inside, or not, all outside;
+    one partly inside would be recorded as neither)."""
     _check_count(first, count, field)
+    if overlaps_sealed(int(first), int(count)) and not is_sealed(int(first), int(count)):
+        first, count = int(first), int(count)
+        raise ConfigError(
+            f"{field} = {first}: the episodes' seeds {first}..{first + count - 1} straddle the sealed evaluation seeds "
+            f"{sealed_range_text()}; allowed: all of them inside (a sealed result) or all outside (a development one)")
 
 
 def seeds_record(first: int, count: int) -> dict[str, Any]:

@@ -80,7 +80,10 @@ class SweepConfig:
         if both:
             raise ConfigError(f"sweep keys {sorted(both)} are both in 'set' and in 'grid'; give each once")
         n = 1
-        for values in self.grid.values():
+        for key, values in self.grid.items():
+            twice = [v for i, v in enumerate(values) if v in values[:i]]
+            if twice:  # (two identical points would train and rank the same config twice)
+                raise ConfigError(f"sweep grid {key!r}: the value {twice[0]!r} is given twice; give each value once")
             n *= len(values)
         if n > MAX_POINTS:
             raise ConfigError(f"the grid has {n} points; allowed 1 ... {MAX_POINTS}")

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..experiments.calibration import FitSettings, fit_compression, tissue_config_dict, validate_curves
-from ..physics.config import (TISSUE_FILE, ConfigError, atomic_write_text, builtin_config, from_dict, read_config_file,
-                              require_extra, write_yaml)
+from ..physics.config import (TISSUE_FILE, ConfigError, atomic_write_text, builtin_config, check_range, from_dict,
+                              read_config_file, require_extra, write_yaml)
 from ..experiments.compression import (
     CompressionConfig,
     compression_verdicts,
@@ -97,6 +97,8 @@ def grasp_cli(args: argparse.Namespace) -> int:
     _require_viz("grasp", progress=not args.quiet)
     protocol = GraspProtocol(**({"pull_time_s": args.pull_time} if args.pull_time is not None else {}))
     mus = args.mu or [0.4, 0.6, 0.8]
+    for mu in mus:
+        check_range("--mu", mu, 0.0, 10.0, lo_inclusive=False)  # (the env's mu range)
     scene = spleen_scene(args.config, args.grasper, resolution_arg(args.resolution))
     runs = run_grasp(scene, mus, protocol, progress=not args.quiet)
     out = Path(args.out)

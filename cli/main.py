@@ -99,8 +99,8 @@ def _cmd_pinch_hold(args: argparse.Namespace) -> int:
     from ..physics.config import ConfigError, check_range
     from .experiments import resolution_arg
 
-    check_range("--mu", args.mu, 0.0, None, lo_inclusive=False)
-    check_range("--pinch", args.pinch, 0.0, None, lo_inclusive=False)
+    check_range("--mu", args.mu, 0.0, 10.0, lo_inclusive=False)  # (the env's mu range)
+    check_range("--pinch", args.pinch, 0.0, 50.0, lo_inclusive=False)  # (the largest max_pinch_force_N a task has)
     if args.config is not None and not args.config.is_file():
         raise ConfigError(f"--config {args.config}: tissue config not found")
     result = run_pinch_hold(resolution_arg(args.resolution), mu=args.mu, pinch_N=args.pinch, tissue_config=args.config)
@@ -271,6 +271,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (UsageError, ConfigError, MissingExtraError, MeshError, RecordingError, OSError, UnicodeDecodeError) as exc:
         print(f"msdgrasp {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError as exc:  # (a size asked for that the machine cannot hold: one line, not a traceback)
+        print(f"msdgrasp {args.command}: error: not enough memory ({exc or 'allocation failed'}); ask for fewer envs, "
+              "episodes or seeds", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

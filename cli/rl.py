@@ -147,8 +147,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
     for runs made elsewhere, re-selected (``msdgrasp select``) or made before it wrote one."""
     if args.episodes < 1:
         raise usage_error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.seed < 0:
-        raise usage_error(f"--seed must be >= 0, got {args.seed}")
     if not Path(args.folder).is_dir():
         raise usage_error(f"{args.folder}: not a folder")
     runner = runner_from_args(args, os.cpu_count() or 1) if _runner_asked(args) else None
@@ -158,8 +156,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 def _check_train_flags(args: argparse.Namespace) -> None:
     """The train flags that exclude or need each other."""
-    if args.n_envs is not None and args.n_envs < 1:
-        raise usage_error(f"--n-envs must be >= 1, got {args.n_envs}")
     if args.seed is not None and args.seeds is not None:
         raise usage_error("give either --seed or --seeds, not both")
     if args.seeds is None and _runner_asked(args):
@@ -317,15 +313,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise usage_error("--condition needs --suite robustness (it picks the suite's conditions)")
     if args.no_baselines or args.task_version is not None:
         raise usage_error("--no-baselines and --task-version need --suite (they shape a suite run)")
-    mus = parse_mu_grid(args.mu_grid or DEFAULT_MU_GRID)
+    mus = parse_mu_grid(DEFAULT_MU_GRID if args.mu_grid is None else args.mu_grid)
     if args.episodes is None:
         args.episodes = 10
     if args.episodes < 1:
         raise usage_error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.seed < 0:
-        raise usage_error(f"--seed must be >= 0, got {args.seed}")
-    if args.n_envs is not None and args.n_envs < 1:
-        raise usage_error(f"--n-envs must be >= 1, got {args.n_envs}")
     policies = args.policy or _default_policies()
     task = _training_task(args.training_task, policies) if args.training_task is not None else None
     _require_plots("evaluate")
@@ -383,8 +375,6 @@ def _cmd_suite(args: argparse.Namespace) -> int:
                           + ", ".join(fixed))
     if args.episodes is not None and args.episodes < 1:
         raise usage_error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.seed < 0:
-        raise usage_error(f"--seed must be >= 0, got {args.seed}")
     policies = args.policy or _default_policies()
     runner = runner_from_args(args) if _runner_asked(args) else None
     task = None

@@ -47,6 +47,8 @@ SENSOR_STREAM = 0x5E25
 #: evaluations report the time each episode's peak contact pressure spends above it.
 DAMAGE_PRESSURE_PA = 330e3
 LatencySteps = Annotated[Int, Ge(0), Le(MAX_LATENCY_STEPS)]
+#: the largest grasp pose error a randomisation may draw or a reset pin: tip offset (m), axis tilt and azimuth (deg)
+POSE_LIMITS = {"pose_offset_m": 0.02, "pose_tilt_deg": 30.0, "pose_azimuth_deg": 60.0}
 LiftDelaySteps = Annotated[Int, Ge(0), Le(MAX_LIFT_DELAY_STEPS)]
 
 
@@ -122,9 +124,9 @@ class RandomizationConfig:
     stiffness_scale_range: tuple[Positive, Positive] = (0.8, 1.2)
     mass_scale_range: tuple[Positive, Positive] = (0.9, 1.1)
     #: largest grasp pose offset: tip translation (m) and axis tilt (deg), azimuth jitter (deg)
-    pose_offset_m: NonNegative = 0.001
-    pose_tilt_deg: NonNegative = 1.0
-    pose_azimuth_deg: NonNegative = 1.5
+    pose_offset_m: Annotated[Real, Ge(0), Le(POSE_LIMITS["pose_offset_m"])] = 0.001
+    pose_tilt_deg: Annotated[Real, Ge(0), Le(POSE_LIMITS["pose_tilt_deg"])] = 1.0
+    pose_azimuth_deg: Annotated[Real, Ge(0), Le(POSE_LIMITS["pose_azimuth_deg"])] = 1.5
     #: standard deviation of the force-sensor noise, N
     sensor_noise_N: NonNegative = 0.02
     #: the lowest noise level, N: with it, each episode draws its noise's standard deviation uniformly in
@@ -454,8 +456,7 @@ def check_pin(name: str, value: float, sim: Simulation, mu: float = 10.0) -> Non
     """A value pinned by ``reset(options=...)`` (PINNABLE) in its range, or a one-line ConfigError; ``mu``:
     the episode's friction, the bound of mu_kinetic."""
     lo, hi = {"mu": (0.0, 10.0), "mu_kinetic": (0.0, mu), "stiffness_scale": (0.0, sim.max_stiffness_scale),
-              "mass_scale": (sim.min_mass_scale, None), "pose_offset_m": (0.0, 0.02), "pose_tilt_deg": (0.0, 30.0),
-              "pose_azimuth_deg": (0.0, 60.0)}[name]
+              "mass_scale": (sim.min_mass_scale, None), **{k: (0.0, v) for k, v in POSE_LIMITS.items()}}[name]
     check_range(f"options[{name!r}]", value, lo, hi, lo_inclusive=name != "stiffness_scale")
 
 

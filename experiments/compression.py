@@ -187,7 +187,7 @@ def read_compression_csv(path: str | Path) -> list[CompressionCurve]:
     try:
         data = np.genfromtxt(path, delimiter=",", names=True, dtype=float)
     except ValueError as exc:
-        raise ConfigError(f"{path}: cannot parse numbers: {exc}") from None
+        raise ConfigError(f"{path}: cannot parse numbers: {' '.join(str(exc).split())}") from None
     data = np.atleast_1d(data)
     for c in need:
         if not np.all(np.isfinite(data[c])):

@@ -16,6 +16,7 @@ import functools
 import importlib
 import math
 import os
+import re
 import tempfile
 import types
 import typing
@@ -180,10 +181,16 @@ def _allowed_keys(cls: Any, loc: tuple) -> list[str]:
     return []
 
 
+def _union_tag(part: Any) -> bool:
+    """Whether a pydantic error location part names a member of a union (``constrained-float``, ``tuple[...]``), not
+    a field: the path a user reads names fields only."""
+    return isinstance(part, str) and ("[" in part or re.fullmatch(r"[a-z]+(-[a-z]+)+", part) is not None)
+
+
 def describe_validation_error(exc: pydantic.ValidationError, cls: Any, where: str) -> str:
     """One line for a pydantic error: the dotted field path, the value and what is allowed."""
     err = exc.errors()[0]  # the first: later ones are often its consequences
-    loc = tuple(err["loc"])
+    loc = tuple(p for p in err["loc"] if not _union_tag(p))
     path = where + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
     kind, value, ctx = err["type"], err.get("input"), err.get("ctx") or {}
     if kind in ("extra_forbidden", "unexpected_keyword_argument"):

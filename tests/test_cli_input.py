@@ -100,3 +100,76 @@ def test_data_that_is_not_utf8_is_refused_naming_the_file(capsys, tmp_path, monk
     (tmp_path / "curves.csv").write_bytes(b"\x00\xff\xfe")
     _assert_refused(["calibrate", "--data", "curves.csv", "--out", "cal.yaml"], capsys, tmp_path,
                     "curves.csv: not UTF-8")
+
+
+@pytest.mark.parametrize("policy, needles", [
+    ("fixed:1e9", ["force_N = 1e+09 N", "max_pinch_force_N", "(0, 5] N"]),
+    ("slipfeedback:max=6", ["max_force_N = 6 N", "(0, 5] N"]),
+    ("slipfeedback:gain=1,gain=2", ["gain is given twice"]),
+    ("slipfeedback:gain=1e300", ["gain_N_per_mm must be in [0, 100]"]),
+])
+def test_a_policy_spec_beyond_the_jaw_or_with_a_key_twice_is_refused(policy, needles, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _assert_refused(["evaluate", "--policy", policy, "--no-unseen", "--episodes", "1", "--mu-grid", "0.5", "--out",
+                     "ev"], capsys, tmp_path, *needles)
+
+
+def test_an_empty_grid_or_seeds_straddling_the_sealed_ones_are_refused(capsys, tmp_path, monkeypatch):
+    from msdgrasp.agents.protocol import SEALED_SEEDS
+
+    monkeypatch.chdir(tmp_path)
+    base = ["evaluate", "--policy", "fixed:2", "--no-unseen", "--out", "ev"]
+    _assert_refused([*base, "--mu-grid", ""], capsys, tmp_path, "mu grid '' is empty")
+    _assert_refused([*base, "--mu-grid", "0.5", "--episodes", "2", "--seed", str(SEALED_SEEDS.start - 1)], capsys,
+                    tmp_path, "straddle the sealed evaluation seeds")
+
+
+def test_a_leaderboard_track_named_twice_is_refused(capsys, tmp_path, monkeypatch):
+    import json
+
+    monkeypatch.chdir(tmp_path)
+    suite = {"suite": "in_range", "version": 2, "seeds": {"first": 7, "count": 1, "sealed": False}, "episodes": 1,
+             "config": {}, "conditions": [{"name": "nominal"}],
+             "results": [{"spec": s, "policy": s, "cells": [{"condition": "nominal", "rows": []}]}
+                         for s in ("light", "heavy")]}
+    (tmp_path / "s.json").write_text(json.dumps(suite))
+    _assert_refused(["leaderboard", "s.json", "--track", "a=light", "--track", "a=heavy", "--out", "b"], capsys,
+                    tmp_path, "--track 'a' is given twice")
+
+
+def test_config_values_are_checked_when_the_config_is_read(tmp_path):
+    from msdgrasp.agents.models import TrainConfig
+    from msdgrasp.envs.core import POSE_LIMITS
+
+    train = tmp_path / "t.yaml"
+    train.write_text("train_randomization:\n  pose_offset_m: 5\n")
+    with pytest.raises(ConfigError, match=rf"train_randomization.pose_offset_m = 5 is out of range; allowed \[0, "
+                                          rf"{POSE_LIMITS['pose_offset_m']:g}\]"):
+        TrainConfig.load(train)
+    train.write_text("residual_scale: 5\n")  # (a field that is a number or a pair: the message names the field)
+    with pytest.raises(ConfigError, match=r"t.yaml.residual_scale = 5 is out of range; allowed \(0, 2\]"):
+        TrainConfig.load(train)
+
+
+def test_a_value_given_twice_in_a_grid_is_refused(tmp_path):
+    from msdgrasp.agents.evaluation import parse_mu_grid
+    from msdgrasp.agents.sweep import SweepConfig
+    from msdgrasp.physics.config import from_dict
+
+    with pytest.raises(ConfigError, match="a value is given twice"):
+        parse_mu_grid("0.5,0.3,0.5")
+    with pytest.raises(ConfigError, match="the value 0.0001 is given twice"):
+        from_dict(SweepConfig, {"grid": {"ppo.learning_rate": [1e-4, 3e-4, 1e-4]}, "evaluation_seed": 7})
+
+
+def test_experiment_frictions_and_pinches_outside_what_the_task_takes_are_refused(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _assert_refused(["experiment", "grasp", "--mu", "100", "--out", "g"], capsys, tmp_path, "--mu", "(0, 10]")
+    _assert_refused(["experiment", "pinch-hold", "--pinch", "1e9"], capsys, tmp_path, "--pinch", "(0, 50]")
+
+
+def test_a_data_row_with_too_many_columns_is_one_line(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "curves.csv").write_text("rate_mm_per_min,deformation_mm,force_N\n6,0.1,0.01\n6,0.2,0.02,9,9\n")
+    _assert_refused(["calibrate", "--data", "curves.csv", "--out", "cal.yaml"], capsys, tmp_path,
+                    "curves.csv: cannot parse numbers")

@@ -250,9 +250,11 @@ def test_an_evaluation_records_its_seeds_and_whether_they_are_sealed(tmp_path, m
     evaluation.evaluate(["fixed"], [0.5], 2, tmp_path / "dev", seed=0, progress=False, conditions=())
     data = json.loads((tmp_path / "dev" / "evaluation.json").read_text())
     assert data["seeds"] == {"first": 0, "count": 2, "sealed": False}
-    # a run that reaches past the range's end is not sealed either
-    evaluation.evaluate(["fixed"], [0.5], 2, tmp_path / "edge", seed=HI - 1, progress=False, conditions=())
-    assert json.loads((tmp_path / "edge" / "evaluation.json").read_text())["seeds"]["sealed"] is False
+    # a run partly inside the range is neither sealed nor a development result: refused before it runs
+    for first in (HI - 1, EVALUATION_SEED - 1):
+        with pytest.raises(ConfigError, match="straddle the sealed evaluation seeds"):
+            evaluation.evaluate(["fixed"], [0.5], 2, tmp_path / "edge", seed=first, progress=False, conditions=())
+    assert not (tmp_path / "edge").exists()
     with pytest.raises(ConfigError, match="seed = -3"):
         evaluation.evaluate(["fixed"], [0.5], 1, tmp_path / "bad", seed=-3, progress=False, conditions=())
     assert not (tmp_path / "bad").exists()

@@ -201,7 +201,10 @@ def test_every_point_is_validated_before_anything_runs(tmp_path):
     with pytest.raises(ConfigError, match="seeds come from"):
         _sweep(grid={"seed": [1, 2]})
     with pytest.raises(ConfigError, match="allowed 1 ... 256"):
-        _sweep(grid={"ppo.learning_rate": [1e-4] * 17, "log_std_init": [-1.0] * 16})
+        _sweep(grid={"ppo.learning_rate": [1e-4 * (k + 1) for k in range(17)],
+                     "log_std_init": [-1.0 - 0.1 * k for k in range(16)]})
+    with pytest.raises(ConfigError, match="the value 0.0001 is given twice"):  # (one config trained twice)
+        _sweep(grid={"ppo.learning_rate": [1e-4, 1e-4]})
     with pytest.raises(ConfigError, match="both in 'set' and in 'grid'"):
         _sweep(set={**TINY, "ppo.learning_rate": 1e-3})
     with pytest.raises(ConfigError, match="is a value, not a section"):
