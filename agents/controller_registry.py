@@ -212,9 +212,22 @@ def _resolved(spec: str) -> tuple[Controller, dict[str, Any]]:
     return entry, options
 
 
-def check_controller_spec(spec: str) -> Controller:
-    """The controller of ``spec`` once its options are checked and the files they name load (ConfigError else)."""
-    return _resolved(spec)[0]
+def _check_forces(spec: str, options: dict[str, Any], config: GraspLiftConfig) -> None:
+    """ConfigError where a force setting of ``spec`` (a field named ``*_N``, in newtons) is beyond what the task's jaw
+    can command (``max_pinch_force_N``): it would be clamped, and the spec would name a grip it never had."""
+    for field, value in options.items():
+        if field.endswith("_N") and isinstance(value, float) and value > config.max_pinch_force_N:
+            raise ConfigError(f"policy {spec!r}: {field} = {value:g} N is beyond the task's max_pinch_force_N; "
+                              f"allowed (0, {config.max_pinch_force_N:g}] N")
+
+
+def check_controller_spec(spec: str, config: GraspLiftConfig | None = None) -> Controller:
+    """The controller of ``spec`` once its options are checked and the files they name load, and, given the task
+    ``config``, its force settings are within the task's jaw (ConfigError else)."""
+    entry, options = _resolved(spec)
+    if config is not None:
+        _check_forces(spec, options, config)
+    return entry
 
 
 def make_controller(spec: str, config: GraspLiftConfig) -> Any:
@@ -225,10 +238,7 @@ def make_controller(spec: str, config: GraspLiftConfig) -> Any:
     if not entry.runs_on(config):
         raise ConfigError(f"policy {spec!r}: {entry.name} needs jaw_action: force and pull_action: forward_speed, "
                           f"got {config.jaw_action!r} / {config.pull_action!r}")
-    for field, value in options.items():  # (a field named *_N is a force in newtons: the jaw cannot exceed its max)
-        if field.endswith("_N") and isinstance(value, float) and value > config.max_pinch_force_N:
-            raise ConfigError(f"policy {spec!r}: {field} = {value:g} N is beyond the task's max_pinch_force_N; "
-                              f"allowed (0, {config.max_pinch_force_N:g}] N")
+    _check_forces(spec, options, config)
     policy = entry.factory(config, **options)
     if entry.options is not None and entry.options.keys and ":" in spec:
         policy.name = spec

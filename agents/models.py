@@ -239,6 +239,12 @@ class TrainConfig:
             raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
                               "set squash_actions: false to train PPO without gSDE")
         _check_residual(self)
+        if self.bc_teacher is not None and controller_of(self.bc_teacher) is None and not Path(
+                self.bc_teacher).is_file():
+            raise ConfigError(f"bc_teacher: {self.bc_teacher!r} is neither a controller spec (e.g. 'reactive', "
+                              "'fixed:2') nor a model file")
+        if self.bc_teacher is not None and controller_of(self.bc_teacher) is not None:
+            check_controller_spec(self.bc_teacher, self.env)
         if self.init_model is not None and self.bc_teacher is not None:
             raise ConfigError("give either init_model (start from a trained model) or bc_teacher (clone a teacher "
                               "first), not both")
@@ -282,7 +288,7 @@ def _residual_controller(config: TrainConfig) -> Controller:
         raise ConfigError(f"residual_base = {base!r} is not a controller a residual may correct; choose one of "
                           f"{', '.join(spec_forms(residual_bases()))}")
     try:
-        check_controller_spec(base)
+        check_controller_spec(base, config.env)
     except ConfigError as exc:
         raise ConfigError(f"residual_base: {exc}") from None
     if not entry.runs_on(config.env):

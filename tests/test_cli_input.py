@@ -173,3 +173,17 @@ def test_a_data_row_with_too_many_columns_is_one_line(capsys, tmp_path, monkeypa
     (tmp_path / "curves.csv").write_text("rate_mm_per_min,deformation_mm,force_N\n6,0.1,0.01\n6,0.2,0.02,9,9\n")
     _assert_refused(["calibrate", "--data", "curves.csv", "--out", "cal.yaml"], capsys, tmp_path,
                     "curves.csv: cannot parse numbers")
+
+
+def test_a_training_teacher_that_names_nothing_or_grips_beyond_the_jaw_is_refused_when_read(capsys, tmp_path,
+                                                                                           monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    import msdgrasp
+    from pathlib import Path
+
+    scratch = f"extends: {Path(msdgrasp.__file__).parent / 'configs' / 'train' / 'ppo_scratch.yaml'}\n"
+    (tmp_path / "none.yaml").write_text(f"{scratch}bc_teacher: nosuch\n")
+    (tmp_path / "hard.yaml").write_text(f"{scratch}bc_teacher: 'fixed:9'\n")
+    _assert_refused(["train", "--config", "none.yaml", "--out", "run"], capsys, tmp_path,
+                    "bc_teacher: 'nosuch' is neither a controller spec")
+    _assert_refused(["train", "--config", "hard.yaml", "--out", "run"], capsys, tmp_path, "force_N = 9 N")
