@@ -156,7 +156,10 @@ def _field_at(cls: Any, loc: tuple) -> Any:
     """The annotation (or pydantic FieldInfo) of the field at ``loc`` inside record ``cls`` (None: unknown)."""
     node: Any = cls
     for part in loc:
-        tp = _strip(node.annotation if isinstance(node, pydantic.fields.FieldInfo) else node)
+        raw = node.annotation if isinstance(node, pydantic.fields.FieldInfo) else node
+        if isinstance(part, int) and typing.get_origin(raw) in (typing.Union, types.UnionType):
+            raw = next((a for a in typing.get_args(raw) if typing.get_origin(_strip(a)) in (tuple, list)), raw)
+        tp = _strip(raw)
         if isinstance(part, int):
             args = typing.get_args(tp)
             if not args:
@@ -189,7 +192,11 @@ def _union_tag(part: Any) -> bool:
 
 def describe_validation_error(exc: pydantic.ValidationError, cls: Any, where: str) -> str:
     """One line for a pydantic error: the dotted field path, the value and what is allowed."""
-    err = exc.errors()[0]  # the first: later ones are often its consequences
+    errors = exc.errors()
+    err = errors[0]  # the first: later ones are often its consequences
+    if isinstance(err.get("input"), (list, tuple)):  # (a union's members each fail: report the sequence member's)
+        err = next((e for e in errors if e["loc"][:len(err["loc"]) - 1] == err["loc"][:-1]
+                    and any(isinstance(p, str) and p.startswith(("tuple[", "list[")) for p in e["loc"])), err)
     loc = tuple(p for p in err["loc"] if not _union_tag(p))
     path = where + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
     kind, value, ctx = err["type"], err.get("input"), err.get("ctx") or {}

@@ -149,6 +149,9 @@ def test_config_values_are_checked_when_the_config_is_read(tmp_path):
     train.write_text("residual_scale: 5\n")  # (a field that is a number or a pair: the message names the field)
     with pytest.raises(ConfigError, match=r"t.yaml.residual_scale = 5 is out of range; allowed \(0, 2\]"):
         TrainConfig.load(train)
+    train.write_text("residual_scale: [-1, 0]\n")  # (the pair's member is named, with its own range)
+    with pytest.raises(ConfigError, match=r"t.yaml.residual_scale\[0\] = -1 is out of range; allowed \[0, 2\]"):
+        TrainConfig.load(train)
 
 
 def test_a_value_given_twice_in_a_grid_is_refused(tmp_path):
