@@ -190,13 +190,21 @@ def _union_tag(part: Any) -> bool:
     return isinstance(part, str) and ("[" in part or re.fullmatch(r"[a-z]+(-[a-z]+)+", part) is not None)
 
 
+def _reported_error(exc: pydantic.ValidationError) -> Any:
+    """The error a message reports: the first (later ones are often its consequences), but where a sequence failed a
+    union's members one by one, the sequence member's (its entries are what is wrong, not that it is no number)."""
+    errors = exc.errors()
+    err = errors[0]
+    if not isinstance(err.get("input"), (list, tuple)):
+        return err
+    sequence = [e for e in errors if e["loc"][:len(err["loc"]) - 1] == err["loc"][:-1]
+                and any(isinstance(p, str) and p.startswith(("tuple[", "list[")) for p in e["loc"])]
+    return sequence[0] if sequence else err
+
+
 def describe_validation_error(exc: pydantic.ValidationError, cls: Any, where: str) -> str:
     """One line for a pydantic error: the dotted field path, the value and what is allowed."""
-    errors = exc.errors()
-    err = errors[0]  # the first: later ones are often its consequences
-    if isinstance(err.get("input"), (list, tuple)):  # (a union's members each fail: report the sequence member's)
-        err = next((e for e in errors if e["loc"][:len(err["loc"]) - 1] == err["loc"][:-1]
-                    and any(isinstance(p, str) and p.startswith(("tuple[", "list[")) for p in e["loc"])), err)
+    err = _reported_error(exc)
     loc = tuple(p for p in err["loc"] if not _union_tag(p))
     path = where + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
     kind, value, ctx = err["type"], err.get("input"), err.get("ctx") or {}
