@@ -67,6 +67,14 @@ def datasets_path(folder: Path) -> Iterator[None]:
             os.environ["MINARI_DATASETS_PATH"] = old
 
 
+def check_dataset_id(dataset_id: str) -> None:
+    """ConfigError unless ``dataset_id`` is a Minari id, (namespace/)name-v<version> of letters, digits, '_', '.' and
+    '-' (no path of its own: a dataset lives under the datasets folder)."""
+    if not _ID.match(dataset_id) or ".." in dataset_id.split("/"):
+        raise ConfigError(f"dataset id {dataset_id!r} is not a Minari id: (namespace/)name-v<version>, "
+                          "letters, digits, '_', '.', '-'")
+
+
 def default_dataset_id(policy_name: str) -> str:
     """``msdgrasp/grasplift/<policy>-v0``, the policy's name made safe for a Minari id."""
     slug = re.sub(r"[^A-Za-z0-9]+", "-", policy_name).strip("-").lower() or "policy"
@@ -108,9 +116,7 @@ def collect(policy: str, episodes: int, out_dir: str | Path, dataset_id: str | N
     pol = build_policy(policy, task)
     name = str(getattr(pol, "name", policy))
     dataset_id = dataset_id or default_dataset_id(name)
-    if not _ID.match(dataset_id):
-        raise ConfigError(f"dataset id {dataset_id!r} is not a Minari id: (namespace/)name-v<version>, "
-                          "letters, digits, '_', '.', '-'")
+    check_dataset_id(dataset_id)
     out_dir = Path(out_dir)
     final = out_dir / dataset_id
     if final.exists():

@@ -28,8 +28,9 @@ CLONE_EPOCHS = 40
 
 
 def _load(dataset_id: str, datasets_path_: Path):
-    from .demonstrations import datasets_path, import_minari
+    from .demonstrations import check_dataset_id, datasets_path, import_minari
 
+    check_dataset_id(dataset_id)
     minari = import_minari()
     folder = datasets_path_ / dataset_id
     if not (folder / "card.json").is_file():

@@ -72,6 +72,9 @@ def viewer_command(path: str | os.PathLike, web: bool = False, port: int | None 
     _check_port("--grpc-port", grpc_port)
     if not web and (port is not None or grpc_port is not None):
         raise _usage_error("--port and --grpc-port need --web (the native viewer serves nothing)")
+    if (port or 9090) == (grpc_port or 9876):
+        raise _usage_error(f"--port and --grpc-port are both {port or 9090}: the viewer page and the data it streams "
+                           "need two ports")
     cmd = [rerun_executable()]
     if web:
         cmd.append("--web-viewer")

@@ -190,3 +190,9 @@ def test_a_training_teacher_that_names_nothing_or_grips_beyond_the_jaw_is_refuse
     _assert_refused(["train", "--config", "none.yaml", "--out", "run"], capsys, tmp_path,
                     "bc_teacher: 'nosuch' is neither a controller spec")
     _assert_refused(["train", "--config", "hard.yaml", "--out", "run"], capsys, tmp_path, "force_N = 9 N")
+
+
+def test_a_dataset_id_that_is_not_a_minari_id_is_refused_before_minari_loads(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _assert_refused(["clone", "bad id", "--out", "c"], capsys, tmp_path, "'bad id' is not a Minari id")
+    _assert_refused(["clone", "a/../b-v0", "--out", "c"], capsys, tmp_path, "is not a Minari id")

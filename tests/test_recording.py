@@ -260,6 +260,10 @@ def test_replay_web_ports_are_passed_to_rerun_and_checked_before_anything_starts
         viewer_command("ep.rrd", web=True, port=0)
     with pytest.raises(UsageError, match="need --web"):
         viewer_command("ep.rrd", port=8123)
+    with pytest.raises(UsageError, match="are both 9090: the viewer page and the data it streams need two ports"):
+        viewer_command("ep.rrd", web=True, port=9090, grpc_port=9090)
+    with pytest.raises(UsageError, match="are both 9876"):  # (one port given, the other's default)
+        viewer_command("ep.rrd", web=True, port=9876)
 
 
 @pytest.mark.parametrize("launcher", [["-m", "msdgrasp.cli.main"],
