@@ -239,12 +239,8 @@ class TrainConfig:
             raise ConfigError("squash_actions: true needs ppo.use_sde: true (SB3 squashes gSDE actions only); "
                               "set squash_actions: false to train PPO without gSDE")
         _check_residual(self)
-        if self.bc_teacher is not None and controller_of(self.bc_teacher) is None and not Path(
-                self.bc_teacher).is_file():
-            raise ConfigError(f"bc_teacher: {self.bc_teacher!r} is neither a controller spec (e.g. 'reactive', "
-                              "'fixed:2') nor a model file")
-        if self.bc_teacher is not None and controller_of(self.bc_teacher) is not None:
-            check_controller_spec(self.bc_teacher, self.env)
+        if self.bc_teacher is not None:
+            _check_teacher(self.bc_teacher, self.env)
         if self.init_model is not None and self.bc_teacher is not None:
             raise ConfigError("give either init_model (start from a trained model) or bc_teacher (clone a teacher "
                               "first), not both")
@@ -274,6 +270,15 @@ def _check_critic(config: TrainConfig) -> None:
         raise ConfigError(f"asymmetric_critic is implemented for algo 'ppo' only, got algo {config.algo!r}")
     if config.asymmetric_critic and not config.env.privileged_obs:
         raise ConfigError("asymmetric_critic: true needs env.privileged_obs: true (the critic's extra inputs)")
+
+
+def _check_teacher(teacher: str, env: GraspLiftConfig) -> None:
+    """A behaviour-cloning teacher is a controller spec whose grip the task's jaw can command, or a model file."""
+    if controller_of(teacher) is not None:
+        check_controller_spec(teacher, env)
+    elif not Path(teacher).is_file():
+        raise ConfigError(f"bc_teacher: {teacher!r} is neither a controller spec (e.g. 'reactive', 'fixed:2') nor a "
+                          "model file")
 
 
 def _residual_controller(config: TrainConfig) -> Controller:
